@@ -1,0 +1,70 @@
+"""RoGUENeRF: geometry-consistent enhancement of radiance-field renders (ECCV 2024).
+
+The public API is re-exported here lazily, so ``import roguenerf`` stays cheap and never
+imports the service stack (fastapi, huey, uvicorn).
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from roguenerf.errors import (
+    CheckpointError,
+    InputError,
+    RoGUENeRFError,
+    SceneFormatError,
+    TrainingCancelled,
+    TrainingDivergedError,
+)
+
+__version__ = "0.1.0"
+
+_LAZY = {
+    # models
+    "EnhancerConfig": "roguenerf.models",
+    "Enhancer": "roguenerf.models",
+    "VARIANTS": "roguenerf.models",
+    "build_enhancer": "roguenerf.models",
+    "make_config": "roguenerf.models",
+    # data
+    "Scene": "roguenerf.data.scene",
+    "Frame": "roguenerf.data.scene",
+    "load_scene": "roguenerf.data.readers",
+    "write_scene_folder": "roguenerf.data.writers",
+    "make_toy_scene": "roguenerf.data.toy",
+    # checkpoints and metrics
+    "save_checkpoint": "roguenerf.checkpoint",
+    "load_checkpoint": "roguenerf.checkpoint",
+    "default_checkpoint_path": "roguenerf.checkpoint",
+    "psnr": "roguenerf.metrics",
+    "ssim": "roguenerf.metrics",
+    # inference and training
+    "SceneEnhancer": "roguenerf.inference",
+    "EnhanceResult": "roguenerf.inference",
+    "TrainConfig": "roguenerf.training",
+    "TrainProgress": "roguenerf.training",
+    "TrainResult": "roguenerf.training",
+    "finetune": "roguenerf.training",
+    "pretrain": "roguenerf.training",
+    "evaluate": "roguenerf.training",
+}
+
+__all__ = [
+    "CheckpointError",
+    "InputError",
+    "RoGUENeRFError",
+    "SceneFormatError",
+    "TrainingCancelled",
+    "TrainingDivergedError",
+    "__version__",
+    *_LAZY,
+]
+
+
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'roguenerf' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value

@@ -1,0 +1,1 @@
+"""Scenes: one type, readers for the formats users have, toy scenes and degradations."""

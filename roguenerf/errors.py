@@ -1,0 +1,49 @@
+"""One exception type per kind of fault.
+
+Every message says what was expected and what arrived, and names the argument or file.
+All input errors are ``ValueError`` subclasses, so callers that only know the standard
+library can still catch them.
+"""
+
+from __future__ import annotations
+
+
+class RoGUENeRFError(Exception):
+    """Base class of every error this library raises on purpose."""
+
+
+class InputError(RoGUENeRFError, ValueError):
+    """An argument has the wrong shape, dtype or values (bad pose, fx <= 0, NaN ...)."""
+
+
+class SceneFormatError(InputError):
+    """A scene file is missing or malformed; the message names the file and the problem."""
+
+    def __init__(self, path, problem: str):
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+class CheckpointError(InputError):
+    """A checkpoint is not a valid RoGUENeRF safetensors file, or does not fit the model."""
+
+
+class TrainingDivergedError(RoGUENeRFError, RuntimeError):
+    """The training loss became non-finite; the last good checkpoint was kept."""
+
+    def __init__(self, step: int, loss: float, checkpoint: str | None = None):
+        self.step = step
+        self.loss = loss
+        self.checkpoint = checkpoint
+        where = f"; last good checkpoint: {checkpoint}" if checkpoint else ""
+        super().__init__(f"non-finite training loss ({loss}) at step {step}{where}")
+
+
+class TrainingCancelled(RoGUENeRFError):
+    """Training stopped because its ``should_stop`` callback asked it to."""
+
+    def __init__(self, step: int, checkpoint: str | None = None):
+        self.step = step
+        self.checkpoint = checkpoint
+        super().__init__(f"training cancelled at step {step}")
