@@ -1,0 +1,24 @@
+"""Shared test settings: the real scenes in ../shared/data and a hypothesis profile for 2 cores."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+from hypothesis import settings
+
+settings.register_profile("ci", deadline=None, max_examples=30, derandomize=True)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("ROGUENERF_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def lego_dir() -> Path:
+    """The real lego scene (100 train / 25 test views, radiance-field renders and depths)."""
+    path = SHARED_DATA / "lego"
+    if not (path / "transforms.json").is_file():
+        pytest.fail(f"the real lego scene is missing at {path} (set ROGUENERF_SHARED_DATA)")
+    return path
