@@ -1,12 +1,33 @@
-"""Camera conventions and validation (STUB: signatures are the contract)."""
+"""Camera conventions and validation.
+
+Internally every pose is an OpenCV camera-to-world ``world_from_cam`` (x right, y down,
+z forward) and every ``K`` uses the pixel-centre convention: the centre of pixel (row v,
+col u) sits at (u + 0.5, v + 0.5) in K's image coordinates (nerfstudio / COLMAP /
+``../shared/data/lego``).
+"""
 
 from __future__ import annotations
 
 import torch
 from torch import Tensor
 
+from roguenerf.errors import InputError
+
 ORTHONORMAL_TOL = 1e-3
 """Rotations with ``max|R^T R - I| <= ORTHONORMAL_TOL`` are re-orthonormalised (SVD); worse ones raise."""
+
+_FLIP_YZ = (1.0, -1.0, -1.0)
+
+
+def _check_tensor(x, name: str, trailing: tuple[int, ...] | None = None) -> Tensor:
+    if not isinstance(x, Tensor):
+        raise InputError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    if not x.is_floating_point():
+        raise InputError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
+    if trailing is not None and tuple(x.shape[-len(trailing) :]) != trailing:
+        want = ", ".join(str(t) for t in trailing)
+        raise InputError(f"{name}: expected shape (..., {want}), got {tuple(x.shape)}")
+    return x
 
 
 def opengl_to_opencv(world_from_cam: Tensor) -> Tensor:
@@ -17,12 +38,16 @@ def opengl_to_opencv(world_from_cam: Tensor) -> Tensor:
     Returns:
         Same shape, OpenCV convention (columns 1 and 2 of the rotation negated).
     """
-    raise NotImplementedError
+    _check_tensor(world_from_cam, "world_from_cam")
+    if world_from_cam.shape[-1] != 4 or world_from_cam.shape[-2] not in (3, 4):
+        raise InputError(f"world_from_cam: expected shape (..., 4, 4) or (..., 3, 4), got {tuple(world_from_cam.shape)}")
+    flip = world_from_cam.new_tensor((*_FLIP_YZ, 1.0))
+    return world_from_cam * flip
 
 
 def opencv_to_opengl(world_from_cam: Tensor) -> Tensor:
     """Inverse of :func:`opengl_to_opencv` (the operation is its own inverse)."""
-    raise NotImplementedError
+    return opengl_to_opencv(world_from_cam)
 
 
 def llff_to_opencv(poses: Tensor) -> Tensor:
@@ -33,17 +58,48 @@ def llff_to_opencv(poses: Tensor) -> Tensor:
     Returns:
         ``(N, 4, 4)`` OpenCV camera-to-world.
     """
-    raise NotImplementedError
+    _check_tensor(poses, "poses", (3, 4))
+    if poses.ndim != 3:
+        raise InputError(f"poses: expected shape (N, 3, 4), got {tuple(poses.shape)}")
+    down, right, back, t = poses.unbind(-1)
+    top = torch.stack([right, down, -back, t], dim=-1)
+    bottom = poses.new_tensor((0.0, 0.0, 0.0, 1.0)).expand(poses.shape[0], 1, 4)
+    return torch.cat([top, bottom], dim=-2)
 
 
 def intrinsics_matrix(fx, fy, cx, cy, *, dtype=torch.float32) -> Tensor:
-    """Build ``K`` ``(3, 3)`` (or ``(B, 3, 3)`` for tensor inputs); raises InputError if fx/fy <= 0 or non-finite."""
-    raise NotImplementedError
+    """Build ``K`` ``(3, 3)`` (or ``(B, 3, 3)`` for tensor inputs); raises InputError if fx/fy <= 0 or non-finite.
+
+    ``cx, cy`` are in the pixel-centre convention (an image of width W has its centre at W / 2).
+    """
+    fx, fy, cx, cy = (torch.as_tensor(v, dtype=dtype) for v in (fx, fy, cx, cy))
+    fx, fy, cx, cy = torch.broadcast_tensors(fx, fy, cx, cy)
+    zero, one = torch.zeros_like(fx), torch.ones_like(fx)
+    K = torch.stack(
+        [
+            torch.stack([fx, zero, cx], -1),
+            torch.stack([zero, fy, cy], -1),
+            torch.stack([zero, zero, one], -1),
+        ],
+        -2,
+    )
+    return check_intrinsics(K, "K")
 
 
 def scale_intrinsics(K: Tensor, sx: float, sy: float) -> Tensor:
-    """Intrinsics of the same camera after resizing the image by (sx, sy), pixel-centre aware."""
-    raise NotImplementedError
+    """Intrinsics of the same camera after resizing the image by (sx, sy), pixel-centre aware.
+
+    With pixel centres at half-integers the image edges are at 0 and W, so resizing scales
+    ``fx, cx`` by ``sx`` and ``fy, cy`` by ``sy`` with no half-pixel offset.
+
+    Args:
+        K: ``(..., 3, 3)``.
+    """
+    check_intrinsics(K)
+    if not (sx > 0 and sy > 0):
+        raise InputError(f"scale_intrinsics: expected positive scale factors, got sx={sx}, sy={sy}")
+    scale = K.new_tensor([[sx, sx, sx], [sy, sy, sy], [1.0, 1.0, 1.0]])
+    return K * scale
 
 
 def check_intrinsics(K: Tensor, name: str = "K") -> Tensor:
@@ -51,7 +107,18 @@ def check_intrinsics(K: Tensor, name: str = "K") -> Tensor:
 
     Returns ``K`` unchanged; raises :class:`~roguenerf.errors.InputError` naming ``name``.
     """
-    raise NotImplementedError
+    _check_tensor(K, name, (3, 3))
+    if not torch.isfinite(K).all():
+        raise InputError(f"{name}: expected finite intrinsics, got non-finite values")
+    fx, fy = K[..., 0, 0], K[..., 1, 1]
+    if (fx <= 0).any() or (fy <= 0).any():
+        raise InputError(
+            f"{name}: expected focal lengths fx > 0 and fy > 0, got fx={fx.min().item():g}, fy={fy.min().item():g} (min)"
+        )
+    last = K[..., 2, :]
+    if not torch.allclose(last, last.new_tensor((0.0, 0.0, 1.0)).expand_as(last), atol=1e-6):
+        raise InputError(f"{name}: expected last row (0, 0, 1), got {last.reshape(-1, 3)[0].tolist()}")
+    return K
 
 
 def check_pose(world_from_cam: Tensor, name: str = "pose", tol: float = ORTHONORMAL_TOL) -> Tensor:
@@ -60,7 +127,30 @@ def check_pose(world_from_cam: Tensor, name: str = "pose", tol: float = ORTHONOR
 
     Returns the (possibly re-orthonormalised) pose, same dtype.
     """
-    raise NotImplementedError
+    _check_tensor(world_from_cam, name, (4, 4))
+    if not torch.isfinite(world_from_cam).all():
+        raise InputError(f"{name}: expected a finite 4x4 camera-to-world matrix, got non-finite values")
+    last = world_from_cam[..., 3, :]
+    if not torch.allclose(last, last.new_tensor((0.0, 0.0, 0.0, 1.0)).expand_as(last), atol=1e-6):
+        raise InputError(f"{name}: expected last row (0, 0, 0, 1), got {last.reshape(-1, 4)[0].tolist()}")
+    R = world_from_cam[..., :3, :3].double()
+    eye = torch.eye(3, dtype=R.dtype)
+    err = (R.transpose(-1, -2) @ R - eye).abs().amax(dim=(-2, -1))
+    if (err > tol).any():
+        raise InputError(
+            f"{name}: expected an orthonormal rotation (max|R^T R - I| <= {tol:g}), got {err.max().item():.3g}"
+        )
+    if (torch.linalg.det(R) <= 0).any():
+        raise InputError(f"{name}: expected a rotation with det(R) = +1, got a reflection (det = -1); mixed-up axis convention?")
+    # Only touch poses that are visibly off: an exact rotation stays bit-identical.
+    needs_fix = err > 32 * torch.finfo(world_from_cam.dtype).eps
+    if not needs_fix.any():
+        return world_from_cam
+    U, _, Vh = torch.linalg.svd(R)
+    fixed = (U @ Vh).to(world_from_cam.dtype)
+    out = world_from_cam.clone()
+    out[..., :3, :3] = torch.where(needs_fix[..., None, None], fixed, world_from_cam[..., :3, :3])
+    return out
 
 
 def ray_to_z_depth(ray_depth: Tensor, K: Tensor) -> Tensor:
@@ -69,5 +159,21 @@ def ray_to_z_depth(ray_depth: Tensor, K: Tensor) -> Tensor:
     Args:
         ray_depth: ``(..., H, W)``; non-finite / <= 0 stays "unknown" (returned as 0).
         K: ``(3, 3)`` or ``(..., 3, 3)`` broadcastable.
+    Returns:
+        ``(..., H, W)`` z-depth.
     """
-    raise NotImplementedError
+    _check_tensor(ray_depth, "ray_depth")
+    check_intrinsics(K)
+    if ray_depth.ndim < 2:
+        raise InputError(f"ray_depth: expected shape (..., H, W), got {tuple(ray_depth.shape)}")
+    H, W = ray_depth.shape[-2:]
+    K = K.to(ray_depth.dtype)
+    u = torch.arange(W, dtype=ray_depth.dtype) + 0.5
+    v = torch.arange(H, dtype=ray_depth.dtype) + 0.5
+    fx, fy, cx, cy = (K[..., i, j][..., None, None] for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
+    skew = K[..., 0, 1][..., None, None]
+    y = (v[:, None] - cy) / fy
+    x = (u[None, :] - cx - skew * y) / fx
+    norm = torch.sqrt(x * x + y * y + 1.0)
+    known = torch.isfinite(ray_depth) & (ray_depth > 0)
+    return torch.where(known, torch.nan_to_num(ray_depth, nan=0.0, posinf=0.0, neginf=0.0) / norm, 0.0)

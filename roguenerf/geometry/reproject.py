@@ -1,13 +1,29 @@
-"""3D alignment: reproject neighbour features into the target view (section 3.3) (STUB)."""
+"""3D alignment: reproject neighbour features into the target view (section 3.3).
+
+Legend: B batch, C channels, (H, W) target image, (Hs, Ws) neighbour ("src") image.
+
+Built from kornia's ``create_meshgrid``, ``transform_points`` and ``remap`` plus our own
+validity mask. ``kornia.geometry.depth.warp_frame_depth`` is not used: it takes one K for
+both views, samples points behind the camera and fills zero depth from the principal point.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import torch
+from kornia.geometry.grid import create_meshgrid
+from kornia.geometry.linalg import transform_points
+from kornia.geometry.transform import remap
 from torch import Tensor
+
+from roguenerf.errors import InputError
+from roguenerf.geometry.cameras import check_intrinsics, check_pose
 
 DEFAULT_LENIENCY = 0.25
 DEPTH_EPS = 1e-6
+MAX_DEPTH = 1e10
+"""Depth at or beyond this is treated as unknown: it would overflow float32 geometry."""
 
 
 @dataclass
@@ -19,10 +35,42 @@ class Reprojection:
     neighbour image, neighbour depth known there, and the visibility test passed."""
     depth: Tensor
     """``(B, 1, H, W)`` D_{i->k}: the neighbour's own depth sampled at the projected point
-    (0 where not valid)."""
+    (0 where not valid). Without ``src_depth`` it is z_{k->i}, the target point's depth in the
+    neighbour camera."""
     coords: Tensor
     """``(B, H, W, 2)`` projected pixel coordinates (x, y) in the neighbour image (pixel units,
-    centre of pixel (0,0) at (0,0)); 0 where not finite."""
+    centre of pixel (0,0) at (0,0)); 0 where the point is not finite or not in front of the
+    neighbour camera (z_{k->i} <= eps)."""
+
+
+def _batched(x: Tensor, name: str, trailing: tuple[int, int], batch: int, dtype: torch.dtype) -> Tensor:
+    """``x`` as ``(batch, *trailing)``: a single matrix is shared by the whole batch."""
+    if x.ndim == 2:
+        x = x.unsqueeze(0)
+    if x.ndim != 3 or tuple(x.shape[-2:]) != trailing or x.shape[0] not in (1, batch):
+        want = f"({batch}, {trailing[0]}, {trailing[1]}) or ({trailing[0]}, {trailing[1]})"
+        raise InputError(f"{name}: expected shape {want}, got {tuple(x.shape)}")
+    return x.expand(batch, *trailing)
+
+
+def _check_image(x, name: str, channels: int | None = None) -> Tensor:
+    if not isinstance(x, Tensor) or not x.is_floating_point():
+        got = x.dtype if isinstance(x, Tensor) else type(x).__name__
+        raise InputError(f"{name}: expected a floating-point tensor, got {got}")
+    c = "C" if channels is None else str(channels)
+    if x.ndim != 4 or (channels is not None and x.shape[1] != channels) or x.shape[-1] == 0 or x.shape[-2] == 0:
+        raise InputError(f"{name}: expected shape (B, {c}, H, W) with H, W >= 1, got {tuple(x.shape)}")
+    return x
+
+
+def _known(depth: Tensor, eps: float) -> tuple[Tensor, Tensor]:
+    """Mask of usable depth and the depth with every unusable entry replaced by 1.
+
+    Replacing (rather than masking afterwards) keeps NaN/inf out of every later division,
+    so their gradients stay finite.
+    """
+    known = torch.isfinite(depth) & (depth > eps) & (depth < MAX_DEPTH)
+    return known, torch.where(known, torch.nan_to_num(depth, nan=1.0, posinf=1.0, neginf=1.0), 1.0)
 
 
 def reproject(
@@ -39,18 +87,102 @@ def reproject(
 ) -> Reprojection:
     """Warp ``src`` (neighbour i) features into the ``dst`` (target k) view using target depth.
 
-    x_{k->i} = K_i C_i^{-1} C_k K_k^{-1} [x_k, 1] (C = world_from_cam), bilinear sampling
-    with zero padding, vis = H(1 - z_{k->i} / z_i + leniency). Without ``src_depth`` the
-    visibility test is skipped (every in-image, in-front point is visible).
+    x_{k->i} = K_i C_i^{-1} C_k K_k^{-1} [x_k, 1] (C = world_from_cam), bilinear sampling,
+    vis = H(1 - z_{k->i} / z_i + leniency). Without ``src_depth`` the visibility test is
+    skipped (every in-image, in-front point is visible).
+
+    "Inside the neighbour image" means inside its pixel area: x in [-0.5, Ws - 0.5],
+    y in [-0.5, Hs - 0.5] (pixel centres at integers); in the outer half pixel the edge pixel
+    is repeated rather than blended with zeros. Everything outside is invalid and 0. The
+    neighbour depth z_i is the bilinear mean over the known neighbour pixels and counts as
+    known where they carry at least half of the bilinear weight. Depth ``>= MAX_DEPTH`` is
+    unknown. The relative pose is computed in float64, so large translations (1e4) shared by
+    both cameras lose no precision.
 
     Args:
         src_features: ``(B, C, Hs, Ws)``.
         src_depth: ``(B, 1, Hs, Ws)`` z-depth of the neighbour view, or None.
         dst_depth: ``(B, 1, H, W)`` z-depth of the target view.
-        src_K, dst_K: ``(B, 3, 3)`` pixel-centre convention (see package docstring).
-        world_from_src, world_from_dst: ``(B, 4, 4)`` OpenCV camera-to-world.
+        src_K, dst_K: ``(B, 3, 3)`` or ``(3, 3)``, pixel-centre convention (see package docstring).
+        world_from_src, world_from_dst: ``(B, 4, 4)`` or ``(4, 4)`` OpenCV camera-to-world.
     Returns:
         :class:`Reprojection`. Outputs and gradients are finite for any input depth
-        (NaN/inf/zero/negative are treated as missing); invalid K raises InputError.
+        (NaN/inf/zero/negative are treated as missing); invalid K or poses raise InputError.
     """
-    raise NotImplementedError
+    _check_image(src_features, "src_features")
+    _check_image(dst_depth, "dst_depth", 1)
+    B, C, Hs, Ws = src_features.shape
+    H, W = dst_depth.shape[-2:]
+    if dst_depth.shape[0] != B:
+        raise InputError(f"dst_depth: expected batch size {B} (as src_features), got {dst_depth.shape[0]}")
+    if src_depth is not None:
+        _check_image(src_depth, "src_depth", 1)
+        if tuple(src_depth.shape) != (B, 1, Hs, Ws):
+            raise InputError(f"src_depth: expected shape {(B, 1, Hs, Ws)} (as src_features), got {tuple(src_depth.shape)}")
+    if not (leniency == leniency and abs(leniency) != float("inf")):
+        raise InputError(f"leniency: expected a finite number, got {leniency}")
+    if not eps > 0:
+        raise InputError(f"eps: expected eps > 0, got {eps}")
+    dtype = torch.float64 if src_features.dtype == torch.float64 else torch.float32
+    device = src_features.device
+
+    src_K = _batched(check_intrinsics(src_K, "src_K"), "src_K", (3, 3), B, dtype).to(device, dtype)
+    dst_K = _batched(check_intrinsics(dst_K, "dst_K"), "dst_K", (3, 3), B, dtype).to(device, dtype)
+    world_from_src = _batched(check_pose(world_from_src, "world_from_src"), "world_from_src", (4, 4), B, dtype)
+    world_from_dst = _batched(check_pose(world_from_dst, "world_from_dst"), "world_from_dst", (4, 4), B, dtype)
+    # float64 here: with both cameras 1e4 units from the origin, float32 would leave mm-scale errors.
+    src_from_dst = (torch.linalg.inv(world_from_src.double()) @ world_from_dst.double()).to(device, dtype)
+
+    dst_known, z = _known(dst_depth.to(dtype), eps)
+    # The pinhole maths with K is plain torch: kornia's (un)project helpers ignore K's skew
+    # and put pixel centres at integers (ours are at +0.5).
+    pix = create_meshgrid(H, W, normalized_coordinates=False, device=device, dtype=dtype) + 0.5
+    pix_h = torch.cat([pix, torch.ones_like(pix[..., :1])], dim=-1)  # (1, H, W, 3)
+    rays = torch.einsum("bij,bhwj->bhwi", torch.linalg.inv(dst_K), pix_h.expand(B, -1, -1, -1))
+    pts_dst = rays * z[:, 0, :, :, None]  # (B, H, W, 3)
+    pts_src = transform_points(src_from_dst, pts_dst.reshape(B, H * W, 3)).reshape(B, H, W, 3)
+
+    uvw = torch.einsum("bij,bhwj->bhwi", src_K, pts_src)
+    z_proj = pts_src[..., 2]
+    in_front = torch.isfinite(uvw).all(dim=-1) & (z_proj > eps)
+    # Sanitise before dividing, so NaN/inf never meet a zero gradient (0 * inf = NaN).
+    uvw = torch.where(in_front[..., None], uvw, 0.0)
+    z_proj = torch.where(in_front, z_proj, 1.0)
+    coords = uvw[..., :2] / z_proj[..., None] - 0.5  # (B, H, W, 2), pixel centres at integers
+    x, y = coords.unbind(-1)
+    inside = (x >= -0.5) & (x <= Ws - 0.5) & (y >= -0.5) & (y <= Hs - 0.5)
+    valid = dst_known[:, 0] & in_front & inside
+    coords = torch.where(in_front[..., None], coords, 0.0)
+    sample_at = torch.where(valid[..., None], coords, 0.0)
+
+    stack = [src_features.to(dtype)]
+    if src_depth is not None:
+        src_known, src_z = _known(src_depth.to(dtype), eps)
+        stack += [torch.where(src_known, src_z, 0.0), src_known.to(dtype)]
+    # align_corners=True: kornia normalises pixel maps as "centre of pixel 0 at -1"; border
+    # padding only matters in the outer half pixel, everything further out is invalid.
+    sampled = remap(
+        torch.cat(stack, dim=1),
+        sample_at[..., 0],
+        sample_at[..., 1],
+        mode="bilinear",
+        padding_mode="border",
+        align_corners=True,
+    )
+    features = sampled[:, :C]
+    if src_depth is not None:
+        weight = sampled[:, C + 1]
+        src_seen = weight >= 0.5
+        z_i = sampled[:, C] / torch.where(src_seen, weight, 1.0)
+        visible = z_proj <= (1.0 + leniency) * z_i
+        valid = valid & src_seen & visible
+        depth = z_i
+    else:
+        depth = z_proj
+    valid = valid[:, None]
+    return Reprojection(
+        features=torch.where(valid, features, 0.0).to(src_features.dtype),
+        valid=valid.to(src_features.dtype),
+        depth=torch.where(valid, depth[:, None], 0.0).to(src_features.dtype),
+        coords=coords.to(src_features.dtype),
+    )

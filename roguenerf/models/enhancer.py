@@ -1,10 +1,47 @@
-"""The full RoGUENeRF enhancer (STUB: signatures are the contract)."""
+"""The full RoGUENeRF enhancer (paper section 3, supplementary implementation details).
+
+For a target render I_k with depth D_k and neighbours H_i (training photos, their conv_H
+features cached per scene):
+
+    I^f = conv_I(I_k)
+    H_{i->k} = reproject(conv_H(H_i))                       3D alignment (use_alignment)
+    H'_i = warp(H_{i->k}, flow(H_{i->k}, I^f))              non-rigid refinement (use_refinement)
+    H^a_i = psi_cam_i * psi_pix_i * H'_i                     geometry-aware attention (use_attention)
+    H_pool = max_i H^a_i                                     0 without neighbours
+    out = I_k + Uformer(conv_merge([I^f, H_pool]))           global residual
+
+Scale invariance (a deviation from the paper, which feeds raw depths and absolute camera
+positions): scenes come in arbitrary units, so the depths fed to the attention are divided by
+the target's median valid depth ``s`` (then clamped to [0, MAX_RELATIVE_DEPTH]) and the camera
+attention sees the neighbour's position relative to the target, ``(t_i - t_k) / s`` (clamped
+to +-MAX_RELATIVE_DEPTH), instead of ``t_i, t_k``. Scaling a scene's units (depths and
+translations together) therefore leaves the output unchanged.
+
+Neighbours are processed one at a time and max-pooled on the fly, so memory does not grow
+with their number and the output is exactly invariant to their order.
+
+Dimension letters: B batch, N neighbours, F feature channels, H x W target size,
+Hs x Ws neighbour size.
+"""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
+
+from roguenerf.errors import InputError
+from roguenerf.geometry import euler_angles, reproject
+from roguenerf.models.config import EnhancerConfig
+from roguenerf.models.flow import FLOW_STRIDE, FlowRefiner, flow_warp
+from roguenerf.models.layers import CameraAttention, ConvEncoder, PixelAttention, act, he_init, zero_init
+from roguenerf.models.uformer import Uformer
+
+MAX_RELATIVE_DEPTH = 10.0
+"""Normalised depths and relative camera positions are clamped to this magnitude."""
 
 
 @dataclass
@@ -21,20 +58,163 @@ class NeighbourBatch:
     K: Tensor
     world_from_cam: Tensor
 
+    def __len__(self) -> int:
+        return self.features.shape[1]
+
+
+def known_depth(depth: Tensor) -> Tensor:
+    """Depth with every unknown entry (<= 0, NaN, inf) replaced by 0; same shape."""
+    return torch.where(torch.isfinite(depth) & (depth > 0), depth, torch.zeros_like(depth))
+
+
+def median_depth(depth: Tensor) -> Tensor:
+    """``(B, 1, H, W)`` z-depth -> ``(B,)`` median over known pixels (1.0 where none is known)."""
+    d = depth.detach().flatten(1).to(torch.float64)
+    d = torch.where(torch.isfinite(d) & (d > 0), d, torch.nan)
+    med = torch.nanmedian(d, dim=1).values
+    return torch.where(torch.isfinite(med), med, torch.ones_like(med)).to(depth.dtype)
+
+
+def _check(x, name: str, shape: tuple) -> Tensor:
+    """``shape`` entries: int = exact size, None = any size >= 1."""
+    if not isinstance(x, Tensor) or not x.is_floating_point():
+        got = x.dtype if isinstance(x, Tensor) else type(x).__name__
+        raise InputError(f"{name}: expected a floating-point tensor, got {got}")
+    ok = x.ndim == len(shape) and all(s is None and n >= 1 or s == n for s, n in zip(shape, x.shape))
+    if not ok:
+        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+        raise InputError(f"{name}: expected shape {want}, got {tuple(x.shape)}")
+    return x
+
 
 class Enhancer(nn.Module):
+    """RoGUENeRF enhancer built from an :class:`EnhancerConfig` (see the module docstring).
+
+    Sub-modules a switch turns off are not built (``None``), so they hold no parameters.
+    """
+
+    def __init__(self, config: EnhancerConfig):
+        super().__init__()
+        self.config = cfg = config
+        f = cfg.features
+        self.conv_I = ConvEncoder(features=f)
+        nb = cfg.use_neighbours
+        self.conv_H = ConvEncoder(features=f) if nb else None
+        self.flow = (FlowRefiner(features=f, hidden=cfg.flow_hidden, iters=cfg.flow_iters)
+                     if nb and cfg.use_refinement else None)
+        self.pixel_attention = (PixelAttention(features=f, hidden=cfg.attention_hidden)
+                                if nb and cfg.use_attention else None)
+        self.camera_attention = CameraAttention(hidden=cfg.attention_hidden) if nb and cfg.use_attention else None
+        self.conv_merge = he_init(nn.Sequential(nn.Conv2d((2 if nb else 1) * f, f, 3, padding=1), act()))
+        if cfg.use_uformer:
+            self.uformer = Uformer(cfg.uformer, in_channels=f, out_channels=3)
+            self.to_rgb = None
+        else:
+            self.uformer = None
+            self.to_rgb = zero_init(nn.Conv2d(f, 3, 3, padding=1))
+
+    @property
+    def tile_alignment(self) -> int:
+        """Tile offsets that are multiples of this keep the padding / pooling grids aligned."""
+        align = FLOW_STRIDE if self.flow is not None else 1
+        if self.uformer is not None:
+            align = math.lcm(align, self.config.uformer.size_multiple)
+        return align
+
     def encode_neighbours(self, photos: Tensor) -> Tensor:
         """conv_H: ``(N, 3, H, W)`` photos in [0,1] -> ``(N, F, H, W)``. Independent of the target."""
-        raise NotImplementedError
+        _check(photos, "photos", (None, 3, None, None))
+        if self.conv_H is None:
+            raise InputError("encode_neighbours: this enhancer was built with use_neighbours=False "
+                             "and has no neighbour encoder")
+        return self.conv_H(photos)
+
+    def depth_scale(self, depth: Tensor) -> Tensor:
+        """``(B, 1, H, W)`` target depth -> ``(B,)`` scene scale s (median known depth, 1 if none)."""
+        return median_depth(depth)
 
     def forward(self, render: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,
-                neighbours: NeighbourBatch | None) -> Tensor:
+                neighbours: NeighbourBatch | None, *, depth_scale: Tensor | None = None) -> Tensor:
         """Enhance renders.
 
         Args:
             render: ``(B, 3, H, W)`` in [0, 1]; depth ``(B, 1, H, W)`` z-depth (missing <= 0 / NaN);
             K ``(B, 3, 3)``; world_from_cam ``(B, 4, 4)`` OpenCV; neighbours or None.
+            depth_scale: ``(B,)`` scene scale s used to normalise depths and camera positions;
+                default :meth:`depth_scale` of ``depth``. Tiling passes the whole image's scale
+                so every tile is normalised alike.
         Returns:
             ``(B, 3, H, W)`` = render + Uformer(...) (global residual), any H x W.
         """
-        raise NotImplementedError
+        _check(render, "render", (None, 3, None, None))
+        b, _, h, w = render.shape
+        _check(depth, "depth", (b, 1, h, w))
+        feats = self.conv_I(render)
+        if self.conv_H is None:
+            merged = self.conv_merge(feats)
+        else:
+            pooled = None
+            if neighbours is not None and len(neighbours) > 0:
+                pooled = self._fuse(feats, depth, K, world_from_cam, neighbours, depth_scale)
+            if pooled is None:
+                pooled = torch.zeros_like(feats)
+            merged = self.conv_merge(torch.cat([feats, pooled], dim=1))
+        residual = self.uformer(merged) if self.uformer is not None else self.to_rgb(merged)
+        return render + residual
+
+    def _fuse(self, feats: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,
+              nbrs: NeighbourBatch, depth_scale: Tensor | None) -> Tensor:
+        """Align, refine, weigh and max-pool the neighbours: ``(B, F, H, W)``."""
+        b, f, h, w = feats.shape
+        n = len(nbrs)
+        _check(nbrs.features, "neighbours.features", (b, n, f, None, None))
+        hs, ws = nbrs.features.shape[-2:]
+        _check(nbrs.depth, "neighbours.depth", (b, n, 1, hs, ws))
+        _check(nbrs.K, "neighbours.K", (b, n, 3, 3))
+        _check(nbrs.world_from_cam, "neighbours.world_from_cam", (b, n, 4, 4))
+        K = K.expand(b, 3, 3) if K.ndim == 2 else _check(K, "K", (b, 3, 3))
+        world_from_cam = (world_from_cam.expand(b, 4, 4) if world_from_cam.ndim == 2
+                          else _check(world_from_cam, "world_from_cam", (b, 4, 4)))
+
+        scale = self.depth_scale(depth) if depth_scale is None else depth_scale.to(feats)
+        if scale.shape != (b,) or not bool(torch.isfinite(scale).all() and (scale > 0).all()):
+            raise InputError(f"depth_scale: expected ({b},) finite positive values, got {scale}")
+        inv_scale = (1.0 / scale)[:, None, None, None]
+        target_depth = (known_depth(depth) * inv_scale).clamp(0, MAX_RELATIVE_DEPTH)
+        camera_inputs = None
+        if self.camera_attention is not None:
+            camera_inputs = self._camera_inputs(world_from_cam, nbrs.world_from_cam, scale).to(feats.dtype)
+
+        pooled = None
+        for j in range(n):
+            src, src_depth = nbrs.features[:, j], nbrs.depth[:, j]
+            if self.config.use_alignment:
+                rp = reproject(src, src_depth, depth, nbrs.K[:, j], K, nbrs.world_from_cam[:, j],
+                               world_from_cam, leniency=self.config.leniency)
+                aligned, nb_depth = rp.features, rp.depth
+            else:
+                aligned = F.interpolate(src, size=(h, w), mode="bilinear", align_corners=False)
+                nb_depth = F.interpolate(known_depth(src_depth), size=(h, w), mode="bilinear",
+                                         align_corners=False)
+            if self.flow is not None:
+                flow = self.flow(aligned, feats)
+                warped = flow_warp(torch.cat([aligned, nb_depth], dim=1), flow)
+                aligned, nb_depth = warped[:, :f], warped[:, f:]
+            if self.pixel_attention is not None:
+                nb_rel = (nb_depth * inv_scale).clamp(0, MAX_RELATIVE_DEPTH)
+                psi_pix = self.pixel_attention(aligned, feats, nb_rel, target_depth)
+                psi_cam = self.camera_attention(camera_inputs[:, j])[:, :, None, None]
+                aligned = psi_cam * psi_pix * aligned
+            pooled = aligned if pooled is None else torch.maximum(pooled, aligned)
+        return pooled
+
+    @staticmethod
+    def _camera_inputs(target: Tensor, neighbours: Tensor, scale: Tensor) -> Tensor:
+        """``(B, 4, 4)``, ``(B, N, 4, 4)``, ``(B,)`` -> ``(B, N, 9)``: [euler(R_i), euler(R_k), (t_i - t_k) / s]."""
+        n = neighbours.shape[1]
+        euler_i = euler_angles(neighbours[..., :3, :3])
+        euler_k = euler_angles(target[:, None, :3, :3]).expand(-1, n, -1)
+        # float64: both positions may be 1e4 units from the origin while 1e-3 apart.
+        rel = (neighbours[..., :3, 3].double() - target[:, None, :3, 3].double()) / scale.double()[:, None, None]
+        rel = rel.clamp(-MAX_RELATIVE_DEPTH, MAX_RELATIVE_DEPTH).to(euler_i.dtype)
+        return torch.cat([euler_i, euler_k, rel], dim=-1)

@@ -1,0 +1,285 @@
+"""The ``roguenerf`` command: finetune, evaluate, enhance, pretrain, serve.
+
+Errors are one line on stderr and an exit code: 2 for bad input (missing scene, bad
+checkpoint, bad flag values), 1 for failures (divergence, cancellation, anything else).
+Progress and logs go to stderr, so ``evaluate --json`` prints exactly one JSON object.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from roguenerf.errors import InputError, RoGUENeRFError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  help="RoGUENeRF: enhance radiance-field renders with geometry-aligned training photos.")
+
+CheckpointOpt = Annotated[Path | None, typer.Option(
+    "--checkpoint", help="Enhancer .safetensors; default: the shipped default checkpoint.")]
+MinutesOpt = Annotated[float | None, typer.Option("--minutes", help="Training budget in minutes.")]
+StepsOpt = Annotated[int | None, typer.Option("--steps", help="Training budget in optimiser steps.")]
+WithoutOpt = Annotated[list[str] | None, typer.Option(
+    "--without", help="Switch a component off (repeatable): neighbours, alignment, refinement, attention.")]
+VariantOpt = Annotated[str | None, typer.Option("--variant", help="Model variant: nano, micro, T, S, B.")]
+CropOpt = Annotated[int | None, typer.Option("--crop", help="Random crop side in pixels (default per machine).")]
+VggOpt = Annotated[Path | None, typer.Option(
+    "--vgg-weights", help="Local torchvision VGG-19 weights for the perceptual loss (else L1 alone).")]
+SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed.")]
+NeighboursOpt = Annotated[int | None, typer.Option("--neighbours", help="Neighbours per view (default: model's).")]
+
+
+def _fail(message: str, code: int) -> None:
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(code)
+
+
+@contextlib.contextmanager
+def _errors():
+    """Turn library exceptions into one stderr line and an exit code (no stack trace)."""
+    try:
+        yield
+    except typer.Exit:
+        raise
+    except InputError as exc:
+        _fail(str(exc), 2)
+    except RoGUENeRFError as exc:
+        _fail(str(exc), 1)
+    except KeyboardInterrupt:
+        _fail("interrupted", 1)
+    except Exception as exc:  # noqa: BLE001 - the CLI promises no stack traces
+        _fail(f"{type(exc).__name__}: {exc}", 1)
+
+
+def _setup_logging() -> None:
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s", force=True)
+
+
+def _load_scene(scene_dir: Path):
+    from roguenerf.data.readers import load_scene
+
+    if not scene_dir.exists():
+        raise InputError(f"scene directory {scene_dir} does not exist")
+    if not scene_dir.is_dir():
+        raise InputError(f"scene directory {scene_dir} is not a directory")
+    return load_scene(scene_dir)
+
+
+def _checkpoint_path(checkpoint: Path | None) -> Path:
+    from roguenerf.checkpoint import default_checkpoint_path
+
+    if checkpoint is not None:
+        if not checkpoint.is_file():
+            raise InputError(f"checkpoint {checkpoint} does not exist")
+        return checkpoint
+    path = default_checkpoint_path(must_exist=False)
+    if not path.is_file():
+        raise InputError(f"no --checkpoint given and the default checkpoint {path} does not exist yet "
+                         "(train one with `roguenerf pretrain`, or pass --scratch to fine-tune from scratch)")
+    return path
+
+
+def _load_model(checkpoint: Path | None):
+    from roguenerf.checkpoint import load_checkpoint
+
+    model, _meta = load_checkpoint(_checkpoint_path(checkpoint))
+    return model
+
+
+def _train_config(*, minutes, steps, without, variant, crop, vgg_weights, seed, neighbours, evaluate=True):
+    from roguenerf.training import COMPONENTS, TrainConfig
+
+    if minutes is not None and steps is not None:
+        raise InputError("give either --minutes or --steps, not both")
+    without = tuple(without or ())
+    for w in without:
+        if w not in COMPONENTS:
+            raise InputError(f"--without: expected one of {', '.join(COMPONENTS)}, got {w!r}")
+    return TrainConfig(steps=steps, minutes=minutes, crop=crop, vgg_weights=vgg_weights, seed=seed,
+                       variant=variant, without=without, num_neighbours=neighbours, evaluate=evaluate)
+
+
+def _report_training(result) -> None:
+    typer.echo(f"saved {result.checkpoint} after {result.steps} steps in {result.seconds:.0f} s "
+               f"(final loss {result.final_loss:.4f}, loss {result.loss_kind})", err=True)
+    transfer = result.config.get("transfer")
+    if transfer:
+        typer.echo(f"weights from the checkpoint: {transfer['loaded']} tensors loaded; dropped: "
+                   f"{', '.join(transfer['dropped']) or 'nothing'}; fresh: {', '.join(transfer['fresh']) or 'nothing'}",
+                   err=True)
+    if result.before and result.after:
+        b, a = result.before, result.after
+        typer.echo(f"test PSNR: render {b['render']['psnr']:.2f} dB, enhanced before {b['enhanced']['psnr']:.2f} dB, "
+                   f"after {a['enhanced']['psnr']:.2f} dB", err=True)
+
+
+@app.command()
+def finetune(
+    scene_dir: Annotated[Path, typer.Argument(help="Scene folder (transforms.json with renders and depths).")],
+    output: Annotated[Path, typer.Option("--output", help="Output directory (model + resumable state).")],
+    checkpoint: CheckpointOpt = None,
+    scratch: Annotated[bool, typer.Option("--scratch", help="Start from random weights, not a checkpoint.")] = False,
+    minutes: MinutesOpt = None,
+    steps: StepsOpt = None,
+    without: WithoutOpt = None,
+    variant: VariantOpt = None,
+    crop: CropOpt = None,
+    vgg_weights: VggOpt = None,
+    seed: SeedOpt = 0,
+    neighbours: NeighboursOpt = None,
+    no_eval: Annotated[bool, typer.Option("--no-eval", help="Skip the before/after test evaluation.")] = False,
+) -> None:
+    """Fine-tune the enhancer on one scene's training views; resumes from OUTPUT when interrupted."""
+    from roguenerf.training import finetune as run_finetune
+
+    _setup_logging()
+    with _errors():
+        if scratch and checkpoint is not None:
+            raise InputError("give either --checkpoint or --scratch, not both")
+        config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
+                               vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, evaluate=not no_eval)
+        scene = _load_scene(scene_dir)
+        start = None if scratch else _checkpoint_path(checkpoint)
+        result = run_finetune(scene, output, checkpoint=start, config=config)
+        _report_training(result)
+        typer.echo(str(result.checkpoint))
+
+
+@app.command()
+def pretrain(
+    scene_dirs: Annotated[list[Path] | None, typer.Argument(help="Scene folders to pre-train on.")] = None,
+    output: Annotated[Path, typer.Option("--output", help="Output directory (model + resumable state).")] = ...,
+    toy: Annotated[int, typer.Option("--toy", help="Add N generated toy scenes (degraded renders).")] = 0,
+    checkpoint: Annotated[Path | None, typer.Option("--checkpoint", help="Start from these weights.")] = None,
+    minutes: MinutesOpt = None,
+    steps: StepsOpt = None,
+    without: WithoutOpt = None,
+    variant: VariantOpt = None,
+    crop: CropOpt = None,
+    vgg_weights: VggOpt = None,
+    seed: SeedOpt = 0,
+    neighbours: NeighboursOpt = None,
+) -> None:
+    """Pre-train across scene folders and/or generated toy scenes."""
+    from roguenerf.training import pretrain as run_pretrain
+
+    _setup_logging()
+    with _errors():
+        if toy < 0:
+            raise InputError(f"--toy: expected >= 0, got {toy}")
+        config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
+                               vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, evaluate=False)
+        scenes = [_load_scene(d) for d in scene_dirs or []]
+        scenes += make_toy_scenes(output / "toy", toy, seed=seed)
+        if not scenes:
+            raise InputError("no scenes to pre-train on: give SCENE_DIR arguments and/or --toy N")
+        if checkpoint is not None and not checkpoint.is_file():
+            raise InputError(f"checkpoint {checkpoint} does not exist")
+        result = run_pretrain(scenes, output, checkpoint=checkpoint, config=config)
+        _report_training(result)
+        typer.echo(str(result.checkpoint))
+
+
+def make_toy_scenes(root: Path, count: int, *, seed: int = 0, height: int = 96, width: int = 128) -> list:
+    """``count`` toy scenes with NeRF-like degradations under ``root`` (reused when already there)."""
+    from roguenerf.data.degrade import Degradation
+    from roguenerf.data.readers import load_scene
+    from roguenerf.data.toy import make_toy_scene
+
+    scenes = []
+    for k in range(count):
+        path = root / f"toy_{seed + k:03d}"
+        if (path / "transforms.json").is_file():
+            scenes.append(load_scene(path))
+        else:
+            scenes.append(make_toy_scene(path, seed=seed + k, height=height, width=width,
+                                         degradation=Degradation()))
+    return scenes
+
+
+@app.command()
+def evaluate(
+    scene_dir: Annotated[Path, typer.Argument(help="Scene folder.")],
+    checkpoint: CheckpointOpt = None,
+    split: Annotated[str, typer.Option("--split", help="Views to evaluate: test, train or all.")] = "test",
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object and nothing else.")] = False,
+    neighbours: NeighboursOpt = None,
+) -> None:
+    """PSNR/SSIM of renders and enhanced renders against the photos, per view and mean."""
+    from roguenerf.training import evaluate as run_evaluate
+
+    with _errors():
+        if split not in ("test", "train", "all"):
+            raise InputError(f"--split: expected test, train or all, got {split!r}")
+        scene = _load_scene(scene_dir)
+        model = _load_model(checkpoint)
+        report = run_evaluate(scene, model, split=split, num_neighbours=neighbours)
+    if as_json:
+        typer.echo(json.dumps(report))
+        return
+    typer.echo(f"{'view':<24} {'render PSNR':>12} {'SSIM':>7} {'enhanced PSNR':>14} {'SSIM':>7}")
+    for v in report["views"]:
+        typer.echo(f"{v['name']:<24} {v['render']['psnr']:>12.2f} {v['render']['ssim']:>7.4f} "
+                   f"{v['enhanced']['psnr']:>14.2f} {v['enhanced']['ssim']:>7.4f}")
+    r, e = report["render"], report["enhanced"]
+    typer.echo(f"{'mean':<24} {r['psnr']:>12.2f} {r['ssim']:>7.4f} {e['psnr']:>14.2f} {e['ssim']:>7.4f}")
+
+
+@app.command()
+def enhance(
+    scene_dir: Annotated[Path, typer.Argument(help="Scene folder holding the view's render and depth.")],
+    view: Annotated[str, typer.Option("--view", help="Name of the view to enhance (e.g. test_r_0).")],
+    output: Annotated[Path, typer.Option("--output", help="Where to write the enhanced PNG.")],
+    checkpoint: CheckpointOpt = None,
+    neighbours: NeighboursOpt = None,
+) -> None:
+    """Enhance one view's render (a training view never uses its own photo)."""
+    from roguenerf.imageio import write_png
+    from roguenerf.inference import SceneEnhancer
+
+    with _errors():
+        if output.suffix.lower() != ".png":
+            raise InputError(f"--output: expected a .png path, got {output}")
+        scene = _load_scene(scene_dir)
+        index = scene.index(view)
+        model = _load_model(checkpoint)
+        result = SceneEnhancer(scene, model, num_neighbours=neighbours).enhance_view(index)
+        output.parent.mkdir(parents=True, exist_ok=True)
+        write_png(output, result.image)
+        used = ", ".join(result.neighbours) or "none"
+        typer.echo(f"enhanced {view} in {result.seconds:.2f} s with neighbours: {used}", err=True)
+        if result.note:
+            typer.echo(f"note: {result.note}", err=True)
+        typer.echo(str(output))
+
+
+@app.command()
+def serve(
+    host: Annotated[str, typer.Option("--host", help="Address to listen on.")] = "127.0.0.1",
+    port: Annotated[int, typer.Option("--port", help="Port to listen on.")] = 8000,
+    data_dir: Annotated[Path, typer.Option("--data-dir", help="Where scenes, jobs and checkpoints live.")] = Path("./data"),
+) -> None:
+    """Start the HTTP API with its embedded job worker."""
+    with _errors():
+        try:
+            from service.server import run
+        except ImportError as exc:
+            missing = exc.name or str(exc)
+            _fail(f"the service cannot start: {missing} is not installed "
+                  "(install the extras: pip install 'roguenerf[service]')", 1)
+        run(host=host, port=port, data_dir=data_dir)
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,364 @@
+"""Strict image and depth decoding, shared by the readers, the CLI and the service.
+
+Everything that turns bytes from a user into pixels goes through this module, so the rules
+are in one place:
+
+* Images: only PNG and JPEG are decoded. The pixel count is read from the header and
+  checked against ``max_pixels`` *before* any pixel data is decompressed, so a
+  decompression bomb (a tiny file declaring a huge image) costs a header read.
+* Depth: ``.npy`` files are parsed with ``allow_pickle=False`` after their header (dtype,
+  shape) has been checked; 16-bit PNG depth is multiplied by ``scale``.
+* Files are written atomically (temporary file in the same folder, fsync, rename), so a
+  reader never sees half a file.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import tempfile
+import zlib
+from pathlib import Path
+from typing import BinaryIO, Union
+
+import numpy as np
+import torch
+from PIL import Image, ImageFile
+from torch import Tensor
+
+from roguenerf.errors import InputError
+
+DEFAULT_MAX_PIXELS = 64 * 1024 * 1024
+"""Largest image / depth map accepted by default (about 8192 x 8192)."""
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+NPY_MAGIC = b"\x93NUMPY"
+
+Source = Union[str, os.PathLike, bytes, bytearray, memoryview]
+
+# Pillow's own bomb guard raises (instead of warning) above twice this value, while decoding
+# headers. Our max_pixels check is the real gate; keep Pillow's guard at least as strict as
+# the library default so that a caller who never passes max_pixels is still protected by it,
+# and never disabled (``None``) by whichever library imported Pillow first.
+if Image.MAX_IMAGE_PIXELS is None or Image.MAX_IMAGE_PIXELS > 2 * DEFAULT_MAX_PIXELS:
+    Image.MAX_IMAGE_PIXELS = 2 * DEFAULT_MAX_PIXELS
+
+
+class ImageTooLargeError(InputError):
+    """The image or depth map declares more pixels than allowed (the service maps it to 413)."""
+
+    def __init__(self, name: str, width: int, height: int, max_pixels: int):
+        self.width = width
+        self.height = height
+        self.max_pixels = max_pixels
+        size = f"{width}x{height} = {width * height} pixels" if width > 0 else "a size"
+        super().__init__(f"{name}: image declares {size}, more than the allowed {max_pixels} pixels")
+
+
+def _name(source: Source | BinaryIO) -> str:
+    if isinstance(source, (bytes, bytearray, memoryview)):
+        return f"<{len(source)} bytes>"
+    return str(source)
+
+
+def _open_bytes(source: Source) -> tuple[BinaryIO, str]:
+    """Binary stream and a display name; raises InputError for missing files."""
+    if isinstance(source, (bytes, bytearray, memoryview)):
+        return io.BytesIO(bytes(source)), _name(source)
+    if not isinstance(source, (str, os.PathLike)):
+        raise InputError(f"expected a path or bytes, got {type(source).__name__}")
+    path = Path(source)
+    try:
+        return open(path, "rb"), str(path)
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found") from None
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a directory, expected a file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot open ({exc.strerror or exc})") from None
+
+
+def _check_pixels(name: str, width: int, height: int, max_pixels: int) -> None:
+    if width <= 0 or height <= 0:
+        raise InputError(f"{name}: image has an empty size {width}x{height}")
+    if width * height > max_pixels:
+        raise ImageTooLargeError(name, width, height, max_pixels)
+
+
+def _open_image(stream: BinaryIO, name: str, formats: list[str], max_pixels: int) -> Image.Image:
+    """Open lazily (header only) and check the declared size."""
+    try:
+        img = Image.open(stream, formats=formats)
+    except Image.DecompressionBombError:
+        # Pillow's guard fired while reading the header; report the declared size ourselves.
+        stream.seek(0)
+        width, height = _png_header_size(stream.read(33))
+        raise ImageTooLargeError(name, width, height, max_pixels) from None
+    except Image.UnidentifiedImageError:
+        raise InputError(
+            f"{name}: not a {' or '.join(formats)} image (other formats are refused)"
+        ) from None
+    except (OSError, SyntaxError, ValueError, EOFError, zlib.error) as exc:
+        raise InputError(f"{name}: corrupt image header ({exc})") from None
+    _check_pixels(name, img.width, img.height, max_pixels)
+    return img
+
+
+def _png_header_size(head: bytes) -> tuple[int, int]:
+    if head[:8] == PNG_SIGNATURE and head[12:16] == b"IHDR":
+        return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    return -1, -1
+
+
+def _load_pixels(img: Image.Image, name: str) -> None:
+    # Pillow can be told globally to accept truncated files; never for our inputs.
+    if ImageFile.LOAD_TRUNCATED_IMAGES:
+        raise InputError(
+            "PIL.ImageFile.LOAD_TRUNCATED_IMAGES is set, refusing to decode "
+            f"{name} (truncated images would pass silently)"
+        )
+    try:
+        img.load()
+    except (OSError, SyntaxError, ValueError, EOFError, zlib.error) as exc:
+        raise InputError(f"{name}: truncated or corrupt image data ({exc})") from None
+
+
+def read_image_size(source: Source, *, max_pixels: int = DEFAULT_MAX_PIXELS) -> tuple[int, int]:
+    """``(width, height)`` of a PNG/JPEG from its header, without decoding pixels."""
+    stream, name = _open_bytes(source)
+    with stream:
+        img = _open_image(stream, name, ["PNG", "JPEG"], max_pixels)
+        return img.width, img.height
+
+
+def read_image(source: Source, *, max_pixels: int = DEFAULT_MAX_PIXELS) -> Tensor:
+    """Decode a PNG or JPEG into float32 RGB in [0, 1], as stored (sRGB, no linearisation).
+
+    Conversions (so any PNG/JPEG a user has gives a sensible RGB image):
+
+    * 8-bit RGB / grayscale ``L`` / bilevel ``1``: ``value / 255``, grayscale copied to R, G, B.
+    * 16-bit grayscale (``I;16``, ``I``): ``value / 65535`` copied to R, G, B. Pillow reduces
+      16-bit *colour* PNGs to 8 bits per channel while decoding, so those arrive as 8-bit RGB.
+    * Palette (``P``): palette colours; a palette with transparency is treated as RGBA.
+    * Alpha (``RGBA``, ``LA``, transparent palette): composited over **white**
+      (``rgb * a + (1 - a)``, straight alpha), the convention of Blender/NeRF synthetic data.
+    * CMYK / YCbCr JPEG: converted to RGB by Pillow.
+    * EXIF orientation is ignored: pixels are returned as stored, because camera intrinsics
+      refer to the stored pixel grid.
+    * Animated PNG: the first frame.
+
+    Args:
+        source: path or the file's bytes.
+        max_pixels: images declaring more pixels in their header raise
+            :class:`ImageTooLargeError` before any pixel data is decompressed.
+    Returns:
+        ``(3, H, W)`` float32 in [0, 1].
+    Raises:
+        ImageTooLargeError: too many pixels (an :class:`~roguenerf.errors.InputError`).
+        InputError: missing file, not PNG/JPEG, truncated or corrupt data.
+    """
+    stream, name = _open_bytes(source)
+    with stream:
+        img = _open_image(stream, name, ["PNG", "JPEG"], max_pixels)
+        _load_pixels(img, name)
+        return _to_rgb(img, name)
+
+
+def _to_rgb(img: Image.Image, name: str) -> Tensor:
+    mode = img.mode
+    if mode == "P":
+        img = img.convert("RGBA" if "transparency" in img.info else "RGB")
+        mode = img.mode
+    elif mode == "PA":
+        img = img.convert("RGBA")
+        mode = "RGBA"
+    if mode in ("I;16", "I;16B", "I;16L", "I"):
+        gray = np.asarray(img).astype(np.float32) / 65535.0
+        rgb = np.repeat(gray[None], 3, axis=0)
+        return torch.from_numpy(np.clip(rgb, 0.0, 1.0))
+    if mode in ("1", "L"):
+        gray = np.asarray(img.convert("L"), dtype=np.float32) / 255.0
+        return torch.from_numpy(np.repeat(gray[None], 3, axis=0))
+    if mode == "LA":
+        la = np.asarray(img, dtype=np.float32) / 255.0
+        rgb = np.repeat(la[None, ..., 0], 3, axis=0)
+        return torch.from_numpy(_over_white(rgb, la[..., 1]))
+    if mode == "RGBA":
+        rgba = np.asarray(img, dtype=np.float32) / 255.0
+        return torch.from_numpy(_over_white(rgba[..., :3].transpose(2, 0, 1), rgba[..., 3]))
+    if mode != "RGB":
+        try:
+            img = img.convert("RGB")
+        except (ValueError, OSError) as exc:
+            raise InputError(f"{name}: cannot convert image mode {mode!r} to RGB ({exc})") from None
+    rgb = np.asarray(img, dtype=np.float32) / 255.0
+    return torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))
+
+
+def _over_white(rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """``rgb`` (3, H, W) with straight ``alpha`` (H, W) composited over white."""
+    return np.ascontiguousarray(rgb * alpha[None] + (1.0 - alpha[None]), dtype=np.float32)
+
+
+def read_depth(
+    source: Source,
+    *,
+    scale: float = 1.0,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    kind: str | None = None,
+) -> Tensor:
+    """Read a depth map: ``.npy`` (any real float/int dtype) or a 16-bit PNG, times ``scale``.
+
+    ``.npy`` files are checked from their header first (shape ``(H, W)`` or ``(1, H, W)``,
+    a real numeric dtype, size within ``max_pixels``) and then loaded with
+    ``allow_pickle=False``: object arrays and pickles are refused, never unpickled.
+    PNG depth must be single-channel 16-bit (e.g. millimetres with ``scale=0.001``); an 8-bit
+    PNG cannot hold depth and is refused. Values are returned as stored times ``scale``;
+    zero / negative / non-finite values mean "unknown" and are not altered.
+
+    Args:
+        source: path or the file's bytes.
+        scale: multiplier to pose units; finite and > 0.
+        max_pixels: larger maps raise :class:`ImageTooLargeError` before the data is read.
+        kind: ``"npy"`` or ``"png"``; by default detected from the content's magic bytes.
+    Returns:
+        ``(1, H, W)`` float32.
+    """
+    if not (isinstance(scale, (int, float)) and np.isfinite(scale) and scale > 0):
+        raise InputError(f"depth scale must be a finite number > 0, got {scale!r}")
+    stream, name = _open_bytes(source)
+    with stream:
+        head = stream.read(8)
+        stream.seek(0)
+        if kind is None:
+            if head.startswith(NPY_MAGIC):
+                kind = "npy"
+            elif head.startswith(PNG_SIGNATURE):
+                kind = "png"
+            else:
+                raise InputError(
+                    f"{name}: not a depth file: expected a .npy array or a 16-bit PNG "
+                    f"(first bytes {head!r})"
+                )
+        if kind == "npy":
+            depth = _read_npy(stream, name, max_pixels)
+        elif kind == "png":
+            depth = _read_png_depth(stream, name, max_pixels)
+        else:
+            raise InputError(f"depth kind must be 'npy' or 'png', got {kind!r}")
+    if scale != 1.0:
+        depth = depth * np.float32(scale)
+    return torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32)[None])
+
+
+def _read_npy(stream: BinaryIO, name: str, max_pixels: int) -> np.ndarray:
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(stream)
+        if version == (1, 0):
+            shape, fortran, dtype = fmt.read_array_header_1_0(stream)
+        elif version in ((2, 0), (3, 0)):
+            shape, fortran, dtype = fmt.read_array_header_2_0(stream)
+        else:
+            raise ValueError(f"unsupported .npy version {version}")
+    except (ValueError, EOFError, OSError) as exc:
+        raise InputError(f"{name}: not a valid .npy file ({exc})") from None
+    if dtype.hasobject:
+        raise InputError(
+            f"{name}: .npy holds Python objects (dtype {dtype}); refusing to unpickle, "
+            "expected a float or integer array"
+        )
+    if dtype.kind not in "fiu" or dtype.fields is not None or dtype.subdtype is not None:
+        raise InputError(f"{name}: depth dtype must be a real float or integer type, got {dtype}")
+    if len(shape) == 3 and shape[0] == 1:
+        shape = shape[1:]
+    if len(shape) != 2:
+        raise InputError(f"{name}: depth shape must be (H, W) or (1, H, W), got {tuple(shape)}")
+    height, width = shape
+    _check_pixels(name, width, height, max_pixels)
+    stream.seek(0)
+    try:
+        array = np.load(stream, allow_pickle=False)
+    except (ValueError, EOFError, OSError) as exc:
+        raise InputError(f"{name}: truncated or corrupt .npy data ({exc})") from None
+    return np.asarray(array, dtype=np.float32).reshape(height, width)
+
+
+def _read_png_depth(stream: BinaryIO, name: str, max_pixels: int) -> np.ndarray:
+    img = _open_image(stream, name, ["PNG"], max_pixels)
+    if img.mode not in ("I;16", "I;16B", "I;16L", "I"):
+        raise InputError(
+            f"{name}: depth PNG must be single-channel 16-bit, got mode {img.mode!r}"
+        )
+    _load_pixels(img, name)
+    return np.asarray(img).astype(np.float32)
+
+
+def atomic_write(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically: temporary file in the same folder, fsync, rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    try:
+        dir_fd = os.open(path.parent, os.O_RDONLY)
+    except OSError:
+        return path
+    try:
+        os.fsync(dir_fd)
+    except OSError:
+        pass  # some filesystems cannot fsync directories; the rename is still atomic
+    finally:
+        os.close(dir_fd)
+    return path
+
+
+def _image_array(image, name: str) -> np.ndarray:
+    array = image.detach().cpu().numpy() if isinstance(image, Tensor) else np.asarray(image)
+    if array.ndim != 3 or array.shape[0] not in (1, 3) or array.shape[1] == 0 or array.shape[2] == 0:
+        raise InputError(f"{name} must have shape (3, H, W) or (1, H, W), got {tuple(array.shape)}")
+    if not np.issubdtype(array.dtype, np.floating):
+        raise InputError(f"{name} must be a float array in [0, 1], got dtype {array.dtype}")
+    if not np.isfinite(array).all():
+        raise InputError(f"{name} contains NaN or inf")
+    return array
+
+
+def encode_png(image: Tensor | np.ndarray, *, name: str = "image") -> bytes:
+    """8-bit PNG bytes of ``(3, H, W)`` (or ``(1, H, W)`` gray) float in [0, 1] (clipped, rounded)."""
+    array = _image_array(image, name)
+    u8 = np.round(np.clip(array, 0.0, 1.0) * 255.0).astype(np.uint8)
+    img = Image.fromarray(u8[0]) if u8.shape[0] == 1 else Image.fromarray(u8.transpose(1, 2, 0))
+    buf = io.BytesIO()
+    img.save(buf, format="PNG", compress_level=6)
+    return buf.getvalue()
+
+
+def write_png(path: str | os.PathLike | None, image: Tensor | np.ndarray) -> bytes:
+    """Encode ``image`` ``(3, H, W)`` float in [0, 1] as 8-bit PNG; write atomically if ``path``.
+
+    Values are clipped to [0, 1] and rounded (``round(255 * x)``); NaN/inf raise InputError.
+    Returns the PNG bytes.
+    """
+    data = encode_png(image)
+    if path is not None:
+        atomic_write(path, data)
+    return data
+
+
+def encode_npy(array: np.ndarray) -> bytes:
+    """``.npy`` bytes of a numeric array (never pickled)."""
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(array), allow_pickle=False)
+    return buf.getvalue()

@@ -1,0 +1,103 @@
+"""Non-rigid refinement (paper section 3.4): a lightweight iterative flow network.
+
+FlexHDR-style (Catley-Chandar et al. 2022): both feature maps are average-pooled to 1/8
+resolution and encoded; a convolutional GRU then predicts flow increments for a few
+iterations from [neighbour features warped by the current flow, target features, current
+flow]. The increment head is zero-initialised, so an untrained network predicts flow 0 and
+the refinement starts as the identity. The 1/8 flow is upsampled bilinearly (values x 8).
+
+Flow units: pixels of the map being warped, (dx, dy); ``warp(x, flow)[p] = x[p + flow[p]]``
+with pixel centres at integer + 0.5 in ``grid_sample``'s ``align_corners=False`` frame, which
+is also the frame of the bilinear upsampling, so the two agree.
+
+Dimension letters: B batch, F feature channels, H x W full resolution, h x w = 1/8 resolution.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from roguenerf.models.layers import act, he_init, zero_init
+
+FLOW_STRIDE = 8
+"""The flow is estimated at 1/FLOW_STRIDE resolution."""
+
+
+def flow_warp(x: Tensor, flow: Tensor) -> Tensor:
+    """Backward-warp ``x`` ``(B, C, H, W)`` by ``flow`` ``(B, 2, H, W)`` (pixels, (dx, dy)).
+
+    Bilinear, zero outside the image. Returns ``(B, C, H, W)``.
+    """
+    _, _, h, w = x.shape
+    ys = torch.arange(h, device=x.device, dtype=x.dtype)
+    xs = torch.arange(w, device=x.device, dtype=x.dtype)
+    gx = (2.0 * (xs[None, None, :] + flow[:, 0]) + 1.0) / w - 1.0
+    gy = (2.0 * (ys[None, :, None] + flow[:, 1]) + 1.0) / h - 1.0
+    grid = torch.stack([gx, gy], dim=-1)
+    return F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+
+
+def upsample_flow(flow: Tensor, height: int, width: int) -> Tensor:
+    """``(B, 2, h, w)`` flow at 1/8 resolution -> ``(B, 2, height, width)`` (values x 8)."""
+    up = F.interpolate(flow, scale_factor=FLOW_STRIDE, mode="bilinear", align_corners=False)
+    return up[..., :height, :width] * FLOW_STRIDE
+
+
+class ConvGRU(nn.Module):
+    """Convolutional GRU cell: ``h (B, C, h, w), x (B, Cx, h, w) -> h' (B, C, h, w)``."""
+
+    def __init__(self, *, hidden: int, inputs: int):
+        super().__init__()
+        self.to_z = nn.Conv2d(hidden + inputs, hidden, 3, padding=1)
+        self.to_r = nn.Conv2d(hidden + inputs, hidden, 3, padding=1)
+        self.to_q = nn.Conv2d(hidden + inputs, hidden, 3, padding=1)
+
+    def forward(self, h: Tensor, x: Tensor) -> Tensor:
+        hx = torch.cat([h, x], dim=1)
+        z = torch.sigmoid(self.to_z(hx))
+        r = torch.sigmoid(self.to_r(hx))
+        q = torch.tanh(self.to_q(torch.cat([r * h, x], dim=1)))
+        return (1 - z) * h + z * q
+
+
+class FlowRefiner(nn.Module):
+    """Flow from aligned neighbour features to target features.
+
+    Args of forward:
+        neighbour: ``(B, F, H, W)`` 3D-aligned neighbour features H_{i->k}.
+        target: ``(B, F, H, W)`` target features I^f.
+    Returns:
+        ``(B, 2, H, W)`` flow in full-resolution pixels; ``flow_warp(neighbour, flow)`` aligns.
+    """
+
+    def __init__(self, *, features: int = 64, hidden: int = 64, iters: int = 4):
+        super().__init__()
+        self.iters = iters
+        self.encode = nn.Sequential(
+            nn.Conv2d(features, hidden, 3, padding=1), act(),
+            nn.Conv2d(hidden, hidden, 3, padding=1), act(),
+        )
+        self.to_input = nn.Sequential(nn.Conv2d(2 * hidden + 2, hidden, 3, padding=1), act())
+        self.gru = ConvGRU(hidden=hidden, inputs=hidden)
+        self.to_delta = nn.Sequential(nn.Conv2d(hidden, hidden, 3, padding=1), act(),
+                                      nn.Conv2d(hidden, 2, 3, padding=1))
+        he_init(self)
+        zero_init(self.to_delta[-1])
+
+    def forward(self, neighbour: Tensor, target: Tensor) -> Tensor:
+        b, _, height, width = target.shape
+        pair = torch.cat([neighbour, target], dim=0)
+        ph, pw = -height % FLOW_STRIDE, -width % FLOW_STRIDE
+        if ph or pw:
+            pair = F.pad(pair, (0, pw, 0, ph), mode="replicate")
+        low = self.encode(F.avg_pool2d(pair, FLOW_STRIDE))
+        nb, tg = low[:b], low[b:]
+        hidden = torch.tanh(tg)
+        flow = tg.new_zeros(b, 2, *tg.shape[-2:])
+        for _ in range(self.iters):
+            x = self.to_input(torch.cat([flow_warp(nb, flow), tg, flow], dim=1))
+            hidden = self.gru(hidden, x)
+            flow = flow + self.to_delta(hidden)
+        return upsample_flow(flow, height, width)

@@ -1,0 +1,96 @@
+"""Building blocks: conv encoders and the geometry-aware attention (paper sections 3.3, 3.5).
+
+Imports nothing from the rest of the package. Dimension letters: B batch, C channels,
+H x W image size, F feature channels.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+LEAKY_SLOPE = 0.01
+"""Leaky ReLU slope of every conv block (supplementary, implementation details)."""
+
+
+def he_init(module: nn.Module) -> nn.Module:
+    """He (Kaiming) normal init for leaky-ReLU layers, zero biases, applied to every conv/linear."""
+    for m in module.modules():
+        if isinstance(m, (nn.Conv2d, nn.Linear)):
+            nn.init.kaiming_normal_(m.weight, a=LEAKY_SLOPE, nonlinearity="leaky_relu")
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+    return module
+
+
+def zero_init(layer: nn.Module) -> nn.Module:
+    """Zero weight and bias: the layer outputs exactly 0 until trained."""
+    nn.init.zeros_(layer.weight)
+    if getattr(layer, "bias", None) is not None:
+        nn.init.zeros_(layer.bias)
+    return layer
+
+
+def act() -> nn.Module:
+    return nn.LeakyReLU(LEAKY_SLOPE)
+
+
+class ConvEncoder(nn.Sequential):
+    """conv_I / conv_H: two 3x3 convs (zero padding) with leaky ReLU, full resolution.
+
+    ``(B, in_channels, H, W) -> (B, features, H, W)``.
+    """
+
+    def __init__(self, *, in_channels: int = 3, features: int = 64):
+        super().__init__(
+            nn.Conv2d(in_channels, features, 3, padding=1),
+            act(),
+            nn.Conv2d(features, features, 3, padding=1),
+            act(),
+        )
+        he_init(self)
+
+
+class PixelAttention(nn.Module):
+    """psi_pix = sigmoid(conv(act(conv([H', I^f, D_{i->k}, D_k])))), one weight per pixel.
+
+    Args of forward:
+        neighbour: ``(B, F, H, W)`` aligned neighbour features H'.
+        target: ``(B, F, H, W)`` target features I^f.
+        neighbour_depth: ``(B, 1, H, W)`` D_{i->k}, normalised (see Enhancer).
+        target_depth: ``(B, 1, H, W)`` D_k, normalised.
+    Returns:
+        ``(B, 1, H, W)`` in (0, 1).
+    """
+
+    def __init__(self, *, features: int = 64, hidden: int = 32):
+        super().__init__()
+        self.net = he_init(nn.Sequential(
+            nn.Conv2d(2 * features + 2, hidden, 3, padding=1),
+            act(),
+            nn.Conv2d(hidden, 1, 3, padding=1),
+        ))
+
+    def forward(self, neighbour: Tensor, target: Tensor, neighbour_depth: Tensor,
+                target_depth: Tensor) -> Tensor:
+        x = torch.cat([neighbour, target, neighbour_depth, target_depth], dim=1)
+        return torch.sigmoid(self.net(x))
+
+
+CAMERA_INPUTS = 9
+"""Camera attention input: Euler angles of neighbour and target (3 + 3) and the neighbour's
+position relative to the target divided by the scene scale (3)."""
+
+
+class CameraAttention(nn.Module):
+    """psi_cam = sigmoid(fc(act(fc(x)))), one weight per neighbour image.
+
+    ``(B, CAMERA_INPUTS) -> (B, 1)`` in (0, 1).
+    """
+
+    def __init__(self, *, hidden: int = 32):
+        super().__init__()
+        self.net = he_init(nn.Sequential(nn.Linear(CAMERA_INPUTS, hidden), act(), nn.Linear(hidden, 1)))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return torch.sigmoid(self.net(x))

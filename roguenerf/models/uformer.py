@@ -1,0 +1,239 @@
+"""Uformer (Wang et al., CVPR 2022), the official architecture taking feature maps of any size.
+
+Input projection (3x3 conv + leaky ReLU), 4 encoder stages of LeWin blocks each followed by a
+4x4 stride-2 conv, a bottleneck stage, 4 decoder stages each preceded by a 2x2 stride-2
+transposed conv whose output is concatenated with the encoder skip, and a 3x3 output
+projection. A LeWin block is window self-attention with a learned relative position bias
+(every second block on windows shifted by half a window) followed by LeFF (linear, depthwise
+3x3 conv, linear; GELU). Changes from the official code: the input has ``in_channels``
+(64 in RoGUENeRF) instead of RGB, the input is padded to a multiple of 16 x win_size and cropped
+back (any H x W), the output projection is zero-initialised (the module starts as exactly 0,
+so the enhancer starts as the identity), and the global residual is added by the caller.
+Parameter counts equal the official T / S / B models' (5.23 M, 20.63 M, 50.88 M) for RGB input.
+
+Dimension letters: B batch, H x W image (tokens) size, C channels, n heads, d head channels,
+w window side, N windows, L = w * w tokens per window.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from einops import rearrange
+from torch import Tensor, nn
+
+from roguenerf.models.config import UformerConfig
+
+
+def pad_to_multiple(x: Tensor, multiple: int) -> Tensor:
+    """Pad ``(B, C, H, W)`` at the bottom/right by edge replication to a multiple of ``multiple``."""
+    h, w = x.shape[-2:]
+    ph, pw = -h % multiple, -w % multiple
+    if ph or pw:
+        x = F.pad(x, (0, pw, 0, ph), mode="replicate")
+    return x
+
+
+class DropPath(nn.Module):
+    """Stochastic depth: zero whole residual branches per sample during training."""
+
+    def __init__(self, p: float = 0.0):
+        super().__init__()
+        self.p = p
+
+    def forward(self, x: Tensor) -> Tensor:
+        if self.p == 0.0 or not self.training:
+            return x
+        keep = x.new_empty((x.shape[0],) + (1,) * (x.ndim - 1)).bernoulli_(1.0 - self.p)
+        return x * keep / (1.0 - self.p)
+
+
+class WindowAttention(nn.Module):
+    """Multi-head self-attention inside windows with a relative position bias.
+
+    ``(N*B, L, C) -> (N*B, L, C)``; ``mask`` ``(N, L, L)`` additive (0 or -100) or None.
+    """
+
+    def __init__(self, *, dim: int, heads: int, win_size: int, fused: bool = True):
+        super().__init__()
+        self.heads = heads
+        self.win_size = win_size
+        self.scale = (dim // heads) ** -0.5
+        self.fused = fused
+        self.relative_position_bias_table = nn.Parameter(torch.zeros((2 * win_size - 1) ** 2, heads))
+        nn.init.trunc_normal_(self.relative_position_bias_table, std=0.02)
+        coords = torch.stack(torch.meshgrid(torch.arange(win_size), torch.arange(win_size), indexing="ij"))
+        coords = coords.flatten(1)
+        rel = (coords[:, :, None] - coords[:, None, :]) + (win_size - 1)
+        self.register_buffer("relative_position_index", rel[0] * (2 * win_size - 1) + rel[1], persistent=False)
+        self.to_qkv = nn.Linear(dim, 3 * dim)
+        self.to_out = nn.Linear(dim, dim)
+
+    def bias(self) -> Tensor:
+        """``(n, L, L)`` relative position bias."""
+        b = self.relative_position_bias_table[self.relative_position_index]
+        return rearrange(b, "i j n -> n i j")
+
+    def forward(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
+        q, k, v = rearrange(self.to_qkv(x), "b l (three n d) -> three b n l d", three=3, n=self.heads)
+        bias = self.bias()[None]
+        if mask is not None:
+            num_windows = mask.shape[0]
+            bias = rearrange(bias + mask[:, None], "nw n i j -> 1 nw n i j")
+            bias = bias.expand(x.shape[0] // num_windows, -1, -1, -1, -1).reshape(-1, *bias.shape[2:])
+        if self.fused:
+            out = F.scaled_dot_product_attention(q, k, v, attn_mask=bias.to(q.dtype), scale=self.scale)
+        else:
+            attn = (q * self.scale) @ k.transpose(-2, -1) + bias
+            out = attn.softmax(dim=-1) @ v
+        return self.to_out(rearrange(out, "b n l d -> b l (n d)"))
+
+
+class LeFF(nn.Module):
+    """Locally-enhanced feed-forward: ``(B, H, W, C) -> (B, H, W, C)``."""
+
+    def __init__(self, *, dim: int, hidden: int):
+        super().__init__()
+        self.linear1 = nn.Sequential(nn.Linear(dim, hidden), nn.GELU())
+        self.dwconv = nn.Sequential(nn.Conv2d(hidden, hidden, 3, padding=1, groups=hidden), nn.GELU())
+        self.linear2 = nn.Linear(hidden, dim)
+
+    def forward(self, x: Tensor) -> Tensor:
+        x = self.linear1(x)
+        x = self.dwconv(x.permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
+        return self.linear2(x)
+
+
+def _shift_mask(h: int, w: int, win: int, shift: int, device) -> Tensor:
+    """``(N, L, L)`` additive mask keeping attention inside regions that were contiguous before the roll."""
+    region = torch.zeros(h, w, device=device)
+    label = 0
+    for hs in (slice(0, -win), slice(-win, -shift), slice(-shift, None)):
+        for ws in (slice(0, -win), slice(-win, -shift), slice(-shift, None)):
+            region[hs, ws] = label
+            label += 1
+    windows = rearrange(region, "(nh wh) (nw ww) -> (nh nw) (wh ww)", wh=win, ww=win)
+    diff = windows[:, None, :] - windows[:, :, None]
+    return torch.zeros_like(diff).masked_fill(diff != 0, -100.0)
+
+
+class LeWinBlock(nn.Module):
+    """LayerNorm -> (shifted) window attention -> residual; LayerNorm -> LeFF -> residual.
+
+    ``(B, H, W, C) -> (B, H, W, C)``; H and W must be multiples of ``win_size``.
+    """
+
+    def __init__(self, *, dim: int, heads: int, win_size: int, shift: bool, mlp_ratio: float,
+                 drop_path: float = 0.0, modulator: bool = False):
+        super().__init__()
+        self.win_size = win_size
+        self.shift = shift
+        self.modulator = nn.Embedding(win_size * win_size, dim) if modulator else None
+        self.norm1 = nn.LayerNorm(dim)
+        self.attn = WindowAttention(dim=dim, heads=heads, win_size=win_size)
+        self.drop_path = DropPath(drop_path)
+        self.norm2 = nn.LayerNorm(dim)
+        self.mlp = LeFF(dim=dim, hidden=int(dim * mlp_ratio))
+
+    def forward(self, x: Tensor) -> Tensor:
+        _, h, w, _ = x.shape
+        win = self.win_size
+        # As in the official code, a single window needs no shift.
+        shift = win // 2 if self.shift and min(h, w) > win else 0
+        y = self.norm1(x)
+        mask = None
+        if shift:
+            y = torch.roll(y, shifts=(-shift, -shift), dims=(1, 2))
+            mask = _shift_mask(h, w, win, shift, x.device)
+        y = rearrange(y, "b (nh wh) (nw ww) c -> (b nh nw) (wh ww) c", wh=win, ww=win)
+        if self.modulator is not None:
+            y = y + self.modulator.weight
+        y = self.attn(y, mask)
+        y = rearrange(y, "(b nh nw) (wh ww) c -> b (nh wh) (nw ww) c", nh=h // win, nw=w // win, wh=win)
+        if shift:
+            y = torch.roll(y, shifts=(shift, shift), dims=(1, 2))
+        x = x + self.drop_path(y)
+        return x + self.drop_path(self.mlp(self.norm2(x)))
+
+
+class Stage(nn.Sequential):
+    """``depth`` LeWin blocks, every second one shifted: ``(B, H, W, C) -> (B, H, W, C)``."""
+
+    def __init__(self, *, dim: int, depth: int, heads: int, cfg: UformerConfig, drop_paths: list[float],
+                 modulator: bool = False):
+        super().__init__(*[
+            LeWinBlock(dim=dim, heads=heads, win_size=cfg.win_size, shift=cfg.shift_windows and i % 2 == 1,
+                       mlp_ratio=cfg.mlp_ratio, drop_path=drop_paths[i], modulator=modulator)
+            for i in range(depth)
+        ])
+
+
+class Uformer(nn.Module):
+    """``(B, in_channels, H, W) -> (B, out_channels, H, W)`` for any H x W.
+
+    The output is a residual (zero at initialisation); the caller adds it to the image.
+    """
+
+    def __init__(self, config: UformerConfig, *, in_channels: int = 64, out_channels: int = 3):
+        super().__init__()
+        self.config = cfg = config
+        e = cfg.embed_dim
+        dims = cfg.stage_dims()
+        # Official schedule: linear over the encoder blocks, the maximum in the bottleneck,
+        # the encoder's rates reversed in the decoder.
+        enc = torch.linspace(0, cfg.drop_path_rate, sum(cfg.depths[:4])).tolist()
+        dec = enc[::-1] + [0.0] * max(0, sum(cfg.depths[5:]) - len(enc))
+        starts = [sum(cfg.depths[:s]) for s in range(5)]
+        enc_rates = [enc[starts[s]:starts[s] + cfg.depths[s]] for s in range(4)]
+        enc_rates.append([cfg.drop_path_rate] * cfg.depths[4])
+        dstarts = [sum(cfg.depths[5:s]) for s in range(5, 9)]
+        dec_rates = [dec[dstarts[i]:dstarts[i] + cfg.depths[5 + i]] for i in range(4)]
+        self.input_proj = nn.Sequential(nn.Conv2d(in_channels, e, 3, padding=1), nn.LeakyReLU(0.01))
+        self.encoders = nn.ModuleList()
+        self.downsamples = nn.ModuleList()
+        for s in range(4):
+            self.encoders.append(Stage(dim=dims[s], depth=cfg.depths[s], heads=cfg.num_heads[s], cfg=cfg,
+                                       drop_paths=enc_rates[s]))
+            self.downsamples.append(nn.Conv2d(dims[s], dims[s + 1], 4, stride=2, padding=1))
+        self.bottleneck = Stage(dim=dims[4], depth=cfg.depths[4], heads=cfg.num_heads[4], cfg=cfg,
+                                drop_paths=enc_rates[4])
+        self.upsamples = nn.ModuleList()
+        self.decoders = nn.ModuleList()
+        up_in = dims[4]
+        for i, s in enumerate(range(5, 9)):
+            skip = dims[3 - i]
+            self.upsamples.append(nn.ConvTranspose2d(up_in, skip, 2, stride=2))
+            self.decoders.append(Stage(dim=2 * skip, depth=cfg.depths[s], heads=cfg.num_heads[s], cfg=cfg,
+                                       drop_paths=dec_rates[i], modulator=cfg.modulator))
+            up_in = 2 * skip
+        self.output_proj = nn.Conv2d(2 * e, out_channels, 3, padding=1)
+        self.apply(_init_weights)
+        nn.init.zeros_(self.output_proj.weight)
+        nn.init.zeros_(self.output_proj.bias)
+
+    def forward(self, x: Tensor) -> Tensor:
+        h, w = x.shape[-2:]
+        x = pad_to_multiple(x, self.config.size_multiple)
+        y = self.input_proj(x).permute(0, 2, 3, 1)
+        skips = []
+        for encoder, down in zip(self.encoders, self.downsamples):
+            y = encoder(y)
+            skips.append(y)
+            y = down(y.permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
+        y = self.bottleneck(y)
+        for up, decoder, skip in zip(self.upsamples, self.decoders, reversed(skips)):
+            y = up(y.permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
+            y = decoder(torch.cat([y, skip], dim=-1))
+        y = self.output_proj(y.permute(0, 3, 1, 2))
+        return y[..., :h, :w]
+
+
+def _init_weights(m: nn.Module) -> None:
+    """Official Uformer init: truncated normal (std 0.02) linears, unit LayerNorms."""
+    if isinstance(m, nn.Linear):
+        nn.init.trunc_normal_(m.weight, std=0.02)
+        if m.bias is not None:
+            nn.init.zeros_(m.bias)
+    elif isinstance(m, nn.LayerNorm):
+        nn.init.ones_(m.weight)
+        nn.init.zeros_(m.bias)

@@ -1,0 +1,178 @@
+"""Training hyper-parameters, progress reports, results, and the per-machine plan."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from roguenerf.errors import InputError
+
+COMPONENTS = ("neighbours", "alignment", "refinement", "attention")
+"""Switchable parts of the enhancer (``--without``); pre-training is switched by the checkpoint."""
+
+CPU_CROP = 128
+GPU_CROP = 512
+CPU_NEIGHBOURS = 2
+"""On a CPU, conv_H of every neighbour runs at full resolution each step; 2 keeps it affordable."""
+CPU_MINUTES = 10.0
+GPU_MINUTES = 60.0
+"""The paper fine-tunes for one hour per scene on GPUs."""
+
+
+@dataclass
+class TrainConfig:
+    """What to train and for how long. ``None`` fields are chosen by :func:`plan_training`."""
+
+    steps: int | None = None
+    """Stop after this many optimiser steps in total (a resumed run counts the saved ones)."""
+    minutes: float | None = None
+    """Stop after this much training wall-clock time in total (resumed runs included)."""
+    crop: int | None = None
+    """Side of the square random crops (paper: 512; CPU: 128)."""
+    batch: int = 4
+    lr: float = 1e-4
+    vgg_weights: Path | str | None = None
+    """Local torchvision VGG-19 state dict (.safetensors or .pth); without it the loss is L1 alone."""
+    checkpoint_every_s: float = 60.0
+    """Seconds between periodic checkpoints (0: after every step)."""
+    num_neighbours: int | None = None
+    """Neighbours per target; default: the model's, capped at 2 on a CPU."""
+    seed: int = 0
+    variant: str | None = None
+    """Model variant when training from scratch (or to override the checkpoint's)."""
+    without: tuple[str, ...] = ()
+    """Components switched off for ablations: neighbours, alignment, refinement, attention."""
+    device: str | None = None
+    """"cpu", "cuda", ...; default: CUDA when available."""
+    evaluate: bool = True
+    """Fine-tuning only: evaluate the scene's test views before and after (TrainResult.before/after)."""
+    progress_bar: bool = True
+    """Show a tqdm bar on stderr (loss, steps/s, ETA)."""
+
+    def validate(self) -> TrainConfig:
+        if self.steps is not None and int(self.steps) < 0:
+            raise InputError(f"steps: expected >= 0, got {self.steps}")
+        if self.minutes is not None and not float(self.minutes) >= 0:
+            raise InputError(f"minutes: expected >= 0, got {self.minutes}")
+        if self.crop is not None and int(self.crop) < 8:
+            raise InputError(f"crop: expected >= 8 pixels, got {self.crop}")
+        if int(self.batch) < 1:
+            raise InputError(f"batch: expected >= 1, got {self.batch}")
+        if not float(self.lr) > 0:
+            raise InputError(f"lr: expected > 0, got {self.lr}")
+        if self.num_neighbours is not None and int(self.num_neighbours) < 0:
+            raise InputError(f"num_neighbours: expected >= 0, got {self.num_neighbours}")
+        unknown = sorted(set(self.without) - set(COMPONENTS))
+        if unknown:
+            raise InputError(f"without: expected some of {', '.join(COMPONENTS)}, got {', '.join(unknown)}")
+        return self
+
+
+@dataclass
+class TrainProgress:
+    step: int
+    total_steps: int | None
+    """Known for step budgets; estimated from the step rate for time budgets."""
+    fraction: float
+    loss: float
+    steps_per_s: float
+    eta_s: float | None
+    elapsed_s: float
+
+
+@dataclass
+class TrainResult:
+    checkpoint: Path
+    steps: int
+    seconds: float
+    final_loss: float
+    loss_kind: str
+    """"l1+vgg19" or "l1" (no VGG-19 weights given)."""
+    before: dict | None
+    after: dict | None
+    config: dict = field(default_factory=dict)
+    """The plan (device, variant, crop, batch, neighbours, budget), model config and transfer report."""
+
+
+def default_device() -> str:
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def _frame_sizes(scenes) -> tuple[int, int]:
+    heights = [f.height for s in scenes for f in s.frames]
+    widths = [f.width for s in scenes for f in s.frames]
+    return min(heights), min(widths)
+
+
+def plan_training(scene, config: TrainConfig, device: str | torch.device | None = None, *,
+                  model_config=None) -> dict:
+    """Choose variant, crop, batch, neighbours and budget for the scene(s) and the machine.
+
+    Args:
+        scene: one Scene or a list of them (pre-training).
+        config: the caller's wishes; its non-None fields always win.
+        device: where training runs (default: CUDA when available).
+        model_config: the starting model's EnhancerConfig when fine-tuning a checkpoint.
+    Returns:
+        A JSON-able dict: ``device, variant, crop, batch, lr, num_neighbours, steps, minutes``.
+    """
+    from roguenerf.models import VARIANTS
+
+    config.validate()
+    scenes = scene if isinstance(scene, (list, tuple)) else [scene]
+    if not scenes:
+        raise InputError("scenes: expected at least one scene, got none")
+    dev = torch.device(device or config.device or default_device())
+    on_gpu = dev.type != "cpu"
+    height, width = _frame_sizes(scenes)
+    largest = max(f.height * f.width for s in scenes for f in s.frames)
+
+    if config.variant is not None:
+        if VARIANTS and config.variant not in VARIANTS:
+            raise InputError(f"variant: expected one of {', '.join(VARIANTS)}, got {config.variant!r}")
+        variant = config.variant
+    elif model_config is not None:
+        variant = model_config.variant
+    elif on_gpu:
+        wanted = "T" if largest <= 1024 * 1024 else "S"
+        variant = wanted if wanted in VARIANTS else "nano"
+    else:
+        variant = "nano"
+
+    crop = int(config.crop) if config.crop is not None else (GPU_CROP if on_gpu else CPU_CROP)
+    model_n = model_config.num_neighbours if model_config is not None else 5
+    if config.num_neighbours is not None:
+        n = int(config.num_neighbours)
+    else:
+        n = model_n if on_gpu else min(model_n, CPU_NEIGHBOURS)
+    if "neighbours" in config.without:
+        n = 0
+    steps, minutes = config.steps, config.minutes
+    if steps is None and minutes is None:
+        minutes = GPU_MINUTES if on_gpu else CPU_MINUTES
+    return {
+        "device": str(dev),
+        "variant": variant,
+        "crop": crop,
+        "crop_used": min(crop, height, width),
+        "batch": int(config.batch),
+        "lr": float(config.lr),
+        "num_neighbours": n,
+        "steps": None if steps is None else int(steps),
+        "minutes": None if minutes is None else float(minutes),
+        "without": list(config.without),
+        "seed": int(config.seed),
+        "threads": torch.get_num_threads(),
+    }
+
+
+def describe_plan(plan: dict) -> str:
+    budget = f"{plan['steps']} steps" if plan["steps"] is not None else f"{plan['minutes']:g} min"
+    if plan["steps"] is not None and plan["minutes"] is not None:
+        budget = f"{plan['steps']} steps or {plan['minutes']:g} min"
+    without = f", without {'+'.join(plan['without'])}" if plan["without"] else ""
+    return (f"plan: {plan['device']} ({plan['threads']} threads), variant {plan['variant']}, "
+            f"crop {plan['crop_used']}, batch {plan['batch']}, {plan['num_neighbours']} neighbours, "
+            f"lr {plan['lr']:g}, budget {budget}{without}")

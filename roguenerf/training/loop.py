@@ -1,0 +1,364 @@
+"""Pre-training over scenes and per-scene fine-tuning (paper section 3.7).
+
+Dimension legend: B batch, N neighbours per target, U distinct neighbour photos in a batch,
+F feature channels, c crop side, H x W full image size.
+
+Each training view is a target: its render (random c x c crop; K's principal point shifted by
+the crop offset) is enhanced with its precomputed nearest training views as neighbours (never
+itself), and the result is compared with the same crop of its photo. Neighbours stay whole.
+conv_H is trained, so neighbour features are recomputed every step, but only for the U photos
+the batch actually uses.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from roguenerf.errors import InputError, TrainingCancelled, TrainingDivergedError
+from roguenerf.training.evaluate import evaluate
+from roguenerf.training.config import TrainConfig, TrainProgress, TrainResult, describe_plan, plan_training
+from roguenerf.training.losses import build_loss
+from roguenerf.training.state import load_state, save_state
+
+log = logging.getLogger("roguenerf.training")
+
+MODEL_FILE = "model.safetensors"
+STATE_FILE = "train_state.safetensors"
+SWITCHES = {"neighbours": "use_neighbours", "alignment": "use_alignment",
+            "refinement": "use_refinement", "attention": "use_attention"}
+
+
+class SceneData:
+    """One scene's training views in memory, with each view's neighbour list computed once.
+
+    photos, renders: ``(M, 3, H, W)``; depths ``(M, 1, H, W)``; K ``(M, 3, 3)``;
+    poses ``(M, 4, 4)``; neighbours ``(M, N)`` int64 positions into these tensors.
+    """
+
+    def __init__(self, scene, num_neighbours: int):
+        from roguenerf.geometry import select_neighbours
+
+        self.scene = scene
+        self.train = list(scene.indices("train"))
+        if not self.train:
+            raise InputError(f"scene {scene.root}: expected training views, found none")
+        sizes = {(scene.frames[i].height, scene.frames[i].width) for i in self.train}
+        if len(sizes) != 1:
+            raise InputError(f"scene {scene.root}: training needs one image size for all training views, "
+                             f"got {sorted(sizes)}")
+        self.height, self.width = next(iter(sizes))
+        self.photos = torch.stack([scene.photo(i) for i in self.train])
+        self.renders = torch.stack([scene.render(i) for i in self.train])
+        self.depths = torch.stack([scene.depth(i) for i in self.train])
+        self.K = scene.intrinsics(self.train).to(torch.float32)
+        self.poses = scene.poses(self.train).to(torch.float32)
+        n = min(num_neighbours, len(self.train) - 1)
+        lists = [select_neighbours(self.poses[m], self.poses, n, exclude=m) for m in range(len(self.train))]
+        self.neighbours = torch.stack(lists) if n > 0 else torch.zeros(len(self.train), 0, dtype=torch.int64)
+
+    def __len__(self) -> int:
+        return len(self.train)
+
+
+def _crop_batch(data: SceneData, targets: Tensor, crop: int, generator: torch.Generator):
+    """Same random crop of render, depth and photo per target; K shifted by the crop offset.
+
+    Returns render ``(B, 3, c, c)``, depth ``(B, 1, c, c)``, photo ``(B, 3, c, c)``, K ``(B, 3, 3)``.
+    """
+    c_h, c_w = min(crop, data.height), min(crop, data.width)
+    renders, depths, photos, Ks = [], [], [], []
+    for t in targets.tolist():
+        y0 = int(torch.randint(0, data.height - c_h + 1, (1,), generator=generator))
+        x0 = int(torch.randint(0, data.width - c_w + 1, (1,), generator=generator))
+        window = (slice(None), slice(y0, y0 + c_h), slice(x0, x0 + c_w))
+        renders.append(data.renders[t][window])
+        depths.append(data.depths[t][window])
+        photos.append(data.photos[t][window])
+        K = data.K[t].clone()
+        K[0, 2] -= x0
+        K[1, 2] -= y0
+        Ks.append(K)
+    return torch.stack(renders), torch.stack(depths), torch.stack(photos), torch.stack(Ks)
+
+
+def training_step_inputs(model, data: SceneData, targets: Tensor, crop: int, generator: torch.Generator,
+                         device: torch.device):
+    """Inputs and ground truth of one step; neighbour features are computed here (with grad).
+
+    Returns ``(args, photo)`` where ``model(*args)`` is the enhanced crop ``(B, 3, c, c)``.
+    """
+    from roguenerf.models import NeighbourBatch
+
+    render, depth, photo, K = _crop_batch(data, targets, crop, generator)
+    pose = data.poses[targets]
+    nb = None
+    lists = data.neighbours[targets]
+    if lists.shape[1] > 0 and model.config.use_neighbours:
+        used, slot = torch.unique(lists, return_inverse=True)
+        features = model.encode_neighbours(data.photos[used].to(device))
+        nb = NeighbourBatch(features=features[slot.to(device)],
+                            depth=data.depths[lists].to(device),
+                            K=data.K[lists].to(device),
+                            world_from_cam=data.poses[lists].to(device))
+    args = (render.to(device), depth.to(device), K.to(device), pose.to(device), nb)
+    return args, photo.to(device)
+
+
+def _apply_without(config, without: Sequence[str]):
+    return dataclasses.replace(config, **{SWITCHES[w]: False for w in without})
+
+
+def transfer_weights(source: torch.nn.Module, target: torch.nn.Module) -> dict:
+    """Copy every parameter/buffer of ``source`` whose name and shape match into ``target``.
+
+    Returns ``{"loaded": count, "dropped": [...], "fresh": [...]}``: top-level sub-modules of
+    the source that the target lacks (or whose shapes differ), and target sub-modules that
+    keep their initial weights.
+    """
+    src = source.state_dict()
+    dst = target.state_dict()
+    matched = {k: v for k, v in src.items() if k in dst and dst[k].shape == v.shape}
+    target.load_state_dict({**dst, **matched})
+
+    def groups(keys):
+        return sorted({".".join(k.split(".")[:1]) for k in keys})
+
+    return {"loaded": len(matched),
+            "dropped": groups(k for k in src if k not in matched),
+            "fresh": groups(k for k in dst if k not in matched)}
+
+
+def _initial_model(checkpoint, config: TrainConfig, plan_variant: str | None):
+    """Starting model and a transfer report: a checkpoint (path or Enhancer) or a fresh one."""
+    from roguenerf.models import build_enhancer, make_config
+
+    overrides = {SWITCHES[w]: False for w in config.without}
+    if checkpoint is None:
+        return build_enhancer(make_config(plan_variant or "nano", **overrides)), None
+    if isinstance(checkpoint, (str, Path)):
+        from roguenerf.checkpoint import load_checkpoint
+
+        source, _meta = load_checkpoint(checkpoint)
+    else:
+        source = checkpoint
+    wanted = source.config
+    if config.variant is not None and config.variant != wanted.variant:
+        wanted = make_config(config.variant, **overrides)
+    else:
+        wanted = _apply_without(wanted, config.without)
+    if wanted == source.config:
+        model = build_enhancer(wanted)
+        model.load_state_dict(source.state_dict())
+        return model, None
+    model = build_enhancer(wanted)
+    report = transfer_weights(source, model)
+    log.info("started from a checkpoint with a different config: loaded %d tensors; dropped %s; fresh %s",
+             report["loaded"], report["dropped"] or "nothing", report["fresh"] or "nothing")
+    return model, report
+
+
+def _budget_done(step: int, elapsed: float, plan: dict) -> bool:
+    if plan["steps"] is not None and step >= plan["steps"]:
+        return True
+    return plan["minutes"] is not None and elapsed >= plan["minutes"] * 60.0
+
+
+def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: TrainConfig,
+         progress: Callable[[TrainProgress], None] | None, should_stop: Callable[[], bool] | None,
+         resume: bool) -> TrainResult:
+    from roguenerf.checkpoint import save_checkpoint
+
+    config = config.validate()
+    output_dir = Path(output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    model_path = output_dir / MODEL_FILE
+    state_path = output_dir / STATE_FILE
+
+    saved = load_state(state_path) if resume and state_path.is_file() else None
+    if saved is not None:
+        from roguenerf.models import EnhancerConfig, build_enhancer
+
+        info = saved["info"]
+        model = build_enhancer(EnhancerConfig.from_dict(info["model_config"]))
+        model.load_state_dict(saved["model"])
+        stored = info["plan"]
+        plan = plan_training(scenes, config, stored["device"] if config.device is None else None,
+                             model_config=model.config)
+        for key in ("variant", "crop", "crop_used", "batch", "lr", "num_neighbours", "without", "seed"):
+            plan[key] = stored[key]
+        transfer, before = info.get("transfer"), info.get("before")
+        log.info("resuming %s from step %d in %s", kind, saved["step"], output_dir)
+    else:
+        start_config = None
+        if checkpoint is not None and not isinstance(checkpoint, (str, Path)):
+            start_config = checkpoint.config
+        elif checkpoint is not None:
+            from roguenerf.checkpoint import load_checkpoint
+
+            checkpoint, _ = load_checkpoint(checkpoint)
+            start_config = checkpoint.config
+        plan = plan_training(scenes, config, model_config=start_config)
+        torch.manual_seed(plan["seed"])  # fresh weights depend on the seed alone
+        model, transfer = _initial_model(checkpoint, config, plan["variant"])
+        plan["variant"] = model.config.variant
+        before = None
+    device = torch.device(plan["device"])
+    if model.config.num_neighbours != plan["num_neighbours"] and plan["num_neighbours"] > 0:
+        model.config = dataclasses.replace(model.config, num_neighbours=plan["num_neighbours"])
+    model.to(device)
+
+    loss_fn = build_loss(config.vgg_weights, device)
+    if loss_fn.kind == "l1":
+        log.info("no VGG-19 weights given: training with the L1 loss alone (the paper adds 1e-3 VGG-19)")
+    log.info("%s", describe_plan(plan))
+
+    datasets = [SceneData(s, plan["num_neighbours"] if model.config.use_neighbours else 0) for s in scenes]
+    if kind == "finetune" and config.evaluate and saved is None and datasets[0].scene.indices("test"):
+        before = _summary(evaluate(datasets[0].scene, model))
+
+    optimizer = torch.optim.Adam(model.parameters(), lr=plan["lr"])
+    generator = torch.Generator().manual_seed(plan["seed"])
+    step, elapsed_before = 0, 0.0
+    if saved is not None:
+        optimizer.load_state_dict(saved["optim"])
+        torch.set_rng_state(saved["rng_torch"])
+        generator.set_state(saved["rng_sampler"])
+        step, elapsed_before = saved["step"], saved["elapsed_s"]
+    else:
+        torch.manual_seed(plan["seed"])
+
+    weights = torch.tensor([float(len(d)) for d in datasets])
+    meta_base = {"kind": kind, "plan": plan, "loss_kind": loss_fn.kind, "transfer": transfer,
+                 "scenes": [str(d.scene.root) for d in datasets]}
+
+    def save(current_step: int, elapsed: float, loss_value: float | None) -> None:
+        info = {**meta_base, "model_config": model.config.to_dict(), "before": before}
+        save_state(state_path, model=model, optimizer=optimizer, generator=generator, step=current_step,
+                   elapsed_s=elapsed, info=info)
+        save_checkpoint(model_path, model, meta={"training": {**meta_base, "steps": current_step,
+                                                               "seconds": round(elapsed, 3),
+                                                               "final_loss": loss_value}})
+
+    if saved is None:
+        save(0, 0.0, None)
+
+    total = plan["steps"]
+    bar = None
+    if config.progress_bar:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, initial=step, desc=kind, unit="step", file=sys.stderr, dynamic_ncols=True)
+    model.train()
+    start = time.perf_counter()
+    last_save = start
+    first_step = step
+    loss_value = float("nan")
+    try:
+        while not _budget_done(step, elapsed_before + time.perf_counter() - start, plan):
+            if should_stop is not None and should_stop():
+                elapsed = elapsed_before + time.perf_counter() - start
+                save(step, elapsed, loss_value)
+                raise TrainingCancelled(step, str(model_path))
+            d = datasets[int(torch.multinomial(weights, 1, generator=generator))]
+            targets = torch.randint(0, len(d), (plan["batch"],), generator=generator)
+            args, photo = training_step_inputs(model, d, targets, plan["crop"], generator, device)
+            output = model(*args)
+            loss = loss_fn(output, photo)
+            loss_value = float(loss.detach())
+            if not math.isfinite(loss_value):
+                raise TrainingDivergedError(step + 1, loss_value, str(model_path))
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            grads = [p.grad for p in model.parameters() if p.grad is not None]
+            if grads and not torch.isfinite(torch.stack([g.abs().max() for g in grads])).all():
+                raise TrainingDivergedError(step + 1, float("nan"), str(model_path))
+            optimizer.step()
+            step += 1
+
+            now = time.perf_counter()
+            elapsed = elapsed_before + now - start
+            rate = (step - first_step) / max(now - start, 1e-9)
+            if plan["steps"] is not None:
+                total_est = plan["steps"]
+            else:
+                total_est = step + int(max(plan["minutes"] * 60.0 - elapsed, 0.0) * rate)
+            remaining = [] if plan["steps"] is None else [(plan["steps"] - step) / max(rate, 1e-9)]
+            if plan["minutes"] is not None:
+                remaining.append(max(plan["minutes"] * 60.0 - elapsed, 0.0))
+            eta = min(remaining) if remaining else None
+            fraction = step / total_est if total_est else 1.0
+            if bar is not None:
+                if plan["steps"] is None:
+                    bar.total = total_est
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss_value:.4f}", eta=f"{eta:.0f}s" if eta is not None else "?")
+            if progress is not None:
+                progress(TrainProgress(step=step, total_steps=total_est, fraction=min(fraction, 1.0),
+                                       loss=loss_value, steps_per_s=rate, eta_s=eta, elapsed_s=elapsed))
+            if now - last_save >= config.checkpoint_every_s:
+                save(step, elapsed, loss_value)
+                last_save = time.perf_counter()
+    finally:
+        if bar is not None:
+            bar.close()
+        model.eval()
+
+    elapsed = elapsed_before + time.perf_counter() - start
+    save(step, elapsed, loss_value if math.isfinite(loss_value) else None)
+    after = None
+    if kind == "finetune" and config.evaluate and datasets[0].scene.indices("test"):
+        after = _summary(evaluate(datasets[0].scene, model))
+    plan_out = {**plan, "loss_kind": loss_fn.kind, "model": model.config.to_dict(), "transfer": transfer}
+    return TrainResult(checkpoint=model_path, steps=step, seconds=elapsed, final_loss=loss_value,
+                       loss_kind=loss_fn.kind, before=before, after=after, config=plan_out)
+
+
+def _summary(report: dict) -> dict:
+    return {"render": report["render"], "enhanced": report["enhanced"]}
+
+
+def finetune(scene, output_dir, *, checkpoint=None, config: TrainConfig = TrainConfig(),
+             progress: Callable[[TrainProgress], None] | None = None,
+             should_stop: Callable[[], bool] | None = None, resume: bool = True) -> TrainResult:
+    """Fine-tune on one scene's training views (render -> photo pairs).
+
+    Args:
+        scene: the :class:`~roguenerf.data.scene.Scene` (needs renders and depths).
+        output_dir: holds ``model.safetensors`` (the result, checkpointed periodically) and
+            ``train_state.safetensors`` (for resume).
+        checkpoint: starting weights (path or Enhancer); None trains from scratch.
+            With ``config.without`` / ``config.variant`` the matching weights are transferred.
+        config: budget and hyper-parameters; unset ones are chosen by :func:`plan_training`.
+        progress: called after every step with a :class:`TrainProgress`.
+        should_stop: polled before every step; True saves and raises TrainingCancelled.
+        resume: continue from ``output_dir``'s saved state when there is one.
+    Raises:
+        TrainingDivergedError: non-finite loss or gradients (the last good checkpoint stays).
+        TrainingCancelled: ``should_stop()`` returned True (state saved first).
+    """
+    return _fit([scene], output_dir, kind="finetune", checkpoint=checkpoint, config=config,
+                progress=progress, should_stop=should_stop, resume=resume)
+
+
+def pretrain(scenes, output_dir, *, checkpoint=None, config: TrainConfig = TrainConfig(),
+             progress: Callable[[TrainProgress], None] | None = None,
+             should_stop: Callable[[], bool] | None = None, resume: bool = True) -> TrainResult:
+    """Pre-train across scenes (each batch comes from one scene, scenes weighted by view count).
+
+    Same arguments and errors as :func:`finetune`; ``before``/``after`` are None.
+    """
+    scenes = list(scenes)
+    if not scenes:
+        raise InputError("scenes: expected at least one scene to pre-train on, got none")
+    return _fit(scenes, output_dir, kind="pretrain", checkpoint=checkpoint, config=config,
+                progress=progress, should_stop=should_stop, resume=resume)
+

@@ -1,0 +1,149 @@
+"""The FastAPI application: ``create_app(settings)``; models and stores load in the lifespan.
+
+``uvicorn --factory service.app:create_app`` serves it with settings from ``ROGUENERF_*``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.concurrency import run_in_threadpool
+from starlette.middleware.cors import CORSMiddleware
+
+from service.auth import BearerAuthMiddleware
+from service.errors import error_response, install_error_handlers
+from service.routers import enhance, health, jobs, scenes
+from service.settings import Settings
+from service.state import EnhancerCache, Services
+from workers.jobs import JobStore
+from workers.layout import Layout
+from workers.queue import JobQueue
+from workers.tasks import bundled_checkpoint
+
+log = logging.getLogger("roguenerf.service")
+
+FORM_LIMITS = {"max_files": 4, "max_fields": 16, "max_part_size": 1 << 20}
+"""Multipart: at most archive + checkpoint or render + depth files; small text fields."""
+
+DESCRIPTION = """
+Enhance radiance-field renders with RoGUENeRF (ECCV 2024).
+
+1. `POST /scenes` a zipped scene folder (optionally with an enhancer checkpoint).
+2. `POST /enhance` novel renders with their depth and camera; get the enhanced PNG.
+3. `POST /scenes/{id}/finetune` to adapt the enhancer to the scene; poll `GET /jobs/{id}`.
+   When the job succeeds its checkpoint becomes the scene's active one.
+
+Errors are `{"error": {"code": ..., "message": ...}}`. With `ROGUENERF_API_KEY` set, every
+route but `/healthz` needs `Authorization: Bearer <key>`.
+"""
+
+
+def _load_default_model(settings: Settings):
+    """The default enhancer for scenes registered without a checkpoint (None when absent)."""
+    from roguenerf import load_checkpoint
+
+    if settings.default_checkpoint:
+        path = Path(settings.default_checkpoint)
+        if not path.is_file():
+            raise FileNotFoundError(f"ROGUENERF_DEFAULT_CHECKPOINT={path}: file not found")
+    else:
+        path = bundled_checkpoint()
+        if path is None:
+            log.warning("no bundled default checkpoint: scenes need their own checkpoint or a fine-tune")
+            return None
+    model, _ = load_checkpoint(path)
+    log.info("default checkpoint loaded from %s", path)
+    return model
+
+
+def _open(settings: Settings) -> Services:
+    layout = Layout(settings.data_dir)
+    layout.ensure()
+    store = JobStore(settings.db_url)
+    store.init_schema()
+    import roguenerf.inference  # noqa: F401  (torch's import cost belongs to startup, not the first request)
+
+    return Services(
+        settings=settings,
+        layout=layout,
+        store=store,
+        queue=JobQueue(settings),
+        enhancers=EnhancerCache(settings, layout, _load_default_model(settings)),
+        enhance_slots=asyncio.Semaphore(settings.enhance_concurrency),
+    )
+
+
+@asynccontextmanager
+async def lifespan(app: FastAPI):
+    settings: Settings = app.state.settings
+    services = await run_in_threadpool(_open, settings)
+    services.extras["loop"] = asyncio.get_running_loop()
+    app.state.services = services
+    log.info("roguenerf service ready: data_dir=%s queue=%s", settings.data_dir, services.queue.backend)
+    try:
+        yield
+    finally:
+        services.store.db.close()
+
+
+class RoGUENeRFApp(FastAPI):
+    """FastAPI with a declared-size check in front of everything.
+
+    FastAPI's ``max_body_size`` counts the bytes actually received (so chunked bodies
+    without Content-Length are cut off at the limit too, answered through our 413 handler),
+    but a too-large *declared* Content-Length makes Starlette replace whatever response the
+    app sends with a plain-text 413. Refusing those up front keeps the JSON error format and
+    spares reading a body that will be refused anyway.
+    """
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] == "http":
+            limit = self.state.settings.max_body_bytes
+            for name, value in scope.get("headers", ()):
+                if name == b"content-length":
+                    try:
+                        declared = int(value)
+                    except ValueError:
+                        declared = -1
+                    if declared > limit or declared < 0:
+                        problem = (f"request body of {declared} bytes is larger than the allowed {limit}"
+                                   if declared > limit else f"invalid Content-Length {value!r}")
+                        status, code = (413, "payload_too_large") if declared > limit else (400, "bad_request")
+                        response = error_response(status, code, problem, headers={"Connection": "close"})
+                        await response(scope, receive, send)
+                        return
+        await super().__call__(scope, receive, send)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+    app = RoGUENeRFApp(
+        title="RoGUENeRF enhancement service",
+        version=__import__("roguenerf").__version__,
+        description=DESCRIPTION,
+        lifespan=lifespan,
+        max_body_size=settings.max_body_bytes,
+        form_limits=FORM_LIMITS,
+    )
+    app.state.settings = settings
+    install_error_handlers(app)
+    for module in (health, scenes, enhance, jobs):
+        app.include_router(module.router)
+    if settings.api_key is not None:
+        app.add_middleware(BearerAuthMiddleware, api_key=settings.api_key.get_secret_value())
+    if settings.cors_origins:
+        # Added last, so outermost: preflights are answered before authentication.
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.cors_origins,
+            allow_credentials=False,
+            allow_methods=["GET", "POST", "DELETE"],
+            allow_headers=["Authorization", "Content-Type", "Idempotency-Key"],
+            expose_headers=["X-Enhance-Seconds", "X-Total-Seconds", "X-Neighbours",
+                            "X-Enhance-Note", "X-Checkpoint-Version", "Location", "Retry-After"],
+        )
+    return app

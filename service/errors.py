@@ -1,0 +1,133 @@
+"""One error format for every answer that is not a success.
+
+``{"error": {"code": "...", "message": "..."}}`` (plus ``"details"`` for validation errors),
+for our own errors, the library's input errors, FastAPI's validation errors and Starlette's
+404/405/413.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from roguenerf.errors import CheckpointError, InputError, RoGUENeRFError, SceneFormatError
+
+log = logging.getLogger("roguenerf.service")
+
+_STATUS_CODES = {
+    400: "bad_request",
+    401: "unauthorized",
+    403: "forbidden",
+    404: "not_found",
+    405: "method_not_allowed",
+    409: "conflict",
+    413: "payload_too_large",
+    415: "unsupported_media_type",
+    422: "validation_error",
+    429: "too_many_requests",
+    503: "unavailable",
+}
+
+
+class ApiError(Exception):
+    """Raise in a route: becomes ``status`` with ``{"error": {"code", "message"}}``."""
+
+    def __init__(self, status: int, code: str, message: str, *, headers: dict | None = None):
+        self.status = status
+        self.code = code
+        self.message = message
+        self.headers = headers
+        super().__init__(message)
+
+
+def error_body(code: str, message: str, **extra) -> dict:
+    return {"error": {"code": code, "message": message, **extra}}
+
+
+def error_response(status: int, code: str, message: str, *, headers: dict | None = None,
+                   **extra) -> JSONResponse:
+    return JSONResponse(error_body(code, message, **extra), status_code=status, headers=headers)
+
+
+def library_error(exc: RoGUENeRFError) -> ApiError:
+    """Map a library error raised by user input to a 4xx (or 413 for oversized images)."""
+    from roguenerf.imageio import ImageTooLargeError
+
+    if isinstance(exc, ImageTooLargeError):
+        return ApiError(413, "image_too_large", str(exc))
+    if isinstance(exc, SceneFormatError):
+        return ApiError(422, "invalid_scene", str(exc))
+    if isinstance(exc, CheckpointError):
+        return ApiError(422, "invalid_checkpoint", str(exc))
+    if isinstance(exc, InputError):
+        return ApiError(422, "invalid_input", str(exc))
+    return ApiError(422, "enhance_failed", str(exc))
+
+
+def _location(loc) -> str:
+    parts = [str(p) for p in loc if p not in ("body",)]
+    return ".".join(parts) or "body"
+
+
+async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
+    return error_response(exc.status, exc.code, exc.message, headers=exc.headers)
+
+
+async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    code = _STATUS_CODES.get(exc.status_code, "http_error")
+    message = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+    if exc.status_code == 404 and message == "Not Found":
+        message = f"no route {request.method} {request.url.path}"
+    elif exc.status_code == 413:
+        limit = getattr(request.app.state, "settings", None)
+        limit_txt = f" (limit {limit.max_body_bytes} bytes)" if limit is not None else ""
+        message = f"request body too large{limit_txt}"
+    return error_response(exc.status_code, code, message, headers=getattr(exc, "headers", None))
+
+
+async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+    details = [
+        {"field": _location(e.get("loc", ())), "message": e.get("msg", ""), "type": e.get("type", "")}
+        for e in exc.errors()
+    ]
+    summary = "; ".join(f"{d['field']}: {d['message']}" for d in details[:5])
+    return error_response(422, "validation_error", f"invalid request: {summary}", details=details)
+
+
+async def _library_error(request: Request, exc: RoGUENeRFError) -> JSONResponse:
+    mapped = library_error(exc)
+    return error_response(mapped.status, mapped.code, mapped.message)
+
+
+async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+    log.exception("unhandled error on %s %s", request.method, request.url.path)
+    return error_response(500, "internal_error", "internal server error (logged on the server)")
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    app.add_exception_handler(ApiError, _api_error)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(RoGUENeRFError, _library_error)
+    app.add_exception_handler(Exception, _unexpected)
+
+
+_DESCRIPTIONS = {
+    401: "missing or wrong API key",
+    404: "unknown id",
+    409: "conflicts with the current state",
+    413: "body or image too large",
+    422: "invalid input",
+    503: "over capacity or a dependency is down; retry later",
+}
+
+
+def error_responses(*codes: int) -> dict:
+    """OpenAPI ``responses=`` entries documenting the error body for these status codes."""
+    from service.schemas import ErrorBody
+
+    return {code: {"model": ErrorBody, "description": _DESCRIPTIONS.get(code, "error")} for code in codes}

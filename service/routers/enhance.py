@@ -1,0 +1,124 @@
+"""POST /enhance: one render in, the enhanced PNG out."""
+
+from __future__ import annotations
+
+import json
+import time
+from typing import Annotated
+
+from fastapi import APIRouter, File, Form, UploadFile
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import Response
+from pydantic import ValidationError
+
+from roguenerf.errors import RoGUENeRFError
+from service.errors import ApiError, error_responses, library_error
+from service.routers.scenes import scene_or_404
+from service.schemas import Camera
+from service.state import Services, ServicesDep
+
+router = APIRouter(tags=["enhance"])
+
+RETRY_AFTER_S = 1
+
+
+def parse_camera(text: str) -> Camera:
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ApiError(422, "validation_error", f"camera: not valid JSON ({exc})") from None
+    try:
+        return Camera.model_validate(data)
+    except ValidationError as exc:
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in e['loc']) or 'camera'}: {e['msg']}" for e in exc.errors()[:5]
+        )
+        raise ApiError(422, "validation_error", f"camera: {problems}") from None
+
+
+def camera_tensors(camera: Camera):
+    """``(K (3, 3), world_from_cam (4, 4) OpenCV)`` as float64, validated with messages that
+    name the camera fields. The pose handed to the library is the converted, unchecked one,
+    so the service computes exactly what a direct library call with these inputs computes."""
+    import torch
+
+    from roguenerf.geometry import check_intrinsics, check_pose, intrinsics_matrix, opengl_to_opencv
+
+    pose = torch.tensor(camera.transform_matrix, dtype=torch.float64)
+    if camera.convention == "opengl":
+        pose = opengl_to_opencv(pose)
+    check_pose(pose.clone(), "camera.transform_matrix")
+    K = intrinsics_matrix(camera.fl_x, camera.fl_y, camera.cx, camera.cy, dtype=torch.float64)
+    check_intrinsics(K, "camera (fl_x, fl_y, cx, cy)")
+    return K, pose
+
+
+def _enhance(services: Services, scene: dict, render_bytes: bytes, depth_bytes: bytes,
+             camera: Camera, depth_scale: float) -> tuple[bytes, object, int]:
+    from roguenerf.geometry import ray_to_z_depth
+    from roguenerf.imageio import read_depth, read_image, write_png
+
+    limit = services.settings.max_upload_pixels
+    try:
+        render = read_image(render_bytes, max_pixels=limit)
+        depth = read_depth(depth_bytes, scale=depth_scale, max_pixels=limit)
+        height, width = render.shape[1:]
+        if tuple(depth.shape[1:]) != (height, width):
+            raise ApiError(422, "invalid_input",
+                           f"depth: expected {height}x{width} (H x W) like the render, got "
+                           f"{depth.shape[1]}x{depth.shape[2]}")
+        if camera.w is not None and camera.w != width or camera.h is not None and camera.h != height:
+            raise ApiError(422, "invalid_input",
+                           f"camera: w x h = {camera.w}x{camera.h} but the render is {width}x{height}")
+        K, world_from_cam = camera_tensors(camera)
+        if camera.depth_type == "ray":
+            depth = ray_to_z_depth(depth[0], K)[None].to(depth.dtype)
+        version = scene["active_version"]
+        enhancer = services.enhancers.get(scene["id"], version)
+        result = enhancer.enhance(render, depth, K, world_from_cam)
+        return write_png(None, result.image), result, version
+    except RoGUENeRFError as exc:
+        raise library_error(exc) from None
+
+
+@router.post(
+    "/enhance",
+    summary="Enhance one render of a registered scene",
+    response_class=Response,
+    responses={
+        200: {"content": {"image/png": {}},
+              "description": "the enhanced image, same size as the render; X-Enhance-Seconds, "
+                             "X-Neighbours, X-Checkpoint-Version and (when relevant) X-Enhance-Note headers"},
+        **error_responses(404, 409, 413, 422, 503),
+    },
+)
+async def create_enhancement(
+    services: ServicesDep,
+    scene_id: Annotated[str, Form(description="id returned by POST /scenes")],
+    render: Annotated[UploadFile, File(description="the radiance field's render (PNG)")],
+    depth: Annotated[UploadFile, File(description=".npy float32 HxW, or 16-bit PNG with depth_scale")],
+    camera: Annotated[str, Form(description="JSON: transform_matrix, convention, fl_x, fl_y, cx, cy, depth_type")],
+    depth_scale: Annotated[float, Form(gt=0, description="multiplier for 16-bit PNG depth (e.g. 0.001 for mm)")] = 1.0,
+) -> Response:
+    start = time.perf_counter()
+    scene = await run_in_threadpool(scene_or_404, services, scene_id)
+    cam = parse_camera(camera)
+    slots = services.enhance_slots
+    if slots.locked():
+        raise ApiError(503, "over_capacity",
+                       f"all {services.settings.enhance_concurrency} enhancement slots are busy; retry shortly",
+                       headers={"Retry-After": str(RETRY_AFTER_S)})
+    async with slots:
+        render_bytes = await render.read()
+        depth_bytes = await depth.read()
+        png, result, version = await run_in_threadpool(
+            _enhance, services, scene, render_bytes, depth_bytes, cam, depth_scale)
+    headers = {
+        "X-Enhance-Seconds": f"{result.seconds:.4f}",
+        "X-Total-Seconds": f"{time.perf_counter() - start:.4f}",
+        "X-Neighbours": ",".join(result.neighbours),
+        "X-Checkpoint-Version": str(version),
+    }
+    if result.note:
+        headers["X-Enhance-Note"] = result.note.encode("ascii", "replace").decode()
+    return Response(content=png, media_type="image/png", headers=headers)

@@ -1,0 +1,157 @@
+"""Scenes: register (zipped scene folder), read, delete, start fine-tuning."""
+
+from __future__ import annotations
+
+import logging
+from typing import Annotated
+
+from fastapi import APIRouter, File, Header, Response, UploadFile
+from fastapi.concurrency import run_in_threadpool
+
+from roguenerf.errors import RoGUENeRFError
+from service.errors import ApiError, error_responses, library_error
+from service.schemas import JobCreate, JobPublic, ScenePublic, iso
+from service.state import Services, ServicesDep
+from service.storage import ZipLimits, discard, extract_scene_zip, place, save_upload
+from workers.jobs import ActiveJobExists, IdempotencyMismatch, SceneBusy
+from workers.layout import ID_RE, new_id
+from workers.queue import QueueUnavailable
+
+log = logging.getLogger("roguenerf.service")
+router = APIRouter(prefix="/scenes", tags=["scenes"])
+
+
+def scene_or_404(services: Services, scene_id: str) -> dict:
+    row = services.store.get_scene(scene_id) if ID_RE.match(scene_id) else None
+    if row is None:
+        raise ApiError(404, "not_found", f"scene {scene_id!r} not found")
+    return row
+
+
+def scene_public(services: Services, row: dict) -> ScenePublic:
+    active = services.store.active_job(row["id"])
+    return ScenePublic(
+        id=row["id"], views=row["views"], train_views=row["train_views"], test_views=row["test_views"],
+        width=row["width"], height=row["height"], created_at=iso(row["created_at"]),
+        active_version=row["active_version"], checkpoint_versions=services.layout.versions(row["id"]),
+        active_job=active["id"] if active else None,
+    )
+
+
+def _register(services: Services, archive: UploadFile, checkpoint: UploadFile | None) -> ScenePublic:
+    from roguenerf import load_checkpoint, load_scene
+
+    settings, layout = services.settings, services.layout
+    scene_id = new_id()
+    tmp = layout.temp_dir()
+    try:
+        root = extract_scene_zip(archive.file, tmp / "scene",
+                                 ZipLimits(settings.max_scene_files, settings.max_scene_bytes))
+        if root != tmp / "scene":
+            # zip -r lego.zip lego/: the scene folder is the single top-level directory.
+            staging = tmp / "unwrapped"
+            root.rename(staging)
+            (tmp / "scene").rmdir()
+            staging.rename(tmp / "scene")
+        try:
+            scene = load_scene(tmp / "scene")
+        except RoGUENeRFError as exc:
+            raise library_error(exc) from None
+        train = len(scene.indices("train"))
+        if train == 0:
+            raise ApiError(422, "invalid_scene", "scene has no 'train' views: neighbours come from them")
+        version = 0
+        if checkpoint is not None:
+            (tmp / "checkpoints").mkdir()
+            path = save_upload(checkpoint.file, tmp / "checkpoints" / "v1.safetensors",
+                               max_bytes=settings.max_checkpoint_bytes, what="checkpoint")
+            try:
+                load_checkpoint(path, max_bytes=settings.max_checkpoint_bytes)
+            except RoGUENeRFError as exc:
+                raise library_error(exc) from None
+            version = 1
+        first = scene.frames[0]
+        place(tmp, layout.scene_dir(scene_id))
+    except BaseException:
+        discard(tmp)
+        raise
+    try:
+        row = services.store.create_scene(
+            scene_id, views=len(scene.frames), train_views=train,
+            test_views=len(scene.indices("test")), width=int(first.width), height=int(first.height),
+            active_version=version,
+        )
+    except BaseException:
+        layout.remove_tree(layout.scene_dir(scene_id))
+        raise
+    log.info("scene %s registered: %d views, checkpoint v%d", scene_id, len(scene.frames), version)
+    return scene_public(services, row)
+
+
+@router.post("", status_code=201, response_model=ScenePublic, summary="Register a zipped scene folder",
+             responses=error_responses(413, 422))
+def create_scene(
+    services: ServicesDep,
+    archive: Annotated[UploadFile, File(description="zip of a scene folder (transforms.json, images/, renders/, depths/)")],
+    checkpoint: Annotated[UploadFile | None, File(description="optional enhancer checkpoint (.safetensors)")] = None,
+) -> ScenePublic:
+    return _register(services, archive, checkpoint)
+
+
+@router.get("/{scene_id}", response_model=ScenePublic, summary="Describe a scene",
+            responses=error_responses(404))
+def read_scene(scene_id: str, services: ServicesDep) -> ScenePublic:
+    return scene_public(services, scene_or_404(services, scene_id))
+
+
+@router.delete("/{scene_id}", status_code=204, summary="Delete a scene and its checkpoints",
+               responses=error_responses(404, 409))
+def delete_scene(scene_id: str, services: ServicesDep) -> Response:
+    scene_or_404(services, scene_id)
+    try:
+        deleted = services.store.delete_scene(scene_id)
+    except SceneBusy as exc:
+        raise ApiError(409, "scene_busy",
+                       f"scene {scene_id} has an active fine-tuning job ({exc}); cancel it first") from None
+    if not deleted:
+        raise ApiError(404, "not_found", f"scene {scene_id!r} not found")
+    services.enhancers.evict(scene_id)
+    services.layout.remove_tree(services.layout.scene_dir(scene_id))
+    return Response(status_code=204)
+
+
+@router.post("/{scene_id}/finetune", status_code=202, response_model=JobPublic,
+             summary="Start fine-tuning the scene's enhancer (returns a job)",
+             responses=error_responses(404, 409, 422, 503))
+def create_finetune_job(
+    scene_id: str,
+    body: JobCreate,
+    services: ServicesDep,
+    response: Response,
+    idempotency_key: Annotated[str | None, Header(max_length=200, description="same key, same job")] = None,
+) -> JobPublic:
+    settings = services.settings
+    row = scene_or_404(services, scene_id)
+    if body.steps is not None and body.steps > settings.max_job_steps:
+        raise ApiError(422, "validation_error", f"steps: at most {settings.max_job_steps}, got {body.steps}")
+    if body.minutes is not None and body.minutes > settings.max_job_minutes:
+        raise ApiError(422, "validation_error",
+                       f"minutes: at most {settings.max_job_minutes}, got {body.minutes}")
+    request = body.model_dump(exclude_none=True)
+    try:
+        job, created = services.store.create_job(scene_id, request, idempotency_key=idempotency_key,
+                                                 base_version=row["active_version"])
+    except ActiveJobExists as exc:
+        raise ApiError(409, "job_active",
+                       f"scene {scene_id} already has an active fine-tuning job ({exc.job_id}); "
+                       "wait for it or cancel it") from None
+    except IdempotencyMismatch as exc:
+        raise ApiError(409, "idempotency_conflict", str(exc)) from None
+    if created:
+        try:
+            services.queue.enqueue(job["id"])
+        except QueueUnavailable as exc:
+            services.store.delete_job(job["id"])
+            raise ApiError(503, "queue_unavailable", str(exc), headers={"Retry-After": "5"}) from None
+    response.headers["Location"] = f"/jobs/{job['id']}"
+    return JobPublic.from_row(job)

@@ -1,0 +1,141 @@
+"""Request and response bodies, one family per resource (``SceneXxx``, ``JobXxx``, ``Camera``)."""
+
+from __future__ import annotations
+
+import math
+from datetime import datetime, timezone
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+
+def iso(ts: float | None) -> str | None:
+    return None if ts is None else datetime.fromtimestamp(ts, timezone.utc).isoformat()
+
+
+class ErrorInfo(BaseModel):
+    code: str
+    message: str
+
+
+class ErrorBody(BaseModel):
+    """Every 4xx/5xx answer has this shape."""
+
+    error: ErrorInfo
+
+
+class ScenePublic(BaseModel):
+    id: str
+    views: int
+    """All views (train + test)."""
+    train_views: int
+    test_views: int
+    width: int
+    height: int
+    created_at: str
+    active_version: int
+    """Checkpoint /enhance uses: N means checkpoints/vN.safetensors, 0 the default checkpoint."""
+    checkpoint_versions: list[int]
+    """Every stored version (older ones are kept)."""
+    active_job: str | None
+    """Id of the queued or running fine-tuning job, if any."""
+
+
+class JobCreate(BaseModel):
+    """A fine-tuning budget: exactly one of ``steps`` or ``minutes``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    steps: int | None = Field(default=None, gt=0, description="optimiser steps")
+    minutes: float | None = Field(default=None, gt=0, description="wall-clock budget")
+
+    @field_validator("minutes")
+    @classmethod
+    def _finite(cls, value):
+        if value is not None and not math.isfinite(value):
+            raise ValueError("must be a finite number")
+        return value
+
+    @model_validator(mode="after")
+    def _one_budget(self) -> JobCreate:
+        if (self.steps is None) == (self.minutes is None):
+            raise ValueError("give exactly one of 'steps' or 'minutes'")
+        return self
+
+
+class JobPublic(BaseModel):
+    id: str
+    scene_id: str
+    state: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    request: dict
+    progress: float
+    """0 to 1."""
+    eta_s: float | None
+    step: int | None
+    total_steps: int | None
+    loss: float | None
+    """Most recent training loss."""
+    recent_losses: list[tuple[int, float]]
+    """``[step, loss]`` pairs, oldest first (the last 20 reported)."""
+    attempt: int
+    cancel_requested: bool
+    error: ErrorInfo | None
+    before: dict | None
+    """Metrics of the scene's held-out views before fine-tuning (when the library reports them)."""
+    after: dict | None
+    result: dict | None
+    """Training summary: steps, seconds, final_loss, loss_kind, config."""
+    checkpoint_version: int | None
+    """The scene checkpoint version this job produced (succeeded jobs)."""
+    created_at: str
+    started_at: str | None
+    finished_at: str | None
+    heartbeat_at: str | None
+
+    @classmethod
+    def from_row(cls, row: dict) -> JobPublic:
+        result = row.get("result") or None
+        error = None
+        if row["error_code"]:
+            error = ErrorInfo(code=row["error_code"], message=row["error_message"] or "")
+        summary = None
+        if result is not None:
+            summary = {k: v for k, v in result.items() if k not in ("before", "after")}
+        return cls(
+            id=row["id"], scene_id=row["scene_id"], state=row["state"], request=row["request"],
+            progress=row["progress"], eta_s=row["eta_s"], step=row["step"], total_steps=row["total_steps"],
+            loss=row["loss"], recent_losses=[tuple(x) for x in (row["losses"] or [])],
+            attempt=row["attempt"], cancel_requested=row["cancel_requested"], error=error,
+            before=(result or {}).get("before"), after=(result or {}).get("after"), result=summary,
+            checkpoint_version=row["checkpoint_version"], created_at=iso(row["created_at"]),
+            started_at=iso(row["started_at"]), finished_at=iso(row["finished_at"]),
+            heartbeat_at=iso(row["heartbeat_at"]),
+        )
+
+
+class Camera(BaseModel):
+    """Pose and intrinsics of the render sent to /enhance (the ``camera`` form field, JSON)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    transform_matrix: list[list[float]] = Field(description="4x4 camera-to-world")
+    convention: Literal["opengl", "opencv"] = Field(
+        description="opengl: nerfstudio/Blender (x right, y up, -z forward); opencv: x right, y down, z forward")
+    fl_x: float
+    fl_y: float
+    cx: float
+    cy: float
+    depth_type: Literal["z", "ray"] = Field(
+        description="z: distance along the optical axis; ray: distance along each pixel's ray")
+    w: int | None = Field(default=None, description="optional; must match the render's width")
+    h: int | None = Field(default=None, description="optional; must match the render's height")
+
+    @field_validator("transform_matrix")
+    @classmethod
+    def _four_by_four(cls, value):
+        if len(value) != 4 or any(len(row) != 4 for row in value):
+            shape = f"{len(value)} rows of lengths {[len(r) for r in value]}"
+            raise ValueError(f"expected 4x4 (4 rows of 4 numbers), got {shape}")
+        if not all(math.isfinite(x) for row in value for x in row):
+            raise ValueError("contains NaN or infinite values")
+        return value

@@ -1,0 +1,230 @@
+"""Shared parts of the service/worker tests: toy scenes as zips, tiny checkpoints, a live
+uvicorn server on a free loopback port, worker processes, a throwaway redis-server.
+
+Everything is real (HTTP over a socket, SQLite files, subprocesses); nothing is mocked.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import zipfile
+from pathlib import Path
+
+import httpx
+
+ROOT = Path(__file__).resolve().parent.parent
+
+FAST = dict(
+    heartbeat_period=0.3,
+    heartbeat_timeout=2.5,
+    sweeper_period=0.5,
+    worker_poll_max_delay=0.2,
+    checkpoint_every_s=0.2,
+    finetune_crop=32,
+    finetune_batch=1,
+    finetune_lr=3e-3,
+    finetune_evaluate=False,
+    drain_timeout=30.0,
+)
+"""Settings that make jobs, heartbeats and the sweeper fast enough for tests."""
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_until(predicate, *, timeout: float, interval: float = 0.1, what: str = "condition"):
+    """Poll ``predicate`` until it returns a truthy value; that value is returned."""
+    deadline = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < deadline:
+        last = predicate()
+        if last:
+            return last
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what} (last value: {last!r})")
+
+
+# ----------------------------------------------------------------------------- library data
+def make_scene(root: Path, *, seed: int = 0, height: int = 48, width: int = 64, n_train: int = 6,
+               n_test: int = 2):
+    from roguenerf import make_toy_scene
+
+    return make_toy_scene(root, seed=seed, n_train=n_train, n_test=n_test, height=height, width=width)
+
+
+def make_checkpoint(path: Path, *, seed: int = 0) -> Path:
+    """A tiny 'micro' enhancer (2 neighbours), randomly initialised with a fixed seed."""
+    import torch
+
+    from roguenerf import build_enhancer, save_checkpoint
+
+    torch.manual_seed(seed)
+    model = build_enhancer("micro", num_neighbours=2)
+    return save_checkpoint(path, model)
+
+
+def zip_folder(folder: Path, *, prefix: str | None = "scene") -> bytes:
+    """Zip a scene folder the way `zip -r scene.zip scene/` does (one top-level folder)."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+        for path in sorted(folder.rglob("*")):
+            rel = path.relative_to(folder).as_posix()
+            name = f"{prefix}/{rel}" if prefix else rel
+            if path.is_file():
+                zf.write(path, name)
+    return buf.getvalue()
+
+
+def view_request(scene, index: int) -> dict:
+    """The /enhance form of one scene view: its render PNG, depth .npy and camera JSON."""
+    from roguenerf.geometry import opencv_to_opengl
+
+    frame = scene.frames[index]
+    pose = opencv_to_opengl(frame.world_from_cam.to(__import__("torch").float64))
+    K = frame.K
+    camera = {
+        "transform_matrix": pose.tolist(),
+        "convention": "opengl",
+        "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
+        "depth_type": "z",
+    }
+    return {
+        "render": Path(frame.render_path).read_bytes(),
+        "depth": Path(frame.depth_path).read_bytes(),
+        "camera": camera,
+    }
+
+
+def enhance(client: httpx.Client, scene_id: str, view: dict, **extra) -> httpx.Response:
+    files = {
+        "render": ("render.png", view["render"], "image/png"),
+        "depth": ("depth.npy", view["depth"], "application/octet-stream"),
+    }
+    data = {"scene_id": scene_id, "camera": json.dumps(view["camera"]), **extra}
+    return client.post("/enhance", files=files, data=data)
+
+
+def register(client: httpx.Client, archive: bytes, checkpoint: bytes | None = None) -> httpx.Response:
+    files = {"archive": ("scene.zip", archive, "application/zip")}
+    if checkpoint is not None:
+        files["checkpoint"] = ("model.safetensors", checkpoint, "application/octet-stream")
+    return client.post("/scenes", files=files)
+
+
+def wait_job(client: httpx.Client, job_id: str, states, *, timeout: float) -> dict:
+    states = {states} if isinstance(states, str) else set(states)
+
+    def done():
+        job = client.get(f"/jobs/{job_id}").json()
+        return job if job["state"] in states else None
+
+    return wait_until(done, timeout=timeout, interval=0.2, what=f"job {job_id} to reach {sorted(states)}")
+
+
+# ----------------------------------------------------------------------------- processes
+class LiveServer:
+    """uvicorn serving ``create_app(settings)`` in a thread on a free loopback port."""
+
+    def __init__(self, settings):
+        import uvicorn
+
+        from service.app import create_app
+
+        self.settings = settings
+        self.app = create_app(settings)
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.server = uvicorn.Server(uvicorn.Config(self.app, host="127.0.0.1", port=self.port,
+                                                    log_level="warning", lifespan="on"))
+        self.thread = threading.Thread(target=self.server.run, name="uvicorn", daemon=True)
+
+    def __enter__(self) -> LiveServer:
+        self.thread.start()
+        wait_until(lambda: self.server.started, timeout=60, what="uvicorn startup")
+        return self
+
+    def client(self, **kwargs) -> httpx.Client:
+        return httpx.Client(base_url=self.url, timeout=120, **kwargs)
+
+    def __exit__(self, *exc) -> None:
+        self.server.should_exit = True
+        self.thread.join(30)
+
+
+class WorkerProcess:
+    """``python -m workers`` as a separate process with the given settings."""
+
+    def __init__(self, settings, log_path: Path):
+        env = {k: v for k, v in os.environ.items() if not k.startswith("ROGUENERF_")}
+        env.update(settings.env())
+        env["PYTHONPATH"] = str(ROOT)
+        self.log_path = log_path
+        self._log = open(log_path, "ab")
+        self.proc = subprocess.Popen([sys.executable, "-m", "workers"], env=env, cwd=ROOT,
+                                     stdout=self._log, stderr=subprocess.STDOUT)
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def wait_ready(self, timeout: float = 90) -> None:
+        wait_until(lambda: "worker ready" in self.log() or self.proc.poll() is not None,
+                   timeout=timeout, what="worker startup")
+        assert self.proc.poll() is None, f"worker exited early:\n{self.log()}"
+
+    def kill9(self) -> None:
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait(10)
+
+    def interrupt(self, timeout: float = 60) -> int:
+        self.proc.send_signal(signal.SIGINT)
+        return self.proc.wait(timeout)
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
+        self._log.close()
+
+
+@contextlib.contextmanager
+def redis_server(tmp: Path):
+    """Debian's redis-server on a free loopback port, no persistence, in ``tmp``."""
+    exe = shutil.which("redis-server")
+    if exe is None:
+        import pytest
+
+        pytest.skip("redis-server is not installed (apt-get install -y redis-server)")
+    port = free_port()
+    proc = subprocess.Popen([exe, "--port", str(port), "--bind", "127.0.0.1", "--save", "",
+                             "--appendonly", "no", "--dir", str(tmp)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    try:
+        def up():
+            with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), 0.2) as s:
+                s.sendall(b"PING\r\n")
+                return s.recv(16).startswith(b"+PONG")
+            return False
+
+        wait_until(up, timeout=20, what="redis-server")
+        yield f"redis://127.0.0.1:{port}/0"
+    finally:
+        proc.terminate()
+        proc.wait(10)
+
+
+def tree_digest(folder: Path) -> dict[str, int]:
+    """{relative path: size} of every file: compares a scene folder before and after."""
+    return {p.relative_to(folder).as_posix(): p.stat().st_size for p in sorted(folder.rglob("*")) if p.is_file()}

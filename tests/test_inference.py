@@ -1,0 +1,169 @@
+"""SceneEnhancer: neighbour choice, feature cache, no-neighbour fallback, NaN guard, threads."""
+
+from __future__ import annotations
+
+import math
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+import torch
+
+from roguenerf.data.toy import make_toy_scene
+from roguenerf.errors import InputError, RoGUENeRFError
+from roguenerf.inference import NO_NEIGHBOUR_NOTE, SceneEnhancer
+from roguenerf.models import build_enhancer
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_toy_scene(tmp_path_factory.mktemp("toy"), seed=3, n_train=6, n_test=2, height=32, width=40)
+
+
+def _model(seed: int = 0, **overrides):
+    torch.manual_seed(seed)
+    model = build_enhancer("micro", **overrides)
+    # A fresh enhancer is the identity (zero-initialised residual); perturb every weight so
+    # outputs depend on the neighbours and differences are visible.
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    return model
+
+
+def _counting(model):
+    calls = []
+    original = model.encode_neighbours
+
+    def encode(photos):
+        calls.append(photos.shape[0])
+        return original(photos)
+
+    model.encode_neighbours = encode
+    return calls
+
+
+def test_enhance_shape_range_and_neighbours_from_train(scene):
+    enhancer = SceneEnhancer(scene, _model(), num_neighbours=3)
+    result = enhancer.enhance_view("test_000")
+    assert result.image.shape == (3, 32, 40)
+    assert result.image.dtype == torch.float32
+    assert 0.0 <= float(result.image.min()) and float(result.image.max()) <= 1.0
+    assert len(result.neighbours) == 3
+    assert all(name.startswith("train_") for name in result.neighbours)
+    assert result.note is None and result.seconds > 0
+
+
+def test_training_view_is_never_its_own_neighbour(scene):
+    enhancer = SceneEnhancer(scene, _model(), num_neighbours=5)
+    for name in ("train_000", "train_003"):
+        result = enhancer.enhance_view(name)
+        assert name not in result.neighbours
+        assert len(result.neighbours) == 5  # all the other training views
+    i = scene.index("train_002")
+    frame = scene.frames[i]
+    by_index = enhancer.enhance(scene.render(i), scene.depth(i), frame.K, frame.world_from_cam, exclude=i)
+    by_name = enhancer.enhance(scene.render(i), scene.depth(i), frame.K, frame.world_from_cam, exclude="train_002")
+    assert "train_002" not in by_index.neighbours and by_index.neighbours == by_name.neighbours
+    assert torch.equal(by_index.image, by_name.image)
+
+
+def test_num_neighbours_defaults_to_model_config(scene):
+    model = _model(num_neighbours=2)
+    assert len(SceneEnhancer(scene, model).enhance_view("test_001").neighbours) == 2
+    assert SceneEnhancer(scene, model, num_neighbours=0).enhance_view("test_001").neighbours == []
+
+
+def test_features_are_encoded_once_and_reused(scene):
+    model = _model()
+    calls = _counting(model)
+    enhancer = SceneEnhancer(scene, model, num_neighbours=2)
+    first = enhancer.enhance_view("test_000")
+    encoded = sum(calls)
+    assert encoded == 2 and enhancer.cached_views() == 2
+    again = enhancer.enhance_view("test_000")
+    assert sum(calls) == encoded  # nothing re-encoded
+    assert torch.equal(first.image, again.image)
+
+
+def test_cached_result_equals_direct_model_call(scene):
+    from roguenerf.models import NeighbourBatch
+
+    model = _model()
+    enhancer = SceneEnhancer(scene, model, num_neighbours=2)
+    i = scene.index("test_001")
+    frame = scene.frames[i]
+    result = enhancer.enhance_view(i)
+    idx = [scene.index(n) for n in result.neighbours]
+    with torch.no_grad():
+        feats = model.encode_neighbours(torch.stack([scene.photo(j) for j in idx]))
+        batch = NeighbourBatch(features=feats[None], depth=torch.stack([scene.depth(j) for j in idx])[None],
+                               K=scene.intrinsics(idx).float()[None], world_from_cam=scene.poses(idx).float()[None])
+        direct = model(scene.render(i)[None], scene.depth(i)[None], frame.K.float()[None],
+                       frame.world_from_cam.float()[None], batch)[0].clamp(0, 1)
+    torch.testing.assert_close(result.image, direct, atol=1e-5, rtol=0)
+
+
+def test_view_seen_by_no_neighbour_runs_without_them(scene):
+    model = _model()
+    enhancer = SceneEnhancer(scene, model, num_neighbours=3)
+    i = scene.index("test_000")
+    frame = scene.frames[i]
+    # Turn the camera around (180 degrees about its y axis): its pixels, 1 unit deep, lie
+    # behind the camera's old position and behind every training camera near it.
+    flip = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0], dtype=torch.float64))
+    pose = frame.world_from_cam @ flip
+    depth = torch.full((1, 32, 40), 1e-3)
+    result = enhancer.enhance(scene.render(i), depth, frame.K, pose)
+    assert result.note == NO_NEIGHBOUR_NOTE
+    assert result.neighbours == []
+    with torch.no_grad():
+        alone = model(scene.render(i)[None], depth[None], frame.K.float()[None], pose.float()[None], None)
+    torch.testing.assert_close(result.image, alone[0].clamp(0, 1), atol=1e-5, rtol=0)
+
+
+def test_non_finite_output_raises_instead_of_returning_nan(scene):
+    model = _model()
+    with torch.no_grad():
+        for p in model.conv_merge.parameters():
+            p.fill_(math.nan)
+    with pytest.raises(RoGUENeRFError, match="non-finite"):
+        SceneEnhancer(scene, model).enhance_view("test_000")
+
+
+def test_input_errors_name_the_argument(scene):
+    enhancer = SceneEnhancer(scene, _model())
+    frame = scene.frames[0]
+    render, depth = scene.render(0), scene.depth(0)
+    with pytest.raises(InputError, match="render"):
+        enhancer.enhance(render[:2], depth, frame.K, frame.world_from_cam)
+    with pytest.raises(InputError, match="depth"):
+        enhancer.enhance(render, depth[:, :10], frame.K, frame.world_from_cam)
+    bad = render.clone()
+    bad[0, 0, 0] = math.nan
+    with pytest.raises(InputError, match="render"):
+        enhancer.enhance(bad, depth, frame.K, frame.world_from_cam)
+    with pytest.raises(InputError, match="num_neighbours"):
+        SceneEnhancer(scene, _model(), num_neighbours=-1)
+
+
+def test_concurrent_calls_match_sequential_and_encode_once(scene):
+    model = _model()
+    calls = _counting(model)
+    enhancer = SceneEnhancer(scene, model, num_neighbours=3)
+    names = ["test_000", "test_001", "train_001", "train_004"] * 2
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        results = list(pool.map(enhancer.enhance_view, names))
+    assert sum(calls) == enhancer.cached_views() <= 6  # every training photo encoded at most once
+    fresh = SceneEnhancer(scene, model, num_neighbours=3)
+    for name, result in zip(names, results):
+        torch.testing.assert_close(result.image, fresh.enhance_view(name).image, atol=1e-6, rtol=0)
+
+
+def test_large_images_are_tiled(scene):
+    model = _model(use_uformer=False)
+    whole = SceneEnhancer(scene, model, num_neighbours=2).enhance_view("test_000")
+    tiled = SceneEnhancer(scene, model, num_neighbours=2, tile=16).enhance_view("test_000")
+    assert tiled.image.shape == whole.image.shape
+    assert tiled.neighbours == whole.neighbours
+    # conv-only model with overlapping tiles: the seams must not change the image much
+    assert float((tiled.image - whole.image).abs().mean()) < 0.02

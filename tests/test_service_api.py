@@ -1,0 +1,343 @@
+"""The HTTP API over a real socket (uvicorn in a thread), without a worker.
+
+Covers the contract that does not need training: error format, auth, body limits (also
+chunked), safe unzip, validation of /enhance inputs, capacity (503), the job table rules
+(409 on a second job, idempotency, cancel of a queued job, delete refused while a job is
+active) and CORS. Every rejected request is checked to leave nothing stored.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import json
+import logging
+import socket
+import zipfile
+
+import numpy as np
+import pytest
+
+from service.settings import Settings
+from tests.service_helpers import (
+    FAST,
+    LiveServer,
+    enhance,
+    make_checkpoint,
+    make_scene,
+    register,
+    tree_digest,
+    view_request,
+    zip_folder,
+)
+
+MAX_BODY = 4 << 20
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory):
+    root = tmp_path_factory.mktemp("toy")
+    scene = make_scene(root / "scene")
+    ckpt = make_checkpoint(root / "micro.safetensors")
+    return {"scene": scene, "zip": zip_folder(root / "scene"), "checkpoint": ckpt.read_bytes()}
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    settings = Settings(data_dir=tmp_path_factory.mktemp("data"), max_body_bytes=MAX_BODY,
+                        max_scene_files=40, max_upload_pixels=64 * 64, **FAST)
+    with LiveServer(settings) as live:
+        yield live
+
+
+@pytest.fixture(scope="module")
+def client(server):
+    with server.client() as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def scene_id(client, toy):
+    r = register(client, toy["zip"], toy["checkpoint"])
+    assert r.status_code == 201, r.text
+    return r.json()["id"]
+
+
+def stored(server) -> dict:
+    """Files under scenes/ and tmp/ (what a rejected request must not change)."""
+    data = server.settings.data_dir
+    return {"scenes": tree_digest(data / "scenes"), "tmp": tree_digest(data / "tmp")}
+
+
+def assert_error(r, status: int, code: str):
+    assert r.status_code == status, r.text
+    body = r.json()
+    assert set(body) == {"error"}
+    assert body["error"]["code"] == code, body
+    assert body["error"]["message"]
+    return body["error"]["message"]
+
+
+def test_health_ready_and_error_format(client):
+    assert client.get("/healthz").json() == {"status": "ok"}
+    ready = client.get("/readyz")
+    assert ready.status_code == 200
+    assert ready.json()["checks"] == {"data_dir": "ok", "database": "ok", "queue": "ok"}
+    assert "no route GET /nothing" in assert_error(client.get("/nothing"), 404, "not_found")
+    assert_error(client.delete("/healthz"), 405, "method_not_allowed")
+    # FastAPI's own validation errors use the same format and name the field.
+    msg = assert_error(client.post(f"/scenes/{'0' * 32}/finetune", json={"steps": "many"}), 422,
+                       "validation_error")
+    assert "steps" in msg
+    docs = client.get("/docs")
+    assert docs.status_code == 200 and "swagger" in docs.text.lower()
+    paths = client.get("/openapi.json").json()["paths"]
+    assert {"/scenes", "/scenes/{scene_id}", "/enhance", "/scenes/{scene_id}/finetune", "/jobs/{job_id}",
+            "/jobs/{job_id}/cancel", "/healthz", "/readyz"} <= set(paths)
+
+
+def test_register_describe_and_unknown_ids(client, scene_id, toy, server):
+    scene = client.get(f"/scenes/{scene_id}").json()
+    assert scene["views"] == len(toy["scene"].frames) == 8
+    assert (scene["train_views"], scene["test_views"]) == (6, 2)
+    assert (scene["width"], scene["height"]) == (64, 48)
+    assert scene["active_version"] == 1 and scene["checkpoint_versions"] == [1]
+    # The zip's top folder "scene/" was unwrapped; the client's file names survive only inside.
+    folder = server.settings.data_dir / "scenes" / scene_id / "scene"
+    assert (folder / "transforms.json").is_file()
+    assert (server.settings.data_dir / "scenes" / scene_id / "checkpoints" / "v1.safetensors").read_bytes() \
+        == toy["checkpoint"]
+    assert_error(client.get(f"/scenes/{'f' * 32}"), 404, "not_found")
+    assert_error(client.get("/scenes/..%2F..%2Fetc"), 404, "not_found")
+    assert_error(client.get(f"/jobs/{'f' * 32}"), 404, "not_found")
+
+
+def _zip(members: list[tuple[zipfile.ZipInfo | str, bytes]]) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        for info, data in members:
+            zf.writestr(info, data)
+    return buf.getvalue()
+
+
+def _symlink(name: str, target: str) -> zipfile.ZipInfo:
+    info = zipfile.ZipInfo(name)
+    info.external_attr = (0o120777 << 16)
+    return info
+
+
+@pytest.mark.parametrize("case, code, needle", [
+    ("dotdot", "invalid_archive", "'..'"),
+    ("absolute", "invalid_archive", "absolute"),
+    ("symlink", "invalid_archive", "symbolic link"),
+    ("backslash", "invalid_archive", "backslash"),
+    ("too_many", "invalid_archive", "more than the allowed 40"),
+    ("not_zip", "invalid_archive", "not a zip"),
+    ("no_scene", "invalid_scene", ""),
+    ("bad_checkpoint", "invalid_checkpoint", ""),
+])
+def test_rejected_uploads_store_nothing(client, server, toy, scene_id, case, code, needle):
+    good = zipfile.ZipFile(io.BytesIO(toy["zip"]))
+    members = [(i.filename, good.read(i)) for i in good.infolist()]
+    checkpoint = None
+    if case == "dotdot":
+        archive = _zip(members + [("scene/../../evil.txt", b"x")])
+    elif case == "absolute":
+        archive = _zip(members + [("/tmp/evil.txt", b"x")])
+    elif case == "symlink":
+        archive = _zip(members + [(_symlink("scene/images/link.png", "/etc/passwd"), b"/etc/passwd")])
+    elif case == "backslash":
+        archive = _zip(members + [("scene\\..\\evil.txt", b"x")])
+    elif case == "too_many":
+        archive = _zip(members + [(f"scene/extra/{i}.txt", b"x") for i in range(41 - len(members))])
+    elif case == "not_zip":
+        archive = b"PK\x03\x04 this is not really a zip"
+    elif case == "no_scene":
+        archive = _zip([("scene/readme.txt", b"no transforms here")])
+    else:
+        archive, checkpoint = toy["zip"], b"\x00" * 64 + b"not a safetensors file"
+    before = stored(server)
+    message = assert_error(register(client, archive, checkpoint), 422, code)
+    assert needle in message
+    assert stored(server) == before
+
+
+def test_uncompressed_size_limit(tmp_path, toy):
+    settings = Settings(data_dir=tmp_path, max_scene_bytes=4096, **FAST)
+    bomb = _zip([("scene/transforms.json", b"{}"), ("scene/big.bin", b"\x00" * 100_000)])
+    with LiveServer(settings) as live, live.client() as c:
+        message = assert_error(register(c, bomb), 422, "invalid_archive")
+        assert "more than the allowed 4096" in message
+        assert tree_digest(tmp_path / "scenes") == {} and tree_digest(tmp_path / "tmp") == {}
+
+
+def _raw_chunked_post(port: int, path: str, total: int) -> tuple[int, dict]:
+    """POST a chunked body (no Content-Length) over a raw socket; returns (status, json)."""
+    boundary = "b0undary"
+    head = (f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nTransfer-Encoding: chunked\r\n"
+            f"Content-Type: multipart/form-data; boundary={boundary}\r\nConnection: close\r\n\r\n")
+    with socket.create_connection(("127.0.0.1", port), timeout=30) as s:
+        s.sendall(head.encode())
+        first = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"archive\"; filename=\"a.zip\"\r\n"
+                 "Content-Type: application/zip\r\n\r\n").encode()
+        s.sendall(f"{len(first):x}\r\n".encode() + first + b"\r\n")
+        chunk = b"z" * 65536
+        sent = 0
+        try:
+            while sent < total:
+                s.sendall(f"{len(chunk):x}\r\n".encode() + chunk + b"\r\n")
+                sent += len(chunk)
+            s.sendall(b"0\r\n\r\n")
+        except (BrokenPipeError, ConnectionResetError):
+            pass  # the server may answer and close before the whole body is sent
+        response = b""
+        while data := s.recv(65536):
+            response += data
+    header, _, body = response.partition(b"\r\n\r\n")
+    status = int(header.split()[1])
+    return status, json.loads(body.split(b"\r\n")[1] if b"chunked" in header.lower() else body)
+
+
+def test_body_limit_declared_and_chunked(client, server):
+    before = stored(server)
+    r = client.post("/scenes", files={"archive": ("a.zip", b"\x00" * (MAX_BODY + 1))})
+    assert "larger than the allowed" in assert_error(r, 413, "payload_too_large")
+    # Chunked transfer: no Content-Length, so only counting the received bytes can stop it.
+    status, body = _raw_chunked_post(server.port, "/scenes", 2 * MAX_BODY)
+    assert status == 413 and body["error"]["code"] == "payload_too_large", body
+    assert stored(server) == before
+
+
+def _png(height: int, width: int) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.new("RGB", (width, height), (10, 20, 30)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def test_enhance_input_validation(client, scene_id, toy, server):
+    view = view_request(toy["scene"], 6)
+    before = stored(server)
+    assert_error(enhance(client, "f" * 32, view), 404, "not_found")
+    bad_json = {**view, "camera": None}
+    r = client.post("/enhance", data={"scene_id": scene_id, "camera": "{not json"},
+                    files={"render": ("r.png", view["render"]), "depth": ("d.npy", view["depth"])})
+    assert "not valid JSON" in assert_error(r, 422, "validation_error")
+    del bad_json
+    missing = {**view, "camera": {k: v for k, v in view["camera"].items() if k != "convention"}}
+    assert "convention" in assert_error(enhance(client, scene_id, missing), 422, "validation_error")
+    three = {**view, "camera": {**view["camera"], "transform_matrix": view["camera"]["transform_matrix"][:3]}}
+    assert "4x4" in assert_error(enhance(client, scene_id, three), 422, "validation_error")
+    skew = np.array(view["camera"]["transform_matrix"])
+    skew[:3, 0] *= 3.0
+    bad_pose = {**view, "camera": {**view["camera"], "transform_matrix": skew.tolist()}}
+    assert "camera.transform_matrix" in assert_error(enhance(client, scene_id, bad_pose), 422, "invalid_input")
+    neg_f = {**view, "camera": {**view["camera"], "fl_x": -5.0}}
+    assert_error(enhance(client, scene_id, neg_f), 422, "invalid_input")
+    buf = io.BytesIO()
+    np.save(buf, np.ones((10, 10), np.float32))
+    small_depth = {**view, "depth": buf.getvalue()}
+    assert "48x64" in assert_error(enhance(client, scene_id, small_depth), 422, "invalid_input")
+    not_png = {**view, "render": b"GIF89a not an image"}
+    assert_error(enhance(client, scene_id, not_png), 422, "invalid_input")
+    huge = {**view, "render": _png(65, 64)}  # one row over max_upload_pixels = 64 * 64
+    assert_error(enhance(client, scene_id, huge), 413, "image_too_large")
+    wrong_size = {**view, "camera": {**view["camera"], "w": 100, "h": 48}}
+    assert_error(enhance(client, scene_id, wrong_size), 422, "invalid_input")
+    assert_error(enhance(client, scene_id, view, depth_scale="0"), 422, "validation_error")
+    assert stored(server) == before
+
+
+def test_enhance_ok_and_over_capacity(client, scene_id, toy, server):
+    from PIL import Image
+
+    view = view_request(toy["scene"], 6)
+    r = enhance(client, scene_id, view)
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"] == "image/png"
+    assert Image.open(io.BytesIO(r.content)).size == (64, 48)
+    assert float(r.headers["X-Enhance-Seconds"]) > 0
+    assert len(r.headers["X-Neighbours"].split(",")) == 2
+    assert r.headers["X-Checkpoint-Version"] == "1"
+    # Hold the only slot from the server's own event loop; the next call is refused at once.
+    services = server.app.state.services
+    loop = services.extras["loop"]
+    asyncio.run_coroutine_threadsafe(services.enhance_slots.acquire(), loop).result(5)
+    try:
+        busy = enhance(client, scene_id, view)
+        assert_error(busy, 503, "over_capacity")
+        assert busy.headers["Retry-After"] == "1"
+    finally:
+        loop.call_soon_threadsafe(services.enhance_slots.release)
+    assert enhance(client, scene_id, view).status_code == 200
+
+
+def test_job_rules_without_worker(client, scene_id, server):
+    # No worker runs here, so a job stays queued: the rules are checked deterministically.
+    r = client.post(f"/scenes/{scene_id}/finetune", json={"steps": 3}, headers={"Idempotency-Key": "k-1"})
+    assert r.status_code == 202, r.text
+    job = r.json()
+    assert job["state"] == "queued" and job["progress"] == 0 and job["request"] == {"steps": 3}
+    assert r.headers["Location"] == f"/jobs/{job['id']}"
+    assert client.get(f"/scenes/{scene_id}").json()["active_job"] == job["id"]
+    again = client.post(f"/scenes/{scene_id}/finetune", json={"steps": 3}, headers={"Idempotency-Key": "k-1"})
+    assert again.status_code == 202 and again.json()["id"] == job["id"]
+    other = client.post(f"/scenes/{scene_id}/finetune", json={"steps": 4}, headers={"Idempotency-Key": "k-1"})
+    assert_error(other, 409, "idempotency_conflict")
+    assert_error(client.post(f"/scenes/{scene_id}/finetune", json={"minutes": 1}), 409, "job_active")
+    assert_error(client.post(f"/scenes/{scene_id}/finetune", json={"steps": 10**9}), 422, "validation_error")
+    assert_error(client.delete(f"/scenes/{scene_id}"), 409, "scene_busy")
+    assert (server.settings.data_dir / "scenes" / scene_id).is_dir()
+    cancelled = client.post(f"/jobs/{job['id']}/cancel")
+    assert cancelled.status_code == 200
+    assert cancelled.json()["state"] == "cancelled" and cancelled.json()["error"]["code"] == "cancelled"
+    # The scene is free again; the same key still names the cancelled job.
+    assert client.post(f"/scenes/{scene_id}/finetune", json={"steps": 3},
+                       headers={"Idempotency-Key": "k-1"}).json()["id"] == job["id"]
+    second = client.post(f"/scenes/{scene_id}/finetune", json={"minutes": 0.5})
+    assert second.status_code == 202 and second.json()["id"] != job["id"]
+    client.post(f"/jobs/{second.json()['id']}/cancel")
+
+
+def test_delete_scene(client, toy, server):
+    r = register(client, toy["zip"], toy["checkpoint"])
+    sid = r.json()["id"]
+    assert (server.settings.data_dir / "scenes" / sid).is_dir()
+    assert client.delete(f"/scenes/{sid}").status_code == 204
+    assert_error(client.get(f"/scenes/{sid}"), 404, "not_found")
+    assert_error(client.delete(f"/scenes/{sid}"), 404, "not_found")
+    assert not (server.settings.data_dir / "scenes" / sid).exists()
+    assert_error(enhance(client, sid, view_request(toy["scene"], 6)), 404, "not_found")
+
+
+def test_api_key(tmp_path, caplog):
+    key = "s3cret-key-value"
+    settings = Settings(data_dir=tmp_path, api_key=key, **FAST)
+    assert key not in repr(settings)
+    with caplog.at_level(logging.DEBUG), LiveServer(settings) as live, live.client() as c:
+        assert c.get("/healthz").status_code == 200
+        for path in ("/readyz", "/docs", "/openapi.json", f"/jobs/{'0' * 32}", "/nothing"):
+            r = c.get(path)
+            assert_error(r, 401, "unauthorized")
+            assert r.headers["WWW-Authenticate"].startswith("Bearer")
+        assert_error(c.get("/readyz", headers={"Authorization": "Bearer wrong"}), 401, "unauthorized")
+        assert_error(c.get("/readyz", headers={"Authorization": f"Basic {key}"}), 401, "unauthorized")
+        ok = {"Authorization": f"Bearer {key}"}
+        assert c.get("/readyz", headers=ok).status_code == 200
+        assert_error(c.get(f"/jobs/{'0' * 32}", headers=ok), 404, "not_found")
+    assert key not in caplog.text
+
+
+def test_cors_only_when_configured(tmp_path, client):
+    preflight = {"Origin": "https://app.example", "Access-Control-Request-Method": "POST"}
+    plain = client.options("/enhance", headers=preflight)
+    assert "access-control-allow-origin" not in plain.headers
+    settings = Settings(data_dir=tmp_path, cors_origins=["https://app.example"], **FAST)
+    with LiveServer(settings) as live, live.client() as c:
+        r = c.options("/enhance", headers=preflight)
+        assert r.status_code == 200
+        assert r.headers["access-control-allow-origin"] == "https://app.example"
+        assert "access-control-allow-credentials" not in r.headers
+        other = c.options("/enhance", headers={**preflight, "Origin": "https://evil.example"})
+        assert "access-control-allow-origin" not in other.headers

@@ -1,0 +1,289 @@
+"""Fine-tuning / pre-training loops: smoke runs, resume, divergence, cancellation, VGG loss,
+ablation weight transfer, the per-machine plan, and evaluate's numbers."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from roguenerf.checkpoint import load_checkpoint, save_checkpoint
+from roguenerf.data.degrade import Degradation
+from roguenerf.data.toy import make_toy_scene
+from roguenerf.errors import InputError, TrainingCancelled, TrainingDivergedError
+from roguenerf.models import build_enhancer
+from roguenerf.training import (
+    MODEL_FILE,
+    STATE_FILE,
+    TrainConfig,
+    evaluate,
+    finetune,
+    plan_training,
+    pretrain,
+)
+from roguenerf.training.loop import SceneData, _crop_batch
+from roguenerf.training.losses import VGG19Features, EnhancerLoss, _vgg19_layers, build_loss
+from roguenerf.training.state import load_state
+
+FAST = dict(crop=16, batch=2, variant="micro", checkpoint_every_s=0.0, evaluate=False, progress_bar=False,
+            num_neighbours=2)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_toy_scene(tmp_path_factory.mktemp("toy"), seed=1, n_train=5, n_test=2, height=24, width=32,
+                          degradation=Degradation())
+
+
+@pytest.fixture(scope="module")
+def other_scene(tmp_path_factory):
+    return make_toy_scene(tmp_path_factory.mktemp("toy2"), seed=2, n_train=4, n_test=0, height=20, width=28)
+
+
+def _params(model) -> dict:
+    return {k: v.clone() for k, v in model.state_dict().items()}
+
+
+def test_finetune_smoke_two_steps(scene, tmp_path):
+    seen = []
+    result = finetune(scene, tmp_path, config=TrainConfig(steps=2, **FAST), progress=seen.append)
+    assert result.steps == 2 and [p.step for p in seen] == [1, 2]
+    assert seen[-1].fraction == 1.0 and seen[-1].total_steps == 2 and seen[-1].eta_s == 0.0
+    assert math.isfinite(result.final_loss) and result.final_loss > 0
+    assert result.loss_kind == "l1"
+    assert result.checkpoint == tmp_path / MODEL_FILE
+    model, meta = load_checkpoint(result.checkpoint)
+    assert model.config.variant == "micro" and model.config.num_neighbours == 2
+    assert meta["training"]["steps"] == 2 and meta["training"]["loss_kind"] == "l1"
+    assert result.config["crop_used"] == 16 and result.config["batch"] == 2
+    # the weights moved away from the identity-initialised start
+    fresh = build_enhancer("micro")
+    moved = any(not torch.equal(a, b) for a, b in zip(model.state_dict().values(), fresh.state_dict().values()))
+    assert moved
+
+
+def test_finetune_reports_before_and_after(scene, tmp_path):
+    result = finetune(scene, tmp_path, config=TrainConfig(steps=1, **{**FAST, "evaluate": True}))
+    assert set(result.before) == {"render", "enhanced"} and set(result.after) == {"render", "enhanced"}
+    assert result.before["render"] == result.after["render"]  # the renders do not change
+    # a fresh enhancer is the identity: before fine-tuning, enhanced == render
+    assert result.before["enhanced"]["psnr"] == pytest.approx(result.before["render"]["psnr"], abs=1e-3)
+
+
+def test_pretrain_over_scenes_of_different_sizes(scene, other_scene, tmp_path):
+    result = pretrain([scene, other_scene], tmp_path, config=TrainConfig(steps=3, **FAST))
+    assert result.steps == 3 and result.before is None and result.after is None
+    _, meta = load_checkpoint(result.checkpoint)
+    assert meta["training"]["kind"] == "pretrain" and len(meta["training"]["scenes"]) == 2
+
+
+def test_resume_continues_from_the_saved_step(scene, tmp_path):
+    config = TrainConfig(steps=4, **FAST)
+    reference = finetune(scene, tmp_path / "straight", config=config)
+
+    calls = {"n": 0}
+
+    def stop_after_two():
+        calls["n"] += 1
+        return calls["n"] > 2  # polled before steps 1, 2, 3: stop before the third
+
+    with pytest.raises(TrainingCancelled) as info:
+        finetune(scene, tmp_path / "run", config=config, should_stop=stop_after_two)
+    assert info.value.step == 2
+    assert load_state(tmp_path / "run" / STATE_FILE)["step"] == 2
+
+    seen = []
+    resumed = finetune(scene, tmp_path / "run", config=config, progress=seen.append)
+    assert [p.step for p in seen] == [3, 4]
+    assert resumed.steps == 4
+    # Adam state, RNG state and crops all resumed: the same weights as the uninterrupted run.
+    a, _ = load_checkpoint(reference.checkpoint)
+    b, _ = load_checkpoint(resumed.checkpoint)
+    for (name, x), y in zip(a.state_dict().items(), b.state_dict().values()):
+        torch.testing.assert_close(x, y, atol=1e-6, rtol=1e-5, msg=name)
+
+
+def test_resume_false_starts_over(scene, tmp_path):
+    finetune(scene, tmp_path, config=TrainConfig(steps=2, **FAST))
+    seen = []
+    finetune(scene, tmp_path, config=TrainConfig(steps=1, **FAST), progress=seen.append, resume=False)
+    assert [p.step for p in seen] == [1]
+
+
+def test_divergence_raises_with_step_and_keeps_last_good_checkpoint(scene, tmp_path, monkeypatch):
+    real_forward = EnhancerLoss.forward
+    calls = {"n": 0}
+
+    def nan_on_third(self, output, target):
+        calls["n"] += 1
+        loss = real_forward(self, output, target)
+        return loss * math.nan if calls["n"] == 3 else loss
+
+    monkeypatch.setattr(EnhancerLoss, "forward", nan_on_third)
+    with pytest.raises(TrainingDivergedError) as info:
+        finetune(scene, tmp_path, config=TrainConfig(steps=5, **FAST))
+    assert info.value.step == 3
+    assert info.value.checkpoint == str(tmp_path / MODEL_FILE)
+    model, meta = load_checkpoint(tmp_path / MODEL_FILE)
+    assert meta["training"]["steps"] == 2
+    assert all(torch.isfinite(v).all() for v in model.state_dict().values() if v.is_floating_point())
+
+
+def test_cancel_saves_state_and_raises(scene, tmp_path):
+    with pytest.raises(TrainingCancelled) as info:
+        finetune(scene, tmp_path, config=TrainConfig(steps=10, **FAST), should_stop=lambda: True)
+    assert info.value.step == 0
+    assert (tmp_path / MODEL_FILE).is_file() and load_state(tmp_path / STATE_FILE)["step"] == 0
+
+
+def test_minutes_budget_stops_in_time(scene, tmp_path):
+    seen = []
+    result = finetune(scene, tmp_path, config=TrainConfig(minutes=0.0, **FAST), progress=seen.append)
+    assert result.steps == 0 and seen == []
+    assert result.config["minutes"] == 0.0 and result.config["steps"] is None
+
+
+def test_crop_is_shared_and_shifts_the_principal_point(scene):
+    data = SceneData(scene, 2)
+    h, w = data.height, data.width
+    code = torch.arange(h * w, dtype=torch.float32).view(1, 1, h, w)
+    data.renders = code.expand(len(data), 3, h, w).clone()
+    data.photos = data.renders.clone() + 0.5
+    data.depths = code.expand(len(data), 1, h, w).clone()
+    targets = torch.tensor([0, 3, 1])
+    render, depth, photo, K = _crop_batch(data, targets, 10, torch.Generator().manual_seed(7))
+    assert render.shape == (3, 3, 10, 10) and depth.shape == (3, 1, 10, 10)
+    for b in range(3):
+        first = int(render[b, 0, 0, 0])
+        y0, x0 = divmod(first, w)
+        assert torch.equal(render[b, 0], code[0, 0, y0:y0 + 10, x0:x0 + 10])
+        assert torch.equal(depth[b, 0], render[b, 0]) and torch.equal(photo[b], render[b] + 0.5)
+        original = data.K[targets[b]]
+        assert K[b, 0, 2] == pytest.approx(float(original[0, 2]) - x0)
+        assert K[b, 1, 2] == pytest.approx(float(original[1, 2]) - y0)
+        assert torch.equal(K[b, :2, :2], original[:2, :2])
+
+
+def test_neighbour_lists_exclude_the_target(scene):
+    data = SceneData(scene, 3)
+    assert data.neighbours.shape == (len(data), 3)
+    for m, row in enumerate(data.neighbours.tolist()):
+        assert m not in row and len(set(row)) == 3
+
+
+def _random_vgg_file(tmp_path, suffix):
+    torch.manual_seed(0)
+    layers = _vgg19_layers()
+    state = {f"features.{k}": v for k, v in layers.state_dict().items()}
+    state["classifier.0.weight"] = torch.zeros(2, 2)  # the full torchvision dict also has these
+    path = tmp_path / f"vgg19{suffix}"
+    if suffix == ".safetensors":
+        from safetensors.torch import save_file
+
+        save_file(state, str(path))
+    else:
+        torch.save(state, path)
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".safetensors", ".pth"])
+def test_vgg_weights_enable_the_perceptual_loss(tmp_path, suffix):
+    path = _random_vgg_file(tmp_path, suffix)
+    loss = build_loss(path)
+    assert loss.kind == "l1+vgg19"
+    x = torch.rand(2, 3, 32, 32)
+    y = torch.rand(2, 3, 32, 32)
+    l1 = (x - y).abs().mean()
+    perceptual = (loss.vgg(x) - loss.vgg(y)).abs().mean()
+    assert float(perceptual) > 0
+    torch.testing.assert_close(loss(x, y), l1 + 1e-3 * perceptual)
+    assert float(loss(x, x)) == 0.0
+    assert loss.vgg(x).shape == (2, 512, 2, 2)
+    assert not any(p.requires_grad for p in loss.vgg.parameters())
+
+
+def test_finetune_with_vgg_weights_reports_the_loss_kind(scene, tmp_path):
+    path = _random_vgg_file(tmp_path, ".safetensors")
+    result = finetune(scene, tmp_path / "out", config=TrainConfig(steps=1, vgg_weights=path, **{**FAST, "crop": 16}))
+    assert result.loss_kind == "l1+vgg19" and result.config["loss_kind"] == "l1+vgg19"
+
+
+def test_bad_vgg_weights_are_input_errors(tmp_path):
+    with pytest.raises(InputError, match="does not exist"):
+        VGG19Features.from_file(tmp_path / "missing.pth")
+    from safetensors.torch import save_file
+
+    save_file({"features.0.weight": torch.zeros(1)}, str(tmp_path / "bad.safetensors"))
+    with pytest.raises(InputError, match="features.0.weight"):
+        VGG19Features.from_file(tmp_path / "bad.safetensors")
+
+
+def test_ablation_from_a_full_checkpoint_transfers_matching_weights(scene, tmp_path):
+    torch.manual_seed(0)
+    full = build_enhancer("micro")
+    save_checkpoint(tmp_path / "full.safetensors", full)
+    result = finetune(scene, tmp_path / "ablated", checkpoint=tmp_path / "full.safetensors",
+                      config=TrainConfig(steps=1, without=("neighbours",), **FAST))
+    transfer = result.config["transfer"]
+    assert {"conv_H", "flow", "pixel_attention", "camera_attention"} <= set(transfer["dropped"])
+    assert "conv_merge" in transfer["fresh"]  # its input channels halve without neighbours
+    model, _ = load_checkpoint(result.checkpoint)
+    assert model.config.use_neighbours is False and model.conv_H is None
+    assert result.config["num_neighbours"] == 0
+    before_training = full.conv_I.state_dict()
+    # one step of Adam at lr 1e-4 moves each weight by at most ~1e-4
+    for k, v in model.conv_I.state_dict().items():
+        torch.testing.assert_close(v, before_training[k], atol=2e-4, rtol=0)
+
+    partial = finetune(scene, tmp_path / "partial", checkpoint=full,
+                       config=TrainConfig(steps=1, without=("attention", "refinement"), **FAST))
+    assert set(partial.config["transfer"]["dropped"]) == {"flow", "pixel_attention", "camera_attention"}
+    assert partial.config["transfer"]["fresh"] == []
+
+
+def test_unknown_component_is_an_input_error(scene, tmp_path):
+    with pytest.raises(InputError, match="without"):
+        finetune(scene, tmp_path, config=TrainConfig(steps=1, without=("uformer",), **{**FAST}))
+
+
+def test_plan_for_a_cpu():
+    class _Frame:
+        height, width = 200, 200
+
+    class _Scene:
+        frames = [_Frame()] * 3
+
+    plan = plan_training(_Scene(), TrainConfig(), "cpu")
+    assert plan["variant"] == "nano" and plan["crop"] == 128 and plan["crop_used"] == 128
+    assert plan["num_neighbours"] == 2 and plan["batch"] == 4 and plan["lr"] == 1e-4
+    assert plan["minutes"] == 10.0 and plan["steps"] is None
+    small = plan_training(_Scene(), TrainConfig(crop=512, steps=7, variant="micro", num_neighbours=4), "cpu")
+    assert small["crop_used"] == 200 and small["steps"] == 7 and small["minutes"] is None
+    assert small["variant"] == "micro" and small["num_neighbours"] == 4
+    gpu = plan_training(_Scene(), TrainConfig(), "cuda")
+    assert gpu["crop"] == 512 and gpu["variant"] == "T" and gpu["num_neighbours"] == 5 and gpu["minutes"] == 60.0
+    json.dumps(plan)
+    with pytest.raises(InputError, match="variant"):
+        plan_training(_Scene(), TrainConfig(variant="huge"), "cpu")
+
+
+def test_evaluate_shape_and_render_psnr(scene):
+    torch.manual_seed(0)
+    model = build_enhancer("micro", num_neighbours=2)
+    report = evaluate(scene, model)
+    assert [v["name"] for v in report["views"]] == [scene.frames[i].name for i in scene.indices("test")]
+    for view in report["views"]:
+        i = scene.index(view["name"])
+        mse = float(((scene.render(i) - scene.photo(i)) ** 2).mean())
+        assert view["render"]["psnr"] == pytest.approx(-10 * math.log10(mse), abs=1e-4)
+        assert set(view["render"]) >= {"psnr", "ssim"} and set(view["enhanced"]) >= {"psnr", "ssim"}
+        assert 0 < view["render"]["ssim"] <= 1
+        assert all(n.startswith("train_") for n in view["neighbours"]) and len(view["neighbours"]) == 2
+    mean = sum(v["render"]["psnr"] for v in report["views"]) / len(report["views"])
+    assert report["render"]["psnr"] == pytest.approx(mean)
+    json.dumps(report)
+    train = evaluate(scene, model, split="train", max_views=2)
+    for view in train["views"]:
+        assert view["name"] not in view["neighbours"]

@@ -1,0 +1,47 @@
+"""``python -m workers [--data-dir DIR]``: a fine-tuning worker (settings from ROGUENERF_*)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+
+
+def main(argv: list[str] | None = None) -> None:
+    from service.settings import Settings
+    from workers.worker import run_worker
+
+    parser = argparse.ArgumentParser(prog="python -m workers", description=__doc__)
+    parser.add_argument("--data-dir", help="overrides ROGUENERF_DATA_DIR")
+    parser.add_argument("--redis-url", help="overrides ROGUENERF_REDIS_URL")
+    parser.add_argument("--database-url", help="overrides ROGUENERF_DATABASE_URL")
+    parser.add_argument("--exit-with-parent", action="store_true",
+                        help="drain and exit when the parent process dies (embedded worker)")
+    args = parser.parse_args(argv)
+    exit_with_parent = args.exit_with_parent
+    del args.exit_with_parent
+    overrides = {k: v for k, v in vars(args).items() if v is not None}
+    if exit_with_parent:
+        _watch_parent()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    run_worker(Settings(**overrides))
+
+
+def _watch_parent() -> None:
+    """An orphaned embedded worker drains itself (SIGINT) instead of running forever."""
+    import os
+    import signal
+    import threading
+    import time
+
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,105 @@
+"""Where things live under ``data_dir`` (shared by the API and the workers).
+
+::
+
+    data_dir/
+      roguenerf.db                 job + scene table (SQLite default)
+      queue.db                     SqliteHuey queue (default)
+      scenes/<id>/scene/           the uploaded scene folder (what load_scene reads)
+      scenes/<id>/checkpoints/vN.safetensors   versioned enhancer checkpoints
+      jobs/<job id>/               fine-tuning output_dir (resume state)
+      tmp/                         uploads being validated; renamed into place when good
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import uuid
+from pathlib import Path
+
+ID_RE = re.compile(r"^[0-9a-f]{32}$")
+"""Scene and job ids: uuid4 hex. Anything else is never turned into a path."""
+
+_VERSION_RE = re.compile(r"^v([1-9][0-9]*)\.safetensors$")
+
+
+def new_id() -> str:
+    return uuid.uuid4().hex
+
+
+class Layout:
+    def __init__(self, data_dir: Path):
+        self.root = Path(data_dir)
+        self.scenes = self.root / "scenes"
+        self.jobs = self.root / "jobs"
+        self.tmp = self.root / "tmp"
+
+    def ensure(self) -> None:
+        for path in (self.root, self.scenes, self.jobs, self.tmp):
+            path.mkdir(parents=True, exist_ok=True)
+
+    @staticmethod
+    def _check_id(value: str) -> str:
+        if not ID_RE.match(value):
+            raise ValueError(f"expected a 32-hex-digit id, got {value!r}")
+        return value
+
+    def scene_dir(self, scene_id: str) -> Path:
+        return self.scenes / self._check_id(scene_id)
+
+    def scene_files(self, scene_id: str) -> Path:
+        return self.scene_dir(scene_id) / "scene"
+
+    def checkpoint(self, scene_id: str, version: int) -> Path:
+        if version < 1:
+            raise ValueError(f"checkpoint versions start at 1, got {version}")
+        return self.scene_dir(scene_id) / "checkpoints" / f"v{version}.safetensors"
+
+    def versions(self, scene_id: str) -> list[int]:
+        folder = self.scene_dir(scene_id) / "checkpoints"
+        if not folder.is_dir():
+            return []
+        found = (_VERSION_RE.match(p.name) for p in folder.iterdir())
+        return sorted(int(m.group(1)) for m in found if m)
+
+    def job_dir(self, job_id: str) -> Path:
+        return self.jobs / self._check_id(job_id)
+
+    def temp_dir(self) -> Path:
+        path = self.tmp / new_id()
+        path.mkdir(parents=True)
+        return path
+
+    def remove_tree(self, path: Path) -> None:
+        """Rename out of sight first (atomic), then delete at leisure."""
+        if not path.exists():
+            return
+        trash = self.tmp / f"trash-{new_id()}"
+        os.replace(path, trash)
+        shutil.rmtree(trash, ignore_errors=True)
+
+
+def fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def copy_atomic(src: Path, dst: Path) -> Path:
+    """Copy ``src`` to ``dst`` through a temp file in dst's folder: fsync, rename, fsync dir."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dst.with_name(f".{dst.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        with open(src, "rb") as fin, open(tmp, "wb") as fout:
+            shutil.copyfileobj(fin, fout, 1 << 20)
+            fout.flush()
+            os.fsync(fout.fileno())
+        os.replace(tmp, dst)
+    finally:
+        tmp.unlink(missing_ok=True)
+    fsync_dir(dst.parent)
+    return dst
