@@ -113,6 +113,8 @@ def run(host: str = "127.0.0.1", port: int = 8000, data_dir: Path | str = Path("
     started = time.perf_counter()
     try:
         server.run()
+    except KeyboardInterrupt:
+        pass  # uvicorn re-raises the Ctrl-C it handled once it has shut down; that is our exit
     finally:
         print("stopping: draining the worker ...", flush=True)
         code = worker.stop()

@@ -63,10 +63,12 @@ def _member_parts(info: zipfile.ZipInfo) -> list[str] | None:
             )
     if len(parts) > MAX_DEPTH:
         raise _reject(f"archive member {name!r}: nested deeper than {MAX_DEPTH} folders")
-    mode = info.external_attr >> 16
-    if stat.S_ISLNK(mode):
+    # Unix file type bits live in the high half of external_attr; 0 means "not recorded"
+    # (Python's writestr, DOS archivers): such members are plain files.
+    kind = stat.S_IFMT(info.external_attr >> 16)
+    if kind == stat.S_IFLNK:
         raise _reject(f"archive member {name!r}: symbolic links are not allowed")
-    if mode and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+    if kind not in (0, stat.S_IFREG, stat.S_IFDIR):
         raise _reject(f"archive member {name!r}: only regular files and folders are allowed")
     if info.flag_bits & 0x1:
         raise _reject(f"archive member {name!r}: encrypted members are not supported")

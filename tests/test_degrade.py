@@ -115,7 +115,7 @@ def test_depth_noise_smooth_relative_and_missing_kept(views):
     ratio = noisy[2, 0] / depths[2, 0]
     first = (ratio[:, 1:] - ratio[:, :-1]).abs().mean()
     second = (ratio[:, 2:] - 2 * ratio[:, 1:-1] + ratio[:, :-2]).abs().mean()
-    assert second < 0.2 * first  # piecewise-linear field; white noise would give second ~ 2 x first
+    assert second < 0.5 * first  # piecewise-linear field (kinks every W/4 px); white noise: ~1.7 x
 
 
 def test_pose_error_rotation_shifts_by_focal_tan(views):
@@ -128,16 +128,17 @@ def test_pose_error_rotation_shifts_by_focal_tan(views):
     rot = torch.tensor([[0.0, theta, 0.0]])  # about the camera's y axis
     out, out_depth = _pose_error(ramp, depth, known, K[None], rot, torch.zeros(1, 3))
     fx, cx = K[0, 0].item(), K[0, 2].item()
-    u = W // 2  # pixel centre at u + 0.5 = cx
-    x = cx + fx * math.tan(theta)  # where the rotated camera's centre ray lands in the exact view
-    expected = (x - 0.5) / (W - 1)  # the ramp's value at image coordinate x
-    assert out[0, 0, H // 2, u].item() == pytest.approx(expected, abs=1e-4)
+    u = W // 2 + 3
+    a = (u + 0.5 - cx) / fx  # the pixel's ray (a, 0, 1), rotated about y, projected into the exact view
+    x = cx + fx * (a * math.cos(theta) + math.sin(theta)) / (math.cos(theta) - a * math.sin(theta))
+    expected = (x - 0.5) / (W - 1)  # the ramp's value at image coordinate x (pixel centres at +0.5)
+    assert out[0, 0, H // 2, u].item() == pytest.approx(expected, abs=1e-5)
     # depth of the plane seen from a rotated camera: z' = z cos(theta) +- a small term
     assert out_depth[0, 0, H // 2, u].item() == pytest.approx(4.0, rel=0.01)
     out, _ = _pose_error(ramp, depth, known, K[None], torch.zeros(1, 3), torch.tensor([[0.1, 0.0, 0.0]]))
     # translating by +0.1 along x at depth 4 moves the content by fx * 0.1 / 4 pixels
-    expected = (cx + fx * 0.1 / 4 - 0.5) / (W - 1)
-    assert out[0, 0, H // 2, u].item() == pytest.approx(expected, abs=1e-4)
+    expected = (cx + fx * (a + 0.1 / 4) - 0.5) / (W - 1)
+    assert out[0, 0, H // 2, u].item() == pytest.approx(expected, abs=1e-5)
 
 
 def test_invalid_arguments():

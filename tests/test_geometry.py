@@ -181,7 +181,8 @@ def test_euler_round_trip(angles):
     R = zyx(*angles)
     e = euler_angles(R)
     assert torch.allclose(zyx(*e.tolist()), R, atol=1e-9)
-    assert torch.allclose(wrap_angle(e - torch.tensor(angles, dtype=torch.float64)), torch.zeros(3, dtype=torch.float64), atol=1e-9)
+    diff = wrap_angle(e - torch.tensor(angles, dtype=torch.float64))
+    assert torch.allclose(diff, torch.zeros(3, dtype=torch.float64), atol=1e-9)
 
 
 @pytest.mark.parametrize("pitch", [math.pi / 2, -math.pi / 2])

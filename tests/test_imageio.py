@@ -26,7 +26,7 @@ def _chunk(kind: bytes, data: bytes) -> bytes:
 def _png_bomb(width: int, height: int) -> bytes:
     """A tiny PNG whose header declares width x height 8-bit gray pixels."""
     ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
-    idat = zlib.compress(b"", 9)
+    idat = zlib.compress(b"\x00", 9)
     return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", idat) + _chunk(b"IEND", b"")
 
 

@@ -64,7 +64,8 @@ def test_self_never_selected_but_identical_pose_allowed():
 
 def test_ties_are_deterministic():
     target = pose(zyx(0, 0, 0), [0, 0, 0])
-    train = torch.stack([pose(zyx(0, 0, 0), [0.1, 0, 0]), pose(zyx(0, 0, 0), [-0.1, 0, 0]), pose(zyx(0, 0, 0), [0, 0.1, 0])])
+    R = zyx(0, 0, 0)
+    train = torch.stack([pose(R, [0.1, 0, 0]), pose(R, [-0.1, 0, 0]), pose(R, [0, 0.1, 0])])
     assert select_neighbours(target, train, 3).tolist() == [0, 1, 2]
 
 

@@ -168,7 +168,8 @@ def test_toy_warp_is_accurate_where_visible():
     ids = _surface_ids(world, poses[2], K, H, W)
     onehot = F.one_hot(ids, world.base.shape[0]).permute(2, 0, 1).float()
     # Exact depth needs little leniency; 0.25 lets points 20% behind an occluder through.
-    out = reproject(torch.cat([a_rgb, onehot])[None], a_depth[None], b_depth[None], K, K, poses[2], poses[3], leniency=0.05)
+    stacked = torch.cat([a_rgb, onehot])[None]
+    out = reproject(stacked, a_depth[None], b_depth[None], K, K, poses[2], poses[3], leniency=0.05)
     valid = out.valid[0, 0].bool()
     # pixels whose bilinear footprint in A straddles two surfaces blend their colours: no warp can fix that
     single_surface = out.features[0, 3:].amax(0) > 1 - 1e-5
@@ -270,7 +271,8 @@ def test_neighbour_facing_the_other_way():
     H, W = 3, 4
     K = camera(H, W)
     depth = torch.full((1, 1, H, W), 2.0, dtype=torch.float64)
-    out, _, _ = _finite_with_grads(torch.rand(1, 2, H, W, dtype=torch.float64), depth, depth, K, K, pose(zyx(0, math.pi, 0)), pose())
+    feats = torch.rand(1, 2, H, W, dtype=torch.float64)
+    out, _, _ = _finite_with_grads(feats, depth, depth, K, K, pose(zyx(0, math.pi, 0)), pose())
     assert not out.valid.any()
 
 

@@ -27,7 +27,7 @@ DEFAULT_CACHE_BYTES = 512 * 1024 * 1024
 SPLITS = ("train", "test")
 
 
-@dataclass
+@dataclass(eq=False)
 class Frame:
     name: str
     """Unique view name (file stem, e.g. ``train_r_0``)."""
@@ -87,7 +87,7 @@ class _ByteLRU:
         return len(self._items)
 
 
-@dataclass
+@dataclass(eq=False)
 class Scene:
     """Frames of one scene with lazy, cached pixel loaders.
 

@@ -134,7 +134,9 @@ def shade(world: ToyWorld, points: Tensor, surface: Tensor) -> Tensor:
     return colour.clamp(0.0, 1.0)
 
 
-def render_toy_view(world: ToyWorld, world_from_cam: Tensor, K: Tensor, height: int, width: int) -> tuple[Tensor, Tensor]:
+def render_toy_view(
+    world: ToyWorld, world_from_cam: Tensor, K: Tensor, height: int, width: int
+) -> tuple[Tensor, Tensor]:
     """Render a toy world exactly from one camera.
 
     Args:
@@ -161,15 +163,6 @@ def render_toy_view(world: ToyWorld, world_from_cam: Tensor, K: Tensor, height: 
     rgb = rgb.T.reshape(3, height, width).float()
     depth = t.reshape(1, height, width).float()
     return rgb, depth
-
-
-def toy_visible(world: ToyWorld, eye: Tensor, points: Tensor, *, rel_tol: float = 1e-6) -> Tensor:
-    """Ground-truth visibility: whether each world point ``(N, 3)`` is seen unoccluded from ``eye`` ``(3,)``.
-
-    Ignores the image bounds; only asks whether something sits between the eye and the point.
-    """
-    t, _ = cast_rays(world, eye.double(), points.double() - eye.double())
-    return t >= 1.0 - rel_tol
 
 
 def look_at(eye: Tensor, target: Tensor, up: Tensor | None = None) -> Tensor:

@@ -20,15 +20,17 @@ from roguenerf.geometry.cameras import (
     ray_to_z_depth,
     scale_intrinsics,
 )
-from roguenerf.geometry.euler import euler_angles, wrap_angle
+from roguenerf.geometry.euler import angular_distance, euler_angles, euler_distance, wrap_angle
 from roguenerf.geometry.neighbours import select_neighbours
 from roguenerf.geometry.reproject import Reprojection, reproject
 
 __all__ = [
     "Reprojection",
+    "angular_distance",
     "check_intrinsics",
     "check_pose",
     "euler_angles",
+    "euler_distance",
     "intrinsics_matrix",
     "llff_to_opencv",
     "opencv_to_opengl",

@@ -40,7 +40,8 @@ def opengl_to_opencv(world_from_cam: Tensor) -> Tensor:
     """
     _check_tensor(world_from_cam, "world_from_cam")
     if world_from_cam.shape[-1] != 4 or world_from_cam.shape[-2] not in (3, 4):
-        raise InputError(f"world_from_cam: expected shape (..., 4, 4) or (..., 3, 4), got {tuple(world_from_cam.shape)}")
+        got = tuple(world_from_cam.shape)
+        raise InputError(f"world_from_cam: expected shape (..., 4, 4) or (..., 3, 4), got {got}")
     flip = world_from_cam.new_tensor((*_FLIP_YZ, 1.0))
     return world_from_cam * flip
 
@@ -113,7 +114,8 @@ def check_intrinsics(K: Tensor, name: str = "K") -> Tensor:
     fx, fy = K[..., 0, 0], K[..., 1, 1]
     if (fx <= 0).any() or (fy <= 0).any():
         raise InputError(
-            f"{name}: expected focal lengths fx > 0 and fy > 0, got fx={fx.min().item():g}, fy={fy.min().item():g} (min)"
+            f"{name}: expected focal lengths fx > 0 and fy > 0, "
+            f"got fx={fx.min().item():g}, fy={fy.min().item():g} (min)"
         )
     last = K[..., 2, :]
     if not torch.allclose(last, last.new_tensor((0.0, 0.0, 1.0)).expand_as(last), atol=1e-6):
@@ -134,14 +136,16 @@ def check_pose(world_from_cam: Tensor, name: str = "pose", tol: float = ORTHONOR
     if not torch.allclose(last, last.new_tensor((0.0, 0.0, 0.0, 1.0)).expand_as(last), atol=1e-6):
         raise InputError(f"{name}: expected last row (0, 0, 0, 1), got {last.reshape(-1, 4)[0].tolist()}")
     R = world_from_cam[..., :3, :3].double()
-    eye = torch.eye(3, dtype=R.dtype)
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
     err = (R.transpose(-1, -2) @ R - eye).abs().amax(dim=(-2, -1))
     if (err > tol).any():
         raise InputError(
             f"{name}: expected an orthonormal rotation (max|R^T R - I| <= {tol:g}), got {err.max().item():.3g}"
         )
     if (torch.linalg.det(R) <= 0).any():
-        raise InputError(f"{name}: expected a rotation with det(R) = +1, got a reflection (det = -1); mixed-up axis convention?")
+        raise InputError(
+            f"{name}: expected a rotation with det(R) = +1, got a reflection (det = -1); mixed-up axis convention?"
+        )
     # Only touch poses that are visibly off: an exact rotation stays bit-identical.
     needs_fix = err > 32 * torch.finfo(world_from_cam.dtype).eps
     if not needs_fix.any():

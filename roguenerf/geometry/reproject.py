@@ -118,7 +118,8 @@ def reproject(
     if src_depth is not None:
         _check_image(src_depth, "src_depth", 1)
         if tuple(src_depth.shape) != (B, 1, Hs, Ws):
-            raise InputError(f"src_depth: expected shape {(B, 1, Hs, Ws)} (as src_features), got {tuple(src_depth.shape)}")
+            got = tuple(src_depth.shape)
+            raise InputError(f"src_depth: expected shape {(B, 1, Hs, Ws)} (as src_features), got {got}")
     if not (leniency == leniency and abs(leniency) != float("inf")):
         raise InputError(f"leniency: expected a finite number, got {leniency}")
     if not eps > 0:

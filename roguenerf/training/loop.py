@@ -241,6 +241,8 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
                  "scenes": [str(d.scene.root) for d in datasets]}
 
     def save(current_step: int, elapsed: float, loss_value: float | None) -> None:
+        if loss_value is not None and not math.isfinite(loss_value):
+            loss_value = None
         info = {**meta_base, "model_config": model.config.to_dict(), "before": before}
         save_state(state_path, model=model, optimizer=optimizer, generator=generator, step=current_step,
                    elapsed_s=elapsed, info=info)
@@ -313,7 +315,7 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
         model.eval()
 
     elapsed = elapsed_before + time.perf_counter() - start
-    save(step, elapsed, loss_value if math.isfinite(loss_value) else None)
+    save(step, elapsed, loss_value)
     after = None
     if kind == "finetune" and config.evaluate and datasets[0].scene.indices("test"):
         after = _summary(evaluate(datasets[0].scene, model))

@@ -1,0 +1,101 @@
+"""Shared helpers of the benchmarks: where the data is, what machine and commit ran, CSV out.
+
+Every row a benchmark writes carries date, machine and commit, and speed next to error.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as _dt
+import json
+import os
+import platform
+import subprocess
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("ROGUENERF_SHARED_DATA", REPO.parent / "shared" / "data"))
+LEGO = SHARED_DATA / "lego"
+RESULTS = REPO / "bench" / "results"
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine() -> str:
+    """One line: CPU (or GPU), cores, torch threads, torch version."""
+    gpu = f", {torch.cuda.get_device_name(0)}" if torch.cuda.is_available() else ""
+    return (f"{_cpu_model()} x{os.cpu_count()} ({torch.get_num_threads()} threads){gpu}, "
+            f"torch {torch.__version__}, {platform.system()} {platform.machine()}")
+
+
+def commit() -> str:
+    """Short hash of HEAD, with "-dirty" when the work tree has changes (read-only git calls)."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
+                              text=True, timeout=10, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO,
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+        return head + ("-dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def stamp() -> dict:
+    """The columns every benchmark row starts with."""
+    return {"date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "machine": machine(), "commit": commit()}
+
+
+def write_csv(path: Path, rows: list[dict]) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fields: list[str] = []
+    for row in rows:
+        fields += [k for k in row if k not in fields]
+    with path.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(rows)
+    return path
+
+
+def write_json(path: Path, obj) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(obj, indent=2) + "\n")
+    return path
+
+
+def starting_checkpoint(explicit: Path | None, scratch: bool) -> Path | None:
+    """The checkpoint to fine-tune from: explicit, else the shipped default, else None (scratch)."""
+    from roguenerf.checkpoint import default_checkpoint_path
+
+    if scratch:
+        return None
+    if explicit is not None:
+        return explicit
+    path = default_checkpoint_path(must_exist=False)
+    if path.is_file():
+        return path
+    print(f"note: no default checkpoint at {path}; fine-tuning from scratch", flush=True)
+    return None
+
+
+def scene_metrics(report: dict) -> dict:
+    """Flatten an evaluate() report into CSV columns (PSNR gain = enhanced - render)."""
+    r, e = report["render"], report["enhanced"]
+    return {"views": len(report["views"]),
+            "render_psnr": round(r["psnr"], 4), "enhanced_psnr": round(e["psnr"], 4),
+            "gain_db": round(e["psnr"] - r["psnr"], 4),
+            "render_ssim": round(r["ssim"], 5), "enhanced_ssim": round(e["ssim"], 5),
+            "latency_s_per_view": round(report["seconds_per_view"], 4)}

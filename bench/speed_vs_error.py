@@ -1,0 +1,135 @@
+"""PSNR gain on lego's test views against fine-tuning time, and against model variant.
+
+Sweep 1 (time): one fine-tuning run, evaluated after each budget in --minutes (1, 3, 10, 30
+by default): the run resumes exactly from its saved state, so the 30-minute point costs 30
+minutes of training in total, not 44.
+Sweep 2 (variant): each variant in --variants fine-tuned for --variant-minutes, with its
+inference latency per view.
+
+Writes CSV rows (date, machine, commit, sweep, variant, minutes, steps, steps/s, crop, PSNR/SSIM
+of renders and enhanced, gain, latency) and a PNG plot to --output.
+
+    .venv/bin/python bench/speed_vs_error.py             # full (about an hour on 2 CPU cores)
+    .venv/bin/python bench/speed_vs_error.py --quick     # seconds-long budgets, 2 test views
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.common import LEGO, RESULTS, scene_metrics, stamp, starting_checkpoint, write_csv  # noqa: E402
+
+
+def _floats(text: str) -> list[float]:
+    return [float(x) for x in text.split(",") if x.strip()]
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scene", type=Path, default=LEGO)
+    p.add_argument("--minutes", type=_floats, default=[1, 3, 10, 30], help="comma-separated budgets")
+    p.add_argument("--variants", default="micro,nano,T", help="comma-separated variants")
+    p.add_argument("--variant-minutes", type=float, default=3.0, help="fine-tuning budget per variant")
+    p.add_argument("--checkpoint", type=Path, default=None, help="start here (default: shipped default)")
+    p.add_argument("--scratch", action="store_true", help="fine-tune from random weights")
+    p.add_argument("--crop", type=int, default=None)
+    p.add_argument("--max-views", type=int, default=None, help="evaluate only the first test views")
+    p.add_argument("--skip-variants", action="store_true")
+    p.add_argument("--quick", action="store_true", help="tiny budgets and 2 test views (proves it runs)")
+    p.add_argument("--output", type=Path, default=RESULTS / "speed_vs_error")
+    args = p.parse_args(argv)
+    if args.quick:
+        args.minutes = [0.05, 0.1]
+        args.variants = "micro,nano"
+        args.variant_minutes = 0.05
+        args.max_views = args.max_views or 2
+        args.crop = args.crop or 64
+    return args
+
+
+def run(args) -> list[dict]:
+    from roguenerf.checkpoint import load_checkpoint
+    from roguenerf.data.readers import load_scene
+    from roguenerf.training import TrainConfig, evaluate, finetune
+
+    scene = load_scene(args.scene)
+    start = starting_checkpoint(args.checkpoint, args.scratch)
+    base = stamp()
+    rows = []
+    work = Path(tempfile.mkdtemp(prefix="speed_vs_error_"))
+
+    def record(sweep: str, result, report) -> dict:
+        row = {**base, "sweep": sweep, "scene": scene.root.name, "variant": result.config["variant"],
+               "start": "checkpoint" if start else "scratch", "minutes": round(result.seconds / 60, 3),
+               "steps": result.steps, "steps_per_s": round(result.steps / max(result.seconds, 1e-9), 4),
+               "crop": result.config["crop_used"], "neighbours": result.config["num_neighbours"],
+               "loss": result.loss_kind, **scene_metrics(report)}
+        print(", ".join(f"{k}={v}" for k, v in row.items() if k not in base), flush=True)
+        rows.append(row)
+        return row
+
+    run_dir = work / "time"
+    for minutes in sorted(args.minutes):
+        config = TrainConfig(minutes=minutes, crop=args.crop, evaluate=False)
+        result = finetune(scene, run_dir, checkpoint=start, config=config)
+        model, _ = load_checkpoint(result.checkpoint)
+        record("minutes", result, evaluate(scene, model, max_views=args.max_views))
+
+    if not args.skip_variants:
+        for variant in [v for v in args.variants.split(",") if v]:
+            config = TrainConfig(minutes=args.variant_minutes, crop=args.crop, variant=variant, evaluate=False)
+            result = finetune(scene, work / f"variant_{variant}", checkpoint=start, config=config)
+            model, _ = load_checkpoint(result.checkpoint)
+            record("variant", result, evaluate(scene, model, max_views=args.max_views))
+    return rows
+
+
+def plot(rows: list[dict], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
+    timed = [r for r in rows if r["sweep"] == "minutes"]
+    if timed:
+        left.plot([r["minutes"] for r in timed], [r["gain_db"] for r in timed], "o-")
+        left.set_xscale("log")
+    left.axhline(0, color="grey", lw=0.8)
+    left.set_xlabel("fine-tuning time (min)")
+    left.set_ylabel("PSNR gain over renders (dB)")
+    left.set_title("gain vs fine-tuning time")
+    for r in (r for r in rows if r["sweep"] == "variant"):
+        right.scatter(r["latency_s_per_view"], r["gain_db"])
+        right.annotate(f"{r['variant']} ({r['steps']} steps)", (r["latency_s_per_view"], r["gain_db"]))
+    right.axhline(0, color="grey", lw=0.8)
+    right.set_xlabel("inference latency per view (s)")
+    right.set_ylabel("PSNR gain (dB)")
+    right.set_title("gain vs variant")
+    if rows:
+        fig.suptitle(f"{rows[0]['scene']} test views | {rows[0]['machine'][:60]} | {rows[0]['commit']} | "
+                     f"{rows[0]['date'][:10]}", fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    rows = run(args)
+    suffix = "_quick" if args.quick else ""
+    csv_path = write_csv(args.output.with_name(args.output.name + suffix + ".csv"), rows)
+    png_path = plot(rows, args.output.with_name(args.output.name + suffix + ".png"))
+    print(f"wrote {csv_path} and {png_path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

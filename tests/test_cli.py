@@ -1,0 +1,166 @@
+"""The `roguenerf` command: exact flags, JSON output, exit codes and one-line errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+import roguenerf.checkpoint
+from roguenerf.checkpoint import load_checkpoint, save_checkpoint
+from roguenerf.cli import app
+from roguenerf.data.toy import make_toy_scene
+from roguenerf.models import build_enhancer
+from roguenerf.training import evaluate
+
+runner = CliRunner()
+FAST = ["--variant", "micro", "--crop", "16", "--neighbours", "2"]
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    root = tmp_path_factory.mktemp("scene")
+    make_toy_scene(root, seed=4, n_train=5, n_test=2, height=24, width=32)
+    return root
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    torch.manual_seed(0)
+    model = build_enhancer("micro", num_neighbours=2)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.02 * torch.randn_like(p))
+    return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "m.safetensors", model)
+
+
+def _run(*args):
+    result = runner.invoke(app, [str(a) for a in args])
+    return result
+
+
+def test_evaluate_json_is_one_object_matching_the_library(scene_dir, checkpoint):
+    result = _run("evaluate", scene_dir, "--checkpoint", checkpoint, "--json")
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert set(report) >= {"views", "render", "enhanced"}
+    assert [v["name"] for v in report["views"]] == ["test_000", "test_001"]
+    assert set(report["render"]) >= {"psnr", "ssim"}
+    from roguenerf.data.readers import load_scene
+
+    model, _ = load_checkpoint(checkpoint)
+    direct = evaluate(load_scene(scene_dir), model)
+    assert report["render"]["psnr"] == pytest.approx(direct["render"]["psnr"], abs=1e-6)
+    assert report["enhanced"]["psnr"] == pytest.approx(direct["enhanced"]["psnr"], abs=1e-4)
+
+
+def test_evaluate_table(scene_dir, checkpoint):
+    result = _run("evaluate", scene_dir, "--checkpoint", checkpoint, "--split", "train")
+    assert result.exit_code == 0, result.output
+    lines = result.stdout.strip().splitlines()
+    assert len(lines) == 1 + 5 + 1 and lines[-1].startswith("mean")
+
+
+def test_bad_scene_dir_exits_2_naming_the_path(tmp_path, checkpoint):
+    missing = tmp_path / "no_such_scene"
+    result = _run("evaluate", missing, "--checkpoint", checkpoint, "--json")
+    assert result.exit_code == 2
+    assert str(missing) in result.stderr and result.stderr.startswith("error: ")
+    assert len(result.stderr.strip().splitlines()) == 1 and "Traceback" not in result.output
+    assert result.stdout == ""
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    result = _run("enhance", empty, "--view", "x", "--checkpoint", checkpoint, "--output", tmp_path / "o.png")
+    assert result.exit_code == 2 and str(empty) in result.stderr
+
+
+def test_missing_default_checkpoint_is_explained(scene_dir, tmp_path, monkeypatch):
+    absent = tmp_path / "weights" / "default.safetensors"
+    monkeypatch.setattr(roguenerf.checkpoint, "default_checkpoint_path", lambda must_exist=True: absent)
+    result = _run("evaluate", scene_dir)
+    assert result.exit_code == 2
+    assert "default checkpoint" in result.stderr and str(absent) in result.stderr
+
+
+def test_enhance_writes_the_png(scene_dir, checkpoint, tmp_path):
+    from roguenerf.data.readers import load_scene
+    from roguenerf.imageio import read_image
+    from roguenerf.inference import SceneEnhancer
+
+    out = tmp_path / "sub" / "enhanced.png"
+    result = _run("enhance", scene_dir, "--view", "test_001", "--checkpoint", checkpoint, "--output", out)
+    assert result.exit_code == 0, result.output
+    image = read_image(out)
+    assert image.shape == (3, 24, 32)
+    model, _ = load_checkpoint(checkpoint)
+    expected = SceneEnhancer(load_scene(scene_dir), model).enhance_view("test_001").image
+    assert float((image - expected).abs().max()) <= 1 / 255 + 1e-6  # 8-bit PNG rounding
+    bad = _run("enhance", scene_dir, "--view", "nope", "--checkpoint", checkpoint, "--output", out)
+    assert bad.exit_code == 2 and "nope" in bad.stderr
+
+
+def test_finetune_from_scratch_then_resume_to_more_steps(scene_dir, tmp_path):
+    out = tmp_path / "ft"
+    result = _run("finetune", scene_dir, "--scratch", "--steps", "2", "--output", out, "--no-eval", *FAST)
+    assert result.exit_code == 0, result.output
+    assert result.stdout.strip() == str(out / "model.safetensors")
+    _, meta = load_checkpoint(out / "model.safetensors")
+    assert meta["training"]["steps"] == 2
+    assert "plan: cpu" in result.stderr and "L1 loss alone" in result.stderr
+    more = _run("finetune", scene_dir, "--scratch", "--steps", "3", "--output", out, "--no-eval", *FAST)
+    assert more.exit_code == 0, more.output
+    assert "resuming finetune from step 2" in more.stderr
+    assert load_checkpoint(out / "model.safetensors")[1]["training"]["steps"] == 3
+
+
+def test_finetune_ablation_from_a_full_checkpoint(scene_dir, checkpoint, tmp_path):
+    out = tmp_path / "abl"
+    result = _run("finetune", scene_dir, "--checkpoint", checkpoint, "--steps", "1", "--output", out, "--no-eval",
+                  "--without", "attention", "--without", "refinement", "--crop", "16")
+    assert result.exit_code == 0, result.output
+    assert "dropped: camera_attention, flow, pixel_attention" in result.stderr
+    model, _ = load_checkpoint(out / "model.safetensors")
+    assert not model.config.use_attention and not model.config.use_refinement and model.config.use_alignment
+
+
+def test_pretrain_with_toy_scenes(scene_dir, tmp_path):
+    out = tmp_path / "pt"
+    result = _run("pretrain", scene_dir, "--toy", "1", "--steps", "1", "--output", out, *FAST)
+    assert result.exit_code == 0, result.output
+    _, meta = load_checkpoint(out / "model.safetensors")
+    assert len(meta["training"]["scenes"]) == 2
+    assert (out / "toy" / "toy_000" / "transforms.json").is_file()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--steps", "1", "--minutes", "1"], "either --minutes or --steps"),
+    (["--steps", "1", "--without", "uformer"], "--without"),
+    (["--steps", "1", "--variant", "huge"], "variant"),
+])
+def test_finetune_bad_flags_exit_2(scene_dir, tmp_path, args, message):
+    result = _run("finetune", scene_dir, "--scratch", "--output", tmp_path / "x", *args)
+    assert result.exit_code == 2
+    assert message in result.stderr and "Traceback" not in result.output
+
+
+def test_pretrain_without_scenes_exits_2(tmp_path):
+    result = _run("pretrain", "--output", tmp_path / "x", "--steps", "1")
+    assert result.exit_code == 2 and "no scenes" in result.stderr
+
+
+def test_serve_without_the_service_is_a_clear_error(monkeypatch):
+    monkeypatch.setitem(sys.modules, "service.server", None)  # import fails as if not installed
+    result = _run("serve", "--port", "8123")
+    assert result.exit_code == 1
+    assert "roguenerf[service]" in result.stderr
+
+
+def test_console_entry_point_runs_as_a_module(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "roguenerf", "evaluate", str(tmp_path / "nope"), "--json"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stdout == "" and str(tmp_path / "nope") in proc.stderr and "Traceback" not in proc.stderr

@@ -1,0 +1,226 @@
+"""End to end through the embedded server: ``service.server.run()`` in its own process
+(API + sibling worker, SQLite job table and queue), driven over real HTTP.
+
+register -> enhance -> fine-tune -> the job succeeds -> enhance uses the new checkpoint ->
+delete; a second concurrent fine-tune is refused; cancel mid-run; /enhance equals the
+library bit for bit; Ctrl-C stops API and worker. Latency and start-up figures are printed.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.service_helpers import (
+    FAST,
+    ROOT,
+    enhance,
+    free_port,
+    make_checkpoint,
+    make_scene,
+    register,
+    view_request,
+    wait_job,
+    wait_until,
+    zip_folder,
+)
+
+FIGURES: dict[str, float] = {}
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        text = (task / "children").read_text().split()
+        out += [int(x) for x in text]
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state != "Z"
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory):
+    root = tmp_path_factory.mktemp("toy")
+    scene = make_scene(root / "scene")
+    ckpt = make_checkpoint(root / "micro.safetensors")
+    return {"root": root, "scene": scene, "zip": zip_folder(root / "scene"), "checkpoint": ckpt}
+
+
+@pytest.fixture(scope="module")
+def embedded(tmp_path_factory):
+    data = tmp_path_factory.mktemp("data")
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("ROGUENERF_")}
+    env.update({f"ROGUENERF_{k.upper()}": str(v) for k, v in FAST.items()})
+    env["PYTHONPATH"] = str(ROOT)
+    log = open(data.parent / f"{data.name}-server.log", "wb")
+    started = time.perf_counter()
+    proc = subprocess.Popen(
+        [sys.executable, "-c",
+         f"from service.server import run; run(host='127.0.0.1', port={port}, data_dir={str(data)!r})"],
+        env=env, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+    url = f"http://127.0.0.1:{port}"
+
+    def ready():
+        try:
+            return httpx.get(f"{url}/readyz", timeout=2).status_code == 200
+        except httpx.HTTPError:
+            return proc.poll() is not None
+
+    wait_until(ready, timeout=90, interval=0.05, what="embedded server /readyz")
+    assert proc.poll() is None, Path(log.name).read_text()
+    FIGURES["start_to_readyz_s"] = time.perf_counter() - started
+    yield {"url": url, "proc": proc, "data": data, "log": Path(log.name)}
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait(10)
+    for child in _children(proc.pid) if _alive(proc.pid) else []:
+        os.kill(child, signal.SIGKILL)
+    log.close()
+    print("\nservice figures:", {k: round(v, 3) for k, v in FIGURES.items()})
+
+
+@pytest.fixture(scope="module")
+def client(embedded):
+    with httpx.Client(base_url=embedded["url"], timeout=180) as c:
+        yield c
+
+
+def _register(client, toy) -> str:
+    r = register(client, toy["zip"], toy["checkpoint"].read_bytes())
+    assert r.status_code == 201, r.text
+    assert r.json()["views"] == 8
+    return r.json()["id"]
+
+
+def test_register_enhance_finetune_enhance_delete(client, toy, embedded):
+    from roguenerf import SceneEnhancer, load_checkpoint
+    from roguenerf.imageio import read_image
+
+    sid = _register(client, toy)
+    view = view_request(toy["scene"], 6)
+    first = enhance(client, sid, view)
+    assert first.status_code == 200, first.text
+    assert first.headers["X-Checkpoint-Version"] == "1"
+
+    r = client.post(f"/scenes/{sid}/finetune", json={"steps": 2})
+    assert r.status_code == 202, r.text
+    job_id = r.json()["id"]
+    clash = client.post(f"/scenes/{sid}/finetune", json={"steps": 2})
+    assert clash.status_code == 409 and clash.json()["error"]["code"] == "job_active"
+
+    job = wait_job(client, job_id, {"succeeded", "failed", "cancelled"}, timeout=150)
+    assert job["state"] == "succeeded", job
+    assert job["progress"] == 1.0 and job["eta_s"] == 0.0
+    assert job["step"] == 2 and job["total_steps"] == 2
+    assert [s for s, _ in job["recent_losses"]] == [1, 2] and job["loss"] == job["recent_losses"][-1][1]
+    assert job["result"]["steps"] == 2 and job["result"]["loss_kind"] == "l1"
+    assert job["checkpoint_version"] == 2 and job["error"] is None
+
+    scene = client.get(f"/scenes/{sid}").json()
+    assert scene["active_version"] == 2 and scene["checkpoint_versions"] == [1, 2]
+    assert scene["active_job"] is None
+    folder = embedded["data"] / "scenes" / sid
+    assert (folder / "checkpoints" / "v1.safetensors").read_bytes() == toy["checkpoint"].read_bytes()
+
+    second = enhance(client, sid, view)
+    assert second.status_code == 200 and second.headers["X-Checkpoint-Version"] == "2"
+    a, b = read_image(first.content), read_image(second.content)
+    assert (a - b).abs().max() > 1 / 255, "the fine-tuned checkpoint did not change the output"
+    # The new output is exactly what the library computes with the promoted checkpoint.
+    model, _ = load_checkpoint(folder / "checkpoints" / "v2.safetensors")
+    direct = _direct_png(SceneEnhancer(toy["scene"], model), view)
+    assert second.content == direct
+
+    assert client.delete(f"/scenes/{sid}").status_code == 204
+    assert client.get(f"/scenes/{sid}").status_code == 404
+    assert not folder.exists()
+    assert not (embedded["data"] / "jobs" / job_id).exists()
+
+
+def test_cancel_mid_run(client, toy):
+    sid = _register(client, toy)
+    job_id = client.post(f"/scenes/{sid}/finetune", json={"steps": 10_000}).json()["id"]
+    running = wait_until(lambda: (j := client.get(f"/jobs/{job_id}").json())["step"] and j,
+                         timeout=120, interval=0.2, what="the first training step")
+    assert running["state"] == "running" and 0 < running["progress"] < 1 and running["eta_s"] > 0
+    r = client.post(f"/jobs/{job_id}/cancel")
+    assert r.status_code == 202 and r.json()["cancel_requested"] is True
+    job = wait_job(client, job_id, {"cancelled", "succeeded", "failed"}, timeout=60)
+    assert job["state"] == "cancelled" and job["error"]["code"] == "cancelled"
+    assert job["step"] < 10_000
+    scene = client.get(f"/scenes/{sid}").json()
+    assert scene["active_version"] == 1 and scene["checkpoint_versions"] == [1]
+    assert client.post(f"/jobs/{job_id}/cancel").json()["state"] == "cancelled"
+    assert client.delete(f"/scenes/{sid}").status_code == 204
+
+
+def _direct_png(enhancer, view: dict) -> bytes:
+    """The library call a Python user would make with the same files and camera."""
+    import numpy as np
+    import torch
+
+    from roguenerf.geometry import intrinsics_matrix, opengl_to_opencv
+    from roguenerf.imageio import read_image, write_png
+
+    cam = view["camera"]
+    render = read_image(view["render"])
+    depth = torch.from_numpy(np.load(io.BytesIO(view["depth"])).astype(np.float32))[None]
+    K = intrinsics_matrix(cam["fl_x"], cam["fl_y"], cam["cx"], cam["cy"], dtype=torch.float64)
+    pose = opengl_to_opencv(torch.tensor(cam["transform_matrix"], dtype=torch.float64))
+    return write_png(None, enhancer.enhance(render, depth, K, pose).image)
+
+
+def test_enhance_bit_for_bit_and_latency_504x378(client, tmp_path):
+    from roguenerf import SceneEnhancer, load_checkpoint
+
+    scene = make_scene(tmp_path / "big", seed=3, height=378, width=504, n_train=3, n_test=1)
+    ckpt = make_checkpoint(tmp_path / "micro.safetensors", seed=1)
+    r = register(client, zip_folder(tmp_path / "big"), ckpt.read_bytes())
+    assert r.status_code == 201, r.text
+    sid = r.json()["id"]
+    view = view_request(scene, 3)
+
+    warm = enhance(client, sid, view)  # builds the SceneEnhancer and caches neighbour features
+    assert warm.status_code == 200, warm.text
+    t0 = time.perf_counter()
+    timed = enhance(client, sid, view)
+    FIGURES["http_enhance_504x378_s"] = time.perf_counter() - t0
+    FIGURES["http_enhance_504x378_server_compute_s"] = float(timed.headers["X-Enhance-Seconds"])
+
+    model, _ = load_checkpoint(ckpt)
+    enhancer = SceneEnhancer(scene, model)
+    _direct_png(enhancer, view)
+    t0 = time.perf_counter()
+    direct = _direct_png(enhancer, view)
+    FIGURES["direct_enhance_504x378_s"] = time.perf_counter() - t0
+    assert timed.content == warm.content == direct
+    assert client.delete(f"/scenes/{sid}").status_code == 204
+
+
+def test_ctrl_c_stops_api_and_worker(embedded):
+    proc = embedded["proc"]
+    workers = _children(proc.pid)
+    assert len(workers) == 1 and _alive(workers[0])
+    t0 = time.perf_counter()
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(60) == 0
+    FIGURES["ctrl_c_shutdown_s"] = time.perf_counter() - t0
+    wait_until(lambda: not _alive(workers[0]), timeout=10, what="the worker to exit")
+    log = embedded["log"].read_text()
+    assert "API docs: http://127.0.0.1:" in log and "/docs" in log
+    assert "stopped" in log
