@@ -43,7 +43,7 @@ class Reprojection:
     neighbour camera (z_{k->i} <= eps)."""
 
 
-def _batched(x: Tensor, name: str, trailing: tuple[int, int], batch: int, dtype: torch.dtype) -> Tensor:
+def _batched(x: Tensor, name: str, trailing: tuple[int, int], batch: int) -> Tensor:
     """``x`` as ``(batch, *trailing)``: a single matrix is shared by the whole batch."""
     if x.ndim == 2:
         x = x.unsqueeze(0)
@@ -127,10 +127,10 @@ def reproject(
     dtype = torch.float64 if src_features.dtype == torch.float64 else torch.float32
     device = src_features.device
 
-    src_K = _batched(check_intrinsics(src_K, "src_K"), "src_K", (3, 3), B, dtype).to(device, dtype)
-    dst_K = _batched(check_intrinsics(dst_K, "dst_K"), "dst_K", (3, 3), B, dtype).to(device, dtype)
-    world_from_src = _batched(check_pose(world_from_src, "world_from_src"), "world_from_src", (4, 4), B, dtype)
-    world_from_dst = _batched(check_pose(world_from_dst, "world_from_dst"), "world_from_dst", (4, 4), B, dtype)
+    src_K = _batched(check_intrinsics(src_K, "src_K"), "src_K", (3, 3), B).to(device, dtype)
+    dst_K = _batched(check_intrinsics(dst_K, "dst_K"), "dst_K", (3, 3), B).to(device, dtype)
+    world_from_src = _batched(check_pose(world_from_src, "world_from_src"), "world_from_src", (4, 4), B)
+    world_from_dst = _batched(check_pose(world_from_dst, "world_from_dst"), "world_from_dst", (4, 4), B)
     # float64 here: with both cameras 1e4 units from the origin, float32 would leave mm-scale errors.
     src_from_dst = (torch.linalg.inv(world_from_src.double()) @ world_from_dst.double()).to(device, dtype)
 

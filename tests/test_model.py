@@ -1,0 +1,291 @@
+"""The enhancer: configs and variants, identity start, neighbour handling, NaN safety,
+gradients, ablation switches, scale invariance, import hygiene."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from roguenerf.errors import InputError
+from roguenerf.models import VARIANTS, EnhancerConfig, NeighbourBatch, build_enhancer, make_config
+from roguenerf.models.enhancer import Enhancer, median_depth
+
+
+def pose(t, yaw: float = 0.0) -> torch.Tensor:
+    """OpenCV camera-to-world ``(4, 4)``: rotation about the y axis by ``yaw``, position ``t``."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    P = torch.eye(4)
+    P[:3, :3] = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    P[:3, 3] = torch.tensor(t, dtype=torch.float32)
+    return P
+
+
+def make_views(model: Enhancer, *, b: int = 1, n: int = 2, h: int = 48, w: int = 64, seed: int = 0,
+               unit: float = 1.0, photos: torch.Tensor | None = None):
+    """A target camera at the origin facing a wall at z ~ 4 and ``n`` neighbours a little to
+    the side, all seeing most of the wall (so the reprojection is mostly valid).
+
+    Returns render ``(b, 3, h, w)``, depth ``(b, 1, h, w)``, K ``(b, 3, 3)``, pose ``(b, 4, 4)``
+    and a :class:`NeighbourBatch` with neighbour images of the same size. ``unit`` scales every
+    length (depths and translations).
+    """
+    g = torch.Generator().manual_seed(seed)
+    K = torch.tensor([[0.9 * w, 0.0, w / 2], [0.0, 0.9 * w, h / 2], [0.0, 0.0, 1.0]])
+    render = torch.rand(b, 3, h, w, generator=g)
+    depth = (4.0 + 0.2 * torch.rand(b, 1, h, w, generator=g)) * unit
+    target = pose([0.0, 0.0, 0.0]).expand(b, 4, 4).clone()
+    if photos is None:
+        photos = torch.rand(n, 3, h, w, generator=g)
+    if model.conv_H is not None and n:
+        feats = model.encode_neighbours(photos)
+    else:
+        feats = torch.zeros(n, model.config.features, h, w)
+    nposes = [pose([0.15 * (j + 1) * (-1) ** j * unit, 0.05 * j * unit, 0.02 * j * unit], yaw=0.02 * j)
+              for j in range(n)]
+    nposes = torch.stack(nposes) if n else torch.zeros(0, 4, 4)
+    ndepth = 4.0 * unit * torch.ones(n, 1, h, w)
+    nb = NeighbourBatch(features=feats[None].expand(b, -1, -1, -1, -1),
+                        depth=ndepth[None].expand(b, -1, -1, -1, -1),
+                        K=K.expand(b, n, 3, 3), world_from_cam=nposes[None].expand(b, -1, -1, -1))
+    return render, depth, K.expand(b, 3, 3), target, nb
+
+
+def randomise(model: Enhancer, std: float = 0.05, seed: int = 0) -> Enhancer:
+    """Give the zero-initialised layers (output projection, flow increment head) small random
+    weights, so that every part of the model influences the output."""
+    g = torch.Generator().manual_seed(seed)
+    layers = [model.uformer.output_proj if model.uformer is not None else model.to_rgb]
+    if model.flow is not None:
+        layers.append(model.flow.to_delta[-1])
+    with torch.no_grad():
+        for layer in layers:
+            layer.weight.copy_(torch.randn(layer.weight.shape, generator=g) * std)
+    return model
+
+
+def small(variant: str = "micro", **overrides) -> Enhancer:
+    torch.manual_seed(0)
+    return build_enhancer(variant, **overrides)
+
+
+# ---------------------------------------------------------------- configs and variants
+
+
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
+def test_config_round_trips_through_json(variant):
+    cfg = make_config(variant, flow_iters=3)
+    text = json.dumps(cfg.to_dict())
+    again = EnhancerConfig.from_dict(json.loads(text))
+    assert again == cfg
+    assert isinstance(again.uformer.depths, tuple)
+
+
+def test_from_dict_rejects_unknown_keys_and_wrong_types():
+    d = make_config("nano").to_dict()
+    with pytest.raises(InputError, match="unknown keys.*'colour'"):
+        EnhancerConfig.from_dict({**d, "colour": "red"})
+    with pytest.raises(InputError, match=r"config.uformer: unknown keys.*'heads'"):
+        EnhancerConfig.from_dict({**d, "uformer": {**d["uformer"], "heads": 3}})
+    with pytest.raises(InputError, match="config.use_attention: expected bool"):
+        EnhancerConfig.from_dict({**d, "use_attention": "yes"})
+    with pytest.raises(InputError, match="config.uformer.depths"):
+        EnhancerConfig.from_dict({**d, "uformer": {**d["uformer"], "depths": [1.5] * 9}})
+    with pytest.raises(InputError, match="num_heads"):
+        EnhancerConfig.from_dict({**d, "uformer": {**d["uformer"], "num_heads": [3] * 9}})
+    # Missing keys take the defaults (older checkpoints stay loadable).
+    assert EnhancerConfig.from_dict({"variant": "x"}) == EnhancerConfig(variant="x")
+
+
+def test_make_config_caller_overrides_win():
+    cfg = make_config("T", flow_iters=1, win_size=4, use_attention=False)
+    assert (cfg.flow_iters, cfg.uformer.win_size, cfg.use_attention) == (1, 4, False)
+    assert cfg.uformer.embed_dim == 16 and cfg.variant == "T"
+    assert make_config("S", uformer={"embed_dim": 16}).uformer.embed_dim == 16
+    with pytest.raises(InputError, match="unknown keys.*'flow_iterations'"):
+        make_config("T", flow_iterations=1)
+    with pytest.raises(InputError, match="variant: expected one of"):
+        make_config("XXL")
+
+
+def test_paper_variants():
+    heads = (1, 2, 4, 8, 16, 16, 8, 4, 2)
+    for name, embed, depths in [("T", 16, (2,) * 9), ("S", 32, (2,) * 9), ("B", 32, (1, 2, 8, 8, 2, 8, 8, 2, 1))]:
+        cfg = make_config(name)
+        assert (cfg.uformer.embed_dim, cfg.uformer.depths, cfg.uformer.num_heads) == (embed, depths, heads)
+        assert cfg.uformer.win_size == 8 and cfg.features == 64
+    assert make_config("nano").uformer.depths == (1,) * 9
+    assert make_config("nano").flow_iters < make_config("T").flow_iters
+
+
+def test_build_enhancer_from_config_with_overrides():
+    model = build_enhancer(make_config("micro"), use_refinement=False, win_size=2)
+    assert model.flow is None and model.config.uformer.win_size == 2
+
+
+# ---------------------------------------------------------------- behaviour
+
+
+def test_untrained_enhancer_is_exactly_the_identity():
+    model = small()
+    r, d, K, P, nb = make_views(model, n=2)
+    assert torch.equal(model(r, d, K, P, nb), r)
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 5, 8])
+def test_any_number_of_neighbours(n):
+    model = randomise(small())
+    r, d, K, P, nb = make_views(model, b=2, n=n, h=37, w=53)
+    y = model(r, d, K, P, nb)
+    assert y.shape == (2, 3, 37, 53) and torch.isfinite(y).all()
+    if n == 0:
+        assert torch.equal(y, model(r, d, K, P, None))
+
+
+@pytest.mark.parametrize(("h", "w"), [(378, 504), (512, 512)])
+def test_large_images(h, w):
+    model = randomise(small("nano")).eval()
+    with torch.inference_mode():
+        r, d, K, P, nb = make_views(model, n=1, h=h, w=w)
+        y = model(r, d, K, P, nb)
+    assert y.shape == (1, 3, h, w) and torch.isfinite(y).all()
+
+
+def test_output_is_invariant_to_neighbour_order():
+    model = randomise(small())
+    r, d, K, P, nb = make_views(model, n=4)
+    perm = torch.tensor([2, 0, 3, 1])
+    shuffled = NeighbourBatch(nb.features[:, perm], nb.depth[:, perm], nb.K[:, perm], nb.world_from_cam[:, perm])
+    a, b = model(r, d, K, P, nb), model(r, d, K, P, shuffled)
+    assert torch.equal(a, b)
+    assert not torch.allclose(a, model(r, d, K, P, NeighbourBatch(
+        nb.features[:, :2], nb.depth[:, :2], nb.K[:, :2], nb.world_from_cam[:, :2])))
+
+
+def test_missing_depth_never_gives_nan():
+    model = randomise(small())
+    r, d, K, P, nb = make_views(model, n=2)
+    d = d.clone()
+    d[..., :10, :] = float("nan")
+    d[..., 10:20, :] = 0.0
+    d[..., 20:25, :] = -1.0
+    d[..., 25:28, :] = float("inf")
+    ndepth = nb.depth.clone()
+    ndepth[:, 0, ..., :, :16] = float("nan")
+    ndepth[:, 1] = 0.0
+    nb = NeighbourBatch(nb.features, ndepth, nb.K, nb.world_from_cam)
+    r = r.requires_grad_()
+    y = model(r, d, K, P, nb)
+    y.square().mean().backward()
+    assert torch.isfinite(y).all()
+    assert torch.isfinite(r.grad).all()
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+    # All depth missing: still finite.
+    y = model(r, torch.full_like(d, float("nan")), K, P, nb)
+    assert torch.isfinite(y).all()
+
+
+def test_every_parameter_receives_a_gradient():
+    """At initialisation only the zero-initialised output projection can learn (everything
+    upstream is multiplied by its zero weights); after two Adam steps the output projection
+    and the flow increment head are non-zero and every parameter gets a non-zero gradient."""
+    model = small("micro", depths=(2,) * 9)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    r, d, K, P, _ = make_views(model, b=2, n=2, h=32, w=40)
+    photos = torch.rand(2, 3, 32, 40, generator=torch.Generator().manual_seed(1))
+    target = torch.rand_like(r)
+
+    def step():
+        opt.zero_grad()
+        _, _, _, _, nb = make_views(model, b=2, n=2, h=32, w=40, photos=photos)
+        (model(r, d, K, P, nb) - target).abs().mean().backward()
+
+    step()
+    moving = {name for name, p in model.named_parameters() if p.grad is not None and p.grad.abs().sum() > 0}
+    assert moving == {"uformer.output_proj.weight", "uformer.output_proj.bias"}
+    opt.step()
+    step()
+    opt.step()
+    step()
+    dead = [name for name, p in model.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0]
+    assert dead == []
+
+
+@pytest.mark.parametrize(("switch", "gone"), [
+    ("use_neighbours", {"conv_H", "flow", "pixel_attention", "camera_attention"}),
+    ("use_alignment", set()),
+    ("use_refinement", {"flow"}),
+    ("use_attention", {"pixel_attention", "camera_attention"}),
+    ("use_uformer", {"uformer"}),
+])
+def test_each_ablation_switch_changes_the_computation(switch, gone):
+    full = randomise(small())
+    ablated = build_enhancer("micro", **{switch: False})
+    names = {name.split(".")[0] for name, _ in ablated.named_parameters()}
+    assert not names & gone
+    assert all(getattr(ablated, g) is None for g in gone)
+    # Shared weights: whatever both models have is identical, so any difference comes from the switch.
+    missing, _ = ablated.load_state_dict(full.state_dict(), strict=False)
+    if switch not in ("use_neighbours", "use_uformer"):
+        assert missing == []
+    if switch == "use_uformer":
+        randomise(ablated)
+    r, d, K, P, nb = make_views(full, n=2)
+    with torch.no_grad():
+        assert not torch.allclose(full(r, d, K, P, nb), ablated(r, d, K, P, nb), atol=1e-5)
+
+
+def test_without_neighbours_the_neighbours_are_ignored():
+    model = randomise(small(use_neighbours=False))
+    r, d, K, P, nb = make_views(model, n=2)
+    assert torch.equal(model(r, d, K, P, nb), model(r, d, K, P, None))
+    with pytest.raises(InputError, match="use_neighbours=False"):
+        model.encode_neighbours(torch.rand(1, 3, 8, 8))
+
+
+def test_alignment_uses_the_geometry():
+    """With 3D alignment the neighbours' poses matter; without it (Uformer+NN) they do not."""
+    for aligned in (True, False):
+        model = randomise(small(use_alignment=aligned, use_attention=False))
+        r, d, K, P, nb = make_views(model, n=1)
+        moved = NeighbourBatch(nb.features, nb.depth, nb.K, nb.world_from_cam.clone())
+        moved.world_from_cam[..., 0, 3] += 0.3
+        with torch.no_grad():
+            same = torch.allclose(model(r, d, K, P, nb), model(r, d, K, P, moved), atol=1e-6)
+        assert same != aligned
+
+
+def test_scale_invariance():
+    """Scene units are arbitrary: depths and translations times 1e4 give the same output."""
+    model = randomise(small("micro"))
+    with torch.no_grad():
+        a = model(*make_views(model, n=3, unit=1.0))
+        b = model(*make_views(model, n=3, unit=1e4))
+    assert torch.allclose(a, b, atol=1e-4)
+
+
+def test_median_depth_ignores_missing_values():
+    d = torch.tensor([[[[1.0, 2.0, 3.0], [float("nan"), 0.0, -5.0]]], [[[float("nan")] * 3, [0.0] * 3]]])
+    assert torch.equal(median_depth(d), torch.tensor([2.0, 1.0]))
+
+
+def test_input_errors_name_the_argument():
+    model = small()
+    r, d, K, P, nb = make_views(model, n=1)
+    with pytest.raises(InputError, match=r"render: expected shape \(\*, 3, \*, \*\), got \(1, 4, 48, 64\)"):
+        model(torch.rand(1, 4, 48, 64), d, K, P, nb)
+    with pytest.raises(InputError, match=r"depth: expected shape \(1, 1, 48, 64\)"):
+        model(r, d[..., :10], K, P, nb)
+    with pytest.raises(InputError, match="neighbours.depth"):
+        model(r, d, K, P, NeighbourBatch(nb.features, nb.depth[..., :5], nb.K, nb.world_from_cam))
+
+
+def test_import_roguenerf_does_not_import_the_service_stack():
+    code = ("import sys, roguenerf, roguenerf.models; "
+            "print(sorted(m for m in ('fastapi', 'huey', 'uvicorn', 'starlette') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
