@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -221,7 +222,7 @@ def evaluate(
         model = _load_model(checkpoint)
         report = run_evaluate(scene, model, split=split, num_neighbours=neighbours)
     if as_json:
-        typer.echo(json.dumps(report))
+        typer.echo(json.dumps(_finite(report)))
         return
     typer.echo(f"{'view':<24} {'render PSNR':>12} {'SSIM':>7} {'enhanced PSNR':>14} {'SSIM':>7}")
     for v in report["views"]:
@@ -274,6 +275,17 @@ def serve(
             _fail(f"the service cannot start: {missing} is not installed "
                   "(install the extras: pip install 'roguenerf[service]')", 1)
         run(host=host, port=port, data_dir=data_dir)
+
+
+def _finite(obj):
+    """JSON has no inf/NaN (PSNR of identical images is inf): write them as null."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_finite(v) for v in obj]
+    return obj
 
 
 def main() -> None:

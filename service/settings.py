@@ -77,6 +77,16 @@ class Settings(BaseSettings):
     cors_origins: list[str] = []
     """Origins allowed by CORS; empty: no CORS headers at all. Credentials are never allowed."""
 
+    @field_validator("api_key", "redis_url", "database_url", mode="before")
+    @classmethod
+    def _empty_is_unset(cls, value):
+        # docker compose passes ${VAR:-} as an empty string; that means "not configured".
+        if isinstance(value, str) and not value.strip():
+            return None
+        if isinstance(value, SecretStr) and not value.get_secret_value().strip():
+            return None
+        return value
+
     @field_validator("data_dir")
     @classmethod
     def _absolute(cls, value: Path) -> Path:

@@ -68,6 +68,16 @@ def randomise(model: Enhancer, std: float = 0.05, seed: int = 0) -> Enhancer:
     return model
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """These models are tiny: on a shared 2-core machine, OpenMP threads spinning against other
+    processes cost far more than they gain (measured: 4x to 20x slower with 2 threads)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def small(variant: str = "micro", **overrides) -> Enhancer:
     torch.manual_seed(0)
     return build_enhancer(variant, **overrides)
@@ -229,7 +239,9 @@ def test_each_ablation_switch_changes_the_computation(switch, gone):
     assert not names & gone
     assert all(getattr(ablated, g) is None for g in gone)
     # Shared weights: whatever both models have is identical, so any difference comes from the switch.
-    missing, _ = ablated.load_state_dict(full.state_dict(), strict=False)
+    shared = {k: v for k, v in full.state_dict().items()
+              if k in ablated.state_dict() and ablated.state_dict()[k].shape == v.shape}
+    missing, _ = ablated.load_state_dict(shared, strict=False)
     if switch not in ("use_neighbours", "use_uformer"):
         assert missing == []
     if switch == "use_uformer":

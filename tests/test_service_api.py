@@ -13,6 +13,7 @@ import io
 import json
 import logging
 import socket
+import threading
 import zipfile
 
 import numpy as np
@@ -172,28 +173,42 @@ def test_uncompressed_size_limit(tmp_path, toy):
 
 
 def _raw_chunked_post(port: int, path: str, total: int) -> tuple[int, dict]:
-    """POST a chunked body (no Content-Length) over a raw socket; returns (status, json)."""
+    """POST a chunked body (no Content-Length) over a raw socket; returns (status, json).
+
+    A reader thread collects the answer while the body is still being sent: the server
+    answers 413 mid-body and closes, and a reset would discard an answer read only later.
+    """
     boundary = "b0undary"
     head = (f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nTransfer-Encoding: chunked\r\n"
             f"Content-Type: multipart/form-data; boundary={boundary}\r\nConnection: close\r\n\r\n")
+    received = bytearray()
+
+    def read(sock):
+        try:
+            while data := sock.recv(65536):
+                received.extend(data)
+        except OSError:
+            pass
+
     with socket.create_connection(("127.0.0.1", port), timeout=30) as s:
-        s.sendall(head.encode())
+        reader = threading.Thread(target=read, args=(s,))
+        reader.start()
         first = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"archive\"; filename=\"a.zip\"\r\n"
                  "Content-Type: application/zip\r\n\r\n").encode()
-        s.sendall(f"{len(first):x}\r\n".encode() + first + b"\r\n")
-        chunk = b"z" * 65536
-        sent = 0
         try:
-            while sent < total:
+            s.sendall(head.encode())
+            s.sendall(f"{len(first):x}\r\n".encode() + first + b"\r\n")
+            chunk = b"z" * 65536
+            sent = 0
+            while sent < total and not received:
                 s.sendall(f"{len(chunk):x}\r\n".encode() + chunk + b"\r\n")
                 sent += len(chunk)
-            s.sendall(b"0\r\n\r\n")
-        except (BrokenPipeError, ConnectionResetError):
-            pass  # the server may answer and close before the whole body is sent
-        response = b""
-        while data := s.recv(65536):
-            response += data
-    header, _, body = response.partition(b"\r\n\r\n")
+            if not received:
+                s.sendall(b"0\r\n\r\n")
+        except OSError:
+            pass  # the server answered and closed before the whole body was sent
+        reader.join(30)
+    header, _, body = bytes(received).partition(b"\r\n\r\n")
     status = int(header.split()[1])
     return status, json.loads(body.split(b"\r\n")[1] if b"chunked" in header.lower() else body)
 

@@ -9,6 +9,15 @@ from roguenerf.models import make_config
 from roguenerf.models.uformer import LeWinBlock, Uformer, WindowAttention, _shift_mask
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Tiny models: on a shared 2-core machine a second OpenMP thread costs more than it gains."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def _perturb_output(u: Uformer, std: float = 0.05) -> Uformer:
     """The output projection is zero-initialised; give it weights so outputs carry signal."""
     torch.nn.init.normal_(u.output_proj.weight, std=std)

@@ -39,19 +39,16 @@ def _job(client, job_id):
 def test_kill9_requeues_and_resumes_then_fails_when_out_of_attempts(tmp_path, toy):
     data = tmp_path / "data"
     settings = Settings(data_dir=data, max_attempts=2, **FAST)
-    workers = []
+    workers = [WorkerProcess(settings, tmp_path / "w1.log")]  # starts while the scene uploads
     with LiveServer(settings) as live, live.client() as c:
-        sid = register(c, toy["zip"], toy["checkpoint"]).json()["id"]
-        scene_folder = data / "scenes" / sid / "scene"
-        before = tree_digest(scene_folder)
-        job_id = c.post(f"/scenes/{sid}/finetune", json={"steps": 6}).json()["id"]
-
-        first = WorkerProcess(settings, tmp_path / "w1.log")
-        workers.append(first)
         try:
-            first.wait_ready()
+            sid = register(c, toy["zip"], toy["checkpoint"]).json()["id"]
+            scene_folder = data / "scenes" / sid / "scene"
+            before = tree_digest(scene_folder)
+            job_id = c.post(f"/scenes/{sid}/finetune", json={"steps": 10_000}).json()["id"]
+            workers[0].wait_ready()
             wait_until(lambda: (_job(c, job_id)["step"] or 0) >= 2, timeout=120, what="two training steps")
-            first.kill9()
+            workers[0].kill9()
             killed = _job(c, job_id)
             assert killed["state"] == "running" and killed["attempt"] == 1
             stale_at = time.time() + settings.heartbeat_timeout
@@ -59,29 +56,31 @@ def test_kill9_requeues_and_resumes_then_fails_when_out_of_attempts(tmp_path, to
             second = WorkerProcess(settings, tmp_path / "w2.log")
             workers.append(second)
             second.wait_ready()
+            ready_at = time.time()
             requeued_by = wait_until(lambda: _job(c, job_id)["attempt"] == 2 and time.time(),
                                      timeout=60, interval=0.05, what="the sweeper to requeue the job")
-            # Requeued no later than one sweeper period after the heartbeat went stale (+ slack).
-            assert requeued_by - stale_at <= settings.sweeper_period + 1.5
-            done = wait_job(c, job_id, {"succeeded", "failed", "cancelled"}, timeout=150)
-            assert done["state"] == "succeeded", done
-            assert done["result"]["steps"] == 6 and done["checkpoint_version"] == 2
+            # Requeued within one sweeper period of the heartbeat going stale (or of the new
+            # worker's start, whichever is later), plus polling slack.
+            assert requeued_by - max(stale_at, ready_at) <= settings.sweeper_period + 1.0
+            # Training resumes from the saved state, not from step 0.
+            resumed = wait_until(lambda: (j := _job(c, job_id))["state"] == "running" and
+                                 (j["step"] or 0) > killed["step"] and j, timeout=120, what="resumed steps")
             assert "resuming finetune from step" in second.log()
-            assert c.get(f"/scenes/{sid}").json()["active_version"] == 2
+            first_after = int(second.log().split("resuming finetune from step")[1].split()[0])
+            assert 1 <= first_after <= resumed["step"]
 
-            # Out of attempts: a second kill ends the job failed, with the reason.
-            job2 = c.post(f"/scenes/{sid}/finetune", json={"steps": 10_000}).json()["id"]
-            wait_until(lambda: (_job(c, job2)["step"] or 0) >= 1, timeout=120, what="job 2 to train")
+            # Killed again with no attempts left: the job fails with the reason.
             second.kill9()
-            third = WorkerProcess(Settings(data_dir=data, **{**FAST, "max_attempts": 1}), tmp_path / "w3.log")
+            third = WorkerProcess(settings, tmp_path / "w3.log")
             workers.append(third)
-            third.wait_ready()
-            failed = wait_job(c, job2, {"failed", "succeeded", "cancelled", "queued"}, timeout=60)
+            failed = wait_job(c, job_id, {"failed", "succeeded", "cancelled"}, timeout=90)
             assert failed["state"] == "failed", failed
-            assert failed["error"]["code"] == "worker_lost"
+            assert failed["error"]["code"] == "worker_lost" and failed["attempt"] == 2
             assert "stopped sending heartbeats" in failed["error"]["message"]
             assert tree_digest(scene_folder) == before
-            assert c.get(f"/scenes/{sid}").json()["checkpoint_versions"] == [1, 2]
+            scene = c.get(f"/scenes/{sid}").json()
+            assert scene["active_version"] == 1 and scene["checkpoint_versions"] == [1]
+            assert scene["active_job"] is None
         finally:
             for w in workers:
                 w.close()
