@@ -16,7 +16,7 @@ from starlette.middleware.cors import CORSMiddleware
 
 from service.auth import BearerAuthMiddleware
 from service.errors import error_response, install_error_handlers
-from service.routers import enhance, health, jobs, scenes
+from service.routers import checkpoints, enhance, health, jobs, scenes
 from service.settings import Settings
 from service.state import EnhancerCache, Services
 from workers.jobs import JobStore
@@ -131,7 +131,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     install_error_handlers(app)
-    for module in (health, scenes, enhance, jobs):
+    for module in (health, scenes, checkpoints, enhance, jobs):
         app.include_router(module.router)
     if settings.api_key is not None:
         app.add_middleware(BearerAuthMiddleware, api_key=settings.api_key.get_secret_value())

@@ -65,7 +65,9 @@ def library_error(exc: RoGUENeRFError) -> ApiError:
         return ApiError(422, "invalid_checkpoint", str(exc))
     if isinstance(exc, InputError):
         return ApiError(422, "invalid_input", str(exc))
-    return ApiError(422, "enhance_failed", str(exc))
+    # Not the caller's input (e.g. the model produced NaN/inf): a server-side failure.
+    log.error("library failure (answered 500): %s", exc)
+    return ApiError(500, "enhance_failed", str(exc))
 
 
 def _location(loc) -> str:
@@ -122,6 +124,7 @@ _DESCRIPTIONS = {
     409: "conflicts with the current state",
     413: "body or image too large",
     422: "invalid input",
+    500: "the model failed on this input (e.g. non-finite output); logged on the server",
     503: "over capacity or a dependency is down; retry later",
 }
 

@@ -121,10 +121,10 @@ class Camera(BaseModel):
     transform_matrix: list[list[float]] = Field(description="4x4 camera-to-world")
     convention: Literal["opengl", "opencv"] = Field(
         description="opengl: nerfstudio/Blender (x right, y up, -z forward); opencv: x right, y down, z forward")
-    fl_x: float
-    fl_y: float
-    cx: float
-    cy: float
+    fl_x: float = Field(gt=0, allow_inf_nan=False, description="focal length in pixels, > 0")
+    fl_y: float = Field(gt=0, allow_inf_nan=False, description="focal length in pixels, > 0")
+    cx: float = Field(allow_inf_nan=False, description="principal point, pixels")
+    cy: float = Field(allow_inf_nan=False, description="principal point, pixels")
     depth_type: Literal["z", "ray"] = Field(
         description="z: distance along the optical axis; ray: distance along each pixel's ray")
     w: int | None = Field(default=None, description="optional; must match the render's width")

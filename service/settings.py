@@ -47,6 +47,8 @@ class Settings(BaseSettings):
     default_checkpoint: Path | None = None
     """Checkpoint for scenes registered without one (default: the library's bundled weights)."""
 
+    max_queued_jobs: int = Field(default=64, ge=1)
+    """Fine-tuning jobs waiting in the queue at most; more answer 503 with Retry-After."""
     max_job_steps: int = Field(default=200_000, ge=1)
     max_job_minutes: float = Field(default=24 * 60, gt=0)
     finetune_crop: int | None = Field(default=None, ge=8)

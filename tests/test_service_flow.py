@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import os
 import signal
+import statistics
 import subprocess
 import sys
 import time
@@ -152,7 +153,7 @@ def test_register_enhance_finetune_enhance_delete(client, toy, embedded):
     assert not (embedded["data"] / "jobs" / job_id).exists()
 
 
-def test_cancel_mid_run(client, toy):
+def test_cancel_mid_run(client, toy, embedded):
     sid = _register(client, toy)
     job_id = client.post(f"/scenes/{sid}/finetune", json={"steps": 10_000}).json()["id"]
     running = wait_until(lambda: (j := client.get(f"/jobs/{job_id}").json())["step"] and j,
@@ -163,6 +164,7 @@ def test_cancel_mid_run(client, toy):
     job = wait_job(client, job_id, {"cancelled", "succeeded", "failed"}, timeout=60)
     assert job["state"] == "cancelled" and job["error"]["code"] == "cancelled"
     assert job["step"] < 10_000
+    assert not (embedded["data"] / "jobs" / job_id).exists()  # a cancelled job leaves no training state
     scene = client.get(f"/scenes/{sid}").json()
     assert scene["active_version"] == 1 and scene["checkpoint_versions"] == [1]
     assert client.post(f"/jobs/{job_id}/cancel").json()["state"] == "cancelled"
@@ -188,27 +190,34 @@ def _direct_png(enhancer, view: dict) -> bytes:
 def test_enhance_bit_for_bit_and_latency_504x378(client, tmp_path):
     from roguenerf import SceneEnhancer, load_checkpoint
 
-    scene = make_scene(tmp_path / "big", seed=3, height=378, width=504, n_train=3, n_test=1)
+    scene = make_scene(tmp_path / "big", seed=3, height=378, width=504, n_train=2, n_test=1)
     ckpt = make_checkpoint(tmp_path / "micro.safetensors", seed=1)
     r = register(client, zip_folder(tmp_path / "big"), ckpt.read_bytes())
     assert r.status_code == 201, r.text
     sid = r.json()["id"]
-    view = view_request(scene, 3)
+    view = view_request(scene, 2)
 
     warm = enhance(client, sid, view)  # builds the SceneEnhancer and caches neighbour features
     assert warm.status_code == 200, warm.text
-    t0 = time.perf_counter()
-    timed = enhance(client, sid, view)
-    FIGURES["http_enhance_504x378_s"] = time.perf_counter() - t0
-    FIGURES["http_enhance_504x378_server_compute_s"] = float(timed.headers["X-Enhance-Seconds"])
-
     model, _ = load_checkpoint(ckpt)
     enhancer = SceneEnhancer(scene, model)
-    _direct_png(enhancer, view)
-    t0 = time.perf_counter()
     direct = _direct_png(enhancer, view)
-    FIGURES["direct_enhance_504x378_s"] = time.perf_counter() - t0
-    assert timed.content == warm.content == direct
+    assert warm.content == direct
+
+    # Interleaved pairs, so both paths see the same machine load; medians reported.
+    http_s, server_s, direct_s = [], [], []
+    for _ in range(2):
+        t0 = time.perf_counter()
+        timed = enhance(client, sid, view)
+        http_s.append(time.perf_counter() - t0)
+        server_s.append(float(timed.headers["X-Enhance-Seconds"]))
+        assert timed.content == direct
+        t0 = time.perf_counter()
+        assert _direct_png(enhancer, view) == direct
+        direct_s.append(time.perf_counter() - t0)
+    FIGURES["http_enhance_504x378_s"] = statistics.median(http_s)
+    FIGURES["http_enhance_504x378_server_compute_s"] = statistics.median(server_s)
+    FIGURES["direct_enhance_504x378_s"] = statistics.median(direct_s)
     assert client.delete(f"/scenes/{sid}").status_code == 204
 
 

@@ -101,17 +101,18 @@ class Database:
             self._local.conn = None
 
     @contextmanager
-    def tx(self) -> Iterator[Tx]:
+    def tx(self, *, write: bool = True) -> Iterator[Tx]:
         """One transaction; commits on success, rolls back on any exception.
 
         A unique-constraint violation surfaces as :class:`IntegrityConflict`.
+        ``write=False`` marks a read-only transaction (on SQLite it takes no write lock).
         """
         conn = self._conn()
         try:
             if self.kind == "sqlite":
                 # IMMEDIATE takes the write lock up front, so read-then-write sequences
-                # (sweeper, claims) cannot interleave between processes.
-                conn.execute("BEGIN IMMEDIATE")
+                # (sweeper, claims) cannot interleave between processes; WAL readers never wait.
+                conn.execute("BEGIN IMMEDIATE" if write else "BEGIN")
                 cur = conn.cursor()
                 try:
                     yield Tx(cur, "qmark")
@@ -138,5 +139,5 @@ class Database:
             raise
 
     def ping(self) -> None:
-        with self.tx() as tx:
+        with self.tx(write=False) as tx:
             tx.one("SELECT 1 AS ok")

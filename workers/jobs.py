@@ -136,7 +136,7 @@ class JobStore:
         return self.get_scene(scene_id)
 
     def get_scene(self, scene_id: str) -> dict | None:
-        with self.db.tx() as tx:
+        with self.db.tx(write=False) as tx:
             return tx.one("SELECT * FROM scenes WHERE id = ?", (scene_id,))
 
     def delete_scene(self, scene_id: str) -> bool:
@@ -192,7 +192,7 @@ class JobStore:
         return self.get_job(job_id), True
 
     def _by_key(self, key: str) -> dict | None:
-        with self.db.tx() as tx:
+        with self.db.tx(write=False) as tx:
             return _job_view(tx.one("SELECT * FROM jobs WHERE idempotency_key = ?", (key,)))
 
     @staticmethod
@@ -210,11 +210,11 @@ class JobStore:
             tx.execute("DELETE FROM jobs WHERE id = ? AND state = 'queued'", (job_id,))
 
     def get_job(self, job_id: str) -> dict | None:
-        with self.db.tx() as tx:
+        with self.db.tx(write=False) as tx:
             return _job_view(tx.one("SELECT * FROM jobs WHERE id = ?", (job_id,)))
 
     def active_job(self, scene_id: str) -> dict | None:
-        with self.db.tx() as tx:
+        with self.db.tx(write=False) as tx:
             return _job_view(tx.one(
                 "SELECT * FROM jobs WHERE scene_id = ? AND state IN ('queued', 'running')",
                 (scene_id,),
@@ -277,7 +277,7 @@ class JobStore:
 
     def should_stop(self, job_id: str, lease: str) -> bool:
         """True when a cancel was asked or this worker lost the job."""
-        with self.db.tx() as tx:
+        with self.db.tx(write=False) as tx:
             row = tx.one("SELECT cancel_requested, lease, state FROM jobs WHERE id = ?", (job_id,))
         return row is None or bool(row["cancel_requested"]) or row["lease"] != lease or row["state"] != "running"
 

@@ -196,8 +196,9 @@ def _train(ctx: WorkerContext, job: dict, lease: str, beat: _Heartbeat) -> str:
             return "lost"
         current = store.get_job(job_id)
         if current is not None and current["cancel_requested"]:
-            store.finish(job_id, lease, "cancelled", error_code="cancelled",
-                         error_message=f"cancelled at step {exc.step}")
+            if store.finish(job_id, lease, "cancelled", error_code="cancelled",
+                            error_message=f"cancelled at step {exc.step}"):
+                layout.remove_tree(layout.job_dir(job_id))
             return "cancelled"
         if ctx.draining.is_set():
             if store.release(job_id, lease):

@@ -2,13 +2,17 @@
 
 from roguenerf.models.config import VARIANTS, EnhancerConfig, UformerConfig, build_enhancer, make_config
 from roguenerf.models.enhancer import Enhancer, NeighbourBatch
+from roguenerf.models.tiling import enhance_tiled
+from roguenerf.models.uformer import Uformer
 
 __all__ = [
     "VARIANTS",
     "Enhancer",
     "EnhancerConfig",
     "NeighbourBatch",
+    "Uformer",
     "UformerConfig",
     "build_enhancer",
+    "enhance_tiled",
     "make_config",
 ]

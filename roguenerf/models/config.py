@@ -187,8 +187,9 @@ VARIANTS: dict[str, dict] = {
 }
 """Named variants: name -> overrides of EnhancerConfig / UformerConfig fields. T, S, B from the
 Uformer paper (heads 1,2,4,8,16,16,8,4,2, window 8, 64 feature channels) plus small CPU
-variants ("nano", "micro") with fewer feature channels, depth-1 stages, 4x4 windows and fewer
-flow iterations."""
+variants ("nano", "micro") with fewer feature channels, depth-1 stages, small windows
+and fewer flow iterations. Inputs are padded to a multiple of 16 x win_size (128 for T/S/B,
+64 for nano/micro): training crops of that multiple waste no compute."""
 
 _UFORMER_KEYS = {f.name for f in dataclasses.fields(UformerConfig)}
 _ENHANCER_KEYS = {f.name for f in dataclasses.fields(EnhancerConfig)}

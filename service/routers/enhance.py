@@ -13,6 +13,7 @@ from pydantic import ValidationError
 
 from roguenerf.errors import RoGUENeRFError
 from service.errors import ApiError, error_responses, library_error
+from service.limits import check_depth_coverage, decode_field
 from service.routers.scenes import scene_or_404
 from service.schemas import Camera
 from service.state import Services, ServicesDep
@@ -60,8 +61,8 @@ def _enhance(services: Services, scene: dict, render_bytes: bytes, depth_bytes: 
 
     limit = services.settings.max_upload_pixels
     try:
-        render = read_image(render_bytes, max_pixels=limit)
-        depth = read_depth(depth_bytes, scale=depth_scale, max_pixels=limit)
+        render = decode_field("render", read_image, render_bytes, max_pixels=limit)
+        depth = decode_field("depth", read_depth, depth_bytes, scale=depth_scale, max_pixels=limit)
         height, width = render.shape[1:]
         if tuple(depth.shape[1:]) != (height, width):
             raise ApiError(422, "invalid_input",
@@ -71,6 +72,7 @@ def _enhance(services: Services, scene: dict, render_bytes: bytes, depth_bytes: 
             raise ApiError(422, "invalid_input",
                            f"camera: w x h = {camera.w}x{camera.h} but the render is {width}x{height}")
         K, world_from_cam = camera_tensors(camera)
+        check_depth_coverage(depth)
         if camera.depth_type == "ray":
             depth = ray_to_z_depth(depth[0], K)[None].to(depth.dtype)
         version = scene["active_version"]
@@ -89,7 +91,7 @@ def _enhance(services: Services, scene: dict, render_bytes: bytes, depth_bytes: 
         200: {"content": {"image/png": {}},
               "description": "the enhanced image, same size as the render; X-Enhance-Seconds, "
                              "X-Neighbours, X-Checkpoint-Version and (when relevant) X-Enhance-Note headers"},
-        **error_responses(404, 409, 413, 422, 503),
+        **error_responses(404, 409, 413, 422, 500, 503),
     },
 )
 async def create_enhancement(

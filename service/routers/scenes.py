@@ -6,10 +6,10 @@ import logging
 from typing import Annotated
 
 from fastapi import APIRouter, File, Header, Response, UploadFile
-from fastapi.concurrency import run_in_threadpool
 
 from roguenerf.errors import RoGUENeRFError
 from service.errors import ApiError, error_responses, library_error
+from service.limits import ensure_queue_capacity
 from service.schemas import JobCreate, JobPublic, ScenePublic, iso
 from service.state import Services, ServicesDep
 from service.storage import ZipLimits, discard, extract_scene_zip, place, save_upload
@@ -137,6 +137,7 @@ def create_finetune_job(
     if body.minutes is not None and body.minutes > settings.max_job_minutes:
         raise ApiError(422, "validation_error",
                        f"minutes: at most {settings.max_job_minutes}, got {body.minutes}")
+    ensure_queue_capacity(services, idempotency_key)
     request = body.model_dump(exclude_none=True)
     try:
         job, created = services.store.create_job(scene_id, request, idempotency_key=idempotency_key,

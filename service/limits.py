@@ -1,0 +1,72 @@
+"""Service-side guards the library does not own: depth coverage and fine-tuning queue capacity.
+
+Both answer before anything is computed or stored, with the error format of
+:mod:`service.errors`.
+"""
+
+from __future__ import annotations
+
+from service.errors import ApiError
+
+MIN_VALID_DEPTH_FRACTION = 0.01
+"""Below this share of usable depth pixels (finite and > 0) a render cannot be reprojected
+meaningfully: the request is refused instead of enhanced from a handful of points."""
+
+QUEUE_FULL_RETRY_AFTER_S = 30
+
+
+def check_depth_coverage(depth, *, field: str = "depth") -> float:
+    """Share of usable pixels of ``depth`` ``(1, H, W)``; raises 422 when nearly all are missing.
+
+    Zero, negative and non-finite values mean "unknown" (the library's convention), so a
+    map with a few of them is fine; one with almost nothing else is not.
+    """
+    import torch
+
+    valid = torch.isfinite(depth) & (depth > 0)
+    fraction = float(valid.float().mean()) if depth.numel() else 0.0
+    if fraction < MIN_VALID_DEPTH_FRACTION:
+        raise ApiError(
+            422, "invalid_input",
+            f"{field}: only {valid.sum().item()} of {depth.numel()} pixels ({fraction:.2%}) are finite "
+            f"and > 0; at least {MIN_VALID_DEPTH_FRACTION:.0%} must be (zero, negative, NaN and inf "
+            "mean 'unknown')",
+        )
+    return fraction
+
+
+def ensure_queue_capacity(services, idempotency_key: str | None) -> None:
+    """Refuse a new fine-tuning job with 503 + Retry-After when ``max_queued_jobs`` jobs wait.
+
+    A replay of an already accepted ``Idempotency-Key`` is never refused: it creates nothing.
+    Counting and inserting are two transactions, so concurrent submits can overshoot the
+    limit by at most the number of API workers; the queue stays bounded.
+    """
+    store = services.store
+    if idempotency_key is not None and store._by_key(idempotency_key) is not None:
+        return
+    limit = services.settings.max_queued_jobs
+    with store.db.tx(write=False) as tx:
+        waiting = tx.one("SELECT COUNT(*) AS n FROM jobs WHERE state = 'queued'")["n"]
+    if waiting >= limit:
+        raise ApiError(
+            503, "queue_full",
+            f"{waiting} fine-tuning jobs are already waiting (limit {limit}, ROGUENERF_MAX_QUEUED_JOBS); "
+            "retry later",
+            headers={"Retry-After": str(QUEUE_FULL_RETRY_AFTER_S)},
+        )
+
+
+def decode_field(field: str, decode, data: bytes, **kwargs):
+    """``decode(data, **kwargs)`` with library errors mapped to HTTP and prefixed by the form
+    field: uploads arrive as bytes, so the library can only call them ``<N bytes>``."""
+    from roguenerf.errors import RoGUENeRFError
+    from service.errors import library_error
+
+    try:
+        return decode(data, **kwargs)
+    except RoGUENeRFError as exc:
+        mapped = library_error(exc)
+        mapped.message = f"{field}: {mapped.message}"
+        mapped.args = (mapped.message,)
+        raise mapped from None

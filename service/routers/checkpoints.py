@@ -1,0 +1,69 @@
+"""POST /scenes/{id}/checkpoints: replace a scene's enhancer with an uploaded checkpoint.
+
+The upload is validated by the library's ``load_checkpoint`` (safetensors only, header,
+keys, shapes, finite weights, size) in a temporary file; only a checkpoint that loads is
+renamed into ``checkpoints/vN.safetensors`` and made active. A refused upload leaves the
+scene on its previous checkpoint and stores nothing.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from typing import Annotated
+
+from fastapi import APIRouter, File, UploadFile
+
+from roguenerf.errors import RoGUENeRFError
+from service.errors import ApiError, error_responses, library_error
+from service.routers.scenes import scene_or_404, scene_public
+from service.schemas import ScenePublic
+from service.state import Services, ServicesDep
+from service.storage import discard, save_upload
+from workers.layout import fsync_dir
+
+log = logging.getLogger("roguenerf.service")
+router = APIRouter(prefix="/scenes", tags=["scenes"])
+
+
+def _replace(services: Services, scene_id: str, upload: UploadFile) -> ScenePublic:
+    from roguenerf import load_checkpoint
+
+    settings, layout, store = services.settings, services.layout, services.store
+    scene_or_404(services, scene_id)
+    if store.active_job(scene_id) is not None:
+        raise ApiError(409, "job_active",
+                       f"scene {scene_id} has an active fine-tuning job; cancel it or wait before "
+                       "replacing its checkpoint")
+    tmp = layout.temp_dir()
+    try:
+        path = save_upload(upload.file, tmp / "upload.safetensors",
+                           max_bytes=settings.max_checkpoint_bytes, what="checkpoint")
+        try:
+            load_checkpoint(path, max_bytes=settings.max_checkpoint_bytes)
+        except RoGUENeRFError as exc:
+            raise library_error(exc) from None
+        version = store.allocate_version(scene_id)
+        if version is None:
+            raise ApiError(404, "not_found", f"scene {scene_id!r} not found")
+        final = layout.checkpoint(scene_id, version)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(path, final)
+        fsync_dir(final.parent)
+    finally:
+        discard(tmp)
+    with store.db.tx() as tx:
+        tx.execute("UPDATE scenes SET active_version = ? WHERE id = ?", (version, scene_id))
+    log.info("scene %s: uploaded checkpoint is now v%d", scene_id, version)
+    return scene_public(services, store.get_scene(scene_id))
+
+
+@router.post("/{scene_id}/checkpoints", status_code=201, response_model=ScenePublic,
+             summary="Upload an enhancer checkpoint (.safetensors); it becomes the active version",
+             responses=error_responses(404, 409, 413, 422))
+def create_checkpoint(
+    scene_id: str,
+    services: ServicesDep,
+    checkpoint: Annotated[UploadFile, File(description="enhancer checkpoint (.safetensors)")],
+) -> ScenePublic:
+    return _replace(services, scene_id, checkpoint)
