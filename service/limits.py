@@ -70,3 +70,15 @@ def decode_field(field: str, decode, data: bytes, **kwargs):
         mapped.message = f"{field}: {mapped.message}"
         mapped.args = (mapped.message,)
         raise mapped from None
+
+
+def checkpoint_error(exc, path) -> ApiError:
+    """A library checkpoint error as HTTP, naming the upload field instead of the server's
+    temporary path (which is nobody's business outside the server)."""
+    from service.errors import library_error
+
+    mapped = library_error(exc)
+    message = mapped.message.replace(str(path), "checkpoint")
+    mapped.message = message if message.startswith("checkpoint") else f"checkpoint: {message}"
+    mapped.args = (mapped.message,)
+    return mapped

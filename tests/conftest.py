@@ -6,7 +6,12 @@ import os
 from pathlib import Path
 
 import pytest
+import torch
 from hypothesis import settings
+
+# One intra-op thread per test process: tests also run worker subprocesses, and OpenMP threads
+# spinning against each other on 2 cores made runs several times slower, not faster.
+torch.set_num_threads(1)
 
 settings.register_profile("ci", deadline=None, max_examples=30, derandomize=True)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))

@@ -88,12 +88,12 @@ class Site:
         return view_request(self.scene, index)
 
 
-def site(tmp_path_factory, **settings_overrides):
+def site(tmp_path_factory, *, scene_size: tuple[int, int] = (48, 64), **settings_overrides):
     """Generator for a module fixture: ``yield from site(tmp_path_factory, ...)``."""
     from service.settings import Settings
 
     root = tmp_path_factory.mktemp("toy")
-    scene = make_scene(root / "scene")
+    scene = make_scene(root / "scene", height=scene_size[0], width=scene_size[1])
     checkpoint = make_checkpoint(root / "micro.safetensors").read_bytes()
     archive = zip_folder(root / "scene")
     options = {**FAST, **settings_overrides}
@@ -175,3 +175,58 @@ def read_png(content: bytes) -> np.ndarray:
     from PIL import Image
 
     return np.asarray(Image.open(io.BytesIO(content)).convert("RGB"))
+
+
+class ApiProcess:
+    """The API as its own process (uvicorn --factory), so it can be killed with SIGKILL."""
+
+    def __init__(self, settings, log_path: Path, port: int | None = None):
+        import os
+        import subprocess
+        import sys
+
+        from tests.service_helpers import ROOT, free_port
+
+        self.port = port or free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        env = {k: v for k, v in os.environ.items() if not k.startswith("ROGUENERF_")}
+        env.update(settings.env())
+        env["PYTHONPATH"] = str(ROOT)
+        self.log_path = log_path
+        self._log = open(log_path, "ab")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "uvicorn", "--factory", "service.app:create_app", "--host", "127.0.0.1",
+             "--port", str(self.port), "--log-level", "warning"],
+            env=env, cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT)
+
+    def wait_ready(self, timeout: float = 90) -> None:
+        from tests.service_helpers import wait_until
+
+        def up():
+            if self.proc.poll() is not None:
+                raise AssertionError(f"API exited early:\n{self.log_path.read_text(errors='replace')}")
+            try:
+                return httpx.get(f"{self.url}/healthz", timeout=1).status_code == 200
+            except httpx.HTTPError:
+                return False
+
+        wait_until(up, timeout=timeout, interval=0.2, what="API startup")
+
+    def client(self) -> httpx.Client:
+        return httpx.Client(base_url=self.url, timeout=120)
+
+    def kill9(self) -> None:
+        import signal
+
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait(10)
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(15)
+            except Exception:
+                self.proc.kill()
+                self.proc.wait(10)
+        self._log.close()

@@ -23,7 +23,6 @@ from tests.reliability_helpers import (
     read_png,
     site,
 )
-from tests.service_helpers import make_checkpoint
 
 MAX_CKPT = 4 << 20
 
@@ -133,7 +132,14 @@ def test_the_pickle_marker_is_live(tmp_path):
 
 def test_a_good_checkpoint_replaces_the_active_one(s, tmp_path):
     image_before, version_before = _enhanced(s)
-    other = make_checkpoint(tmp_path / "other.safetensors", seed=7).read_bytes()
+    from roguenerf import build_enhancer, save_checkpoint
+
+    torch.manual_seed(7)
+    model = build_enhancer("micro", num_neighbours=2)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.05 * torch.randn_like(p))  # a fresh enhancer is the identity; make it differ
+    other = save_checkpoint(tmp_path / "other.safetensors", model).read_bytes()
     r = s.client.post(f"/scenes/{s.scene_id}/checkpoints", files={"checkpoint": ("x", other)})
     assert r.status_code == 201, r.text
     assert r.json()["active_version"] == int(version_before) + 1

@@ -15,7 +15,8 @@ from typing import Annotated
 from fastapi import APIRouter, File, UploadFile
 
 from roguenerf.errors import RoGUENeRFError
-from service.errors import ApiError, error_responses, library_error
+from service.errors import ApiError, error_responses
+from service.limits import checkpoint_error
 from service.routers.scenes import scene_or_404, scene_public
 from service.schemas import ScenePublic
 from service.state import Services, ServicesDep
@@ -42,7 +43,7 @@ def _replace(services: Services, scene_id: str, upload: UploadFile) -> ScenePubl
         try:
             load_checkpoint(path, max_bytes=settings.max_checkpoint_bytes)
         except RoGUENeRFError as exc:
-            raise library_error(exc) from None
+            raise checkpoint_error(exc, path) from None
         version = store.allocate_version(scene_id)
         if version is None:
             raise ApiError(404, "not_found", f"scene {scene_id!r} not found")

@@ -9,7 +9,7 @@ from fastapi import APIRouter, File, Header, Response, UploadFile
 
 from roguenerf.errors import RoGUENeRFError
 from service.errors import ApiError, error_responses, library_error
-from service.limits import ensure_queue_capacity
+from service.limits import checkpoint_error, ensure_queue_capacity
 from service.schemas import JobCreate, JobPublic, ScenePublic, iso
 from service.state import Services, ServicesDep
 from service.storage import ZipLimits, discard, extract_scene_zip, place, save_upload
@@ -68,7 +68,7 @@ def _register(services: Services, archive: UploadFile, checkpoint: UploadFile | 
             try:
                 load_checkpoint(path, max_bytes=settings.max_checkpoint_bytes)
             except RoGUENeRFError as exc:
-                raise library_error(exc) from None
+                raise checkpoint_error(exc, path) from None
             version = 1
         first = scene.frames[0]
         place(tmp, layout.scene_dir(scene_id))
