@@ -33,6 +33,7 @@ CropOpt = Annotated[int | None, typer.Option("--crop", help="Random crop side in
 VggOpt = Annotated[Path | None, typer.Option(
     "--vgg-weights", help="Local torchvision VGG-19 weights for the perceptual loss (else L1 alone).")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed.")]
+LrOpt = Annotated[float | None, typer.Option("--lr", help="Adam learning rate (default 1e-4, the paper's).")]
 NeighboursOpt = Annotated[int | None, typer.Option("--neighbours", help="Neighbours per view (default: model's).")]
 
 
@@ -93,7 +94,8 @@ def _load_model(checkpoint: Path | None):
     return model
 
 
-def _train_config(*, minutes, steps, without, variant, crop, vgg_weights, seed, neighbours, evaluate=True):
+def _train_config(*, minutes, steps, without, variant, crop, vgg_weights, seed, neighbours, lr=None,
+                  evaluate=True):
     from roguenerf.training import COMPONENTS, TrainConfig
 
     if minutes is not None and steps is not None:
@@ -103,7 +105,8 @@ def _train_config(*, minutes, steps, without, variant, crop, vgg_weights, seed, 
         if w not in COMPONENTS:
             raise InputError(f"--without: expected one of {', '.join(COMPONENTS)}, got {w!r}")
     return TrainConfig(steps=steps, minutes=minutes, crop=crop, vgg_weights=vgg_weights, seed=seed,
-                       variant=variant, without=without, num_neighbours=neighbours, evaluate=evaluate)
+                       variant=variant, without=without, num_neighbours=neighbours, evaluate=evaluate,
+                       **({} if lr is None else {"lr": lr}))
 
 
 def _report_training(result) -> None:
@@ -134,6 +137,7 @@ def finetune(
     vgg_weights: VggOpt = None,
     seed: SeedOpt = 0,
     neighbours: NeighboursOpt = None,
+    lr: LrOpt = None,
     no_eval: Annotated[bool, typer.Option("--no-eval", help="Skip the before/after test evaluation.")] = False,
 ) -> None:
     """Fine-tune the enhancer on one scene's training views; resumes from OUTPUT when interrupted."""
@@ -144,7 +148,8 @@ def finetune(
         if scratch and checkpoint is not None:
             raise InputError("give either --checkpoint or --scratch, not both")
         config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
-                               vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, evaluate=not no_eval)
+                               vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, lr=lr,
+                               evaluate=not no_eval)
         scene = _load_scene(scene_dir)
         start = None if scratch else _checkpoint_path(checkpoint)
         result = run_finetune(scene, output, checkpoint=start, config=config)
@@ -166,6 +171,7 @@ def pretrain(
     vgg_weights: VggOpt = None,
     seed: SeedOpt = 0,
     neighbours: NeighboursOpt = None,
+    lr: LrOpt = None,
 ) -> None:
     """Pre-train across scene folders and/or generated toy scenes."""
     from roguenerf.training import pretrain as run_pretrain
@@ -175,7 +181,8 @@ def pretrain(
         if toy < 0:
             raise InputError(f"--toy: expected >= 0, got {toy}")
         config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
-                               vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, evaluate=False)
+                               vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, lr=lr,
+                               evaluate=False)
         scenes = [_load_scene(d) for d in scene_dirs or []]
         scenes += make_toy_scenes(output / "toy", toy, seed=seed)
         if not scenes:

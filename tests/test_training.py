@@ -256,7 +256,7 @@ def test_plan_for_a_cpu():
         frames = [_Frame()] * 3
 
     plan = plan_training(_Scene(), TrainConfig(), "cpu")
-    assert plan["variant"] == "nano" and plan["crop"] == 128 and plan["crop_used"] == 128
+    assert plan["variant"] == "micro" and plan["crop"] == 64 and plan["crop_used"] == 64
     assert plan["num_neighbours"] == 2 and plan["batch"] == 4 and plan["lr"] == 1e-4
     assert plan["minutes"] == 10.0 and plan["steps"] is None
     small = plan_training(_Scene(), TrainConfig(crop=512, steps=7, variant="micro", num_neighbours=4), "cpu")
