@@ -42,7 +42,8 @@ def parse_args(argv=None):
     p.add_argument("--scene", type=Path, default=LEGO)
     p.add_argument("--minutes", type=float, default=10.0, help="fine-tuning budget of every row")
     p.add_argument("--steps", type=int, default=None, help="step budget instead of minutes")
-    p.add_argument("--variant", default="nano")
+    p.add_argument("--variant", default="micro")
+    p.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate of every row")
     p.add_argument("--crop", type=int, default=None)
     p.add_argument("--checkpoint", type=Path, default=None, help="pre-trained weights for the +PT row")
     p.add_argument("--max-views", type=int, default=None)
@@ -72,7 +73,7 @@ def run(args) -> list[dict]:
         if from_checkpoint and pretrained is None:
             print(f"skipping {name}: no pre-trained checkpoint (give --checkpoint)", flush=True)
             continue
-        config = TrainConfig(steps=args.steps, minutes=None if args.steps else args.minutes, crop=args.crop,
+        config = TrainConfig(lr=args.lr, steps=args.steps, minutes=None if args.steps else args.minutes, crop=args.crop,
                              variant=None if from_checkpoint else args.variant, without=without, evaluate=False)
         result = finetune(scene, work / name.strip("+"), checkpoint=pretrained if from_checkpoint else None,
                           config=config)

@@ -38,6 +38,7 @@ def parse_args(argv=None):
     p.add_argument("--checkpoint", type=Path, default=None, help="start here (default: shipped default)")
     p.add_argument("--scratch", action="store_true", help="fine-tune from random weights")
     p.add_argument("--crop", type=int, default=None)
+    p.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate")
     p.add_argument("--max-views", type=int, default=None, help="evaluate only the first test views")
     p.add_argument("--skip-variants", action="store_true")
     p.add_argument("--quick", action="store_true", help="tiny budgets and 2 test views (proves it runs)")
@@ -75,14 +76,14 @@ def run(args) -> list[dict]:
 
     run_dir = work / "time"
     for minutes in sorted(args.minutes):
-        config = TrainConfig(minutes=minutes, crop=args.crop, evaluate=False)
+        config = TrainConfig(lr=args.lr, minutes=minutes, crop=args.crop, evaluate=False)
         result = finetune(scene, run_dir, checkpoint=start, config=config)
         model, _ = load_checkpoint(result.checkpoint)
         record("minutes", result, evaluate(scene, model, max_views=args.max_views))
 
     if not args.skip_variants:
         for variant in [v for v in args.variants.split(",") if v]:
-            config = TrainConfig(minutes=args.variant_minutes, crop=args.crop, variant=variant, evaluate=False)
+            config = TrainConfig(lr=args.lr, minutes=args.variant_minutes, crop=args.crop, variant=variant, evaluate=False)
             result = finetune(scene, work / f"variant_{variant}", checkpoint=start, config=config)
             model, _ = load_checkpoint(result.checkpoint)
             record("variant", result, evaluate(scene, model, max_views=args.max_views))
