@@ -11,8 +11,12 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import os
+import signal
 import sqlite3
 import struct
+import subprocess
+import sys
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,7 +24,18 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from tests.service_helpers import FAST, LiveServer, make_checkpoint, make_scene, register, view_request, zip_folder
+from tests.service_helpers import (
+    FAST,
+    ROOT,
+    LiveServer,
+    free_port,
+    make_checkpoint,
+    make_scene,
+    register,
+    view_request,
+    wait_until,
+    zip_folder,
+)
 
 SQLITE_FILES = (".db", ".db-wal", ".db-shm", ".db-journal")
 
@@ -181,12 +196,6 @@ class ApiProcess:
     """The API as its own process (uvicorn --factory), so it can be killed with SIGKILL."""
 
     def __init__(self, settings, log_path: Path, port: int | None = None):
-        import os
-        import subprocess
-        import sys
-
-        from tests.service_helpers import ROOT, free_port
-
         self.port = port or free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         env = {k: v for k, v in os.environ.items() if not k.startswith("ROGUENERF_")}
@@ -200,8 +209,6 @@ class ApiProcess:
             env=env, cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT)
 
     def wait_ready(self, timeout: float = 90) -> None:
-        from tests.service_helpers import wait_until
-
         def up():
             if self.proc.poll() is not None:
                 raise AssertionError(f"API exited early:\n{self.log_path.read_text(errors='replace')}")
@@ -216,8 +223,6 @@ class ApiProcess:
         return httpx.Client(base_url=self.url, timeout=120)
 
     def kill9(self) -> None:
-        import signal
-
         self.proc.send_signal(signal.SIGKILL)
         self.proc.wait(10)
 
@@ -226,7 +231,7 @@ class ApiProcess:
             self.proc.terminate()
             try:
                 self.proc.wait(15)
-            except Exception:
+            except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(10)
         self._log.close()

@@ -151,3 +151,18 @@ def test_not_multipart_at_all_is_422_naming_the_fields(s):
     r = s.client.post("/scenes", content=b'{"archive": "x"}', headers={"Content-Type": "application/json"})
     assert "archive" in assert_error(r, 422, "validation_error")
     assert s.stored() == before
+
+
+def test_urlencoded_form_limits_hold_too(s):
+    """Starlette < 1.3.1 ignored max_fields / max_part_size for urlencoded bodies
+    (GHSA-82w8-qh3p-5jfq); a form route must refuse 20 000 urlencoded fields quickly."""
+    before = s.stored()
+    body = "&".join(f"f{i}=v" for i in range(20_000)).encode()
+    start = time.perf_counter()
+    r = s.client.post("/enhance", content=body, headers={"Content-Type": "application/x-www-form-urlencoded"})
+    assert "Too many fields" in assert_error(r, 400, "bad_request")
+    assert time.perf_counter() - start < 2.0
+    big = b"camera=" + b"a" * ((1 << 20) + 1)
+    assert_error(s.client.post("/enhance", content=big, headers={"Content-Type": "application/x-www-form-urlencoded"}),
+                 400, "bad_request")
+    assert s.stored() == before

@@ -61,7 +61,7 @@ def _replace(services: Services, scene_id: str, upload: UploadFile) -> ScenePubl
 
 @router.post("/{scene_id}/checkpoints", status_code=201, response_model=ScenePublic,
              summary="Upload an enhancer checkpoint (.safetensors); it becomes the active version",
-             responses=error_responses(404, 409, 413, 422))
+             responses=error_responses(400, 404, 409, 413, 422))
 def create_checkpoint(
     scene_id: str,
     services: ServicesDep,

@@ -11,7 +11,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 from pydantic import ValidationError
 
-from roguenerf.errors import RoGUENeRFError
+from roguenerf.errors import InputError, RoGUENeRFError
 from service.errors import ApiError, error_responses, library_error
 from service.limits import check_depth_coverage, decode_field
 from service.routers.scenes import scene_or_404
@@ -49,7 +49,10 @@ def camera_tensors(camera: Camera):
     if camera.convention == "opengl":
         pose = opengl_to_opencv(pose)
     check_pose(pose.clone(), "camera.transform_matrix")
-    K = intrinsics_matrix(camera.fl_x, camera.fl_y, camera.cx, camera.cy, dtype=torch.float64)
+    try:
+        K = intrinsics_matrix(camera.fl_x, camera.fl_y, camera.cx, camera.cy, dtype=torch.float64)
+    except InputError as exc:  # the library calls it "K"; the client sent fl_x, fl_y, cx, cy
+        raise InputError(f"camera (fl_x, fl_y, cx, cy): {exc}") from None
     check_intrinsics(K, "camera (fl_x, fl_y, cx, cy)")
     return K, pose
 
@@ -91,15 +94,15 @@ def _enhance(services: Services, scene: dict, render_bytes: bytes, depth_bytes: 
         200: {"content": {"image/png": {}},
               "description": "the enhanced image, same size as the render; X-Enhance-Seconds, "
                              "X-Neighbours, X-Checkpoint-Version and (when relevant) X-Enhance-Note headers"},
-        **error_responses(404, 409, 413, 422, 500, 503),
+        **error_responses(400, 404, 409, 413, 422, 500, 503),
     },
 )
 async def create_enhancement(
     services: ServicesDep,
-    scene_id: Annotated[str, Form(description="id returned by POST /scenes")],
+    scene_id: Annotated[str, Form(min_length=1, description="id returned by POST /scenes")],
     render: Annotated[UploadFile, File(description="the radiance field's render (PNG)")],
     depth: Annotated[UploadFile, File(description=".npy float32 HxW, or 16-bit PNG with depth_scale")],
-    camera: Annotated[str, Form(description="JSON: transform_matrix, convention, fl_x, fl_y, cx, cy, depth_type")],
+    camera: Annotated[str, Form(min_length=1, description="JSON: transform_matrix, convention, fl_x, fl_y, cx, cy, depth_type")],
     depth_scale: Annotated[float, Form(gt=0, description="multiplier for 16-bit PNG depth (e.g. 0.001 for mm)")] = 1.0,
 ) -> Response:
     start = time.perf_counter()

@@ -89,11 +89,13 @@ def _register(services: Services, archive: UploadFile, checkpoint: UploadFile | 
 
 
 @router.post("", status_code=201, response_model=ScenePublic, summary="Register a zipped scene folder",
-             responses=error_responses(413, 422))
+             responses=error_responses(400, 413, 422))
 def create_scene(
     services: ServicesDep,
     archive: Annotated[UploadFile, File(description="zip of a scene folder (transforms.json, images/, renders/, depths/)")],
-    checkpoint: Annotated[UploadFile | None, File(description="optional enhancer checkpoint (.safetensors)")] = None,
+    # Not `UploadFile | None`: that publishes a nullable schema, and a multipart "null" text
+    # part is then schema-valid but refused. Omitting the part is how it is left out.
+    checkpoint: Annotated[UploadFile, File(description="optional enhancer checkpoint (.safetensors)")] = None,
 ) -> ScenePublic:
     return _register(services, archive, checkpoint)
 
@@ -122,7 +124,7 @@ def delete_scene(scene_id: str, services: ServicesDep) -> Response:
 
 @router.post("/{scene_id}/finetune", status_code=202, response_model=JobPublic,
              summary="Start fine-tuning the scene's enhancer (returns a job)",
-             responses=error_responses(404, 409, 422, 503))
+             responses=error_responses(400, 404, 409, 422, 503))
 def create_finetune_job(
     scene_id: str,
     body: JobCreate,
