@@ -50,7 +50,7 @@ def test_png_bomb_20000x20000_rejected_before_decoding():
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     assert isinstance(info.value, InputError)
-    assert elapsed < 0.5
+    assert elapsed < 2.0
     assert peak < 5 * 2**20  # decoding would need 400 MB
 
 
