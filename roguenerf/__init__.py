@@ -11,6 +11,7 @@ import importlib
 from roguenerf.errors import (
     CheckpointError,
     InputError,
+    NonFiniteOutputError,
     RoGUENeRFError,
     SceneFormatError,
     TrainingCancelled,
@@ -52,6 +53,7 @@ _LAZY = {
 __all__ = [
     "CheckpointError",
     "InputError",
+    "NonFiniteOutputError",
     "RoGUENeRFError",
     "SceneFormatError",
     "TrainingCancelled",

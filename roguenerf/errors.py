@@ -29,6 +29,10 @@ class CheckpointError(InputError):
     """A checkpoint is not a valid RoGUENeRF safetensors file, or does not fit the model."""
 
 
+class NonFiniteOutputError(RoGUENeRFError, RuntimeError):
+    """The enhancer produced NaN/inf for an input; the result is never returned or encoded."""
+
+
 class TrainingDivergedError(RoGUENeRFError, RuntimeError):
     """The training loss became non-finite; the last good checkpoint was kept."""
 

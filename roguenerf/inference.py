@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from roguenerf.errors import InputError, RoGUENeRFError
+from roguenerf.errors import InputError, NonFiniteOutputError
 
 DEFAULT_TILE = 512
 """Images whose height or width exceed this are enhanced tile by tile (bounded memory)."""
@@ -203,7 +203,7 @@ class SceneEnhancer:
             else:
                 out = self.model(render_b, depth_b, K_b, pose_b, batch)
         if not torch.isfinite(out).all():
-            raise RoGUENeRFError("the enhancer produced non-finite values for this view; the model or "
+            raise NonFiniteOutputError("the enhancer produced non-finite values for this view; the model or "
                                  "its inputs are broken (check the checkpoint and the depth)")
         image = out[0].clamp(0, 1).to("cpu", torch.float32)
         names = [self.scene.frames[i].name for i in chosen]

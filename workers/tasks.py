@@ -207,7 +207,9 @@ def _train(ctx: WorkerContext, job: dict, lease: str, beat: _Heartbeat) -> str:
             return "requeued"
         return fail("internal_error", f"training stopped without a reason at step {exc.step}")
     except TrainingDivergedError as exc:
-        return fail("diverged", str(exc))
+        # The message names the step; the server path of the kept checkpoint stays server-side.
+        log.error("job %s diverged: %s", job_id, exc)
+        return fail("diverged", f"non-finite training loss at step {exc.step}; the last good checkpoint was kept")
     except RoGUENeRFError as exc:
         return fail("invalid_input", str(exc))
     except Exception as exc:
