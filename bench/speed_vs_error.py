@@ -64,9 +64,11 @@ def run(args) -> list[dict]:
     rows = []
     work = Path(tempfile.mkdtemp(prefix="speed_vs_error_"))
 
-    def record(sweep: str, result, report) -> dict:
+    start_variant = load_checkpoint(start)[0].config.variant if start else None
+
+    def record(sweep: str, result, report, started_from) -> dict:
         row = {**base, "sweep": sweep, "scene": scene.root.name, "variant": result.config["variant"],
-               "start": "checkpoint" if start else "scratch", "minutes": round(result.seconds / 60, 3),
+               "start": "checkpoint" if started_from else "scratch", "minutes": round(result.seconds / 60, 3),
                "steps": result.steps, "steps_per_s": round(result.steps / max(result.seconds, 1e-9), 4),
                "crop": result.config["crop_used"], "neighbours": result.config["num_neighbours"],
                "loss": result.loss_kind, **scene_metrics(report)}
@@ -79,14 +81,16 @@ def run(args) -> list[dict]:
         config = TrainConfig(lr=args.lr, minutes=minutes, crop=args.crop, evaluate=False)
         result = finetune(scene, run_dir, checkpoint=start, config=config)
         model, _ = load_checkpoint(result.checkpoint)
-        record("minutes", result, evaluate(scene, model, max_views=args.max_views))
+        record("minutes", result, evaluate(scene, model, max_views=args.max_views), start)
 
     if not args.skip_variants:
         for variant in [v for v in args.variants.split(",") if v]:
             config = TrainConfig(lr=args.lr, minutes=args.variant_minutes, crop=args.crop, variant=variant, evaluate=False)
-            result = finetune(scene, work / f"variant_{variant}", checkpoint=start, config=config)
+            # A checkpoint of another variant has other shapes: those variants start from scratch.
+            own = start if variant == start_variant else None
+            result = finetune(scene, work / f"variant_{variant}", checkpoint=own, config=config)
             model, _ = load_checkpoint(result.checkpoint)
-            record("variant", result, evaluate(scene, model, max_views=args.max_views))
+            record("variant", result, evaluate(scene, model, max_views=args.max_views), own)
     return rows
 
 
@@ -107,7 +111,7 @@ def plot(rows: list[dict], path: Path) -> Path:
     left.set_title("gain vs fine-tuning time")
     for r in (r for r in rows if r["sweep"] == "variant"):
         right.scatter(r["latency_s_per_view"], r["gain_db"])
-        right.annotate(f"{r['variant']} ({r['steps']} steps)", (r["latency_s_per_view"], r["gain_db"]))
+        right.annotate(f"{r['variant']} ({r['steps']} steps, {r['start']})", (r["latency_s_per_view"], r["gain_db"]))
     right.axhline(0, color="grey", lw=0.8)
     right.set_xlabel("inference latency per view (s)")
     right.set_ylabel("PSNR gain (dB)")
