@@ -178,10 +178,12 @@ WRITER = textwrap.dedent("""
         models.append(build_enhancer("micro", num_neighbours=2))
     for i, m in enumerate(models):
         save_checkpoint(root / f"ref{i}.safetensors", m)
-    print("ready", flush=True)
     for i in itertools.count():
         save_checkpoint(root / "live" / "model.safetensors", models[i % 2])
         copy_atomic(root / f"src{i % 2}.bin", root / "live" / "scene.bin")
+        if i == 0:
+            # Only now is there a previous version of both files for a kill to leave intact.
+            print("ready", flush=True)
 """)
 
 
