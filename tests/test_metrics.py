@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import kornia
 import pytest
@@ -12,8 +11,9 @@ from safetensors.torch import save_file
 from roguenerf.data.readers import load_scene
 from roguenerf.errors import InputError
 from roguenerf.metrics import LPIPSUnavailableError, lpips, lpips_available, psnr, ssim
+from tests.conftest import SHARED_DATA
 
-LEGO = Path("/work/shared/data/lego")
+LEGO = SHARED_DATA / "lego"
 
 
 def test_psnr_known_values_per_image():

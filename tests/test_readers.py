@@ -17,8 +17,9 @@ from roguenerf.data.toy import make_toy_world, render_toy_view, toy_camera_path,
 from roguenerf.data.writers import write_scene_folder
 from roguenerf.errors import InputError, SceneFormatError
 from roguenerf.geometry.cameras import opencv_to_opengl
+from tests.conftest import SHARED_DATA
 
-LEGO = Path("/work/shared/data/lego")
+LEGO = SHARED_DATA / "lego"
 H, W, M = 24, 32, 5
 EIGHT_BIT = 0.5 / 255 + 1e-6
 
