@@ -48,6 +48,9 @@ def test_kill9_requeues_and_resumes_then_fails_when_out_of_attempts(tmp_path, to
             job_id = c.post(f"/scenes/{sid}/finetune", json={"steps": 10_000}).json()["id"]
             workers[0].wait_ready()
             wait_until(lambda: (_job(c, job_id)["step"] or 0) >= 2, timeout=120, what="two training steps")
+            # Fast steps can reach step 2 before the first periodic save (every 0.2 s): give
+            # it time, so there is a saved step > 0 for the next worker to resume from.
+            time.sleep(3 * settings.checkpoint_every_s + 0.2)
             workers[0].kill9()
             killed = _job(c, job_id)
             assert killed["state"] == "running" and killed["attempt"] == 1
