@@ -228,3 +228,11 @@ def redis_server(tmp: Path):
 def tree_digest(folder: Path) -> dict[str, int]:
     """{relative path: size} of every file: compares a scene folder before and after."""
     return {p.relative_to(folder).as_posix(): p.stat().st_size for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def toy_upload(root: Path) -> dict:
+    """A toy scene under ``root`` with what a test uploads: ``scene``, its ``zip`` bytes and a
+    micro ``checkpoint``'s bytes."""
+    scene = make_scene(root / "scene")
+    return {"scene": scene, "zip": zip_folder(root / "scene"),
+            "checkpoint": make_checkpoint(root / "micro.safetensors").read_bytes()}

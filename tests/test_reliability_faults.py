@@ -31,18 +31,16 @@ from tests.reliability_helpers import (
     site,
 )
 from tests.service_helpers import (
+    toy_upload,
     FAST,
     ROOT,
     LiveServer,
     WorkerProcess,
-    make_checkpoint,
-    make_scene,
     redis_server,
     register,
     view_request,
     wait_job,
     wait_until,
-    zip_folder,
 )
 
 STEPS = 8
@@ -50,10 +48,7 @@ STEPS = 8
 
 @pytest.fixture(scope="module")
 def toy(tmp_path_factory):
-    root = tmp_path_factory.mktemp("toy")
-    scene = make_scene(root / "scene")
-    return {"scene": scene, "zip": zip_folder(root / "scene"),
-            "checkpoint": make_checkpoint(root / "micro.safetensors").read_bytes()}
+    return toy_upload(tmp_path_factory.mktemp("toy"))
 
 
 def _job(c, job_id) -> dict:

@@ -11,25 +11,20 @@ import pytest
 
 from service.settings import Settings
 from tests.service_helpers import (
+    toy_upload,
     FAST,
     LiveServer,
     WorkerProcess,
-    make_checkpoint,
-    make_scene,
     register,
     tree_digest,
     wait_job,
     wait_until,
-    zip_folder,
 )
 
 
 @pytest.fixture(scope="module")
 def toy(tmp_path_factory):
-    root = tmp_path_factory.mktemp("toy")
-    make_scene(root / "scene")
-    return {"zip": zip_folder(root / "scene"),
-            "checkpoint": make_checkpoint(root / "micro.safetensors").read_bytes()}
+    return toy_upload(tmp_path_factory.mktemp("toy"))
 
 
 def _job(client, job_id):

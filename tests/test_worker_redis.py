@@ -11,27 +11,22 @@ import pytest
 from roguenerf.imageio import read_image
 from service.settings import Settings
 from tests.service_helpers import (
+    toy_upload,
     FAST,
     LiveServer,
     WorkerProcess,
     enhance,
-    make_checkpoint,
-    make_scene,
     redis_server,
     register,
     view_request,
     wait_job,
     wait_until,
-    zip_folder,
 )
 
 
 @pytest.fixture(scope="module")
 def toy(tmp_path_factory):
-    root = tmp_path_factory.mktemp("toy")
-    scene = make_scene(root / "scene")
-    return {"scene": scene, "zip": zip_folder(root / "scene"),
-            "checkpoint": make_checkpoint(root / "micro.safetensors").read_bytes()}
+    return toy_upload(tmp_path_factory.mktemp("toy"))
 
 
 def test_redis_job_flow_drain_and_readiness(tmp_path, toy):
