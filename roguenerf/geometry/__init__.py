@@ -22,7 +22,7 @@ from roguenerf.geometry.cameras import (
 )
 from roguenerf.geometry.euler import angular_distance, euler_angles, euler_distance, wrap_angle
 from roguenerf.geometry.neighbours import select_neighbours
-from roguenerf.geometry.reproject import Reprojection, reproject
+from roguenerf.geometry.reproject import Reprojection, reproject, sampling_source
 
 __all__ = [
     "Reprojection",
@@ -37,6 +37,7 @@ __all__ = [
     "opengl_to_opencv",
     "ray_to_z_depth",
     "reproject",
+    "sampling_source",
     "scale_intrinsics",
     "select_neighbours",
     "wrap_angle",

@@ -3,6 +3,7 @@
 from roguenerf.models.config import VARIANTS, EnhancerConfig, UformerConfig, build_enhancer, make_config
 from roguenerf.models.enhancer import Enhancer, NeighbourBatch
 from roguenerf.models.tiling import enhance_tiled
+from roguenerf.models import fastops
 from roguenerf.models.uformer import Uformer
 
 __all__ = [
@@ -14,5 +15,6 @@ __all__ = [
     "UformerConfig",
     "build_enhancer",
     "enhance_tiled",
+    "fastops",
     "make_config",
 ]

@@ -34,11 +34,22 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from roguenerf.errors import InputError
-from roguenerf.geometry import euler_angles, reproject
+from roguenerf.geometry import euler_angles, reproject, sampling_source
 from roguenerf.models.config import EnhancerConfig
 from roguenerf.models.flow import FLOW_STRIDE, FlowRefiner, flow_warp
-from roguenerf.models.layers import CameraAttention, ConvEncoder, PixelAttention, act, he_init, zero_init
+from roguenerf.models import fastops
+from roguenerf.models.layers import (
+    CameraAttention,
+    ConvEncoder,
+    PixelAttention,
+    act,
+    cat_channels_last,
+    conv_act,
+    he_init,
+    zero_init,
+)
 from roguenerf.models.uformer import Uformer
+from roguenerf.profiling import stage
 
 MAX_RELATIVE_DEPTH = 10.0
 """Normalised depths and relative camera positions are clamped to this magnitude."""
@@ -48,18 +59,30 @@ MAX_RELATIVE_DEPTH = 10.0
 class NeighbourBatch:
     """Neighbours of each target in a batch; N may be 0.
 
-    features: ``(B, N, F, Hs, Ws)`` conv_H features of the neighbour *photos* (cached per scene).
+    features: ``(B, N, F, Hs, Ws)`` conv_H features of the neighbour *photos* (cached per scene);
+        may be None when ``sources`` is given.
     depth: ``(B, N, 1, Hs, Ws)`` the neighbours' rendered z-depth.
     K: ``(B, N, 3, 3)``; world_from_cam: ``(B, N, 4, 4)`` OpenCV.
+    sources: optional list of N tensors ``(B, F + 2, Hs, Ws)``, neighbour j's
+        :func:`~roguenerf.geometry.reproject.sampling_source` (features, known depth, mask):
+        per-scene work that :class:`~roguenerf.inference.SceneEnhancer` caches, so that no
+        request re-stacks or re-lays-out the neighbour features.
     """
 
-    features: Tensor
+    features: Tensor | None
     depth: Tensor
     K: Tensor
     world_from_cam: Tensor
+    sources: list[Tensor] | None = None
 
     def __len__(self) -> int:
-        return self.features.shape[1]
+        return self.depth.shape[1]
+
+    def feature_map(self, j: int) -> Tensor:
+        """``(B, F, Hs, Ws)`` features of neighbour j (a view, no copy)."""
+        if self.sources is not None:
+            return self.sources[j][:, :-2]
+        return self.features[:, j]
 
 
 def known_depth(depth: Tensor) -> Tensor:
@@ -121,6 +144,11 @@ class Enhancer(nn.Module):
             align = math.lcm(align, self.config.uformer.size_multiple)
         return align
 
+    def neighbour_source(self, features: Tensor, depth: Tensor) -> Tensor:
+        """``(N, F, Hs, Ws)``, ``(N, 1, Hs, Ws)`` -> ``(N, F + 2, Hs, Ws)`` sampling sources for
+        :attr:`NeighbourBatch.sources` (see :func:`~roguenerf.geometry.reproject.sampling_source`)."""
+        return sampling_source(features, depth)
+
     def encode_neighbours(self, photos: Tensor) -> Tensor:
         """conv_H: ``(N, 3, H, W)`` photos in [0,1] -> ``(N, F, H, W)``. Independent of the target."""
         _check(photos, "photos", (None, 3, None, None))
@@ -149,17 +177,24 @@ class Enhancer(nn.Module):
         _check(render, "render", (None, 3, None, None))
         b, _, h, w = render.shape
         _check(depth, "depth", (b, 1, h, w))
-        feats = self.conv_I(render)
+        with stage("encoders"):
+            feats = self.conv_I(render)
         if self.conv_H is None:
-            merged = self.conv_merge(feats)
+            with stage("merge"):
+                merged = conv_act(self.conv_merge, feats)
         else:
             pooled = None
             if neighbours is not None and len(neighbours) > 0:
                 pooled = self._fuse(feats, depth, K, world_from_cam, neighbours, depth_scale)
-            if pooled is None:
-                pooled = torch.zeros_like(feats)
-            merged = self.conv_merge(torch.cat([feats, pooled], dim=1))
-        residual = self.uformer(merged) if self.uformer is not None else self.to_rgb(merged)
+            with stage("merge"):
+                if pooled is None:
+                    pooled = torch.zeros_like(feats)
+                if fastops.fast_enabled(feats):
+                    merged = conv_act(self.conv_merge, cat_channels_last([feats, pooled]))
+                else:
+                    merged = self.conv_merge(torch.cat([feats, pooled], dim=1))
+        with stage("uformer"):
+            residual = self.uformer(merged) if self.uformer is not None else self.to_rgb(merged)
         return render + residual
 
     def _fuse(self, feats: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,
@@ -167,8 +202,15 @@ class Enhancer(nn.Module):
         """Align, refine, weigh and max-pool the neighbours: ``(B, F, H, W)``."""
         b, f, h, w = feats.shape
         n = len(nbrs)
-        _check(nbrs.features, "neighbours.features", (b, n, f, None, None))
-        hs, ws = nbrs.features.shape[-2:]
+        if nbrs.sources is not None:
+            if len(nbrs.sources) != n:
+                raise InputError(f"neighbours.sources: expected {n} tensors, got {len(nbrs.sources)}")
+            for j, source in enumerate(nbrs.sources):
+                _check(source, f"neighbours.sources[{j}]", (b, f + 2, None, None))
+            hs, ws = nbrs.sources[0].shape[-2:]
+        else:
+            _check(nbrs.features, "neighbours.features", (b, n, f, None, None))
+            hs, ws = nbrs.features.shape[-2:]
         _check(nbrs.depth, "neighbours.depth", (b, n, 1, hs, ws))
         _check(nbrs.K, "neighbours.K", (b, n, 3, 3))
         _check(nbrs.world_from_cam, "neighbours.world_from_cam", (b, n, 4, 4))
@@ -185,28 +227,61 @@ class Enhancer(nn.Module):
         if self.camera_attention is not None:
             camera_inputs = self._camera_inputs(world_from_cam, nbrs.world_from_cam, scale).to(feats.dtype)
 
+        # Fast path (no gradient): work that depends only on the target is done once, every
+        # full-resolution map is channels-last, and the pooling is in place. Same result.
+        fast = fastops.fast_enabled(feats)
+        target_low = attention_term = None
+        if fast and self.flow is not None:
+            with stage("flow"):
+                target_low = self.flow.encode_target(feats)
+        if fast and self.pixel_attention is not None:
+            with stage("attention"):
+                attention_term = self.pixel_attention.target_term(feats, target_depth)
+
+        cat = cat_channels_last if fast else (lambda ts: torch.cat(ts, dim=1))
+
         pooled = None
         for j in range(n):
-            src, src_depth = nbrs.features[:, j], nbrs.depth[:, j]
-            if self.config.use_alignment:
-                rp = reproject(src, src_depth, depth, nbrs.K[:, j], K, nbrs.world_from_cam[:, j],
-                               world_from_cam, leniency=self.config.leniency)
-                aligned, nb_depth = rp.features, rp.depth
-            else:
-                aligned = F.interpolate(src, size=(h, w), mode="bilinear", align_corners=False)
-                nb_depth = F.interpolate(known_depth(src_depth), size=(h, w), mode="bilinear",
-                                         align_corners=False)
+            src, src_depth = nbrs.feature_map(j), nbrs.depth[:, j]
+            source = nbrs.sources[j] if nbrs.sources is not None else None
+            with stage("reprojection"):
+                aligned, nb_depth = self._align(src, src_depth, depth, nbrs.K[:, j], K,
+                                                nbrs.world_from_cam[:, j], world_from_cam, (h, w), source)
             if self.flow is not None:
-                flow = self.flow(aligned, feats)
-                warped = flow_warp(torch.cat([aligned, nb_depth], dim=1), flow)
-                aligned, nb_depth = warped[:, :f], warped[:, f:]
+                with stage("flow"):
+                    flow = self.flow(aligned, feats, target_low)
+                    warped = flow_warp(cat([aligned, nb_depth]), flow)
+                    aligned, nb_depth = warped[:, :f], warped[:, f:]
             if self.pixel_attention is not None:
-                nb_rel = (nb_depth * inv_scale).clamp(0, MAX_RELATIVE_DEPTH)
-                psi_pix = self.pixel_attention(aligned, feats, nb_rel, target_depth)
-                psi_cam = self.camera_attention(camera_inputs[:, j])[:, :, None, None]
-                aligned = psi_cam * psi_pix * aligned
-            pooled = aligned if pooled is None else torch.maximum(pooled, aligned)
+                with stage("attention"):
+                    nb_rel = (nb_depth * inv_scale).clamp(0, MAX_RELATIVE_DEPTH)
+                    if fast:
+                        psi_pix = self.pixel_attention.from_target_term(cat_channels_last([aligned, nb_rel]),
+                                                                       attention_term)
+                    else:
+                        psi_pix = self.pixel_attention(aligned, feats, nb_rel, target_depth)
+                    psi_cam = self.camera_attention(camera_inputs[:, j])[:, :, None, None]
+                    aligned = psi_cam * psi_pix * aligned
+            with stage("fusion"):
+                if pooled is None:
+                    pooled = aligned
+                elif fast:
+                    torch.maximum(pooled, aligned, out=pooled)
+                else:
+                    pooled = torch.maximum(pooled, aligned)
         return pooled
+
+    def _align(self, src: Tensor, src_depth: Tensor, depth: Tensor, src_K: Tensor, K: Tensor,
+               world_from_src: Tensor, world_from_cam: Tensor, size: tuple[int, int],
+               source: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """One neighbour's features and depth in the target view: ``(B, F, H, W)``, ``(B, 1, H, W)``."""
+        if self.config.use_alignment:
+            rp = reproject(src, src_depth, depth, src_K, K, world_from_src, world_from_cam,
+                           leniency=self.config.leniency, source=source)
+            return rp.features, rp.depth
+        aligned = F.interpolate(src, size=size, mode="bilinear", align_corners=False)
+        nb_depth = F.interpolate(known_depth(src_depth), size=size, mode="bilinear", align_corners=False)
+        return aligned, nb_depth
 
     @staticmethod
     def _camera_inputs(target: Tensor, neighbours: Tensor, scale: Tensor) -> Tensor:

@@ -19,7 +19,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from roguenerf.models.layers import act, he_init, zero_init
+from roguenerf.fastpath import fast_enabled
+from roguenerf.geometry.sampling import bilinear_sample
+from roguenerf.models.layers import act, conv_act, he_init, zero_init
 
 FLOW_STRIDE = 8
 """The flow is estimated at 1/FLOW_STRIDE resolution."""
@@ -28,11 +30,13 @@ FLOW_STRIDE = 8
 def flow_warp(x: Tensor, flow: Tensor) -> Tensor:
     """Backward-warp ``x`` ``(B, C, H, W)`` by ``flow`` ``(B, 2, H, W)`` (pixels, (dx, dy)).
 
-    Bilinear, zero outside the image. Returns ``(B, C, H, W)``.
+    Bilinear, zero outside the image. Returns ``(B, C, H, W)`` (channels-last on the fast path).
     """
     _, _, h, w = x.shape
     ys = torch.arange(h, device=x.device, dtype=x.dtype)
     xs = torch.arange(w, device=x.device, dtype=x.dtype)
+    if fast_enabled(x) and torch.isfinite(flow).all():
+        return bilinear_sample(x, xs[None, None, :] + flow[:, 0], ys[None, :, None] + flow[:, 1], padding="zeros")
     gx = (2.0 * (xs[None, None, :] + flow[:, 0]) + 1.0) / w - 1.0
     gy = (2.0 * (ys[None, :, None] + flow[:, 1]) + 1.0) / h - 1.0
     grid = torch.stack([gx, gy], dim=-1)
@@ -86,18 +90,29 @@ class FlowRefiner(nn.Module):
         he_init(self)
         zero_init(self.to_delta[-1])
 
-    def forward(self, neighbour: Tensor, target: Tensor) -> Tensor:
+    def forward(self, neighbour: Tensor, target: Tensor, target_low: Tensor | None = None) -> Tensor:
         b, _, height, width = target.shape
-        pair = torch.cat([neighbour, target], dim=0)
-        ph, pw = -height % FLOW_STRIDE, -width % FLOW_STRIDE
-        if ph or pw:
-            pair = F.pad(pair, (0, pw, 0, ph), mode="replicate")
-        low = self.encode(F.avg_pool2d(pair, FLOW_STRIDE))
-        nb, tg = low[:b], low[b:]
+        if target_low is None:
+            low = self._encode(torch.cat([neighbour, target], dim=0))
+            nb, tg = low[:b], low[b:]
+        else:
+            nb, tg = self._encode(neighbour), target_low
         hidden = torch.tanh(tg)
         flow = tg.new_zeros(b, 2, *tg.shape[-2:])
         for _ in range(self.iters):
-            x = self.to_input(torch.cat([flow_warp(nb, flow), tg, flow], dim=1))
+            x = conv_act(self.to_input, torch.cat([flow_warp(nb, flow), tg, flow], dim=1))
             hidden = self.gru(hidden, x)
             flow = flow + self.to_delta(hidden)
         return upsample_flow(flow, height, width)
+
+    def encode_target(self, target: Tensor) -> Tensor:
+        """``(B, hidden, h, w)`` 1/8-resolution encoding of the target; pass it to :meth:`forward`
+        as ``target_low`` to encode the target once for all neighbours (same result)."""
+        return self._encode(target)
+
+    def _encode(self, x: Tensor) -> Tensor:
+        ph, pw = -x.shape[-2] % FLOW_STRIDE, -x.shape[-1] % FLOW_STRIDE
+        if ph or pw:
+            x = F.pad(x, (0, pw, 0, ph), mode="replicate")
+        low = F.avg_pool2d(x, FLOW_STRIDE)
+        return conv_act(self.encode[2:], conv_act(self.encode[:2], low))

@@ -1,13 +1,16 @@
 """Building blocks: conv encoders and the geometry-aware attention (paper sections 3.3, 3.5).
 
-Imports nothing from the rest of the package. Dimension letters: B batch, C channels,
+Imports nothing from the rest of the package but :mod:`roguenerf.models.fastops`. Dimension letters: B batch, C channels,
 H x W image size, F feature channels.
 """
 
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
+
+from roguenerf.models import fastops
 
 LEAKY_SLOPE = 0.01
 """Leaky ReLU slope of every conv block (supplementary, implementation details)."""
@@ -50,6 +53,31 @@ class ConvEncoder(nn.Sequential):
         )
         he_init(self)
 
+    def forward(self, x: Tensor) -> Tensor:
+        if not fastops.fast_enabled(x):
+            return super().forward(x)
+        x = fastops.conv2d(fastops.channels_last(x), self[0], "leaky_relu", LEAKY_SLOPE)
+        return fastops.conv2d(x, self[2], "leaky_relu", LEAKY_SLOPE)
+
+
+def conv_act(block: nn.Sequential, x: Tensor) -> Tensor:
+    """``block`` = Sequential(Conv2d, LeakyReLU) applied to ``x``, fused on the fast path (channels-last out)."""
+    if not fastops.fast_enabled(x):
+        return block(x)
+    return fastops.conv2d(fastops.channels_last(x), block[0], "leaky_relu", block[1].negative_slope)
+
+
+def cat_channels_last(tensors: list[Tensor]) -> Tensor:
+    """``torch.cat(tensors, dim=1)`` written straight into a channels-last tensor (one copy)."""
+    b, _, h, w = tensors[0].shape
+    out = torch.empty(b, sum(t.shape[1] for t in tensors), h, w, dtype=tensors[0].dtype,
+                      device=tensors[0].device, memory_format=torch.channels_last)
+    c = 0
+    for t in tensors:
+        out[:, c:c + t.shape[1]] = t
+        c += t.shape[1]
+    return out
+
 
 class PixelAttention(nn.Module):
     """psi_pix = sigmoid(conv(act(conv([H', I^f, D_{i->k}, D_k])))), one weight per pixel.
@@ -75,6 +103,26 @@ class PixelAttention(nn.Module):
                 target_depth: Tensor) -> Tensor:
         x = torch.cat([neighbour, target, neighbour_depth, target_depth], dim=1)
         return torch.sigmoid(self.net(x))
+
+    # The first conv is linear in its input, so conv([H', I^f, D_i, D_k]) =
+    # conv_nb([H', D_i]) + conv_tg([I^f, D_k]) + bias. The target term is the same for every
+    # neighbour: the enhancer computes it once per forward (fast path, no gradient).
+
+    def target_term(self, target: Tensor, target_depth: Tensor) -> Tensor:
+        """``(B, hidden, H, W)``: the first conv's response to [I^f, D_k] plus its bias."""
+        conv = self.net[0]
+        f = target.shape[1]
+        weight = torch.cat([conv.weight[:, f:2 * f], conv.weight[:, 2 * f + 1:]], dim=1)
+        return F.conv2d(torch.cat([target, target_depth], dim=1), weight, conv.bias, padding=conv.padding)
+
+    def from_target_term(self, neighbour_and_depth: Tensor, term: Tensor) -> Tensor:
+        """psi_pix from ``(B, F + 1, H, W)`` [H', D_i] and :meth:`target_term` (equal to :meth:`forward`)."""
+        conv = self.net[0]
+        f = neighbour_and_depth.shape[1] - 1
+        weight = torch.cat([conv.weight[:, :f], conv.weight[:, 2 * f:2 * f + 1]], dim=1)
+        hidden = F.conv2d(neighbour_and_depth, weight, None, padding=conv.padding)
+        hidden = F.leaky_relu(hidden.add_(term), self.net[1].negative_slope)
+        return torch.sigmoid(fastops.conv2d(hidden, self.net[2]))
 
 
 CAMERA_INPUTS = 9

@@ -17,12 +17,16 @@ w window side, N windows, L = w * w tokens per window.
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 from einops import rearrange
 from torch import Tensor, nn
 
+from roguenerf.models import fastops
 from roguenerf.models.config import UformerConfig
+from roguenerf.models.layers import conv_act
 
 
 def pad_to_multiple(x: Tensor, multiple: int) -> Tensor:
@@ -75,18 +79,36 @@ class WindowAttention(nn.Module):
         return rearrange(b, "i j n -> n i j")
 
     def forward(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
-        q, k, v = rearrange(self.to_qkv(x), "b l (three n d) -> three b n l d", three=3, n=self.heads)
-        bias = self.bias()[None]
+        fast = fastops.fast_enabled(x)
+        qkv = fastops.linear(x, self.to_qkv)
+        q, k, v = rearrange(qkv, "b l (three n d) -> three b n l d", three=3, n=self.heads)
+        bias = self._cached_bias(mask) if fast else self._bias(mask)
         if mask is not None:
             num_windows = mask.shape[0]
-            bias = rearrange(bias + mask[:, None], "nw n i j -> 1 nw n i j")
-            bias = bias.expand(x.shape[0] // num_windows, -1, -1, -1, -1).reshape(-1, *bias.shape[2:])
-        if self.fused:
+            bias = bias[None].expand(x.shape[0] // num_windows, -1, -1, -1, -1).reshape(-1, *bias.shape[1:])
+        else:
+            bias = bias[None]
+        if self.fused and not fastops.in_reference_mode():
             out = F.scaled_dot_product_attention(q, k, v, attn_mask=bias.to(q.dtype), scale=self.scale)
         else:
             attn = (q * self.scale) @ k.transpose(-2, -1) + bias
             out = attn.softmax(dim=-1) @ v
-        return self.to_out(rearrange(out, "b n l d -> b l (n d)"))
+        return fastops.linear(rearrange(out, "b n l d -> b l (n d)"), self.to_out)
+
+    def _bias(self, mask: Tensor | None) -> Tensor:
+        """``(n, L, L)`` bias, or ``(N, n, L, L)`` bias + shift mask."""
+        return self.bias() if mask is None else self.bias()[None] + mask[:, None]
+
+    def _cached_bias(self, mask: Tensor | None) -> Tensor:
+        """:meth:`_bias`, recomputed only when the bias table or the mask changes (no-grad use only)."""
+        table = self.relative_position_bias_table
+        key = (table._version, table.data_ptr(), table.device)
+        cached = getattr(self, "_bias_cache", None)
+        # The cache holds the mask itself, so ``is`` cannot match a new mask at a reused address.
+        if cached is None or cached[0] != key or cached[1] is not mask:
+            cached = (key, mask, self._bias(mask))
+            self._bias_cache = cached
+        return cached[2]
 
 
 class LeFF(nn.Module):
@@ -99,13 +121,23 @@ class LeFF(nn.Module):
         self.linear2 = nn.Linear(hidden, dim)
 
     def forward(self, x: Tensor) -> Tensor:
-        x = self.linear1(x)
-        x = self.dwconv(x.permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
-        return self.linear2(x)
+        x = fastops.linear(x, self.linear1[0], "gelu")
+        # (B, H, W, C) permuted is a channels-last (B, C, H, W): no copy either way.
+        x = fastops.conv2d(x.permute(0, 3, 1, 2), self.dwconv[0], "gelu").permute(0, 2, 3, 1)
+        return fastops.linear(x, self.linear2)
 
 
 def _shift_mask(h: int, w: int, win: int, shift: int, device) -> Tensor:
-    """``(N, L, L)`` additive mask keeping attention inside regions that were contiguous before the roll."""
+    """``(N, L, L)`` additive mask keeping attention inside regions that were contiguous before the roll.
+
+    Cached per size (read-only: callers must not modify it); never an inference tensor.
+    """
+    with torch.inference_mode(False), torch.no_grad():
+        return _make_shift_mask(h, w, win, shift, str(device))
+
+
+@functools.lru_cache(maxsize=64)
+def _make_shift_mask(h: int, w: int, win: int, shift: int, device: str) -> Tensor:
     region = torch.zeros(h, w, device=device)
     label = 0
     for hs in (slice(0, -win), slice(-win, -shift), slice(-shift, None)):
@@ -214,7 +246,8 @@ class Uformer(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         h, w = x.shape[-2:]
         x = pad_to_multiple(x, self.config.size_multiple)
-        y = self.input_proj(x).permute(0, 2, 3, 1)
+        # Channels-last on the fast path: the (B, H, W, C) token view is then free.
+        y = conv_act(self.input_proj, x).permute(0, 2, 3, 1)
         skips = []
         for encoder, down in zip(self.encoders, self.downsamples):
             y = encoder(y)

@@ -1,0 +1,39 @@
+"""The switch between the fast inference paths and the plain reference implementation.
+
+Fast paths (fused oneDNN kernels, channels-last layouts, gather-based bilinear sampling,
+target work shared across neighbours) are taken only when no gradient is being recorded and
+the tensors are float32 on the CPU; they compute the same function as the plain code to
+float32 rounding. :func:`reference_mode` turns all of them off in the current thread, giving
+the plain implementation for tests and benchmarks to compare against.
+"""
+
+from __future__ import annotations
+
+import threading
+from contextlib import contextmanager
+
+import torch
+from torch import Tensor
+
+_state = threading.local()
+
+
+@contextmanager
+def reference_mode(enabled: bool = True):
+    """Inside: the plain (slow) implementation everywhere in this thread. Nestable."""
+    previous = getattr(_state, "reference", False)
+    _state.reference = enabled
+    try:
+        yield
+    finally:
+        _state.reference = previous
+
+
+def in_reference_mode() -> bool:
+    return getattr(_state, "reference", False)
+
+
+def fast_enabled(x: Tensor) -> bool:
+    """Fast paths apply: not in reference mode, no gradient recorded, float32 on the CPU."""
+    return (not in_reference_mode() and not torch.is_grad_enabled() and x.device.type == "cpu"
+            and x.dtype == torch.float32)

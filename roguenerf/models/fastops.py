@@ -1,0 +1,89 @@
+"""Inference fast paths that compute the same function as the plain PyTorch layers.
+
+On the CPU, oneDNN (mkldnn) can apply an activation inside a linear or convolution kernel
+(one pass over the output instead of two) and runs skinny linears (16-128 channels, ~1e5
+tokens: the Uformer's shape) faster than MKL's ``addmm``. PyTorch exposes these kernels as
+``torch.ops.mkldnn._linear_pointwise`` / ``_convolution_pointwise`` (what TorchInductor
+generates for CPU). They have no autograd formula, so they are used only when no gradient is
+being recorded, on float32 CPU tensors, and when the build has them; otherwise the helpers
+fall back to ``F.linear`` / ``conv`` followed by the activation. The fused and plain paths
+agree to float32 rounding (``tests/test_fastpath.py``).
+
+:func:`reference_mode` switches every fast path of the package off (fused kernels here,
+fused attention, channels-last layout, shared per-target work in the enhancer), giving the
+plain implementation to test and benchmark the fast one against.
+
+Dimension letters: C channels; ``...`` any leading dimensions.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from roguenerf.fastpath import fast_enabled, in_reference_mode, reference_mode
+
+__all__ = ["conv2d", "channels_last", "fast_enabled", "in_reference_mode", "linear", "mkldnn_fused_available",
+           "reference_mode"]
+
+@functools.lru_cache(maxsize=1)
+def mkldnn_fused_available() -> bool:
+    """Whether this torch build has oneDNN and its fused pointwise linear / conv ops (checked once)."""
+    if not torch.backends.mkldnn.is_available():
+        return False
+    try:
+        x = torch.ones(2, 4)
+        w = torch.ones(3, 4)
+        with torch.no_grad():
+            y = torch.ops.mkldnn._linear_pointwise(x, w, None, "gelu", [], "none")
+            z = torch.ops.mkldnn._convolution_pointwise(
+                torch.ones(1, 2, 3, 3), torch.ones(2, 1, 3, 3), None, [1, 1], [1, 1], [1, 1], 2,
+                "leaky_relu", [0.01], "")
+        return bool(torch.allclose(y, F.gelu(x @ w.T)) and z.shape == (1, 2, 3, 3))
+    except (AttributeError, RuntimeError, NotImplementedError):
+        return False
+
+
+def _fused(x: Tensor) -> bool:
+    return fast_enabled(x) and mkldnn_fused_available()
+
+
+def linear(x: Tensor, layer: nn.Linear, activation: str = "none") -> Tensor:
+    """``act(layer(x))`` for ``(..., C_in) -> (..., C_out)``; activation "none" or "gelu" (exact erf)."""
+    if _fused(x):
+        shape = x.shape
+        y = torch.ops.mkldnn._linear_pointwise(x.reshape(-1, shape[-1]), layer.weight, layer.bias,
+                                               activation, [], "none" if activation == "gelu" else "")
+        return y.view(*shape[:-1], y.shape[-1])
+    y = layer(x)
+    return F.gelu(y) if activation == "gelu" else y
+
+
+def conv2d(x: Tensor, conv: nn.Conv2d, activation: str = "none", slope: float = 0.01) -> Tensor:
+    """``act(conv(x))``; activation "none", "gelu" (exact erf) or "leaky_relu" (with ``slope``).
+
+    The fused path keeps the memory format of ``x`` (channels-last in, channels-last out).
+    """
+    if (_fused(x) and conv.padding_mode == "zeros" and isinstance(conv.padding, tuple)
+            and x.ndim == 4):
+        scalars = [slope] if activation == "leaky_relu" else []
+        algorithm = "none" if activation == "gelu" else ""
+        return torch.ops.mkldnn._convolution_pointwise(
+            x, conv.weight, conv.bias, list(conv.padding), list(conv.stride), list(conv.dilation),
+            conv.groups, activation, scalars, algorithm)
+    y = conv(x)
+    if activation == "gelu":
+        return F.gelu(y)
+    if activation == "leaky_relu":
+        return F.leaky_relu(y, slope)
+    return y
+
+
+def channels_last(x: Tensor) -> Tensor:
+    """``x`` in channels-last layout on the fast path (4-D tensors), unchanged otherwise."""
+    if x.ndim == 4 and fast_enabled(x):
+        return x.contiguous(memory_format=torch.channels_last)
+    return x
