@@ -14,6 +14,7 @@ Stages do not nest: an inner ``stage`` inside an outer one is ignored (it counts
 
 from __future__ import annotations
 
+import math
 import time
 from collections import defaultdict
 from contextlib import contextmanager
@@ -36,6 +37,33 @@ def stage(name: str):
         yield
     finally:
         prof._exit()
+
+
+def extra_flop_formulas() -> dict:
+    """FLOP formulas for the kernels the fast path calls that ``FlopCounterMode`` does not know:
+    oneDNN's fused linear / convolution and the CPU flash attention (2 FLOPs per multiply-add,
+    as torch counts convs and matmuls). Activations, sampling and element-wise ops are not
+    counted, as elsewhere."""
+    import torch
+    from torch.utils import flop_counter
+
+    def linear(x, w, *args, out_shape=None, **kwargs):
+        return 2 * math.prod(x[:-1]) * x[-1] * w[0]
+
+    def conv(x, w, *args, out_shape=None, **kwargs):
+        return flop_counter.conv_flop_count(x, w, out_shape, transposed=False)
+
+    def sdpa(q, k, v, *args, out_shape=None, **kwargs):
+        return flop_counter.sdpa_flop_count(q, k, v)
+
+    formulas = {torch.ops.aten._scaled_dot_product_flash_attention_for_cpu: sdpa}
+    mkldnn = getattr(torch.ops, "mkldnn", None)
+    for name, fn in (("_linear_pointwise", linear), ("_convolution_pointwise", conv)):
+        try:
+            formulas[getattr(mkldnn, name)] = fn
+        except (AttributeError, RuntimeError):
+            pass
+    return formulas
 
 
 class StageProfile:
@@ -75,7 +103,7 @@ class StageProfile:
         if self.count_flops:
             from torch.utils.flop_counter import FlopCounterMode
 
-            self._counter = FlopCounterMode(display=False)
+            self._counter = FlopCounterMode(display=False, custom_mapping=extra_flop_formulas())
             self._counter.__enter__()
         _active = self
         self._start = time.perf_counter()

@@ -44,6 +44,9 @@ class Reprojection:
     """``(B, H, W, 2)`` projected pixel coordinates (x, y) in the neighbour image (pixel units,
     centre of pixel (0,0) at (0,0)); 0 where the point is not finite or not in front of the
     neighbour camera (z_{k->i} <= eps)."""
+    packed: Tensor | None = None
+    """Fast path only (no gradient, CPU, with ``src_depth``): ``(B, C + 2, H, W)`` channels-last
+    buffer of which ``features``, ``depth`` and ``valid`` are the channel views, in that order."""
 
 
 def _batched(x: Tensor, name: str, trailing: tuple[int, int], batch: int) -> Tensor:
@@ -229,6 +232,15 @@ def reproject(
     else:
         depth = z_proj
     valid = valid[:, None]
+    if src_depth is not None and sampled.is_contiguous(memory_format=torch.channels_last) \
+            and sampled.dtype == src_features.dtype and fast_enabled(sampled):
+        # Fast path: mask in place, keeping features, depth and mask in the one channels-last
+        # buffer that the enhancer's next stages read whole (no concatenation copies).
+        features.masked_fill_(~valid, 0.0)
+        sampled[:, C:C + 1] = torch.where(valid, depth[:, None], 0.0)
+        sampled[:, C + 1:] = valid
+        return Reprojection(features=features, valid=sampled[:, C + 1:], depth=sampled[:, C:C + 1],
+                            coords=coords.to(src_features.dtype), packed=sampled)
     return Reprojection(
         features=torch.where(valid, features, 0.0).to(src_features.dtype),
         valid=valid.to(src_features.dtype),

@@ -238,50 +238,60 @@ class Enhancer(nn.Module):
             with stage("attention"):
                 attention_term = self.pixel_attention.target_term(feats, target_depth)
 
-        cat = cat_channels_last if fast else (lambda ts: torch.cat(ts, dim=1))
-
         pooled = None
         for j in range(n):
             src, src_depth = nbrs.feature_map(j), nbrs.depth[:, j]
             source = nbrs.sources[j] if nbrs.sources is not None else None
             with stage("reprojection"):
-                aligned, nb_depth = self._align(src, src_depth, depth, nbrs.K[:, j], K,
-                                                nbrs.world_from_cam[:, j], world_from_cam, (h, w), source)
+                aligned, nb_depth, packed = self._align(src, src_depth, depth, nbrs.K[:, j], K,
+                                                        nbrs.world_from_cam[:, j], world_from_cam, (h, w),
+                                                        source)
+                if fast and packed is None:
+                    packed = cat_channels_last([aligned, nb_depth])
+            if fast:
+                # ``packed`` = [H, D, ...] in one channels-last buffer owned here: every stage
+                # reads it whole and writes in place, so no per-neighbour concatenation.
+                if self.flow is not None:
+                    with stage("flow"):
+                        packed = flow_warp(packed, self.flow(packed, feats, target_low))
+                aligned = packed[:, :f]
+                if self.pixel_attention is not None:
+                    with stage("attention"):
+                        packed[:, f:f + 1] = (packed[:, f:f + 1] * inv_scale).clamp(0, MAX_RELATIVE_DEPTH)
+                        psi_pix = self.pixel_attention.from_target_term(packed, attention_term)
+                        psi_cam = self.camera_attention(camera_inputs[:, j])[:, :, None, None]
+                        # aligned first: the product keeps its channels-last layout (same values).
+                        aligned = aligned * (psi_cam * psi_pix)
+                with stage("fusion"):
+                    pooled = aligned if pooled is None else torch.maximum(pooled, aligned, out=pooled)
+                continue
             if self.flow is not None:
                 with stage("flow"):
-                    flow = self.flow(aligned, feats, target_low)
-                    warped = flow_warp(cat([aligned, nb_depth]), flow)
+                    flow = self.flow(aligned, feats)
+                    warped = flow_warp(torch.cat([aligned, nb_depth], dim=1), flow)
                     aligned, nb_depth = warped[:, :f], warped[:, f:]
             if self.pixel_attention is not None:
                 with stage("attention"):
                     nb_rel = (nb_depth * inv_scale).clamp(0, MAX_RELATIVE_DEPTH)
-                    if fast:
-                        psi_pix = self.pixel_attention.from_target_term(cat_channels_last([aligned, nb_rel]),
-                                                                       attention_term)
-                    else:
-                        psi_pix = self.pixel_attention(aligned, feats, nb_rel, target_depth)
+                    psi_pix = self.pixel_attention(aligned, feats, nb_rel, target_depth)
                     psi_cam = self.camera_attention(camera_inputs[:, j])[:, :, None, None]
                     aligned = psi_cam * psi_pix * aligned
             with stage("fusion"):
-                if pooled is None:
-                    pooled = aligned
-                elif fast:
-                    torch.maximum(pooled, aligned, out=pooled)
-                else:
-                    pooled = torch.maximum(pooled, aligned)
+                pooled = aligned if pooled is None else torch.maximum(pooled, aligned)
         return pooled
 
     def _align(self, src: Tensor, src_depth: Tensor, depth: Tensor, src_K: Tensor, K: Tensor,
                world_from_src: Tensor, world_from_cam: Tensor, size: tuple[int, int],
-               source: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """One neighbour's features and depth in the target view: ``(B, F, H, W)``, ``(B, 1, H, W)``."""
+               source: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
+        """One neighbour's features and depth in the target view: ``(B, F, H, W)``, ``(B, 1, H, W)``,
+        and on the fast path the buffer they are views of (else None)."""
         if self.config.use_alignment:
             rp = reproject(src, src_depth, depth, src_K, K, world_from_src, world_from_cam,
                            leniency=self.config.leniency, source=source)
-            return rp.features, rp.depth
+            return rp.features, rp.depth, rp.packed
         aligned = F.interpolate(src, size=size, mode="bilinear", align_corners=False)
         nb_depth = F.interpolate(known_depth(src_depth), size=size, mode="bilinear", align_corners=False)
-        return aligned, nb_depth
+        return aligned, nb_depth, None
 
     @staticmethod
     def _camera_inputs(target: Tensor, neighbours: Tensor, scale: Tensor) -> Tensor:

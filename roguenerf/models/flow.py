@@ -70,7 +70,8 @@ class FlowRefiner(nn.Module):
     """Flow from aligned neighbour features to target features.
 
     Args of forward:
-        neighbour: ``(B, F, H, W)`` 3D-aligned neighbour features H_{i->k}.
+        neighbour: ``(B, F [+ extra], H, W)`` 3D-aligned neighbour features H_{i->k} (channels
+            beyond F are ignored: a buffer that also holds the depth is used without copying).
         target: ``(B, F, H, W)`` target features I^f.
     Returns:
         ``(B, 2, H, W)`` flow in full-resolution pixels; ``flow_warp(neighbour, flow)`` aligns.
@@ -93,7 +94,7 @@ class FlowRefiner(nn.Module):
     def forward(self, neighbour: Tensor, target: Tensor, target_low: Tensor | None = None) -> Tensor:
         b, _, height, width = target.shape
         if target_low is None:
-            low = self._encode(torch.cat([neighbour, target], dim=0))
+            low = self._encode(torch.cat([neighbour[:, :target.shape[1]], target], dim=0))
             nb, tg = low[:b], low[b:]
         else:
             nb, tg = self._encode(neighbour), target_low
@@ -114,5 +115,5 @@ class FlowRefiner(nn.Module):
         ph, pw = -x.shape[-2] % FLOW_STRIDE, -x.shape[-1] % FLOW_STRIDE
         if ph or pw:
             x = F.pad(x, (0, pw, 0, ph), mode="replicate")
-        low = F.avg_pool2d(x, FLOW_STRIDE)
+        low = F.avg_pool2d(x, FLOW_STRIDE)[:, :self.encode[0].in_channels]
         return conv_act(self.encode[2:], conv_act(self.encode[:2], low))

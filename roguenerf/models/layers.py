@@ -68,15 +68,12 @@ def conv_act(block: nn.Sequential, x: Tensor) -> Tensor:
 
 
 def cat_channels_last(tensors: list[Tensor]) -> Tensor:
-    """``torch.cat(tensors, dim=1)`` written straight into a channels-last tensor (one copy)."""
+    """``torch.cat(tensors, dim=1)`` written straight into a channels-last tensor (one copy;
+    ``torch.cat`` alone returns NCHW when a one-channel input is among channels-last ones)."""
     b, _, h, w = tensors[0].shape
     out = torch.empty(b, sum(t.shape[1] for t in tensors), h, w, dtype=tensors[0].dtype,
                       device=tensors[0].device, memory_format=torch.channels_last)
-    c = 0
-    for t in tensors:
-        out[:, c:c + t.shape[1]] = t
-        c += t.shape[1]
-    return out
+    return torch.cat(tensors, dim=1, out=out)
 
 
 class PixelAttention(nn.Module):
@@ -113,13 +110,17 @@ class PixelAttention(nn.Module):
         conv = self.net[0]
         f = target.shape[1]
         weight = torch.cat([conv.weight[:, f:2 * f], conv.weight[:, 2 * f + 1:]], dim=1)
-        return F.conv2d(torch.cat([target, target_depth], dim=1), weight, conv.bias, padding=conv.padding)
+        return F.conv2d(cat_channels_last([target, target_depth]), weight, conv.bias, padding=conv.padding)
 
     def from_target_term(self, neighbour_and_depth: Tensor, term: Tensor) -> Tensor:
-        """psi_pix from ``(B, F + 1, H, W)`` [H', D_i] and :meth:`target_term` (equal to :meth:`forward`)."""
+        """psi_pix from [H', D_i, ...] ``(B, F + 1 + extra, H, W)`` and :meth:`target_term`
+        (equal to :meth:`forward`; channels after D_i are ignored, so a buffer holding more
+        channels is used without copying)."""
         conv = self.net[0]
-        f = neighbour_and_depth.shape[1] - 1
-        weight = torch.cat([conv.weight[:, :f], conv.weight[:, 2 * f:2 * f + 1]], dim=1)
+        f = (conv.weight.shape[1] - 2) // 2
+        extra = neighbour_and_depth.shape[1] - (f + 1)
+        weight = torch.cat([conv.weight[:, :f], conv.weight[:, 2 * f:2 * f + 1],
+                            conv.weight.new_zeros(conv.weight.shape[0], extra, *conv.weight.shape[2:])], dim=1)
         hidden = F.conv2d(neighbour_and_depth, weight, None, padding=conv.padding)
         hidden = F.leaky_relu(hidden.add_(term), self.net[1].negative_slope)
         return torch.sigmoid(fastops.conv2d(hidden, self.net[2]))

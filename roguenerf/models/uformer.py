@@ -79,34 +79,51 @@ class WindowAttention(nn.Module):
         return rearrange(b, "i j n -> n i j")
 
     def forward(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
-        fast = fastops.fast_enabled(x)
         qkv = fastops.linear(x, self.to_qkv)
         q, k, v = rearrange(qkv, "b l (three n d) -> three b n l d", three=3, n=self.heads)
-        bias = self._cached_bias(mask) if fast else self._bias(mask)
-        if mask is not None:
-            num_windows = mask.shape[0]
-            bias = bias[None].expand(x.shape[0] // num_windows, -1, -1, -1, -1).reshape(-1, *bias.shape[1:])
+        if self.fused and fastops.fast_enabled(x):
+            out = self._fast_attention(q, k, v, mask)
         else:
-            bias = bias[None]
-        if self.fused and not fastops.in_reference_mode():
-            out = F.scaled_dot_product_attention(q, k, v, attn_mask=bias.to(q.dtype), scale=self.scale)
-        else:
-            attn = (q * self.scale) @ k.transpose(-2, -1) + bias
-            out = attn.softmax(dim=-1) @ v
+            bias = self.bias()[None]
+            if mask is not None:
+                num_windows = mask.shape[0]
+                bias = rearrange(bias + mask[:, None], "nw n i j -> 1 nw n i j")
+                bias = bias.expand(x.shape[0] // num_windows, -1, -1, -1, -1).reshape(-1, *bias.shape[2:])
+            if self.fused and not fastops.in_reference_mode():
+                out = F.scaled_dot_product_attention(q, k, v, attn_mask=bias.to(q.dtype), scale=self.scale)
+            else:
+                attn = (q * self.scale) @ k.transpose(-2, -1) + bias
+                out = attn.softmax(dim=-1) @ v
         return fastops.linear(rearrange(out, "b n l d -> b l (n d)"), self.to_out)
 
-    def _bias(self, mask: Tensor | None) -> Tensor:
-        """``(n, L, L)`` bias, or ``(N, n, L, L)`` bias + shift mask."""
-        return self.bias() if mask is None else self.bias()[None] + mask[:, None]
+    def _fast_attention(self, q: Tensor, k: Tensor, v: Tensor, mask: Tensor | None) -> Tensor:
+        """Fused attention with the bias broadcast over all windows; with a shift mask, only the
+        windows the mask touches (the last row and column of windows) are redone with it.
+        Elsewhere the mask is exactly 0, so the result equals the plain path. No gradient."""
+        bias, edges, edge_bias = self._cached_bias(mask)
+        out = F.scaled_dot_product_attention(q, k, v, attn_mask=bias[None], scale=self.scale)
+        if mask is not None and edges.numel():
+            num_windows = mask.shape[0]
+            images = q.shape[0] // num_windows
+            idx = (torch.arange(images, device=q.device)[:, None] * num_windows + edges[None]).flatten()
+            eb = edge_bias.repeat(images, 1, 1, 1) if images > 1 else edge_bias
+            out[idx] = F.scaled_dot_product_attention(q[idx], k[idx], v[idx], attn_mask=eb, scale=self.scale)
+        return out
 
-    def _cached_bias(self, mask: Tensor | None) -> Tensor:
-        """:meth:`_bias`, recomputed only when the bias table or the mask changes (no-grad use only)."""
+    def _cached_bias(self, mask: Tensor | None) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        """``(n, L, L)`` bias; with a mask also the windows it touches ``(E,)`` and their bias + mask
+        ``(E, n, L, L)``. Recomputed only when the bias table or the mask changes (no-grad use)."""
         table = self.relative_position_bias_table
         key = (table._version, table.data_ptr(), table.device)
         cached = getattr(self, "_bias_cache", None)
         # The cache holds the mask itself, so ``is`` cannot match a new mask at a reused address.
         if cached is None or cached[0] != key or cached[1] is not mask:
-            cached = (key, mask, self._bias(mask))
+            bias = self.bias()
+            edges = edge_bias = None
+            if mask is not None:
+                edges = (mask != 0).flatten(1).any(dim=1).nonzero().flatten()
+                edge_bias = bias[None] + mask[edges][:, None]
+            cached = (key, mask, (bias, edges, edge_bias))
             self._bias_cache = cached
         return cached[2]
 
