@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -23,6 +24,19 @@ from roguenerf.errors import InputError, NonFiniteOutputError
 
 DEFAULT_TILE = 512
 """Images whose height or width exceed this are enhanced tile by tile (bounded memory)."""
+
+DEFAULT_CACHE_BYTES = 2 << 30
+"""Budget of the per-scene neighbour cache (features + depth, float32), least recently used
+first out. A photo whose entry alone would take more than budget / neighbours per request is
+never cached: each tile then encodes just the crop of it that the tile sees (bounded memory
+for very large images, at the cost of re-encoding)."""
+
+PROBE_PIXELS = 128 * 128
+"""The "does any neighbour see this view" check looks at about this many target pixels."""
+
+CONV_H_HALO = 2
+"""Receptive radius of conv_H (two 3x3 convolutions): a crop encoded with this margin gives
+exactly the whole photo's features inside the crop."""
 
 NO_NEIGHBOUR_NOTE = "no neighbour sees this view: enhanced without neighbours"
 
@@ -77,7 +91,7 @@ class SceneEnhancer:
     """
 
     def __init__(self, scene, model, *, num_neighbours: int | None = None, tile: int | None = None,
-                 device: str | torch.device = "cpu"):
+                 device: str | torch.device = "cpu", cache_bytes: int = DEFAULT_CACHE_BYTES):
         if num_neighbours is not None and int(num_neighbours) < 0:
             raise InputError(f"num_neighbours: expected >= 0, got {num_neighbours}")
         if tile is not None and int(tile) < 16:
@@ -100,29 +114,94 @@ class SceneEnhancer:
         else:
             self.train_poses = torch.zeros(0, 4, 4)
             self.train_K = torch.zeros(0, 3, 3)
-        self._features: dict[int, Tensor] = {}
+        self.cache_bytes = int(cache_bytes)
+        self._sources: OrderedDict[int, Tensor] = OrderedDict()
         self._depths: dict[int, Tensor] = {}
         self._lock = threading.Lock()
 
-    def _neighbour_data(self, positions: list[int]) -> tuple[Tensor, Tensor]:
-        """Features ``(N, F, Hs, Ws)`` and depths ``(N, 1, Hs, Ws)`` of training positions, cached."""
+    def _source_bytes(self, position: int) -> int:
+        frame = self.scene.frames[self.train[position]]
+        features = getattr(self.model.config, "features", 64)
+        return (features + 2) * frame.height * frame.width * 4
+
+    def cacheable(self, position: int) -> bool:
+        """Whether training position ``position``'s neighbour entry fits the cache budget."""
+        return self._source_bytes(position) * max(1, self.num_neighbours) <= self.cache_bytes
+
+    def _depth(self, position: int) -> Tensor:
+        """``(1, Hs, Ws)`` rendered depth of a training position (kept: 4 bytes a pixel)."""
+        if position not in self._depths:
+            self._depths[position] = self.scene.depth(self.train[position]).to(self.device, torch.float32)
+        return self._depths[position]
+
+    def _cached_sources(self, positions: list[int]) -> list[Tensor]:
+        """``(1, F + 2, Hs, Ws)`` sampling sources (features, depth, mask) of cacheable positions."""
         with self._lock:
-            missing = [p for p in positions if p not in self._features]
-            if missing:
-                photos = torch.stack([self.scene.photo(self.train[p]) for p in missing]).to(self.device)
-                with torch.inference_mode():
-                    feats = self.model.encode_neighbours(photos.float())
-                for p, f in zip(missing, feats):
-                    self._features[p] = f
-                    self._depths[p] = self.scene.depth(self.train[p]).to(self.device, torch.float32)
-            features = torch.stack([self._features[p] for p in positions])
-            depths = torch.stack([self._depths[p] for p in positions])
-        return features, depths
+            out = []
+            for p in positions:
+                if p not in self._sources:
+                    photo = self.scene.photo(self.train[p]).to(self.device, torch.float32)[None]
+                    with torch.inference_mode():
+                        feats = self.model.encode_neighbours(photo)
+                        self._sources[p] = self.model.neighbour_source(feats, self._depth(p)[None])
+                    used = sum(t.numel() * t.element_size() for t in self._sources.values())
+                    while used > self.cache_bytes and len(self._sources) > 1:
+                        _, old = self._sources.popitem(last=False)
+                        used -= old.numel() * old.element_size()
+                self._sources.move_to_end(p)
+                out.append(self._sources[p])
+        return out
+
+    def _crop_provider(self, positions: list[int], world_from_cam: Tensor):
+        """Per-tile neighbours for photos too large to cache: for each tile, each neighbour's
+        features are computed on just the part of its photo the tile projects into (plus the
+        bilinear and conv_H margins), which gives the same values as the whole photo's."""
+        from roguenerf.geometry import reproject, sampling_source
+        from roguenerf.models import NeighbourBatch
+
+        photos = [self.scene.photo(self.train[p]).to(self.device, torch.float32) for p in positions]
+        depths = [self._depth(p) for p in positions]
+        Ks = self.train_K[positions].to(self.device)
+        poses = self.train_poses[positions].to(self.device)
+        leniency = getattr(self.model.config, "leniency", 0.25)
+        with torch.inference_mode():
+            depth_sources = [sampling_source(d[None], d[None]) for d in depths]
+
+        def provider(depth_tile: Tensor, K_tile: Tensor):
+            sources, crop_K = [], []
+            for photo, depth, depth_source, K_j, pose_j in zip(photos, depths, depth_sources, Ks, poses):
+                hs, ws = depth.shape[-2:]
+                rp = reproject(depth[None], depth[None], depth_tile, K_j, K_tile[0], pose_j,
+                               world_from_cam, leniency=leniency, source=depth_source)
+                valid = rp.valid[0, 0] > 0
+                if bool(valid.any()):
+                    xs, ys = rp.coords[0, ..., 0][valid], rp.coords[0, ..., 1][valid]
+                    x0 = max(int(torch.floor(xs.min())) - 1, 0)
+                    x1 = min(int(torch.ceil(xs.max())) + 2, ws)
+                    y0 = max(int(torch.floor(ys.min())) - 1, 0)
+                    y1 = min(int(torch.ceil(ys.max())) + 2, hs)
+                else:  # nothing to see: a small crop whose depth is all unknown
+                    x0, x1, y0, y1 = 0, min(ws, 2), 0, min(hs, 2)
+                hx0, hy0 = max(x0 - CONV_H_HALO, 0), max(y0 - CONV_H_HALO, 0)
+                hx1, hy1 = min(x1 + CONV_H_HALO, ws), min(y1 + CONV_H_HALO, hs)
+                feats = self.model.encode_neighbours(photo[None, :, hy0:hy1, hx0:hx1])
+                feats = feats[..., y0 - hy0:y1 - hy0, x0 - hx0:x1 - hx0]
+                crop_depth = depth[None, :, y0:y1, x0:x1]
+                if not bool(valid.any()):
+                    crop_depth = torch.zeros_like(crop_depth)
+                sources.append(self.model.neighbour_source(feats, crop_depth))
+                K_c = K_j.clone()
+                K_c[0, 2] -= x0
+                K_c[1, 2] -= y0
+                crop_K.append(K_c)
+            return NeighbourBatch(None, None, torch.stack(crop_K)[None], poses[None], sources=sources)
+
+        return provider
 
     def cached_views(self) -> int:
-        """How many training photos have been encoded so far."""
+        """How many training photos' features are in the cache now."""
         with self._lock:
-            return len(self._features)
+            return len(self._sources)
 
     def select(self, world_from_cam: Tensor, *, exclude=None) -> list[int]:
         """Scene indices of the neighbours of a pose (nearest first), per the paper's rule."""
@@ -178,24 +257,21 @@ class SceneEnhancer:
         batch = None
         if chosen:
             positions = [self.train.index(i) for i in chosen]
-            features, depths = self._neighbour_data(positions)
-            n_K = self.train_K[positions].to(dev)
-            n_pose = self.train_poses[positions].to(dev)
-            with torch.inference_mode():
-                n = len(positions)
-                probe = reproject(depths, depths, depth_b.expand(n, -1, -1, -1), n_K,
-                                  K_b.expand(n, -1, -1), n_pose, pose_b.expand(n, -1, -1),
-                                  leniency=getattr(self.model.config, "leniency", 0.25))
-            if float(probe.valid.sum()) == 0.0:
+            if not self._any_neighbour_sees(positions, depth_b, K_b, pose_b):
                 note = NO_NEIGHBOUR_NOTE
                 chosen = []
             else:
-                batch = NeighbourBatch(features=features[None], depth=depths[None],
-                                       K=n_K[None], world_from_cam=n_pose[None])
+                n_K = self.train_K[positions].to(dev)
+                n_pose = self.train_poses[positions].to(dev)
+                if all(self.cacheable(p) for p in positions):
+                    batch = NeighbourBatch(None, None, n_K[None], n_pose[None],
+                                           sources=self._cached_sources(positions))
+                else:
+                    batch = self._crop_provider(positions, pose_b[0])
 
         with torch.inference_mode():
             height, width = render.shape[1:]
-            if max(height, width) > self.tile:
+            if max(height, width) > self.tile or callable(batch):
                 from roguenerf.models.tiling import enhance_tiled
 
                 out = enhance_tiled(self.model, render_b, depth_b, K_b, pose_b, batch, tile=self.tile,
@@ -208,6 +284,29 @@ class SceneEnhancer:
         image = out[0].clamp(0, 1).to("cpu", torch.float32)
         names = [self.scene.frames[i].name for i in chosen]
         return EnhanceResult(image=image, neighbours=names, seconds=time.perf_counter() - start, note=note)
+
+    def _any_neighbour_sees(self, positions: list[int], depth_b: Tensor, K_b: Tensor, pose_b: Tensor) -> bool:
+        """Whether any target pixel passes the reprojection test in any neighbour, checked on a
+        regular subsample of about :data:`PROBE_PIXELS` target pixels (cheap at any size)."""
+        from roguenerf.geometry import reproject
+
+        h, w = depth_b.shape[-2:]
+        step = max(1, int((h * w / PROBE_PIXELS) ** 0.5))
+        sub = depth_b[..., ::step, ::step]
+        K_sub = K_b[0].clone()
+        # Pixel u' of the subsample is pixel step * u' (centre step * u' + 0.5) of the image.
+        K_sub[:2] /= step
+        K_sub[0, 2] += 0.5 - 0.5 / step
+        K_sub[1, 2] += 0.5 - 0.5 / step
+        leniency = getattr(self.model.config, "leniency", 0.25)
+        with torch.inference_mode():
+            for p in positions:
+                depth = self._depth(p)[None]
+                probe = reproject(depth, depth, sub, self.train_K[p].to(depth), K_sub,
+                                  self.train_poses[p].to(depth), pose_b[0], leniency=leniency)
+                if bool(probe.valid.any()):
+                    return True
+        return False
 
     def enhance_view(self, index: int | str) -> EnhanceResult:
         """Enhance the scene's own render of view ``index`` (scene index or name).

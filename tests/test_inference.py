@@ -167,3 +167,33 @@ def test_large_images_are_tiled(scene):
     assert tiled.neighbours == whole.neighbours
     # conv-only model with overlapping tiles: the seams must not change the image much
     assert float((tiled.image - whole.image).abs().mean()) < 0.02
+
+
+def test_uncacheable_photos_use_per_tile_crops_with_the_same_result(scene):
+    """Photos too large for the cache budget are encoded per tile, only the part each tile
+    sees (plus margins): the image equals the cached path's (same tiles), and nothing is cached."""
+    model = _model()
+    for tile in (16, 512):  # tiled, and one whole-image "tile"
+        cached = SceneEnhancer(scene, model, num_neighbours=3, tile=tile)
+        cropped = SceneEnhancer(scene, model, num_neighbours=3, tile=tile, cache_bytes=1)
+        calls = _counting(model)
+        for view in ("test_000", "test_001", "train_002"):
+            a, b = cached.enhance_view(view), cropped.enhance_view(view)
+            assert a.neighbours == b.neighbours
+            torch.testing.assert_close(b.image, a.image, atol=2e-4, rtol=0)
+        del model.encode_neighbours  # undo _counting
+        assert cropped.cached_views() == 0 and cached.cached_views() > 0
+        # every crop is smaller than the photo (32 x 40) whenever the image is tiled
+        if tile == 16:
+            assert calls and all(n == 1 for n in calls)
+
+
+def test_neighbour_cache_keeps_to_its_byte_budget(scene):
+    model = _model()
+    one = (model.config.features + 2) * 32 * 40 * 4
+    enhancer = SceneEnhancer(scene, model, num_neighbours=2, cache_bytes=3 * one)
+    seen = set()
+    for view in ("test_000", "test_001", "train_000", "train_004"):
+        seen.update(enhancer.enhance_view(view).neighbours)
+        assert enhancer.cached_views() <= 3
+    assert len(seen) > 3  # the budget really evicted something

@@ -60,29 +60,37 @@ class NeighbourBatch:
     """Neighbours of each target in a batch; N may be 0.
 
     features: ``(B, N, F, Hs, Ws)`` conv_H features of the neighbour *photos* (cached per scene);
-        may be None when ``sources`` is given.
-    depth: ``(B, N, 1, Hs, Ws)`` the neighbours' rendered z-depth.
+        None when ``sources`` is given.
+    depth: ``(B, N, 1, Hs, Ws)`` the neighbours' rendered z-depth; None when ``sources`` is given.
     K: ``(B, N, 3, 3)``; world_from_cam: ``(B, N, 4, 4)`` OpenCV.
-    sources: optional list of N tensors ``(B, F + 2, Hs, Ws)``, neighbour j's
-        :func:`~roguenerf.geometry.reproject.sampling_source` (features, known depth, mask):
-        per-scene work that :class:`~roguenerf.inference.SceneEnhancer` caches, so that no
-        request re-stacks or re-lays-out the neighbour features.
+    sources: optional list of N tensors ``(B, F + 2, Hs_j, Ws_j)``, neighbour j's
+        :func:`~roguenerf.geometry.reproject.sampling_source` (features, known depth, known mask),
+        which already hold features and depth. Per-scene work that
+        :class:`~roguenerf.inference.SceneEnhancer` caches, so that no request re-stacks the
+        neighbour features; neighbours may then differ in size (crops of large photos, with
+        K's principal point shifted by the crop offset).
     """
 
     features: Tensor | None
-    depth: Tensor
+    depth: Tensor | None
     K: Tensor
     world_from_cam: Tensor
     sources: list[Tensor] | None = None
 
     def __len__(self) -> int:
-        return self.depth.shape[1]
+        return len(self.sources) if self.sources is not None else self.K.shape[1]
 
     def feature_map(self, j: int) -> Tensor:
         """``(B, F, Hs, Ws)`` features of neighbour j (a view, no copy)."""
         if self.sources is not None:
             return self.sources[j][:, :-2]
         return self.features[:, j]
+
+    def depth_map(self, j: int) -> Tensor:
+        """``(B, 1, Hs, Ws)`` depth of neighbour j (with sources: the known depth, 0 where unknown)."""
+        if self.sources is not None:
+            return self.sources[j][:, -2:-1]
+        return self.depth[:, j]
 
 
 def known_depth(depth: Tensor) -> Tensor:
@@ -203,15 +211,11 @@ class Enhancer(nn.Module):
         b, f, h, w = feats.shape
         n = len(nbrs)
         if nbrs.sources is not None:
-            if len(nbrs.sources) != n:
-                raise InputError(f"neighbours.sources: expected {n} tensors, got {len(nbrs.sources)}")
             for j, source in enumerate(nbrs.sources):
                 _check(source, f"neighbours.sources[{j}]", (b, f + 2, None, None))
-            hs, ws = nbrs.sources[0].shape[-2:]
         else:
             _check(nbrs.features, "neighbours.features", (b, n, f, None, None))
-            hs, ws = nbrs.features.shape[-2:]
-        _check(nbrs.depth, "neighbours.depth", (b, n, 1, hs, ws))
+            _check(nbrs.depth, "neighbours.depth", (b, n, 1, *nbrs.features.shape[-2:]))
         _check(nbrs.K, "neighbours.K", (b, n, 3, 3))
         _check(nbrs.world_from_cam, "neighbours.world_from_cam", (b, n, 4, 4))
         K = K.expand(b, 3, 3) if K.ndim == 2 else _check(K, "K", (b, 3, 3))
@@ -240,7 +244,7 @@ class Enhancer(nn.Module):
 
         pooled = None
         for j in range(n):
-            src, src_depth = nbrs.feature_map(j), nbrs.depth[:, j]
+            src, src_depth = nbrs.feature_map(j), nbrs.depth_map(j)
             source = nbrs.sources[j] if nbrs.sources is not None else None
             with stage("reprojection"):
                 aligned, nb_depth, packed = self._align(src, src_depth, depth, nbrs.K[:, j], K,

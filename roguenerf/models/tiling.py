@@ -75,7 +75,9 @@ def enhance_tiled(model, render: Tensor, depth: Tensor, K: Tensor, world_from_ca
     Args:
         model: an :class:`~roguenerf.models.enhancer.Enhancer`.
         render: ``(B, 3, H, W)``; depth: ``(B, 1, H, W)``; K: ``(B, 3, 3)``;
-        world_from_cam: ``(B, 4, 4)``; neighbours: NeighbourBatch or None (used whole by every tile).
+        world_from_cam: ``(B, 4, 4)``; neighbours: NeighbourBatch or None (used whole by every
+            tile), or a callable ``(depth_tile, K_tile) -> NeighbourBatch | None`` giving each
+            tile its own neighbours (e.g. only the crops of large photos the tile sees).
         tile: tile side in pixels (>= 16); overlap: pixels shared by neighbouring tiles
             (0 <= overlap < tile).
     Returns:
@@ -89,8 +91,9 @@ def enhance_tiled(model, render: Tensor, depth: Tensor, K: Tensor, world_from_ca
         raise InputError(f"render, depth: expected (B, 3, H, W) and (B, 1, H, W), got "
                          f"{tuple(render.shape)} and {tuple(depth.shape)}")
     b, _, h, w = render.shape
+    provider = neighbours if callable(neighbours) else (lambda depth_tile, K_tile: neighbours)
     if h <= tile and w <= tile:
-        return model(render, depth, K, world_from_cam, neighbours)
+        return model(render, depth, K, world_from_cam, provider(depth, K))
     align = getattr(model, "tile_alignment", 1)
     ys, xs = tile_starts(h, tile, overlap, align), tile_starts(w, tile, overlap, align)
     wy = axis_weights(ys, tile, h, render.device, render.dtype)
@@ -105,8 +108,9 @@ def enhance_tiled(model, render: Tensor, depth: Tensor, K: Tensor, world_from_ca
             K_tile = K.clone()
             K_tile[:, 0, 2] -= x0
             K_tile[:, 1, 2] -= y0
-            pred = model(render[..., y0:y1, x0:x1], depth[..., y0:y1, x0:x1], K_tile, world_from_cam,
-                         neighbours, depth_scale=scale)
+            depth_tile = depth[..., y0:y1, x0:x1]
+            pred = model(render[..., y0:y1, x0:x1], depth_tile, K_tile, world_from_cam,
+                         provider(depth_tile, K_tile), depth_scale=scale)
             wgt = wgt_y[:, None] * wgt_x[None, :]
             out[..., y0:y1, x0:x1] += pred * wgt
             total[..., y0:y1, x0:x1] += wgt

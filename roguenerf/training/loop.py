@@ -113,6 +113,32 @@ def training_step_inputs(model, data: SceneData, targets: Tensor, crop: int, gen
     return args, photo.to(device)
 
 
+def train_step(model, data: SceneData, targets: Tensor, crop: int, generator: torch.Generator,
+               device: torch.device, loss_fn, optimizer: torch.optim.Optimizer, *, step: int = 0,
+               checkpoint: str | None = None) -> float:
+    """One optimisation step on ``targets`` ``(B,)`` of ``data``, as fine-tuning and pre-training make it.
+
+    Random c x c crops and neighbour features (:func:`training_step_inputs`) -> ``model`` forward
+    -> ``loss_fn(output, photo)`` -> backward -> ``optimizer.step()``. Returns the loss value.
+    Raises:
+        TrainingDivergedError: non-finite loss or gradients, reported as step ``step + 1`` with
+            ``checkpoint`` as the last good one; the weights are left unchanged.
+    """
+    args, photo = training_step_inputs(model, data, targets, crop, generator, device)
+    output = model(*args)
+    loss = loss_fn(output, photo)
+    loss_value = float(loss.detach())
+    if not math.isfinite(loss_value):
+        raise TrainingDivergedError(step + 1, loss_value, checkpoint)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    grads = [p.grad for p in model.parameters() if p.grad is not None]
+    if grads and not torch.isfinite(torch.stack([g.abs().max() for g in grads])).all():
+        raise TrainingDivergedError(step + 1, float("nan"), checkpoint)
+    optimizer.step()
+    return loss_value
+
+
 def _apply_without(config, without: Sequence[str]):
     return dataclasses.replace(config, **{SWITCHES[w]: False for w in without})
 
@@ -272,18 +298,8 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
                 raise TrainingCancelled(step, str(model_path))
             d = datasets[int(torch.multinomial(weights, 1, generator=generator))]
             targets = torch.randint(0, len(d), (plan["batch"],), generator=generator)
-            args, photo = training_step_inputs(model, d, targets, plan["crop"], generator, device)
-            output = model(*args)
-            loss = loss_fn(output, photo)
-            loss_value = float(loss.detach())
-            if not math.isfinite(loss_value):
-                raise TrainingDivergedError(step + 1, loss_value, str(model_path))
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            grads = [p.grad for p in model.parameters() if p.grad is not None]
-            if grads and not torch.isfinite(torch.stack([g.abs().max() for g in grads])).all():
-                raise TrainingDivergedError(step + 1, float("nan"), str(model_path))
-            optimizer.step()
+            loss_value = train_step(model, d, targets, plan["crop"], generator, device, loss_fn, optimizer,
+                                    step=step, checkpoint=str(model_path))
             step += 1
 
             now = time.perf_counter()
