@@ -44,8 +44,12 @@ def _fail(message: str, code: int) -> None:
 
 @contextlib.contextmanager
 def _errors():
-    """Turn library exceptions into one stderr line and an exit code (no stack trace)."""
+    """Apply the process settings (:mod:`roguenerf.runtime`), then turn library exceptions into
+    one stderr line and an exit code (no stack trace)."""
     try:
+        from roguenerf import runtime
+
+        runtime.configure()
         yield
     except typer.Exit:
         raise

@@ -66,6 +66,9 @@ def _open(settings: Settings) -> Services:
     store = JobStore(settings.db_url)
     store.init_schema()
     import roguenerf.inference  # noqa: F401  (torch's import cost belongs to startup, not the first request)
+    from roguenerf import runtime
+
+    log.info("runtime: %s", runtime.configure())
 
     return Services(
         settings=settings,

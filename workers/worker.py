@@ -76,6 +76,9 @@ def run_worker(settings) -> None:
     """Run until SIGINT (drain) or SIGTERM; blocks."""
     ctx, queue, store = build_worker(settings)
     import roguenerf.training  # noqa: F401  (pay torch's import before the first job, not during it)
+    from roguenerf import runtime
+
+    log.info("runtime: %s", runtime.configure())
 
     sweeper = Sweeper(store, queue, settings)
     sweeper.start()

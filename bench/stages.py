@@ -1,0 +1,247 @@
+"""Per-stage profile of the whole enhancement: time, FLOPs and FLOP efficiency per stage.
+
+    python bench/stages.py --output bench/results/stages.csv [--variants micro,nano,T,S,B]
+                            [--sizes 378x504,512x512] [--repeats 3] [--no-reference]
+
+For each variant and size, one enhancement with 5 neighbours whose sampling sources are cached
+(as ``SceneEnhancer`` serves a scene), ``torch.inference_mode``, torch's default threads (one
+per core), glibc keeping freed memory (``roguenerf.runtime.configure``). Stages are the ones
+the enhancer marks (``roguenerf.profiling``): encoders, reprojection, flow, attention, fusion,
+merge, uformer, other.
+
+Columns per stage:
+  seconds            median over ``--repeats`` timed runs of the fast path (after one warm-up)
+  seconds_reference  the plain implementation (``reference_mode()``: no fused kernels, NCHW,
+                     grid_sample, unshared target work, per-call masks), same weights and inputs
+  gflop_model        FLOPs of the architecture as written (counted on the reference path:
+                     convolutions and matmuls, attention included; 2 per multiply-add)
+  gflop_executed     FLOPs the fast path executes (it shares target work across neighbours)
+  efficiency         gflop_model / seconds / peak, where peak is the best float32 matmul
+                     GFLOP/s (2048^3, best of 5) measured in this run, before and after
+Also per configuration: ``max_abs_diff`` between the fast and reference outputs, and one row
+``uformer_official``: the official Uformer architecture alone on RGB input (T: 5.23 M
+parameters), reference path, the size's input - the issue's yardstick.
+
+Writes the CSV (date, machine, commit on every row), a JSON summary next to it (must-show
+figures: T at 512x512) and a PNG plot. Weights are random with the zero-initialised layers
+randomised too (speed does not depend on weights; the flow is then non-zero).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.common import stamp, write_csv, write_json  # noqa: E402
+from roguenerf import runtime  # noqa: E402
+from roguenerf.fastpath import reference_mode  # noqa: E402
+from roguenerf.models import VARIANTS, NeighbourBatch, Uformer, build_enhancer  # noqa: E402
+from roguenerf.profiling import STAGES, StageProfile  # noqa: E402
+
+NEIGHBOURS = 5
+
+
+def matmul_peak(n: int = 2048, repeats: int = 5) -> float:
+    """Best float32 matmul GFLOP/s of ``repeats`` runs (n x n times n x n)."""
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    a @ b
+    best = math.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        a @ b
+        best = min(best, time.perf_counter() - t)
+    return 2 * n**3 / best / 1e9
+
+
+def randomise_zero_layers(model, std: float = 0.02) -> None:
+    """The output projection and flow increment head start at 0; give them weights."""
+    with torch.no_grad():
+        layer = model.uformer.output_proj if model.uformer is not None else model.to_rgb
+        layer.weight.normal_(0, std)
+        if model.flow is not None:
+            model.flow.to_delta[-1].weight.normal_(0, 1e-3)
+
+
+def make_inputs(model, h: int, w: int, n: int = NEIGHBOURS):
+    """A target render of a wall ~4 units away and ``n`` neighbours beside it, their sampling
+    sources cached as ``SceneEnhancer`` caches them. Call under inference mode."""
+    g = torch.Generator().manual_seed(0)
+    f = 0.9 * w
+    K = torch.tensor([[f, 0.0, w / 2], [0.0, f, h / 2], [0.0, 0.0, 1.0]])
+    render = torch.rand(1, 3, h, w, generator=g)
+    depth = 4.0 + 0.2 * torch.rand(1, 1, h, w, generator=g)
+    poses = torch.eye(4).repeat(n + 1, 1, 1)
+    poses[1:, 0, 3] = torch.linspace(-0.3, 0.3, n)
+    photos = torch.rand(n, 3, h, w, generator=g)
+    sources = [model.neighbour_source(model.encode_neighbours(photos[j:j + 1]), 4.0 * torch.ones(1, 1, h, w))
+               for j in range(n)]
+    nb = NeighbourBatch(None, None, K.expand(1, n, 3, 3), poses[None, 1:], sources=sources)
+    return render, depth, K[None], poses[:1], nb
+
+
+def _stage_times(fn, repeats: int) -> tuple[dict, float]:
+    per_stage: dict[str, list[float]] = {}
+    totals = []
+    for _ in range(repeats):
+        with StageProfile() as prof:
+            fn()
+        totals.append(prof.total_seconds)
+        for row in prof.rows():
+            per_stage.setdefault(row["stage"], []).append(row["seconds"])
+    return {k: statistics.median(v) for k, v in per_stage.items()}, statistics.median(totals)
+
+
+def _stage_flops(fn) -> dict:
+    with StageProfile(count_flops=True) as prof:
+        fn()
+    return {row["stage"]: row["gflop"] for row in prof.rows()}
+
+
+def profile(variant: str, h: int, w: int, repeats: int, reference: bool) -> tuple[list[dict], dict]:
+    torch.manual_seed(0)
+    model = build_enhancer(variant).eval()
+    randomise_zero_layers(model)
+    with torch.inference_mode():
+        render, depth, K, pose, nb = make_inputs(model, h, w)
+        run = lambda: model(render, depth, K, pose, nb)  # noqa: E731
+        fast_out = run()
+        seconds, total = _stage_times(run, repeats)
+        executed = _stage_flops(run)
+    ref_seconds, ref_total, diff = {}, float("nan"), float("nan")
+    with torch.no_grad(), reference_mode():
+        model_flops = _stage_flops(run)
+        if reference:
+            ref_out = run()
+            ref_seconds, ref_total = _stage_times(run, 1)
+            diff = float((fast_out - ref_out).abs().max())
+    rows = []
+    names = [s for s in (*STAGES, "other") if s in seconds]
+    for stage in names + ["total"]:
+        if stage == "total":
+            sec, ref, gm, ge = total, ref_total, sum(model_flops.values()), sum(executed.values())
+        else:
+            sec, ref = seconds[stage], ref_seconds.get(stage, float("nan"))
+            gm, ge = model_flops.get(stage, 0.0), executed.get(stage, 0.0)
+        rows.append(dict(variant=variant, height=h, width=w, neighbours=NEIGHBOURS, stage=stage,
+                         seconds=round(sec, 4), seconds_reference=round(ref, 4), gflop_model=round(gm, 3),
+                         gflop_executed=round(ge, 3), max_abs_diff=diff))
+    official = Uformer(model.config.uformer, in_channels=3, out_channels=3).eval()
+    rgb = torch.rand(1, 3, h, w)
+    with torch.no_grad(), reference_mode():
+        official(rgb)
+        t = time.perf_counter()
+        official(rgb)
+        official_s = time.perf_counter() - t
+        official_gflop = _stage_flops(lambda: official(rgb))["other"]
+    summary = dict(variant=variant, height=h, width=w, seconds=total, seconds_reference=ref_total,
+                   gflop_model=sum(model_flops.values()), gflop_executed=sum(executed.values()),
+                   uformer_official_seconds=official_s, uformer_official_gflop=official_gflop,
+                   max_abs_diff=diff)
+    return rows, summary
+
+
+def plot(rows: list[dict], summaries: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    configs = [(s["variant"], s["height"], s["width"]) for s in summaries]
+    fig, (ax_t, ax_e) = plt.subplots(1, 2, figsize=(13, 0.45 * len(configs) * 2 + 2.5))
+    colors = dict(zip((*STAGES, "other"), plt.cm.tab10.colors))
+    labels = []
+    for i, (v, h, w) in enumerate(configs):
+        for k, col in enumerate(("seconds_reference", "seconds")):
+            y = 2 * i + k
+            left = 0.0
+            for r in rows:
+                if (r["variant"], r["height"], r["width"]) != (v, h, w) or r["stage"] == "total":
+                    continue
+                val = r[col] if r[col] == r[col] else 0.0
+                ax_t.barh(y, val, left=left, color=colors[r["stage"]],
+                          label=r["stage"] if i == 0 and k == 1 else None)
+                left += val
+            labels.append(f"{v} {w}x{h} {'plain' if k == 0 else 'fast'}")
+    ax_t.set_yticks(range(len(labels)), labels, fontsize=7)
+    ax_t.set_xscale("log")
+    ax_t.set_xlabel("seconds per enhancement (5 neighbours), stacked by stage")
+    ax_t.legend(fontsize=7, loc="lower right")
+    effs = [s["efficiency_model"] for s in summaries]
+    ax_e.barh(range(len(configs)), effs, color="tab:green")
+    ax_e.axvline(0.4, color="k", ls="--", lw=1)
+    ax_e.set_yticks(range(len(configs)), [f"{v} {w}x{h}" for v, h, w in configs], fontsize=7)
+    ax_e.set_xlabel("whole forward: model GFLOP / s / matmul peak")
+    s0 = rows[0]
+    fig.suptitle(f"RoGUENeRF enhancement profile - peak {summaries[0]['peak_gflops']:.0f} GFLOP/s - "
+                 f"{s0['date']} - {s0['commit']}\n{s0['machine']}", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--output", required=True, type=Path, help="CSV to write (JSON and PNG go next to it)")
+    p.add_argument("--variants", default="micro,nano,T,S,B")
+    p.add_argument("--sizes", default="378x504,512x512", help="comma-separated HxW")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--no-reference", action="store_true", help="skip timing the plain implementation")
+    args = p.parse_args(argv)
+    applied = runtime.configure()
+    variants = [v for v in args.variants.split(",") if v]
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        p.error(f"--variants: unknown {unknown}; expected some of {sorted(VARIANTS)}")
+    sizes = [tuple(int(x) for x in s.lower().split("x")) for s in args.sizes.split(",") if s]
+    meta = stamp()
+    print(f"runtime: {applied}", flush=True)
+    peaks = [matmul_peak()]
+    print(f"matmul peak: {peaks[0]:.1f} GFLOP/s", flush=True)
+    rows, summaries = [], []
+    for variant in variants:
+        for h, w in sizes:
+            r, s = profile(variant, h, w, args.repeats, not args.no_reference)
+            rows += [{**meta, **row} for row in r]
+            summaries.append(s)
+            print(f"{variant} {w}x{h}: {s['seconds']:.3f} s (plain {s['seconds_reference']:.3f} s), "
+                  f"{s['gflop_model']:.1f} GFLOP model / {s['gflop_executed']:.1f} executed, "
+                  f"max |fast - plain| {s['max_abs_diff']:.2e}, official Uformer alone "
+                  f"{s['uformer_official_seconds']:.3f} s", flush=True)
+    peaks.append(matmul_peak())
+    peak = max(peaks)
+    for row in rows:
+        row["peak_gflops"] = round(peak, 1)
+        row["gflops_per_s"] = round(row["gflop_executed"] / row["seconds"], 2) if row["seconds"] else 0.0
+        row["efficiency"] = round(row["gflop_model"] / row["seconds"] / peak, 4) if row["seconds"] else 0.0
+        row["efficiency_executed"] = round(row["gflop_executed"] / row["seconds"] / peak, 4) if row["seconds"] else 0.0
+        row["threads"] = applied["threads"]
+    for s in summaries:
+        stage_rows = [r for r in rows if (r["variant"], r["height"], r["width"]) == (s["variant"], s["height"], s["width"])
+                      and r["stage"] not in ("total", "other")]
+        # The stage costing the most time beyond what it would take at the matmul peak.
+        limiting = max(stage_rows, key=lambda r: r["seconds"] - r["gflop_model"] / peak)
+        s.update(peak_gflops=peak, peaks_measured=peaks, threads=applied["threads"],
+                 efficiency_model=s["gflop_model"] / s["seconds"] / peak,
+                 efficiency_executed=s["gflop_executed"] / s["seconds"] / peak,
+                 speedup_vs_plain=s["seconds_reference"] / s["seconds"],
+                 limiting_stage=limiting["stage"],
+                 limiting_stage_seconds=limiting["seconds"],
+                 limiting_stage_efficiency=limiting["gflop_model"] / limiting["seconds"] / peak)
+        print(f"{s['variant']} {s['width']}x{s['height']}: efficiency {s['efficiency_model']:.1%} of peak "
+              f"(executed FLOPs: {s['efficiency_executed']:.1%}), {s['speedup_vs_plain']:.2f}x the plain path, "
+              f"limited by {s['limiting_stage']}", flush=True)
+    write_csv(args.output, rows)
+    write_json(args.output.with_suffix(".json"), {**meta, "runtime": applied, "configs": summaries})
+    plot(rows, summaries, args.output.with_suffix(".png"))
+    print(f"wrote {args.output}, {args.output.with_suffix('.json')} and {args.output.with_suffix('.png')}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,123 @@
+"""Process-level settings against enhancement time: threads, OpenMP wait policy, allocator.
+
+    python bench/threads.py --output bench/results/threads.csv [--variant micro] [--size 378x504]
+                            [--repeats 5]
+
+Each configuration runs in a fresh child process (OpenMP reads its wait policy when torch is
+imported), on an idle machine and again beside a competing process that keeps both cores
+busy with float32 matmuls on 2 threads (as a fine-tuning job beside the service would). The
+child builds the variant with random weights, caches 5 neighbours' sampling sources as
+``SceneEnhancer`` does, warms up twice and reports the median of ``--repeats`` forwards
+(``torch.inference_mode``). Writes CSV (date, machine, commit) and a PNG bar chart.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.common import stamp, write_csv  # noqa: E402
+
+CHILD = r"""
+import json, statistics, sys, time
+sys.path.insert(0, {repo!r})
+import torch
+from roguenerf import runtime
+applied = runtime.configure({threads})
+from bench.stages import make_inputs
+from roguenerf.models import build_enhancer
+torch.manual_seed(0)
+model = build_enhancer({variant!r}).eval()
+with torch.inference_mode():
+    render, depth, K, pose, nb = make_inputs(model, {h}, {w}, 5)
+    run = lambda: model(render, depth, K, pose, nb)
+    run(); run()
+    times = []
+    for _ in range({repeats}):
+        t = time.perf_counter(); run(); times.append(time.perf_counter() - t)
+print(json.dumps(dict(applied, seconds=statistics.median(times))))
+"""
+
+COMPETITOR = "import torch\ntorch.set_num_threads(2)\na = torch.randn(1024, 1024)\nwhile True:\n    a @ a\n"
+
+CONFIGS = [  # (threads, OMP_WAIT_POLICY or None for the default, keep freed memory)
+    (2, None, True), (2, "PASSIVE", True), (2, "ACTIVE", True), (1, None, True), (2, None, False),
+]
+
+
+def run_child(repo: Path, variant: str, h: int, w: int, repeats: int, threads: int, policy: str | None,
+              keep: bool) -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "OMP_NUM_THREADS")}
+    if policy:
+        env["OMP_WAIT_POLICY"] = policy
+    env["ROGUENERF_KEEP_FREED_MEMORY"] = "1" if keep else "0"
+    code = CHILD.format(repo=str(repo), threads=threads, variant=variant, h=h, w=w, repeats=repeats)
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--output", required=True, type=Path)
+    p.add_argument("--variant", default="micro")
+    p.add_argument("--size", default="378x504", help="HxW")
+    p.add_argument("--repeats", type=int, default=5)
+    args = p.parse_args(argv)
+    h, w = (int(v) for v in args.size.lower().split("x"))
+    repo = Path(__file__).resolve().parents[1]
+    meta = stamp()
+    rows = []
+    for load in ("idle", "competing process"):
+        competitor = None
+        if load != "idle":
+            competitor = subprocess.Popen([sys.executable, "-c", COMPETITOR])
+            time.sleep(2.0)
+        try:
+            for threads, policy, keep in CONFIGS:
+                if load != "idle" and not keep:
+                    continue
+                r = run_child(repo, args.variant, h, w, args.repeats, threads, policy, keep)
+                row = {**meta, "variant": args.variant, "height": h, "width": w, "load": load,
+                       "threads": threads, "omp_wait_policy": policy or "default",
+                       "keep_freed_memory": keep, "seconds": round(r["seconds"], 4)}
+                rows.append(row)
+                print(f"{load:18s} threads={threads} policy={policy or 'default':8s} keep_freed={keep!s:5s} "
+                      f"{r['seconds']:.3f} s", flush=True)
+        finally:
+            if competitor is not None:
+                competitor.kill()
+                competitor.wait()
+    write_csv(args.output, rows)
+    plot(rows, args.output.with_suffix(".png"))
+    print(f"wrote {args.output} and {args.output.with_suffix('.png')}")
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 4))
+    labels = [f"{r['load'].split()[0]}\n{r['threads']}t {r['omp_wait_policy']}"
+              f"{'' if r['keep_freed_memory'] else '\nno keep'}" for r in rows]
+    colors = ["tab:blue" if r["load"] == "idle" else "tab:red" for r in rows]
+    ax.bar(range(len(rows)), [r["seconds"] for r in rows], color=colors)
+    ax.set_xticks(range(len(rows)), labels, fontsize=7)
+    ax.set_ylabel("seconds per enhancement")
+    r0 = rows[0]
+    ax.set_title(f"{r0['variant']} {r0['width']}x{r0['height']}, 5 neighbours - {r0['date']} - {r0['commit']}\n"
+                 f"{r0['machine']}", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+if __name__ == "__main__":
+    main()

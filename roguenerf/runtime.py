@@ -1,0 +1,76 @@
+"""Process-level settings for fast CPU inference and training.
+
+Two settings measured to matter more than any kernel on this project's CPUs
+(``bench/threads.py``; figures in the README):
+
+* **Keep freed memory.** glibc returns large freed blocks (>= 128 KiB by default) to the
+  OS with ``munmap`` and trims the heap top eagerly; the next forward pass then page-faults
+  every activation again (T at 512x512: ~0.5 M faults, ~1 s of system time per forward).
+  :func:`configure` raises glibc's mmap and trim thresholds (``mallopt``) so freed blocks are
+  reused. Cost: the process keeps its peak heap (bounded by tiling) instead of shrinking.
+* **Threads.** torch uses one thread per core it may run on (``sched_getaffinity``).
+  OpenMP's wait policy is read once, when torch is imported: the service and the worker
+  processes, which share the machine, start with ``OMP_WAIT_POLICY=PASSIVE`` unless it is set
+  (:func:`prefer_passive_wait`), so idle threads sleep instead of spinning against each other.
+
+Nothing here changes results. ``ROGUENERF_KEEP_FREED_MEMORY=0`` turns the allocator change off.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+
+M_TRIM_THRESHOLD = -1
+M_MMAP_THRESHOLD = -3
+KEEP_BYTES = 1 << 30
+"""Freed blocks below this size stay with the process (glibc mallopt thresholds)."""
+
+_applied: dict | None = None
+
+
+def prefer_passive_wait() -> None:
+    """Set ``OMP_WAIT_POLICY=PASSIVE`` unless the user set it; effective only before torch loads."""
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+def keep_freed_memory() -> bool:
+    """Make glibc keep freed blocks below :data:`KEEP_BYTES` for reuse; False where unavailable."""
+    if os.environ.get("ROGUENERF_KEEP_FREED_MEMORY", "1") == "0":
+        return False
+    name = ctypes.util.find_library("c")
+    if not name:
+        return False
+    try:
+        libc = ctypes.CDLL(name)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # not glibc (musl, macOS): nothing to do
+        return False
+    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    return bool(mallopt(M_MMAP_THRESHOLD, KEEP_BYTES)) and bool(mallopt(M_TRIM_THRESHOLD, KEEP_BYTES))
+
+
+def available_cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def configure(threads: int | None = None) -> dict:
+    """Apply the settings once per process (later calls only change ``threads`` when given).
+
+    Returns what is in effect: threads, keep_freed_memory, omp_wait_policy.
+    """
+    global _applied
+    import torch
+
+    if _applied is None:
+        _applied = {"keep_freed_memory": keep_freed_memory()}
+        if threads is None:
+            threads = int(os.environ.get("ROGUENERF_THREADS", "0")) or available_cpus()
+    if threads is not None:
+        torch.set_num_threads(max(1, int(threads)))
+    _applied.update(threads=torch.get_num_threads(), omp_wait_policy=os.environ.get("OMP_WAIT_POLICY", "default"))
+    return dict(_applied)
