@@ -1,0 +1,64 @@
+"""The stage profiler reports the real forward's stages with known FLOP counts; runtime settings."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from roguenerf import runtime
+from roguenerf.fastpath import reference_mode
+from roguenerf.models import build_enhancer
+from roguenerf.profiling import STAGES, StageProfile, stage
+from tests.test_model import make_views, randomise
+
+
+@pytest.mark.parametrize("fast", [True, False])
+def test_stage_flops_match_the_architecture(fast):
+    h, w, n = 40, 56, 2
+    model = randomise(build_enhancer("micro")).eval()
+    render, depth, K, P, nb = make_views(model, n=n, h=h, w=w)
+    f = model.config.features
+    with torch.inference_mode() if fast else torch.no_grad(), reference_mode(not fast):
+        with StageProfile(count_flops=True) as prof:
+            model(render, depth, K, P, nb)
+    rows = {r["stage"]: r for r in prof.rows()}
+    assert [s for s in STAGES if s in rows] == list(STAGES)
+    px = h * w
+    # conv_I: 3 -> F and F -> F, 3x3, 2 FLOPs per multiply-add (fused kernels counted alike)
+    assert rows["encoders"]["gflop"] * 1e9 == pytest.approx(2 * px * 9 * (3 * f + f * f))
+    # conv_merge: 2F -> F, 3x3
+    assert rows["merge"]["gflop"] * 1e9 == pytest.approx(2 * px * 9 * 2 * f * f)
+    a = model.config.attention_hidden
+    camera = n * 2 * (9 * a + a)  # camera attention: 9 -> A -> 1 per neighbour
+    if fast:
+        # The target's half of the first conv, [I^f, D_k] (F + 1 channels), once; per neighbour
+        # the conv reads the packed buffer [H', D_i, mask] (the mask with zero weights).
+        expected = 2 * px * 9 * ((f + 1) * a + n * ((f + 2) * a + a)) + camera
+    else:  # pixel attention: (2F + 2) -> A -> 1 per neighbour
+        expected = n * 2 * px * 9 * ((2 * f + 2) * a + a) + camera
+    assert rows["attention"]["gflop"] * 1e9 == pytest.approx(expected, rel=1e-9)
+    assert rows["uformer"]["gflop"] > 0 and rows["reprojection"]["seconds"] > 0
+    assert prof.total_seconds >= sum(r["seconds"] for r in rows.values()) - 1e-6
+
+
+def test_stage_is_free_outside_a_profile_and_profiles_do_not_nest():
+    with stage("encoders"):
+        pass  # no profile: nothing recorded, no error
+    with StageProfile() as prof:
+        with stage("encoders"):
+            with stage("uformer"):  # nested: counted to the outer stage
+                pass
+        with pytest.raises(RuntimeError):
+            with StageProfile():
+                pass
+    assert "uformer" not in prof.seconds and "encoders" in prof.seconds
+
+
+def test_runtime_configure_sets_threads_and_keeps_memory():
+    before = torch.get_num_threads()
+    try:
+        applied = runtime.configure(threads=1)
+        assert applied["threads"] == torch.get_num_threads() == 1
+        assert applied["keep_freed_memory"] is True  # glibc here
+    finally:
+        torch.set_num_threads(before)
