@@ -261,7 +261,21 @@ def enhance(
         scene = _load_scene(scene_dir)
         index = scene.index(view)
         model = _load_model(checkpoint)
-        result = SceneEnhancer(scene, model, num_neighbours=neighbours).enhance_view(index)
+        bar = None
+
+        def progress(done: int, total: int) -> None:
+            nonlocal bar
+            if bar is None:
+                from tqdm import tqdm
+
+                bar = tqdm(total=total, unit="tile", desc=f"enhancing {view}", file=sys.stderr)
+            bar.update(done - bar.n)
+
+        try:
+            result = SceneEnhancer(scene, model, num_neighbours=neighbours).enhance_view(index, progress=progress)
+        finally:
+            if bar is not None:
+                bar.close()
         output.parent.mkdir(parents=True, exist_ok=True)
         write_png(output, result.image)
         used = ", ".join(result.neighbours) or "none"

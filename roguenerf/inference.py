@@ -215,7 +215,7 @@ class SceneEnhancer:
         return [self.train[int(p)] for p in picked]
 
     def enhance(self, render: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
-                exclude: int | str | Sequence[int | str] | None = None) -> EnhanceResult:
+                exclude: int | str | Sequence[int | str] | None = None, progress=None) -> EnhanceResult:
         """Enhance one render.
 
         Args:
@@ -225,6 +225,7 @@ class SceneEnhancer:
             world_from_cam: ``(4, 4)`` OpenCV camera-to-world.
             exclude: scene indices or view names never used as neighbours (the target itself
                 when it is a training view).
+            progress: optional ``callback(done, total)`` called after each tile of a tiled image.
         Returns:
             :class:`EnhanceResult`; raises :class:`~roguenerf.errors.RoGUENeRFError` instead of
             returning a non-finite image.
@@ -275,7 +276,7 @@ class SceneEnhancer:
                 from roguenerf.models.tiling import enhance_tiled
 
                 out = enhance_tiled(self.model, render_b, depth_b, K_b, pose_b, batch, tile=self.tile,
-                                    overlap=min(32, self.tile // 4))
+                                    overlap=min(32, self.tile // 4), progress=progress)
             else:
                 out = self.model(render_b, depth_b, K_b, pose_b, batch)
         if not torch.isfinite(out).all():
@@ -308,7 +309,7 @@ class SceneEnhancer:
                     return True
         return False
 
-    def enhance_view(self, index: int | str) -> EnhanceResult:
+    def enhance_view(self, index: int | str, *, progress=None) -> EnhanceResult:
         """Enhance the scene's own render of view ``index`` (scene index or name).
 
         A training view is never its own neighbour.
@@ -316,4 +317,4 @@ class SceneEnhancer:
         i = self.scene.index(index) if isinstance(index, str) else int(index)
         frame = self.scene.frames[i]
         return self.enhance(self.scene.render(i), self.scene.depth(i), frame.K, frame.world_from_cam,
-                            exclude=i if frame.split == "train" else None)
+                            exclude=i if frame.split == "train" else None, progress=progress)

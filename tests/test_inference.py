@@ -197,3 +197,11 @@ def test_neighbour_cache_keeps_to_its_byte_budget(scene):
         seen.update(enhancer.enhance_view(view).neighbours)
         assert enhancer.cached_views() <= 3
     assert len(seen) > 3  # the budget really evicted something
+
+
+def test_tiled_enhancement_reports_progress_per_tile(scene):
+    calls = []
+    SceneEnhancer(scene, _model(), num_neighbours=2, tile=16).enhance_view(
+        "test_000", progress=lambda done, total: calls.append((done, total)))
+    total = calls[-1][1]
+    assert total > 1 and calls == [(k, total) for k in range(1, total + 1)]

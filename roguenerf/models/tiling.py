@@ -69,7 +69,7 @@ def axis_weights(starts: list[int], tile: int, size: int, device, dtype) -> list
 
 
 def enhance_tiled(model, render: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor, neighbours,
-                  *, tile: int = 256, overlap: int = 32) -> Tensor:
+                  *, tile: int = 256, overlap: int = 32, progress=None) -> Tensor:
     """Enhance ``render`` tile by tile (same result shape as ``model(render, depth, K, ...)``).
 
     Args:
@@ -80,6 +80,7 @@ def enhance_tiled(model, render: Tensor, depth: Tensor, K: Tensor, world_from_ca
             tile its own neighbours (e.g. only the crops of large photos the tile sees).
         tile: tile side in pixels (>= 16); overlap: pixels shared by neighbouring tiles
             (0 <= overlap < tile).
+        progress: optional ``callback(done, total)`` called after every tile.
     Returns:
         ``(B, 3, H, W)``.
     """
@@ -102,6 +103,7 @@ def enhance_tiled(model, render: Tensor, depth: Tensor, K: Tensor, world_from_ca
     scale = model.depth_scale(depth)
     out = torch.zeros_like(render)
     total = render.new_zeros(1, 1, h, w)
+    done = 0
     for y0, wgt_y in zip(ys, wy):
         for x0, wgt_x in zip(xs, wx):
             y1, x1 = y0 + wgt_y.numel(), x0 + wgt_x.numel()
@@ -114,4 +116,7 @@ def enhance_tiled(model, render: Tensor, depth: Tensor, K: Tensor, world_from_ca
             wgt = wgt_y[:, None] * wgt_x[None, :]
             out[..., y0:y1, x0:x1] += pred * wgt
             total[..., y0:y1, x0:x1] += wgt
+            done += 1
+            if progress is not None:
+                progress(done, len(ys) * len(xs))
     return out / total
