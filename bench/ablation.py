@@ -106,6 +106,9 @@ def markdown(rows: list[dict]) -> str:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    from roguenerf import runtime
+
+    print(f"runtime: {runtime.configure()}", flush=True)
     rows = run(args)
     stem = args.output.name + ("_quick" if args.quick else "")
     csv_path = write_csv(args.output.with_name(stem + ".csv"), rows)

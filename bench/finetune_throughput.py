@@ -195,8 +195,9 @@ def table(rows: list[dict]) -> str:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    from roguenerf import runtime
+
+    print(f"runtime: {runtime.configure(args.threads or None)}", flush=True)
 
     from roguenerf.data.readers import load_scene
     from roguenerf.training import TrainConfig, plan_training

@@ -128,6 +128,9 @@ def plot(rows: list[dict], path: Path) -> Path:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    from roguenerf import runtime
+
+    print(f"runtime: {runtime.configure()}", flush=True)
     rows = run(args)
     suffix = "_quick" if args.quick else ""
     csv_path = write_csv(args.output.with_name(args.output.name + suffix + ".csv"), rows)
