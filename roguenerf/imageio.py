@@ -34,6 +34,16 @@ DEFAULT_MAX_PIXELS = 64 * 1024 * 1024
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 NPY_MAGIC = b"\x93NUMPY"
 
+PNG_COMPRESS_LEVEL = 6
+"""zlib level of the PNGs written by default."""
+
+PNG_STRATEGIES = {"default": zlib.Z_DEFAULT_STRATEGY, "rle": zlib.Z_RLE}
+"""zlib strategies :func:`encode_png` offers. ``"rle"`` only finds runs of one repeated byte:
+after PNG's row filters, photographs and renders come out about as small as with the default
+strategy at level 6 (flat areas are runs of zeros), in a quarter of the time; files whose
+content repeats at longer distances (text, tiled patterns) come out larger. The level does
+not matter with ``"rle"`` (1 to 9 give the same bytes); 0 still means "stored"."""
+
 Source = Union[str, os.PathLike, bytes, bytearray, memoryview]
 
 # Pillow's own bomb guard raises (instead of warning) above twice this value, while decoding
@@ -335,23 +345,43 @@ def _image_array(image, name: str) -> np.ndarray:
     return array
 
 
-def encode_png(image: Tensor | np.ndarray, *, name: str = "image") -> bytes:
-    """8-bit PNG bytes of ``(3, H, W)`` (or ``(1, H, W)`` gray) float in [0, 1] (clipped, rounded)."""
+def _png_options(level, strategy) -> dict:
+    if isinstance(level, bool) or not isinstance(level, (int, np.integer)) or not 0 <= level <= 9:
+        raise InputError(f"compress_level: expected an integer from 0 to 9, got {level!r}")
+    if strategy not in PNG_STRATEGIES:
+        raise InputError(f"strategy: expected one of {sorted(PNG_STRATEGIES)}, got {strategy!r}")
+    options = {"compress_level": int(level)}
+    if strategy != "default":  # Pillow's own default otherwise: the bytes written so far stay the same
+        options["compress_type"] = PNG_STRATEGIES[strategy]
+    return options
+
+
+def encode_png(image: Tensor | np.ndarray, *, name: str = "image",
+               compress_level: int = PNG_COMPRESS_LEVEL, strategy: str = "default") -> bytes:
+    """8-bit PNG bytes of ``(3, H, W)`` (or ``(1, H, W)`` gray) float in [0, 1] (clipped, rounded).
+
+    ``compress_level`` (zlib, 0-9) and ``strategy`` (see :data:`PNG_STRATEGIES`) change only
+    the size of the file and the time spent compressing it, never its pixels.
+    """
+    options = _png_options(compress_level, strategy)
     array = _image_array(image, name)
     u8 = np.round(np.clip(array, 0.0, 1.0) * 255.0).astype(np.uint8)
     img = Image.fromarray(u8[0]) if u8.shape[0] == 1 else Image.fromarray(u8.transpose(1, 2, 0))
     buf = io.BytesIO()
-    img.save(buf, format="PNG", compress_level=6)
+    img.save(buf, format="PNG", **options)
     return buf.getvalue()
 
 
-def write_png(path: str | os.PathLike | None, image: Tensor | np.ndarray) -> bytes:
+def write_png(path: str | os.PathLike | None, image: Tensor | np.ndarray, *,
+              compress_level: int = PNG_COMPRESS_LEVEL, strategy: str = "default") -> bytes:
     """Encode ``image`` ``(3, H, W)`` float in [0, 1] as 8-bit PNG; write atomically if ``path``.
 
     Values are clipped to [0, 1] and rounded (``round(255 * x)``); NaN/inf raise InputError.
-    Returns the PNG bytes.
+    ``compress_level`` (zlib, 0-9; default 6) and ``strategy`` (``"default"`` or ``"rle"``,
+    see :data:`PNG_STRATEGIES`) trade file size for encoding time; the pixels are the same
+    whatever they are. Returns the PNG bytes.
     """
-    data = encode_png(image)
+    data = encode_png(image, compress_level=compress_level, strategy=strategy)
     if path is not None:
         atomic_write(path, data)
     return data

@@ -101,7 +101,9 @@ class Services:
     extras: dict = field(default_factory=dict)
 
 
-def get_services(request: Request) -> Services:
+async def get_services(request: Request) -> Services:
+    # async: FastAPI runs a plain ``def`` dependency in the thread pool, a hop per request
+    # for an attribute read.
     return request.app.state.services
 
 

@@ -157,6 +157,23 @@ def test_write_png_round_trip_atomic(tmp_path):
     assert write_png(None, image) == data
 
 
+def test_write_png_compression_changes_bytes_never_pixels():
+    gen = torch.Generator().manual_seed(1)
+    smooth = torch.linspace(0, 1, 64 * 48).reshape(1, 48, 64).expand(3, 48, 64) * 0.8
+    image = (smooth + 0.05 * torch.rand(3, 48, 64, generator=gen)).clamp(0, 1)
+    default = write_png(None, image)
+    assert write_png(None, image, compress_level=6, strategy="default") == default
+    for options in ({"compress_level": 1}, {"compress_level": 0}, {"compress_level": 1, "strategy": "rle"},
+                    {"compress_level": 9, "strategy": "rle"}):
+        data = write_png(None, image, **options)
+        assert torch.equal(read_image(data), read_image(default)), options
+    assert len(write_png(None, image, compress_level=0)) > len(default)
+    for bad in ({"compress_level": 10}, {"compress_level": -1}, {"compress_level": True},
+                {"compress_level": 1.5}, {"strategy": "fast"}):
+        with pytest.raises(InputError, match="compress_level|strategy"):
+            write_png(None, image, **bad)
+
+
 def test_write_png_refuses_nan_and_bad_shape():
     with pytest.raises(InputError, match="NaN"):
         write_png(None, torch.full((3, 2, 2), float("nan")))
