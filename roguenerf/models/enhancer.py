@@ -242,33 +242,16 @@ class Enhancer(nn.Module):
             with stage("attention"):
                 attention_term = self.pixel_attention.target_term(feats, target_depth)
 
+        if fast:
+            return self._fuse_fast(feats, depth, K, world_from_cam, nbrs, inv_scale, camera_inputs,
+                                   target_low, attention_term)
         pooled = None
         for j in range(n):
             src, src_depth = nbrs.feature_map(j), nbrs.depth_map(j)
             source = nbrs.sources[j] if nbrs.sources is not None else None
             with stage("reprojection"):
-                aligned, nb_depth, packed = self._align(src, src_depth, depth, nbrs.K[:, j], K,
-                                                        nbrs.world_from_cam[:, j], world_from_cam, (h, w),
-                                                        source)
-                if fast and packed is None:
-                    packed = cat_channels_last([aligned, nb_depth])
-            if fast:
-                # ``packed`` = [H, D, ...] in one channels-last buffer owned here: every stage
-                # reads it whole and writes in place, so no per-neighbour concatenation.
-                if self.flow is not None:
-                    with stage("flow"):
-                        packed = flow_warp(packed, self.flow(packed, feats, target_low))
-                aligned = packed[:, :f]
-                if self.pixel_attention is not None:
-                    with stage("attention"):
-                        packed[:, f:f + 1] = (packed[:, f:f + 1] * inv_scale).clamp(0, MAX_RELATIVE_DEPTH)
-                        psi_pix = self.pixel_attention.from_target_term(packed, attention_term)
-                        psi_cam = self.camera_attention(camera_inputs[:, j])[:, :, None, None]
-                        # aligned first: the product keeps its channels-last layout (same values).
-                        aligned = aligned * (psi_cam * psi_pix)
-                with stage("fusion"):
-                    pooled = aligned if pooled is None else torch.maximum(pooled, aligned, out=pooled)
-                continue
+                aligned, nb_depth, _ = self._align(src, src_depth, depth, nbrs.K[:, j], K,
+                                                   nbrs.world_from_cam[:, j], world_from_cam, (h, w), source)
             if self.flow is not None:
                 with stage("flow"):
                     flow = self.flow(aligned, feats)
@@ -282,6 +265,44 @@ class Enhancer(nn.Module):
                     aligned = psi_cam * psi_pix * aligned
             with stage("fusion"):
                 pooled = aligned if pooled is None else torch.maximum(pooled, aligned)
+        return pooled
+
+    def _fuse_fast(self, feats: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,
+                   nbrs: NeighbourBatch, inv_scale: Tensor, camera_inputs: Tensor | None,
+                   target_low: Tensor | None, attention_term: Tensor | None) -> Tensor:
+        """:meth:`_fuse` without gradient, same result: each neighbour's [H, D, ...] lives in one
+        channels-last buffer that every stage reads whole and writes in place (no per-neighbour
+        concatenation), and the 1/8-resolution flow network runs on all neighbours as one batch."""
+        b, f, h, w = feats.shape
+        n = len(nbrs)
+        packed = []
+        for j in range(n):
+            with stage("reprojection"):
+                source = nbrs.sources[j] if nbrs.sources is not None else None
+                aligned, nb_depth, buf = self._align(nbrs.feature_map(j), nbrs.depth_map(j), depth, nbrs.K[:, j],
+                                                     K, nbrs.world_from_cam[:, j], world_from_cam, (h, w), source)
+                packed.append(buf if buf is not None else cat_channels_last([aligned, nb_depth]))
+        flows = None
+        if self.flow is not None:
+            with stage("flow"):
+                flows = self.flow.batched(packed, target_low, h, w)
+        pooled = None
+        for j in range(n):
+            buf = packed[j]
+            packed[j] = None  # release each buffer as soon as it is used
+            if flows is not None:
+                with stage("flow"):
+                    buf = flow_warp(buf, flows[j])
+            aligned = buf[:, :f]
+            if self.pixel_attention is not None:
+                with stage("attention"):
+                    buf[:, f:f + 1] = (buf[:, f:f + 1] * inv_scale).clamp(0, MAX_RELATIVE_DEPTH)
+                    psi_pix = self.pixel_attention.from_target_term(buf, attention_term)
+                    psi_cam = self.camera_attention(camera_inputs[:, j])[:, :, None, None]
+                    # aligned first: the product keeps its channels-last layout (same values).
+                    aligned = aligned * (psi_cam * psi_pix)
+            with stage("fusion"):
+                pooled = aligned if pooled is None else torch.maximum(pooled, aligned, out=pooled)
         return pooled
 
     def _align(self, src: Tensor, src_depth: Tensor, depth: Tensor, src_K: Tensor, K: Tensor,

@@ -60,8 +60,14 @@ class ConvGRU(nn.Module):
 
     def forward(self, h: Tensor, x: Tensor) -> Tensor:
         hx = torch.cat([h, x], dim=1)
-        z = torch.sigmoid(self.to_z(hx))
-        r = torch.sigmoid(self.to_r(hx))
+        if fast_enabled(hx):
+            # z and r read the same input: one convolution with both gates' filters (same values).
+            weight = torch.cat([self.to_z.weight, self.to_r.weight])
+            bias = torch.cat([self.to_z.bias, self.to_r.bias])
+            z, r = torch.sigmoid(F.conv2d(hx, weight, bias, padding=1)).chunk(2, dim=1)
+        else:
+            z = torch.sigmoid(self.to_z(hx))
+            r = torch.sigmoid(self.to_r(hx))
         q = torch.tanh(self.to_q(torch.cat([r * h, x], dim=1)))
         return (1 - z) * h + z * q
 
@@ -98,8 +104,22 @@ class FlowRefiner(nn.Module):
             nb, tg = low[:b], low[b:]
         else:
             nb, tg = self._encode(neighbour), target_low
+        return self._iterate(nb, tg, height, width)
+
+    def batched(self, neighbours: list[Tensor], target_low: Tensor, height: int, width: int) -> list[Tensor]:
+        """Flows for several neighbours of one target at once: ``neighbours`` N tensors
+        ``(B, F [+ extra], H, W)``, ``target_low`` from :meth:`encode_target` -> N flows
+        ``(B, 2, H, W)``. Equal to N calls of :meth:`forward`; the 1/8-resolution network runs
+        on a batch of N * B (larger, faster convolutions)."""
+        n = len(neighbours)
+        pooled = torch.cat([self._pool(x) for x in neighbours], dim=0)
+        nb = self._encode_low(pooled)
+        tg = target_low.repeat(n, 1, 1, 1)
+        return list(self._iterate(nb, tg, height, width).chunk(n, dim=0))
+
+    def _iterate(self, nb: Tensor, tg: Tensor, height: int, width: int) -> Tensor:
         hidden = torch.tanh(tg)
-        flow = tg.new_zeros(b, 2, *tg.shape[-2:])
+        flow = tg.new_zeros(tg.shape[0], 2, *tg.shape[-2:])
         for _ in range(self.iters):
             x = conv_act(self.to_input, torch.cat([flow_warp(nb, flow), tg, flow], dim=1))
             hidden = self.gru(hidden, x)
@@ -111,9 +131,15 @@ class FlowRefiner(nn.Module):
         as ``target_low`` to encode the target once for all neighbours (same result)."""
         return self._encode(target)
 
-    def _encode(self, x: Tensor) -> Tensor:
+    def _pool(self, x: Tensor) -> Tensor:
+        """``(B, C, H, W)`` -> ``(B, F, h, w)``: edge-padded to a multiple of 8, averaged, first F channels."""
         ph, pw = -x.shape[-2] % FLOW_STRIDE, -x.shape[-1] % FLOW_STRIDE
         if ph or pw:
             x = F.pad(x, (0, pw, 0, ph), mode="replicate")
-        low = F.avg_pool2d(x, FLOW_STRIDE)[:, :self.encode[0].in_channels]
+        return F.avg_pool2d(x, FLOW_STRIDE)[:, :self.encode[0].in_channels]
+
+    def _encode_low(self, low: Tensor) -> Tensor:
         return conv_act(self.encode[2:], conv_act(self.encode[:2], low))
+
+    def _encode(self, x: Tensor) -> Tensor:
+        return self._encode_low(self._pool(x))
