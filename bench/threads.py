@@ -106,8 +106,9 @@ def plot(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(9, 4))
+    no_keep = "\nfreed memory returned"
     labels = [f"{r['load'].split()[0]}\n{r['threads']}t {r['omp_wait_policy']}"
-              f"{'' if r['keep_freed_memory'] else '\nno keep'}" for r in rows]
+              + ("" if r["keep_freed_memory"] else no_keep) for r in rows]
     colors = ["tab:blue" if r["load"] == "idle" else "tab:red" for r in rows]
     ax.bar(range(len(rows)), [r["seconds"] for r in rows], color=colors)
     ax.set_xticks(range(len(rows)), labels, fontsize=7)

@@ -9,9 +9,10 @@ Two settings measured to matter more than any kernel on this project's CPUs
   :func:`configure` raises glibc's mmap and trim thresholds (``mallopt``) so freed blocks are
   reused. Cost: the process keeps its peak heap (bounded by tiling) instead of shrinking.
 * **Threads.** torch uses one thread per core it may run on (``sched_getaffinity``).
-  OpenMP's wait policy is read once, when torch is imported: the service and the worker
-  processes, which share the machine, start with ``OMP_WAIT_POLICY=PASSIVE`` unless it is set
-  (:func:`prefer_passive_wait`), so idle threads sleep instead of spinning against each other.
+  OpenMP's wait policy is read once, when torch is imported. Measured (``bench/threads.py``):
+  ``PASSIVE`` is slower on an idle machine but faster beside a competing process, so the
+  fine-tuning worker process starts with it (:func:`prefer_passive_wait`, unless the user set
+  ``OMP_WAIT_POLICY``) and the API and CLI keep the default.
 
 Nothing here changes results. ``ROGUENERF_KEEP_FREED_MEMORY=0`` turns the allocator change off.
 """
