@@ -230,7 +230,7 @@ class SceneEnhancer:
             :class:`EnhanceResult`; raises :class:`~roguenerf.errors.RoGUENeRFError` instead of
             returning a non-finite image.
         """
-        from roguenerf.geometry import check_intrinsics, check_pose, reproject
+        from roguenerf.geometry import check_intrinsics, check_pose
         from roguenerf.models import NeighbourBatch
 
         start = time.perf_counter()
