@@ -6,7 +6,7 @@
 For each size a toy scene (6 training views, 1 test view; exact geometry) is written to a
 temporary folder, then a fresh child process loads it, builds a ``SceneEnhancer`` exactly as
 the service does (default 512-pixel tiles, 2 GiB neighbour-cache budget, 5 neighbours) and
-enhances the test view once. Reported per child: peak RSS (``ru_maxrss``: the whole process
+enhances the test view once. Reported per child: peak RSS (``VmHWM``: the whole process's
 high-water mark, imports and model included), RSS before the enhancement, wall time, tiles,
 and whether the neighbours were cached whole or encoded per tile (photos too large for the
 cache budget). ``micro`` loads the shipped default checkpoint; other variants random weights.
@@ -61,7 +61,9 @@ seconds = time.perf_counter() - t
 h, w = render.shape[1:]
 tiles = 1 if max(h, w) <= enhancer.tile else (len(tile_starts(h, enhancer.tile, 32, model.tile_alignment))
                                                * len(tile_starts(w, enhancer.tile, 32, model.tile_alignment)))
-peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+# VmHWM, not ru_maxrss: Linux carries the parent's RSS high-water mark into a child's
+# ru_maxrss across fork + exec, which here would count the scene generation.
+peak = next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM:")) / 1024
 print(json.dumps(dict(peak_rss_mb=peak, rss_before_mb=before, seconds=seconds, tiles=tiles,
                       neighbours=len(result.neighbours), cached_views=enhancer.cached_views(),
                       finite=bool(torch.isfinite(result.image).all()))))
@@ -69,10 +71,12 @@ print(json.dumps(dict(peak_rss_mb=peak, rss_before_mb=before, seconds=seconds, t
 
 
 def make_scene(root: Path, h: int, w: int) -> Path:
-    from roguenerf.data.toy import make_toy_scene
-
     t = time.perf_counter()
-    make_toy_scene(root, seed=5, n_train=6, n_test=1, height=h, width=w)
+    # In a child process, so this process stays small (see the VmHWM note in CHILD).
+    code = (f"from roguenerf.data.toy import make_toy_scene; "
+            f"make_toy_scene({str(root)!r}, seed=5, n_train=6, n_test=1, height={h}, width={w})")
+    subprocess.run([sys.executable, "-c", f"import sys; sys.path.insert(0, {str(Path(__file__).resolve().parents[1])!r}); {code}"],
+                   check=True)
     print(f"toy scene {w}x{h} written in {time.perf_counter() - t:.0f} s", flush=True)
     return root
 
