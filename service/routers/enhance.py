@@ -112,13 +112,15 @@ async def create_enhancement(
     depth_scale: Annotated[float, Form(gt=0, description="multiplier for 16-bit PNG depth (e.g. 0.001 for mm)")] = 1.0,
 ) -> Response:
     start = time.perf_counter()
-    scene = await run_in_threadpool(scene_or_404, services, scene_id)
-    cam = parse_camera(camera)
     slots = services.enhance_slots
+    # Refuse before any thread-pool hop: under load the pool's threads compete with the running
+    # enhancements, and a refusal must come back at once.
     if slots.locked():
         raise ApiError(503, "over_capacity",
                        f"all {services.settings.enhance_concurrency} enhancement slots are busy; retry shortly",
                        headers={"Retry-After": str(RETRY_AFTER_S)})
+    scene = await run_in_threadpool(scene_or_404, services, scene_id)
+    cam = parse_camera(camera)
     async with slots:
         render_bytes = await render.read()
         depth_bytes = await depth.read()
