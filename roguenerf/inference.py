@@ -158,6 +158,7 @@ class SceneEnhancer:
         bilinear and conv_H margins), which gives the same values as the whole photo's."""
         from roguenerf.geometry import reproject, sampling_source
         from roguenerf.models import NeighbourBatch
+        from roguenerf.runtime import release_freed_memory
 
         photos = [self.scene.photo(self.train[p]).to(self.device, torch.float32) for p in positions]
         depths = [self._depth(p) for p in positions]
@@ -168,6 +169,9 @@ class SceneEnhancer:
             depth_sources = [sampling_source(d[None], d[None]) for d in depths]
 
         def provider(depth_tile: Tensor, K_tile: Tensor):
+            # Crop sizes differ from tile to tile: return the last tile's freed blocks to the
+            # OS, or the kept-freed heap fragments and the RSS grows tile after tile.
+            release_freed_memory()
             sources, crop_K = [], []
             for photo, depth, depth_source, K_j, pose_j in zip(photos, depths, depth_sources, Ks, poses):
                 hs, ws = depth.shape[-2:]

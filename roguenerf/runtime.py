@@ -36,20 +36,41 @@ def prefer_passive_wait() -> None:
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
+def _glibc_function(name: str):
+    """``libc.<name>`` when the C library is glibc-like and has it, else None."""
+    lib = ctypes.util.find_library("c")
+    if not lib:
+        return None
+    try:
+        return getattr(ctypes.CDLL(lib), name)
+    except (OSError, AttributeError):  # not glibc (musl, macOS): nothing to do
+        return None
+
+
 def keep_freed_memory() -> bool:
     """Make glibc keep freed blocks below :data:`KEEP_BYTES` for reuse; False where unavailable."""
     if os.environ.get("ROGUENERF_KEEP_FREED_MEMORY", "1") == "0":
         return False
-    name = ctypes.util.find_library("c")
-    if not name:
-        return False
-    try:
-        libc = ctypes.CDLL(name)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):  # not glibc (musl, macOS): nothing to do
+    mallopt = _glibc_function("mallopt")
+    if mallopt is None:
         return False
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     return bool(mallopt(M_MMAP_THRESHOLD, KEEP_BYTES)) and bool(mallopt(M_TRIM_THRESHOLD, KEEP_BYTES))
+
+
+def release_freed_memory() -> bool:
+    """Give the heap's free pages back to the OS now (glibc ``malloc_trim``); False where unavailable.
+
+    Kept freed memory fragments when block sizes vary from one call to the next (each tile of
+    a very large image encodes neighbour crops of a different size): without this, the RSS of
+    a 4096x3072 enhancement with variant T grew by about 55 MB a tile, to 9.7 GB over 88 tiles.
+    Called between such tiles, the RSS stays at one tile's working set (bench/memory.py).
+    """
+    trim = _glibc_function("malloc_trim")
+    if trim is None:
+        return False
+    trim.argtypes = [ctypes.c_size_t]
+    return bool(trim(0))
 
 
 def available_cpus() -> int:
