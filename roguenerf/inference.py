@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from roguenerf.errors import InputError, NonFiniteOutputError
+from roguenerf.runtime import release_freed_memory
 
 DEFAULT_TILE = 512
 """Images whose height or width exceed this are enhanced tile by tile (bounded memory)."""
@@ -158,7 +159,6 @@ class SceneEnhancer:
         bilinear and conv_H margins), which gives the same values as the whole photo's."""
         from roguenerf.geometry import reproject, sampling_source
         from roguenerf.models import NeighbourBatch
-        from roguenerf.runtime import release_freed_memory
 
         photos = [self.scene.photo(self.train[p]).to(self.device, torch.float32) for p in positions]
         depths = [self._depth(p) for p in positions]
@@ -283,6 +283,9 @@ class SceneEnhancer:
                                     overlap=min(32, self.tile // 4), progress=progress)
             else:
                 out = self.model(render_b, depth_b, K_b, pose_b, batch)
+        if callable(batch):  # a very large image: hand its working set back to the OS now
+            batch = None
+            release_freed_memory()
         if not torch.isfinite(out).all():
             raise NonFiniteOutputError("the enhancer produced non-finite values for this view; the model or "
                                  "its inputs are broken (check the checkpoint and the depth)")
