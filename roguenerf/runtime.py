@@ -63,7 +63,7 @@ def release_freed_memory() -> bool:
 
     Kept freed memory fragments when block sizes vary from one call to the next (each tile of
     a very large image encodes neighbour crops of a different size): without this, the RSS of
-    a 4096x3072 enhancement with variant T grew by about 55 MB a tile, to 9.7 GB over 88 tiles.
+    a 4096x3072 enhancement with variant T grew by about 55 MiB a tile, to 9.5 GiB over 88 tiles.
     Called between such tiles, the RSS stays at one tile's working set (bench/memory.py).
     """
     trim = _glibc_function("malloc_trim")
