@@ -30,7 +30,10 @@ RUN pip install ".[service]" ${EXTRA_PIP}
 RUN useradd --create-home --uid 10001 roguenerf \
     && mkdir -p /data && chown roguenerf:roguenerf /data
 USER roguenerf
-ENV ROGUENERF_DATA_DIR=/data
+# API and worker share the host's cores: OpenMP threads sleep instead of spinning while they
+# wait (roguenerf/runtime.py, bench/threads.py; `roguenerf serve` sets the same).
+ENV ROGUENERF_DATA_DIR=/data \
+    OMP_WAIT_POLICY=PASSIVE
 VOLUME ["/data"]
 EXPOSE 8000
 

@@ -385,7 +385,7 @@ def main(argv=None) -> int:
 
     service_png = _service_png()
     threads = torch.get_num_threads()
-    meta = {**stamp(), "torch_threads": threads, "repeats": args.repeats, "warmup": args.warmup,
+    meta = {**stamp(), "torch_threads": threads, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default"), "repeats": args.repeats, "warmup": args.warmup,
             "size": f"{WIDTH}x{HEIGHT}", "service_png": service_png}
     print(f"{meta['date']}  {meta['commit']}  {meta['machine']}", flush=True)
 
@@ -535,7 +535,7 @@ def main(argv=None) -> int:
 
     # ------------------------------------------------------------------ files
     out = args.output if args.output.suffix == ".csv" else args.output.with_suffix(".csv")
-    base = {k: meta[k] for k in ("date", "machine", "commit", "torch_threads", "size", "repeats")}
+    base = {k: meta[k] for k in ("date", "machine", "commit", "torch_threads", "omp_wait_policy", "size", "repeats")}
     rows = []
     for key, s in summary.items():
         if key in ("overhead", "checks"):

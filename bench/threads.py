@@ -1,11 +1,13 @@
 """Process-level settings against enhancement time: threads, OpenMP wait policy, allocator.
 
     python bench/threads.py --output bench/results/threads.csv [--variant micro] [--size 378x504]
-                            [--repeats 5]
+                            [--repeats 5] [--trials 1]
 
 Each configuration runs in a fresh child process (OpenMP reads its wait policy when torch is
 imported), on an idle machine and again beside a competing process that keeps both cores
-busy with float32 matmuls on 2 threads (as a fine-tuning job beside the service would). The
+busy with float32 matmuls on 2 threads (as a fine-tuning job beside the service would), once
+with OpenMP's default wait policy in the competitor and once with ``PASSIVE`` (what the
+project's fine-tuning worker sets). The
 child builds the variant with random weights, caches 5 neighbours' sampling sources as
 ``SceneEnhancer`` does, warms up twice and reports the median of ``--repeats`` forwards
 (``torch.inference_mode``). Writes CSV (date, machine, commit) and a PNG bar chart.
@@ -47,6 +49,11 @@ print(json.dumps(dict(applied, seconds=statistics.median(times))))
 
 COMPETITOR = "import torch\ntorch.set_num_threads(2)\na = torch.randn(1024, 1024)\nwhile True:\n    a @ a\n"
 
+LOADS = [  # (label, the competitor's OMP_WAIT_POLICY): none; a default process; a process like
+    # the fine-tuning worker, which sets PASSIVE (workers/__main__.py)
+    ("idle", None), ("competing process", None), ("competing PASSIVE process", "PASSIVE"),
+]
+
 CONFIGS = [  # (threads, OMP_WAIT_POLICY or None for the default, keep freed memory)
     (2, None, True), (2, "PASSIVE", True), (2, "ACTIVE", True), (1, None, True), (2, None, False),
 ]
@@ -69,27 +76,34 @@ def main(argv=None) -> None:
     p.add_argument("--variant", default="micro")
     p.add_argument("--size", default="378x504", help="HxW")
     p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--trials", type=int, default=1,
+                   help="child processes per configuration beside a competitor (the default wait "
+                        "policy's slowdowns come and go with the process, so one child can miss them)")
     args = p.parse_args(argv)
     h, w = (int(v) for v in args.size.lower().split("x"))
     repo = Path(__file__).resolve().parents[1]
     meta = stamp()
     rows = []
-    for load in ("idle", "competing process"):
+    for load, competitor_policy in LOADS:
         competitor = None
         if load != "idle":
-            competitor = subprocess.Popen([sys.executable, "-c", COMPETITOR])
+            env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "OMP_NUM_THREADS")}
+            if competitor_policy:
+                env["OMP_WAIT_POLICY"] = competitor_policy
+            competitor = subprocess.Popen([sys.executable, "-c", COMPETITOR], env=env)
             time.sleep(2.0)
         try:
             for threads, policy, keep in CONFIGS:
                 if load != "idle" and not keep:
                     continue
-                r = run_child(repo, args.variant, h, w, args.repeats, threads, policy, keep)
-                row = {**meta, "variant": args.variant, "height": h, "width": w, "load": load,
-                       "threads": threads, "omp_wait_policy": policy or "default",
-                       "keep_freed_memory": keep, "seconds": round(r["seconds"], 4)}
-                rows.append(row)
-                print(f"{load:18s} threads={threads} policy={policy or 'default':8s} keep_freed={keep!s:5s} "
-                      f"{r['seconds']:.3f} s", flush=True)
+                for trial in range(1 if load == "idle" else max(1, args.trials)):
+                    r = run_child(repo, args.variant, h, w, args.repeats, threads, policy, keep)
+                    row = {**meta, "variant": args.variant, "height": h, "width": w, "load": load,
+                           "threads": threads, "omp_wait_policy": policy or "default",
+                           "keep_freed_memory": keep, "trial": trial, "seconds": round(r["seconds"], 4)}
+                    rows.append(row)
+                    print(f"{load:18s} threads={threads} policy={policy or 'default':8s} keep_freed={keep!s:5s} "
+                          f"trial {trial}: {r['seconds']:.3f} s", flush=True)
         finally:
             if competitor is not None:
                 competitor.kill()
@@ -105,14 +119,21 @@ def plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(9, 4))
+    fig, ax = plt.subplots(figsize=(12, 4.5))
     no_keep = "\nfreed memory returned"
-    labels = [f"{r['load'].split()[0]}\n{r['threads']}t {r['omp_wait_policy']}"
-              + ("" if r["keep_freed_memory"] else no_keep) for r in rows]
-    colors = ["tab:blue" if r["load"] == "idle" else "tab:red" for r in rows]
-    ax.bar(range(len(rows)), [r["seconds"] for r in rows], color=colors)
-    ax.set_xticks(range(len(rows)), labels, fontsize=7)
-    ax.set_ylabel("seconds per enhancement")
+    short = {"idle": "idle", "competing process": "busy", "competing PASSIVE process": "busy PASSIVE"}
+    palette = {"idle": "tab:blue", "competing process": "tab:red"}
+    groups: dict[tuple, list[float]] = {}
+    for r in rows:  # one bar (median) per configuration, one dot per child process (trial)
+        key = (r["load"], r["threads"], r["omp_wait_policy"], r["keep_freed_memory"])
+        groups.setdefault(key, []).append(r["seconds"])
+    for i, (key, secs) in enumerate(groups.items()):
+        ax.bar(i, sorted(secs)[len(secs) // 2], color=palette.get(key[0], "tab:orange"), alpha=0.6)
+        ax.plot([i] * len(secs), secs, "k.", ms=4)
+    labels = [f"{short.get(k[0], k[0])}\n{k[1]}t {k[2]}" + ("" if k[3] else no_keep) for k in groups]
+    ax.set_xticks(range(len(groups)), labels, fontsize=7)
+    ax.set_yscale("log")
+    ax.set_ylabel("seconds per enhancement (bar: median child, dots: each child)")
     r0 = rows[0]
     ax.set_title(f"{r0['variant']} {r0['width']}x{r0['height']}, 5 neighbours - {r0['date']} - {r0['commit']}\n"
                  f"{r0['machine']}", fontsize=8)

@@ -292,6 +292,11 @@ def serve(
     data_dir: Annotated[Path, typer.Option("--data-dir", help="Where scenes, jobs and checkpoints live.")] = Path("./data"),
 ) -> None:
     """Start the HTTP API with its embedded job worker."""
+    from roguenerf.runtime import prefer_passive_wait
+
+    # Before torch loads (this module does not import it): the API and its worker share the
+    # cores, where OpenMP's default spin-wait sometimes runs 10x slower (roguenerf.runtime).
+    prefer_passive_wait()
     with _errors():
         try:
             from service.server import run

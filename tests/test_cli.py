@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -164,3 +165,32 @@ def test_console_entry_point_runs_as_a_module(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert proc.stdout == "" and str(tmp_path / "nope") in proc.stderr and "Traceback" not in proc.stderr
+
+
+SERVE_PROBE = r"""
+import os, sys
+import service.server
+from roguenerf.cli import app
+
+def fake_run(**kwargs):
+    import torch  # noqa: F401  (the real server loads it after this point)
+    print("policy", os.environ.get("OMP_WAIT_POLICY"))
+
+service.server.run = fake_run
+print("torch loaded before serve", "torch" in sys.modules)
+try:
+    app(["serve", "--port", "8123"])
+except SystemExit:
+    pass
+"""
+
+
+@pytest.mark.parametrize("env, expected", [({}, "PASSIVE"), ({"OMP_WAIT_POLICY": "ACTIVE"}, "ACTIVE"),
+                                           ({"GOMP_SPINCOUNT": "300000"}, "None")])
+def test_serve_sets_passive_openmp_wait_before_torch_loads(env, expected):
+    # The API and its worker share the cores; the user's own choice of wait policy wins.
+    base = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    proc = subprocess.run([sys.executable, "-c", SERVE_PROBE], env={**base, **env}, capture_output=True,
+                          text=True, timeout=120)
+    assert "torch loaded before serve False" in proc.stdout, proc.stdout + proc.stderr
+    assert f"policy {expected}" in proc.stdout, proc.stdout + proc.stderr

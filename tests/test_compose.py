@@ -89,6 +89,8 @@ def test_dockerfile_cpu_torch_and_non_root():
     assert torch_line < text.index('pip install ".[service]"'), "torch must be installed before the package"
     assert re.search(r"^USER (?!root)\S+", text, re.M)
     assert "/healthz" in text
+    # API and worker containers share the host's cores (as `roguenerf serve` sets it)
+    assert re.search(r"^\s+OMP_WAIT_POLICY=PASSIVE$", text, re.M)
 
 
 def test_dockerignore_keeps_secrets_and_bulk_out():

@@ -8,9 +8,7 @@ import logging
 from roguenerf.runtime import prefer_passive_wait
 
 # Before torch loads: a training job's idle OpenMP threads sleep instead of spinning against
-# the API's enhancements on the same cores (bench/results/threads_200.csv: with a competing
-# process, 0.37 s instead of 0.48 s per lego-sized enhancement). The API process keeps the
-# default policy, faster when the machine is otherwise idle (0.18 s against 0.25 s).
+# the API's enhancements on the same cores (see roguenerf.runtime and bench/threads.py).
 prefer_passive_wait()
 
 
