@@ -385,7 +385,8 @@ def main(argv=None) -> int:
 
     service_png = _service_png()
     threads = torch.get_num_threads()
-    meta = {**stamp(), "torch_threads": threads, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default"), "repeats": args.repeats, "warmup": args.warmup,
+    meta = {**stamp(), "torch_threads": threads, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default"),
+            "repeats": args.repeats, "warmup": args.warmup,
             "size": f"{WIDTH}x{HEIGHT}", "service_png": service_png}
     print(f"{meta['date']}  {meta['commit']}  {meta['machine']}", flush=True)
 

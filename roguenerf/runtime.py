@@ -9,10 +9,11 @@ Two settings measured to matter more than any kernel on this project's CPUs
   :func:`configure` raises glibc's mmap and trim thresholds (``mallopt``) so freed blocks are
   reused. Cost: the process keeps its peak heap (bounded by tiling) instead of shrinking.
 * **Threads.** torch uses one thread per core it may run on (``sched_getaffinity``).
-  OpenMP's wait policy is read once, when torch is loaded. Measured (``bench/threads.py``):
-  ``PASSIVE`` is slower on an idle machine (micro at 504x378: 0.45 s against 0.33 s) but
-  steady beside a competing process, where the default spin-then-sleep policy sometimes
-  collapses (0.55-0.74 s in most child processes, 5.8 s and 9.7 s in 2 of 8). So the
+  OpenMP's wait policy is read once, when torch is loaded. Measured (``bench/threads.py
+  --trials 4``, micro at 504x378): ``PASSIVE`` is slower on an idle machine (0.49 s against
+  0.35 s) but steady beside a busy process (0.69-0.74 s in all 8 child processes), where the
+  default spin-then-sleep policy sometimes collapses for a process's lifetime (4 of 8 children
+  took 2.1-9.9 s, the others 0.64-0.75 s). So the
   service's processes (``roguenerf serve``: API and embedded worker; ``python -m workers``)
   start with it (:func:`prefer_passive_wait`, unless the user set ``OMP_WAIT_POLICY`` or
   ``GOMP_SPINCOUNT``); the CLI's one-shot commands keep the default.
@@ -25,6 +26,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
+import sys
 
 M_TRIM_THRESHOLD = -1
 M_MMAP_THRESHOLD = -3
@@ -38,8 +40,6 @@ def prefer_passive_wait() -> bool:
     """Set ``OMP_WAIT_POLICY=PASSIVE`` unless the user chose a wait policy (``OMP_WAIT_POLICY``
     or ``GOMP_SPINCOUNT``) for this process and its children. Returns whether PASSIVE is in
     effect: OpenMP reads the variable when torch is loaded, so it must be called before that."""
-    import sys
-
     if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
         os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
     return os.environ.get("OMP_WAIT_POLICY", "").upper() == "PASSIVE" and "torch" not in sys.modules

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+
 import pytest
 import torch
 
@@ -85,10 +89,6 @@ print(json.dumps({"base": base, "kept": kept, "after": rss_mb(), "released": rel
 def test_release_freed_memory_returns_kept_blocks_to_the_os():
     # configure() keeps freed blocks (faster reuse); between tiles of different shapes the
     # enhancer hands them back, or the kept heap fragments and the RSS grows tile after tile.
-    import json
-    import subprocess
-    import sys
-
     out = subprocess.run([sys.executable, "-c", RELEASE_CHILD], capture_output=True, text=True, check=True)
     r = json.loads(out.stdout.strip().splitlines()[-1])
     assert r["released"] is True
