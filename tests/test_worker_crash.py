@@ -82,3 +82,20 @@ def test_kill9_requeues_and_resumes_then_fails_when_out_of_attempts(tmp_path, to
         finally:
             for w in workers:
                 w.close()
+
+
+@pytest.mark.parametrize("delay", [0.5, 1.5])
+def test_ctrl_c_during_worker_startup_stops_it_promptly(tmp_path, delay):
+    # `./dev serve` then Ctrl-C at once: the API sends its worker one SIGINT, which may land
+    # while the worker is still importing torch. It must still stop (nothing to drain yet),
+    # not wait for the API's drain timeout and a SIGTERM.
+    worker = WorkerProcess(Settings(data_dir=tmp_path / "data", **FAST), tmp_path / "worker.log")
+    try:
+        time.sleep(delay)
+        assert worker.proc.poll() is None, worker.log()
+        t = time.perf_counter()
+        code = worker.interrupt(timeout=60)
+        assert code == 0, worker.log()
+        assert time.perf_counter() - t < 30, worker.log()
+    finally:
+        worker.close()

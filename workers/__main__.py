@@ -13,6 +13,14 @@ prefer_passive_wait()
 
 
 def main(argv: list[str] | None = None) -> None:
+    import signal
+    import threading
+
+    # Ctrl-C during start-up (importing torch takes seconds) must neither be lost nor end in
+    # a traceback: note it here, and the consumer replays it once its own handlers are in.
+    interrupted = threading.Event()
+    signal.signal(signal.SIGINT, lambda signum, frame: interrupted.set())
+
     from service.settings import Settings
     from workers.worker import run_worker
 
@@ -29,7 +37,7 @@ def main(argv: list[str] | None = None) -> None:
     if exit_with_parent:
         _watch_parent()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    run_worker(Settings(**overrides))
+    run_worker(Settings(**overrides), interrupted=interrupted)
 
 
 def _watch_parent() -> None:

@@ -8,6 +8,7 @@ to the queue, and the process exits; a later worker resumes it. SIGTERM stops at
 from __future__ import annotations
 
 import logging
+import signal
 import threading
 
 from huey.consumer import Consumer
@@ -51,9 +52,18 @@ class Sweeper(threading.Thread):
 class DrainingConsumer(Consumer):
     """A Huey consumer that tells the running job to checkpoint and stop when it stops."""
 
-    def __init__(self, huey, draining: threading.Event, **options):
+    def __init__(self, huey, draining: threading.Event, *, interrupted: threading.Event | None = None,
+                 **options):
         super().__init__(huey, **options)
         self._draining = draining
+        self._interrupted = interrupted
+
+    def _set_signal_handlers(self) -> None:
+        super()._set_signal_handlers()
+        # A SIGINT that arrived while the worker was still starting (before these handlers)
+        # was caught by main()'s handler: replay it now, so the consumer stops at once.
+        if self._interrupted is not None and self._interrupted.is_set():
+            self._handle_signal(signal.SIGINT, None)
 
     def stop(self, graceful: bool = False) -> None:
         self._draining.set()
@@ -72,8 +82,9 @@ def build_worker(settings) -> tuple[WorkerContext, JobQueue, JobStore]:
     return ctx, queue, store
 
 
-def run_worker(settings) -> None:
-    """Run until SIGINT (drain) or SIGTERM; blocks."""
+def run_worker(settings, *, interrupted: threading.Event | None = None) -> None:
+    """Run until SIGINT (drain) or SIGTERM; blocks. ``interrupted``: set by the caller's own
+    SIGINT handler during start-up; the consumer then stops as soon as it starts."""
     ctx, queue, store = build_worker(settings)
     import roguenerf.training  # noqa: F401  (pay torch's import before the first job, not during it)
     from roguenerf import runtime
@@ -83,7 +94,7 @@ def run_worker(settings) -> None:
     sweeper = Sweeper(store, queue, settings)
     sweeper.start()
     consumer = DrainingConsumer(
-        queue.huey, ctx.draining, workers=1, worker_type="thread", periodic=False,
+        queue.huey, ctx.draining, interrupted=interrupted, workers=1, worker_type="thread", periodic=False,
         initial_delay=0.05, backoff=1.5, max_delay=settings.worker_poll_max_delay,
         shutdown_timeout=settings.drain_timeout,
     )
