@@ -1,4 +1,4 @@
-"""The ``roguenerf`` command: finetune, evaluate, enhance, pretrain, serve.
+"""The ``roguenerf`` command: finetune, evaluate, enhance, pretrain, make-pairs, serve.
 
 Errors are one line on stderr and an exit code: 2 for bad input (missing scene, bad
 checkpoint, bad flag values), 1 for failures (divergence, cancellation, anything else).
@@ -213,6 +213,82 @@ def make_toy_scenes(root: Path, count: int, *, seed: int = 0, height: int = 96, 
             scenes.append(make_toy_scene(path, seed=seed + k, height=height, width=width,
                                          degradation=Degradation()))
     return scenes
+
+
+@app.command("make-pairs")
+def make_pairs_command(
+    photos_dir: Annotated[Path, typer.Argument(help="Posed photo set: transforms.json + photos (every 8th view is held out).")],
+    output: Annotated[Path, typer.Option("--output", help="Scene folder to write (renders, depths, acc for every view).")] = ...,
+    preset: Annotated[str, typer.Option("--preset", help="Field preset: coarse (blurry, RGB grid) or fine (sharper, view-dependent).")] = "fine",
+    minutes: Annotated[float | None, typer.Option("--minutes", help="Fitting budget in minutes (default: the preset's).")] = None,
+    steps: Annotated[int | None, typer.Option("--steps", help="Fitting budget in steps (instead of minutes).")] = None,
+    resolution: Annotated[int | None, typer.Option("--resolution", help="Final grid side (default: the preset's).")] = None,
+    seed: SeedOpt = 0,
+) -> None:
+    """Fit a radiance field to a posed photo set's training views and render render/photo pairs.
+
+    A data tool (package ``roguefit``) for pre-training: resumable (run the same command again),
+    a finished output folder is left as it is.
+    """
+    import dataclasses
+
+    _setup_logging()
+    with _errors():
+        try:
+            from roguefit import PRESETS, make_pairs
+        except ImportError:
+            _fail("make-pairs needs the roguefit data tool, which ships in this repository beside roguenerf", 1)
+        if preset not in PRESETS:
+            raise InputError(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
+        if minutes is not None and steps is not None:
+            raise InputError("give either --minutes or --steps, not both")
+        if minutes is not None and not (math.isfinite(minutes) and minutes > 0):
+            raise InputError(f"--minutes: expected > 0, got {minutes}")
+        if steps is not None and steps < 1:
+            raise InputError(f"--steps: expected >= 1, got {steps}")
+        if resolution is not None and not 16 <= resolution <= 512:
+            raise InputError(f"--resolution: expected 16..512, got {resolution}")
+        if not photos_dir.is_dir():
+            raise InputError(f"photo set {photos_dir} is not a directory")
+        config = PRESETS[preset]
+        changes = {"seed": seed}
+        if steps is not None:
+            changes.update(steps=steps, minutes=None)
+        elif minutes is not None:
+            changes.update(minutes=minutes, steps=None)
+        if resolution is not None:
+            changes["resolution"] = resolution
+        config = dataclasses.replace(config, **changes)
+        from tqdm import tqdm
+
+        total = config.steps if config.steps is not None else 100
+        bar = tqdm(total=total, desc=f"fitting {photos_dir.name}", unit="step" if config.steps else "%",
+                   file=sys.stderr)
+        rbar = None
+
+        def progress(p: dict) -> None:
+            done = p["step"] if config.steps is not None else int(100 * p["fraction"])
+            bar.set_postfix(psnr=f"{p['psnr']:.2f}", grid=p["resolution"], refresh=False)
+            bar.update(done - bar.n)
+
+        def render_progress(done: int, total_views: int) -> None:
+            nonlocal rbar
+            if rbar is None:
+                bar.close()
+                rbar = tqdm(total=total_views, desc="rendering", unit="view", file=sys.stderr)
+            rbar.update(done - rbar.n)
+
+        try:
+            report = make_pairs(photos_dir, output, config, progress=progress, render_progress=render_progress)
+        finally:
+            bar.close()
+            if rbar is not None:
+                rbar.close()
+        test = report["test"]
+        typer.echo(f"fitted {report['steps']} steps in {report['fit_seconds']:.0f} s: training views "
+                   f"{report['train']['psnr']:.2f} dB" + (f", held-out views {test['psnr']:.2f} dB" if test else ""),
+                   err=True)
+        typer.echo(str(output))
 
 
 @app.command()

@@ -1,0 +1,146 @@
+"""Make pre-training pairs for every posed photo set in a folder, resumably, with a manifest.
+
+    python -m roguefit.batch --data ../shared/data/real --cache ~/.cache/roguenerf/pairs \\
+        --presets coarse,fine --manifest docs/pairs/manifest.csv --examples docs/pairs
+
+For each scene folder (a ``transforms.json`` inside) and each preset it runs
+:func:`roguefit.make_pairs` into ``CACHE/SCENE/PRESET`` (outside the repository: the renders are
+too large to commit). A finished fit is skipped, an interrupted one resumes, so the same command
+can be run again until everything is done. The manifest lists every finished fit (scene, fit,
+minutes, steps, render PSNR/SSIM on training and held-out views); ``--examples`` writes one
+render | photo image of a held-out view per scene.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import io
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+from roguefit.fit import FIT_FILE, PRESETS, make_pairs
+
+log = logging.getLogger("roguefit.batch")
+
+MANIFEST_FIELDS = ["scene", "fit", "resolution", "features", "minutes", "steps", "fit_seconds", "render_seconds",
+                   "train_views", "train_psnr", "train_ssim", "test_views", "test_psnr", "test_ssim"]
+
+
+def scene_folders(data: Path) -> list[Path]:
+    return sorted(p for p in data.iterdir() if (p / "transforms.json").is_file())
+
+
+def manifest_rows(cache: Path) -> list[dict]:
+    rows = []
+    for fit_json in sorted(cache.glob(f"*/*/{FIT_FILE}")):
+        report = json.loads(fit_json.read_text())
+        c, tr, te = report["config"], report["train"], report["test"] or {}
+        rows.append({
+            "scene": fit_json.parent.parent.name, "fit": fit_json.parent.name,
+            "resolution": c["resolution"], "features": c["features"],
+            "minutes": c["minutes"], "steps": report["steps"], "fit_seconds": report["fit_seconds"],
+            "render_seconds": report["render_seconds"],
+            "train_views": tr["views"], "train_psnr": round(tr["psnr"], 3), "train_ssim": round(tr["ssim"], 4),
+            "test_views": te.get("views", 0), "test_psnr": round(te["psnr"], 3) if te else "",
+            "test_ssim": round(te["ssim"], 4) if te else "",
+        })
+    return rows
+
+
+def write_manifest(cache: Path, path: Path) -> list[dict]:
+    from roguenerf.imageio import atomic_write
+
+    rows = manifest_rows(cache)
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=MANIFEST_FIELDS, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write(path, buf.getvalue().encode())
+    return rows
+
+
+def write_example(scene_dir: Path, out: Path, max_width: int = 640) -> Path | None:
+    """``render | photo`` of the first held-out view, downscaled to ``max_width``."""
+    import torch
+    import torch.nn.functional as F
+
+    from roguenerf.data.readers import load_scene
+    from roguenerf.imageio import write_png
+
+    scene = load_scene(scene_dir)
+    test = list(scene.indices("test"))
+    if not test:
+        return None
+    i = test[0]
+    pair = torch.cat([scene.render(i), scene.photo(i)], dim=2)
+    if pair.shape[2] > max_width:
+        scale = max_width / pair.shape[2]
+        pair = F.interpolate(pair[None], scale_factor=scale, mode="area")[0]
+    write_png(out, pair.clamp(0, 1))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m roguefit.batch", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", type=Path, required=True, help="folder of posed photo sets")
+    parser.add_argument("--cache", type=Path, required=True, help="output root (outside the repository)")
+    parser.add_argument("--presets", default="coarse,fine", help=f"comma-separated, of {', '.join(PRESETS)}")
+    parser.add_argument("--scenes", default="", help="comma-separated scene names (default: all)")
+    parser.add_argument("--minutes-scale", type=float, default=1.0, help="multiply every preset's budget")
+    parser.add_argument("--manifest", type=Path, help="CSV manifest to (re)write after every fit")
+    parser.add_argument("--examples", type=Path, help="folder for one render|photo example per scene")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s %(message)s")
+    from roguenerf import runtime
+
+    runtime.configure()
+    presets = [p for p in args.presets.split(",") if p]
+    for p in presets:
+        if p not in PRESETS:
+            parser.error(f"--presets: unknown preset {p!r} (expected {', '.join(PRESETS)})")
+    if not args.data.is_dir():
+        parser.error(f"--data: {args.data} is not a directory")
+    scenes = scene_folders(args.data)
+    if args.scenes:
+        wanted = set(args.scenes.split(","))
+        missing = wanted - {s.name for s in scenes}
+        if missing:
+            parser.error(f"--scenes: not in {args.data}: {', '.join(sorted(missing))}")
+        scenes = [s for s in scenes if s.name in wanted]
+    from tqdm import tqdm
+
+    for scene in scenes:
+        for preset in presets:
+            config = PRESETS[preset]
+            if config.minutes is not None and args.minutes_scale != 1.0:
+                config = dataclasses.replace(config, minutes=config.minutes * args.minutes_scale)
+            out = args.cache / scene.name / preset
+            t0 = time.monotonic()
+            bar = tqdm(total=100, desc=f"{scene.name}/{preset}", unit="%", file=sys.stderr, mininterval=5)
+
+            def progress(p: dict, bar=bar) -> None:
+                bar.set_postfix(psnr=f"{p['psnr']:.2f}", grid=p["resolution"], refresh=False)
+                bar.update(int(100 * p["fraction"]) - bar.n)
+
+            try:
+                report = make_pairs(scene, out, config, progress=progress)
+            finally:
+                bar.close()
+            log.info("%s/%s: train %.2f dB, held-out %s dB (%.0f s)", scene.name, preset, report["train"]["psnr"],
+                     f"{report['test']['psnr']:.2f}" if report["test"] else "-", time.monotonic() - t0)
+            if args.manifest:
+                write_manifest(args.cache, args.manifest)
+            if args.examples and preset == presets[-1]:
+                write_example(out, args.examples / f"{scene.name}_{preset}.png")
+    if args.manifest:
+        write_manifest(args.cache, args.manifest)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,323 @@
+"""Fit a :class:`GridField` to a photo set's training views, render every view, write a scene folder.
+
+``make_pairs(photos_dir, output, config)`` is the whole tool: it resumes an interrupted fit from
+``output/.fit/`` (state saved every ``checkpoint_every_s`` seconds and on Ctrl-C), and a finished
+output folder (``fit.json`` with the same configuration) is left as it is.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from safetensors.torch import load_file, save_file
+from torch import Tensor
+
+from roguefit.field import GridField, scene_frame, seen_by_cameras
+from roguefit.photos import PhotoSet, read_photo_set
+from roguenerf.errors import InputError, TrainingCancelled
+from roguenerf.imageio import atomic_write
+
+log = logging.getLogger("roguefit")
+
+STATE_DIR = ".fit"
+FIT_FILE = "fit.json"
+FORMAT_VERSION = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class FitConfig:
+    """How to fit one field.
+
+    resolution: final grid side; the fit starts at half of it and grows (coarse to fine) at
+    ``grow_at`` fractions of the budget. features: colour-feature channels read by the
+    view-dependent MLP (0: an RGB grid, view-independent). minutes / steps: the budget (steps
+    wins when both are given). rays: rays per step; samples: samples per ray (inverse depth).
+    """
+
+    resolution: int = 160
+    features: int = 6
+    minutes: float | None = 10.0
+    steps: int | None = None
+    rays: int = 2048
+    samples: int = 64
+    lr_grid: float = 0.1
+    lr_mlp: float = 2e-3
+    tv_weight: float = 1e-4
+    grow_at: tuple[float, ...] = (0.15, 0.35)
+    prune_every: int = 200
+    seed: int = 0
+    hold: int = 8
+    checkpoint_every_s: float = 60.0
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["grow_at"] = list(self.grow_at)
+        return d
+
+    def identity(self) -> dict:
+        """The keys that define the result (not the checkpoint cadence)."""
+        d = self.to_dict()
+        d.pop("checkpoint_every_s")
+        return d
+
+
+# Two looks per scene for pre-training: a blurry, view-independent field fitted briefly and a
+# sharper view-dependent one with a finer grid and a longer budget.
+PRESETS: dict[str, FitConfig] = {
+    "coarse": FitConfig(resolution=112, features=0, minutes=4.0, samples=64),
+    "fine": FitConfig(resolution=176, features=6, minutes=10.0, samples=80),
+}
+
+
+def camera_rays(ps_K: Tensor, world_from_cam: Tensor, v: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+    """Rays through pixel centres ``(v, u)`` (row, col) of cameras ``K (B,3,3)``, ``world_from_cam (B,4,4)``.
+
+    Returns origins and directions ``(B, 3)`` float32 with the direction's camera-z equal to 1, so
+    the ray parameter is z-depth.
+    """
+    K = ps_K
+    x = (u.to(torch.float64) + 0.5 - K[:, 0, 2]) / K[:, 0, 0]
+    y = (v.to(torch.float64) + 0.5 - K[:, 1, 2]) / K[:, 1, 1]
+    d_cam = torch.stack([x, y, torch.ones_like(x)], dim=-1)
+    dirs = (world_from_cam[:, :3, :3] @ d_cam[..., None])[..., 0]
+    return world_from_cam[:, :3, 3].to(torch.float32), dirs.to(torch.float32)
+
+
+def _grow_plan(config: FitConfig) -> list[int]:
+    final = config.resolution
+    levels = len(config.grow_at) + 1
+    return [max(16, round(final * (0.5 + 0.5 * i / (levels - 1)))) for i in range(levels)] if levels > 1 else [final]
+
+
+class _Fitter:
+    def __init__(self, ps: PhotoSet, config: FitConfig, state_dir: Path):
+        self.ps, self.config, self.state_dir = ps, config, state_dir
+        self.train = ps.indices("train")
+        if len(self.train) < 2:
+            raise InputError(f"photo set: expected at least 2 training views, got {len(self.train)}")
+        pose = ps.world_from_cam[self.train]
+        self.near = (ps.near * 0.9).to(torch.float32)
+        self.far = (ps.far * 1.2).to(torch.float32)
+        centre, radius = scene_frame(pose, ps.near[self.train])
+        self.levels = _grow_plan(config)
+        self.field = GridField(centre, radius, self.levels[0], features=config.features)
+        self.seen = seen_by_cameras(self.field, pose, ps.K[self.train], self.near[self.train],
+                                    self.far[self.train], ps.height, ps.width)
+        self.field.occupancy = self.seen.clone()
+        self.pixels = (ps.photos[self.train] * 255).round().to(torch.uint8).permute(0, 2, 3, 1).contiguous()
+        self.generator = torch.Generator().manual_seed(config.seed)
+        self.step = 0
+        self.elapsed = 0.0
+        self.level = 0
+        self._make_optimizer()
+
+    def _make_optimizer(self) -> None:
+        groups = [{"params": [self.field.density, self.field.colour], "lr": self.config.lr_grid},
+                  {"params": [self.field.background], "lr": self.config.lr_mlp}]
+        if self.field.mlp is not None:
+            groups.append({"params": list(self.field.mlp.parameters()), "lr": self.config.lr_mlp})
+        self.optimizer = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
+
+    # -- resume ------------------------------------------------------------------------------
+    def save(self) -> None:
+        self.state_dir.mkdir(parents=True, exist_ok=True)
+        tensors = {f"model.{k}": v.detach().contiguous() for k, v in self.field.state_dict().items()}
+        for gi, group in enumerate(self.optimizer.param_groups):
+            for pi, p in enumerate(group["params"]):
+                st = self.optimizer.state.get(p, {})
+                for key in ("exp_avg", "exp_avg_sq"):
+                    if key in st:
+                        tensors[f"opt.{gi}.{pi}.{key}"] = st[key].contiguous()
+                if "step" in st:
+                    tensors[f"opt.{gi}.{pi}.step"] = torch.as_tensor(st["step"], dtype=torch.float32).reshape(1)
+        tensors["rng"] = self.generator.get_state()
+        tmp = self.state_dir / "state.safetensors.tmp"
+        save_file(tensors, str(tmp))
+        tmp.replace(self.state_dir / "state.safetensors")
+        meta = {"format_version": FORMAT_VERSION, "config": self.config.identity(), "step": self.step,
+                "elapsed": self.elapsed, "level": self.level, "resolution": self.field.resolution}
+        atomic_write(self.state_dir / "state.json", json.dumps(meta).encode())
+
+    def load(self) -> bool:
+        meta_path, tensor_path = self.state_dir / "state.json", self.state_dir / "state.safetensors"
+        if not (meta_path.is_file() and tensor_path.is_file()):
+            return False
+        try:
+            meta = json.loads(meta_path.read_text())
+            tensors = load_file(str(tensor_path))
+        except (OSError, ValueError, json.JSONDecodeError) as exc:
+            log.warning("ignoring unreadable fit state in %s (%s): starting over", self.state_dir, exc)
+            return False
+        if meta.get("format_version") != FORMAT_VERSION or meta.get("config") != self.config.identity():
+            log.warning("fit state in %s was made with another configuration: starting over", self.state_dir)
+            return False
+        self.field.use_mlp = int(meta["level"]) > 0
+        if meta["resolution"] != self.field.resolution:
+            self.field.upsample(meta["resolution"])
+        self.field.occupancy = tensors["model.occupancy"].to(torch.bool)
+        self.field.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+        self._make_optimizer()
+        for gi, group in enumerate(self.optimizer.param_groups):
+            for pi, p in enumerate(group["params"]):
+                if f"opt.{gi}.{pi}.exp_avg" in tensors:
+                    self.optimizer.state[p] = {
+                        "step": tensors[f"opt.{gi}.{pi}.step"][0].clone(),
+                        "exp_avg": tensors[f"opt.{gi}.{pi}.exp_avg"],
+                        "exp_avg_sq": tensors[f"opt.{gi}.{pi}.exp_avg_sq"],
+                    }
+        self.generator.set_state(tensors["rng"])
+        self.step, self.elapsed, self.level = int(meta["step"]), float(meta["elapsed"]), int(meta["level"])
+        return True
+
+    # -- training --------------------------------------------------------------------------
+    def fraction(self) -> float:
+        c = self.config
+        if c.steps is not None:
+            return self.step / max(c.steps, 1)
+        return self.elapsed / max(c.minutes * 60.0, 1e-9)
+
+    def train_step(self) -> float:
+        c, ps = self.config, self.ps
+        m = torch.randint(0, len(self.train), (c.rays,), generator=self.generator)
+        v = torch.randint(0, ps.height, (c.rays,), generator=self.generator)
+        u = torch.randint(0, ps.width, (c.rays,), generator=self.generator)
+        views = torch.as_tensor(self.train)[m]
+        origins, dirs = camera_rays(ps.K[views], ps.world_from_cam[views], v, u)
+        target = self.pixels[m, v, u].to(torch.float32) / 255.0
+        out = self.field.render(origins, dirs, self.near[views], self.far[views], c.samples, self.generator)
+        mse = F.mse_loss(out["rgb"], target)
+        loss = mse
+        if c.tv_weight > 0:
+            loss = loss + c.tv_weight * self.field.total_variation(32, self.generator)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        return float(mse.detach())
+
+    def run(self, progress: Callable[[dict], None] | None, should_stop: Callable[[], bool] | None) -> None:
+        c = self.config
+        last_save = time.monotonic()
+        mse_avg = None
+        while self.fraction() < 1.0:
+            while self.level + 1 < len(self.levels) and self.fraction() >= c.grow_at[self.level]:
+                self.level += 1
+                self.field.upsample(self.levels[self.level])
+                self.field.use_mlp = True
+                self._make_optimizer()
+                self.field.prune(self.seen)
+            t0 = time.perf_counter()
+            try:
+                mse = self.train_step()
+            except KeyboardInterrupt:
+                self.save()
+                raise
+            self.step += 1
+            if self.step % c.prune_every == 0 and self.fraction() > 0.05:
+                self.field.prune(self.seen)
+            self.elapsed += time.perf_counter() - t0
+            mse_avg = mse if mse_avg is None else 0.95 * mse_avg + 0.05 * mse
+            if not math.isfinite(mse):
+                raise RuntimeError(f"the fit diverged at step {self.step} (loss {mse})")
+            if progress is not None:
+                progress({"step": self.step, "fraction": min(self.fraction(), 1.0),
+                          "psnr": -10 * math.log10(max(mse_avg, 1e-10)), "resolution": self.field.resolution,
+                          "occupied": float(self.field.occupancy.float().mean())})
+            if should_stop is not None and should_stop():
+                self.save()
+                raise TrainingCancelled(f"fit stopped at step {self.step}; run again to resume")
+            if time.monotonic() - last_save > c.checkpoint_every_s:
+                self.save()
+                last_save = time.monotonic()
+        self.save()
+
+    # -- rendering -------------------------------------------------------------------------
+    @torch.no_grad()
+    def render_view(self, i: int, chunk: int = 16384) -> tuple[Tensor, Tensor, Tensor]:
+        ps, c = self.ps, self.config
+        h, w = ps.height, ps.width
+        vv, uu = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+        vv, uu = vv.reshape(-1), uu.reshape(-1)
+        rgb, depth, acc = [], [], []
+        for s in range(0, h * w, chunk):
+            v, u = vv[s:s + chunk], uu[s:s + chunk]
+            n = v.shape[0]
+            origins, dirs = camera_rays(ps.K[i].expand(n, 3, 3), ps.world_from_cam[i].expand(n, 4, 4), v, u)
+            out = self.field.render(origins, dirs, self.near[i].expand(n), self.far[i].expand(n), c.samples)
+            rgb.append(out["rgb"]), depth.append(out["depth"]), acc.append(out["acc"])
+        rgb = torch.cat(rgb).reshape(h, w, 3).permute(2, 0, 1).clamp(0, 1)
+        acc = torch.cat(acc).reshape(1, h, w).clamp(0, 1)
+        depth = torch.cat(depth).reshape(1, h, w)
+        depth = torch.where(acc > 1e-3, depth, self.far[i]).to(torch.float32)
+        return rgb, depth, acc
+
+
+def _metrics(renders: Tensor, photos: Tensor) -> dict:
+    from roguenerf.metrics import psnr, ssim
+
+    return {"psnr": float(psnr(renders, photos).mean()), "ssim": float(ssim(renders, photos).mean()),
+            "views": int(renders.shape[0])}
+
+
+def make_pairs(photos_dir: str | Path, output: str | Path, config: FitConfig = FitConfig(), *,
+               progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
+               render_progress: Callable[[int, int], None] | None = None) -> dict:
+    """Fit a field to ``photos_dir``'s training views and write the scene folder ``output``.
+
+    Returns the fit report (also written as ``output/fit.json``): configuration, steps, seconds,
+    and the renders' PSNR/SSIM on the training and held-out views.
+    """
+    from roguenerf.data.writers import write_scene_folder
+
+    output = Path(output)
+    done = output / FIT_FILE
+    if done.is_file() and (output / "transforms.json").is_file():
+        try:
+            report = json.loads(done.read_text())
+            if report.get("config") == config.identity():
+                log.info("%s is complete (fit.json has this configuration): nothing to do", output)
+                return report
+        except (OSError, json.JSONDecodeError):
+            pass
+    ps = read_photo_set(photos_dir, hold=config.hold)
+    fitter = _Fitter(ps, config, output / STATE_DIR)
+    if fitter.load():
+        log.info("resuming the fit at step %d (%.0f s done)", fitter.step, fitter.elapsed)
+    fitter.run(progress, should_stop)
+    t0 = time.perf_counter()
+    renders, depths, accs = [], [], []
+    for k in range(len(ps.names)):
+        rgb, depth, acc = fitter.render_view(k)
+        renders.append(rgb), depths.append(depth), accs.append(acc)
+        if render_progress is not None:
+            render_progress(k + 1, len(ps.names))
+        if should_stop is not None and should_stop():
+            raise TrainingCancelled("stopped while rendering; run again to resume (the fit is saved)")
+    render_seconds = time.perf_counter() - t0
+    renders, depths, accs = torch.stack(renders), torch.stack(depths), torch.stack(accs)
+    write_scene_folder(output, names=ps.names, photos=ps.photos, renders=renders, depths=depths,
+                       world_from_cam=ps.world_from_cam, K=ps.K, splits=ps.splits, acc=accs)
+    train, test = ps.indices("train"), ps.indices("test")
+    report = {
+        "format_version": FORMAT_VERSION,
+        "photos": str(Path(photos_dir)),
+        "config": config.identity(),
+        "steps": fitter.step,
+        "fit_seconds": round(fitter.elapsed, 1),
+        "render_seconds": round(render_seconds, 1),
+        "centre": [float(x) for x in fitter.field.centre],
+        "radius": fitter.field.radius,
+        "bounds": ps.bounds_note,
+        "occupied_fraction": float(fitter.field.occupancy.float().mean()),
+        "train": _metrics(renders[train], ps.photos[train]),
+        "test": _metrics(renders[test], ps.photos[test]) if test else None,
+    }
+    atomic_write(done, json.dumps(report, indent=1).encode())
+    return report
