@@ -132,7 +132,8 @@ def load_checkpoint(path: str | os.PathLike, *, max_bytes: int | None = None, de
     from safetensors import SafetensorError
     from safetensors.torch import load
 
-    from roguenerf.models.config import EnhancerConfig, build_enhancer
+    from roguenerf.models.config import EnhancerConfig
+    from roguenerf.models.enhancer import build_enhancer
 
     path = Path(path)
     limit = DEFAULT_MAX_BYTES if max_bytes is None else int(max_bytes)

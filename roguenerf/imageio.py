@@ -224,7 +224,8 @@ def read_depth(
     ``allow_pickle=False``: object arrays and pickles are refused, never unpickled.
     PNG depth must be single-channel 16-bit (e.g. millimetres with ``scale=0.001``); an 8-bit
     PNG cannot hold depth and is refused. Values are returned as stored times ``scale``;
-    zero / negative / non-finite values mean "unknown" and are not altered.
+    unknown values (:func:`roguenerf.geometry.depth.known_depth_mask`: non-finite, ``<= 1e-6``
+    or ``>= 1e10``) are not altered: every consumer applies that one rule.
 
     Args:
         source: path or the file's bytes.
@@ -339,7 +340,9 @@ def _image_array(image, name: str) -> np.ndarray:
     if array.ndim != 3 or array.shape[0] not in (1, 3) or array.shape[1] == 0 or array.shape[2] == 0:
         raise InputError(f"{name} must have shape (3, H, W) or (1, H, W), got {tuple(array.shape)}")
     if not np.issubdtype(array.dtype, np.floating):
-        raise InputError(f"{name} must be a float array in [0, 1], got dtype {array.dtype}")
+        from roguenerf.images import float_image_error
+
+        raise float_image_error(name, array.dtype)
     if not np.isfinite(array).all():
         raise InputError(f"{name} contains NaN or inf")
     return array

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from roguenerf.errors import InputError, NonFiniteOutputError
+from roguenerf.images import check_float_image
 from roguenerf.runtime import release_freed_memory
 
 DEFAULT_TILE = 512
@@ -57,6 +58,11 @@ class EnhanceResult:
 def _check_image(x: Tensor, name: str, channels: int) -> Tensor:
     if not isinstance(x, Tensor):
         raise InputError(f"{name}: expected a torch.Tensor ({channels}, H, W), got {type(x).__name__}")
+    if channels == 3:
+        check_float_image(x, name)
+    elif not x.is_floating_point():
+        raise InputError(f"{name}: expected a floating-point z-depth map, got dtype {x.dtype}; convert it "
+                         "first, e.g. depth.float() * scale for integer millimetres (scale = 0.001)")
     if x.ndim != 3 or x.shape[0] != channels:
         raise InputError(f"{name}: expected shape ({channels}, H, W), got {tuple(x.shape)}")
     if x.shape[1] < 1 or x.shape[2] < 1:
@@ -109,11 +115,14 @@ class SceneEnhancer:
         self.train_names = [scene.frames[i].name for i in self.train]
         poses = scene.poses()
         intrinsics = scene.intrinsics()
+        # Poses stay float64: relative poses are formed from them in float64 (reprojection,
+        # camera attention, neighbour ranking) and only then cast, so scenes far from the
+        # origin (UTM / ECEF, 1e6 units) keep their geometry. Intrinsics are fine in float32.
         if self.train:
-            self.train_poses = poses[self.train].to(torch.float32)
+            self.train_poses = poses[self.train].to(torch.float64)
             self.train_K = intrinsics[self.train].to(torch.float32)
         else:
-            self.train_poses = torch.zeros(0, 4, 4)
+            self.train_poses = torch.zeros(0, 4, 4, dtype=torch.float64)
             self.train_K = torch.zeros(0, 3, 3)
         self.cache_bytes = int(cache_bytes)
         self._sources: OrderedDict[int, Tensor] = OrderedDict()
@@ -214,7 +223,7 @@ class SceneEnhancer:
         if not self.use_neighbours or self.num_neighbours == 0 or not self.train:
             return []
         excluded = _resolve_exclude(self.scene, self.train, exclude)
-        picked = select_neighbours(world_from_cam.to(torch.float32), self.train_poses,
+        picked = select_neighbours(world_from_cam.to(torch.float64), self.train_poses,
                                    self.num_neighbours, exclude=excluded or None)
         return [self.train[int(p)] for p in picked]
 
@@ -223,10 +232,15 @@ class SceneEnhancer:
         """Enhance one render.
 
         Args:
-            render: ``(3, H, W)`` float in [0, 1].
-            depth: ``(1, H, W)`` z-depth; ``<= 0`` or non-finite means unknown.
+            render: ``(3, H, W)`` float in [0, 1] (values outside are clamped). Integer and bool
+                tensors (e.g. ``uint8`` 0-255) raise :class:`~roguenerf.errors.InputError`:
+                convert them first (``x.float() / 255``); see :mod:`roguenerf.images`.
+            depth: ``(1, H, W)`` float z-depth; unknown where
+                :func:`~roguenerf.geometry.depth.known_depth_mask` is False (non-finite,
+                ``<= DEPTH_EPS`` = 1e-6, or ``>= MAX_DEPTH`` = 1e10).
             K: ``(3, 3)`` intrinsics (pixel-centre convention).
-            world_from_cam: ``(4, 4)`` OpenCV camera-to-world.
+            world_from_cam: ``(4, 4)`` OpenCV camera-to-world; used in float64 (pass float64
+                for scenes far from the origin: float32 cannot hold 5e6 to better than 0.5).
             exclude: scene indices or view names never used as neighbours (the target itself
                 when it is a training view).
             progress: optional ``callback(done, total)`` called after each tile of a tiled image.
@@ -246,7 +260,7 @@ class SceneEnhancer:
         if not torch.isfinite(render).all():
             raise InputError("render: contains NaN or infinite values")
         K = check_intrinsics(torch.as_tensor(K).to(torch.float32), "K")
-        world_from_cam = check_pose(torch.as_tensor(world_from_cam).to(torch.float32), "world_from_cam")
+        world_from_cam = check_pose(torch.as_tensor(world_from_cam).to(torch.float64), "world_from_cam")
         if K.shape != (3, 3) or world_from_cam.shape != (4, 4):
             raise InputError(f"K, world_from_cam: expected (3, 3) and (4, 4), got "
                              f"{tuple(K.shape)} and {tuple(world_from_cam.shape)}")
@@ -311,7 +325,7 @@ class SceneEnhancer:
             for p in positions:
                 depth = self._depth(p)[None]
                 probe = reproject(depth, depth, sub, self.train_K[p].to(depth), K_sub,
-                                  self.train_poses[p].to(depth), pose_b[0], leniency=leniency)
+                                  self.train_poses[p].to(depth.device), pose_b[0], leniency=leniency)
                 if bool(probe.valid.any()):
                     return True
         return False

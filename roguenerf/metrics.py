@@ -4,12 +4,18 @@
   channels and pixels. (``kornia.metrics.psnr`` pools the MSE over the whole batch, which is
   not the mean of per-view PSNRs that papers and the lego README report.)
 * :func:`ssim`: ``kornia.metrics.ssim(a, b, window_size=11).mean()`` per image (Gaussian
-  window, sigma 1.5, "same" padding): the definition of the lego README's table.
+  window, sigma 1.5, "same" reflect padding): the definition of the lego README's table.
+  Any size >= 1x1 works: on an image whose shorter side ``m`` is under 6 pixels the window
+  shrinks to ``min(window_size, 2 m - 1)`` taps (the largest odd window the reflect padding
+  allows; sigma stays 1.5), so 1x1 images compare single pixels (window 1: the luminance
+  term). Images of 6 x 6 and more are unaffected.
 * :func:`lpips`: LPIPS (AlexNet variant, Zhang et al. 2018) from **local** weights only.
   Nothing is downloaded: without a weights file, :func:`lpips_available` is False and
   :func:`lpips` raises :class:`LPIPSUnavailableError` saying what file to supply.
 
-All take ``(B, C, H, W)`` (or one ``(C, H, W)`` image) in [0, max_val] and return ``(B,)``.
+All take floating-point ``(B, C, H, W)`` (or one ``(C, H, W)`` image) in [0, max_val], H, W >= 1,
+and return ``(B,)``. Integer and bool images raise :class:`~roguenerf.errors.InputError`
+with the conversion (:mod:`roguenerf.images`).
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from roguenerf.errors import InputError
+from roguenerf.images import check_float_image
 
 LPIPS_WEIGHTS_ENV = "ROGUENERF_LPIPS_WEIGHTS"
 """Environment variable naming a default LPIPS weights file."""
@@ -35,8 +42,10 @@ def _pair(a: Tensor, b: Tensor, name: str) -> tuple[Tensor, Tensor]:
         a, b = a[None], b[None] if b.ndim == 3 else b
     if a.ndim != 4 or a.shape != b.shape:
         raise InputError(f"{name}: expected two (B, C, H, W) tensors of the same shape, got {tuple(a.shape)} and {tuple(b.shape)}")
-    if not (a.is_floating_point() and b.is_floating_point()):
-        raise InputError(f"{name}: expected float tensors, got {a.dtype} and {b.dtype}")
+    if 0 in a.shape:
+        raise InputError(f"{name}: expected non-empty images (B, C, H, W >= 1), got size {tuple(a.shape)}")
+    check_float_image(a, f"{name}: first image")
+    check_float_image(b, f"{name}: second image")
     return a, b
 
 
@@ -53,16 +62,28 @@ def psnr(a: Tensor, b: Tensor, *, max_val: float = 1.0) -> Tensor:
     return 10.0 * torch.log10(max_val**2 / mse)
 
 
+def ssim_window(window_size: int, height: int, width: int) -> int:
+    """The window :func:`ssim` uses on an ``height x width`` image: ``min(window_size, 2 m - 1)``
+    with ``m = min(height, width)``, the largest odd window whose reflect padding
+    (``window // 2`` pixels) fits inside the image."""
+    return min(window_size, 2 * min(height, width) - 1)
+
+
 def ssim(a: Tensor, b: Tensor, *, window_size: int = 11, max_val: float = 1.0) -> Tensor:
     """Structural similarity of each image pair: mean of kornia's SSIM map per image.
 
     Args:
-        a, b: ``(B, C, H, W)`` (or ``(C, H, W)``) in [0, max_val].
+        a, b: ``(B, C, H, W)`` (or ``(C, H, W)``) in [0, max_val], any H, W >= 1.
+        window_size: odd number of Gaussian taps (sigma 1.5); on images smaller than the window
+            it shrinks to :func:`ssim_window` (``min(window_size, 2 min(H, W) - 1)``).
     Returns:
         ``(B,)``.
     """
     a, b = _pair(a, b, "ssim")
-    return kornia.metrics.ssim(a, b, window_size=window_size, max_val=max_val).flatten(1).mean(dim=1)
+    if isinstance(window_size, bool) or not isinstance(window_size, int) or window_size < 1 or window_size % 2 == 0:
+        raise InputError(f"ssim: window_size must be an odd integer >= 1, got {window_size!r}")
+    window = ssim_window(window_size, a.shape[-2], a.shape[-1])
+    return kornia.metrics.ssim(a, b, window_size=window, max_val=max_val).flatten(1).mean(dim=1)
 
 
 # -- LPIPS --------------------------------------------------------------------------------

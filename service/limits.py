@@ -9,7 +9,8 @@ from __future__ import annotations
 from service.errors import ApiError
 
 MIN_VALID_DEPTH_FRACTION = 0.01
-"""Below this share of usable depth pixels (finite and > 0) a render cannot be reprojected
+"""Below this share of known depth pixels (the library's rule,
+:func:`roguenerf.geometry.depth.known_depth_mask`) a render cannot be reprojected
 meaningfully: the request is refused instead of enhanced from a handful of points."""
 
 QUEUE_FULL_RETRY_AFTER_S = 30
@@ -18,25 +19,27 @@ QUEUE_FULL_RETRY_AFTER_S = 30
 def check_depth_coverage(depth, *, field: str = "depth") -> float:
     """Share of usable pixels of ``depth`` ``(1, H, W)``; raises 422 when nearly all are missing.
 
-    Zero, negative and non-finite values mean "unknown" (the library's convention), so a
-    map with a few of them is fine; one with almost nothing else is not.
+    Known depth is the library's one rule (:func:`roguenerf.geometry.depth.known_depth_mask`:
+    finite and 1e-6 < z < 1e10; zero, negative, non-finite and denormal values are unknown),
+    so a map with a few unknown pixels is fine; one with almost nothing else is not.
     """
     import numpy as np
+
+    from roguenerf.geometry.depth import DEPTH_EPS, MAX_DEPTH, known_depth_mask
 
     # NumPy, single-threaded: a few torch element-wise ops on a render-sized map each enter an
     # OpenMP parallel region, which costs tens of ms when the cores are busy (e.g. with a
     # fine-tuning job). The float32 division is what torch's mean() gave, to the bit.
     values = depth.detach().cpu().numpy() if hasattr(depth, "detach") else np.asarray(depth)
     total = values.size
-    with np.errstate(invalid="ignore"):
-        count = int(np.count_nonzero(np.isfinite(values) & (values > 0)))
+    count = int(np.count_nonzero(known_depth_mask(values)))
     fraction = float(np.float32(count) / np.float32(total)) if total else 0.0
     if fraction < MIN_VALID_DEPTH_FRACTION:
         raise ApiError(
             422, "invalid_input",
-            f"{field}: only {count} of {total} pixels ({fraction:.2%}) are finite "
-            f"and > 0; at least {MIN_VALID_DEPTH_FRACTION:.0%} must be (zero, negative, NaN and inf "
-            "mean 'unknown')",
+            f"{field}: only {count} of {total} pixels ({fraction:.2%}) are known depths (finite, "
+            f"> {DEPTH_EPS:g} and < {MAX_DEPTH:g}); at least {MIN_VALID_DEPTH_FRACTION:.0%} must be "
+            "(zero, negative, tiny, NaN and inf mean 'unknown')",
         )
     return fraction
 

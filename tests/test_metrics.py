@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-
 import kornia
+import numpy as np
 import pytest
 import torch
 from safetensors.torch import save_file
@@ -42,6 +42,70 @@ def test_ssim_per_image_equals_single_image_calls():
     for i in range(3):
         single = kornia.metrics.ssim(a[i : i + 1], b[i : i + 1], window_size=11).mean()
         assert out[i].item() == pytest.approx(single.item(), abs=1e-6)
+
+
+def _ssim_reference(a: np.ndarray, b: np.ndarray, window: int, max_val: float = 1.0) -> float:
+    """SSIM written out in NumPy (float64): Gaussian window of ``window`` taps, sigma 1.5,
+    reflect padding, C1 = (0.01 L)^2, C2 = (0.03 L)^2, eps 1e-12, mean over channels and pixels."""
+    x = np.arange(window) - window // 2
+    g = np.exp(-(x**2) / (2 * 1.5**2))
+    g /= g.sum()
+    r = window // 2
+
+    def blur(img):  # (C, H, W), separable, reflect padding as torch's "reflect"
+        out = np.pad(img, ((0, 0), (0, 0), (r, r)), mode="reflect")
+        out = sum(g[k] * out[..., k:k + img.shape[2]] for k in range(window))
+        out = np.pad(out, ((0, 0), (r, r), (0, 0)), mode="reflect")
+        return sum(g[k] * out[:, k:k + img.shape[1]] for k in range(window))
+
+    c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
+    mu_a, mu_b = blur(a), blur(b)
+    var_a, var_b, cov = blur(a * a) - mu_a**2, blur(b * b) - mu_b**2, blur(a * b) - mu_a * mu_b
+    num = (2 * mu_a * mu_b + c1) * (2 * cov + c2)
+    den = (mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2)
+    return float((num / (den + 1e-12)).mean())
+
+
+@pytest.mark.parametrize("size, window", [((1, 1), 1), ((3, 5), 5), ((2, 9), 3), ((1, 20), 1),
+                                          ((5, 5), 9), ((10, 10), 11), ((24, 7), 11)])
+def test_ssim_any_size_uses_the_documented_window(size, window):
+    """Images smaller than the window: min(11, 2 * min(H, W) - 1) taps, known answers."""
+    from roguenerf.metrics import ssim_window
+
+    assert ssim_window(11, *size) == window
+    g = torch.Generator().manual_seed(sum(size))
+    a = torch.rand(2, 3, *size, generator=g, dtype=torch.float64)
+    b = (a + 0.2 * torch.randn(2, 3, *size, generator=g, dtype=torch.float64)).clamp(0, 1)
+    out = ssim(a, b)
+    assert out.shape == (2,) and torch.isfinite(out).all()
+    for i in range(2):
+        assert out[i].item() == pytest.approx(_ssim_reference(a[i].numpy(), b[i].numpy(), window), abs=1e-9)
+    assert ssim(a, a).tolist() == pytest.approx([1.0, 1.0], abs=1e-6)
+
+
+def test_ssim_of_single_pixels_is_the_luminance_term():
+    a = torch.tensor([0.2, 0.9]).view(2, 1, 1, 1)
+    b = torch.tensor([0.6, 0.9]).view(2, 1, 1, 1)
+    c1 = 1e-4
+    want = [(2 * 0.2 * 0.6 + c1) / (0.2**2 + 0.6**2 + c1), 1.0]
+    assert ssim(a, b).tolist() == pytest.approx(want, abs=1e-6)
+    assert ssim(a[0], b[0]).tolist() == pytest.approx(want[:1], abs=1e-6)  # one (C, H, W) image
+
+
+def test_ssim_10x10_is_kornia_with_the_full_window():
+    g = torch.Generator().manual_seed(4)
+    a, b = torch.rand(1, 3, 10, 10, generator=g), torch.rand(1, 3, 10, 10, generator=g)
+    assert ssim(a, b).item() == kornia.metrics.ssim(a, b, window_size=11).mean().item()
+
+
+def test_empty_images_and_bad_windows_are_input_errors():
+    with pytest.raises(InputError, match=r"ssim: expected non-empty images .*\(1, 3, 0, 4\)"):
+        ssim(torch.zeros(1, 3, 0, 4), torch.zeros(1, 3, 0, 4))
+    with pytest.raises(InputError, match=r"psnr: expected non-empty images .*\(1, 3, 4, 0\)"):
+        psnr(torch.zeros(1, 3, 4, 0), torch.zeros(1, 3, 4, 0))
+    for window in (0, 4, -3, 2.5, True):
+        with pytest.raises(InputError, match="window_size"):
+            ssim(torch.zeros(1, 3, 8, 8), torch.zeros(1, 3, 8, 8), window_size=window)
 
 
 def test_shape_mismatch_refused():

@@ -301,3 +301,21 @@ def test_import_roguenerf_does_not_import_the_service_stack():
             "print(sorted(m for m in ('fastapi', 'huey', 'uvicorn', 'starlette') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_config_module_imports_no_model_code():
+    """Imports run one way (config <- enhancer): config.py imports nothing from the models,
+    not even lazily inside a function (the old build_enhancer knot)."""
+    import ast
+    from pathlib import Path
+
+    import roguenerf.models.config as config_module
+
+    tree = ast.parse(Path(config_module.__file__).read_text())
+    imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
+    imported |= {alias.name for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names}
+    assert not {m for m in imported if m and m.startswith("roguenerf.models")}, imported
+    from roguenerf import build_enhancer as exported
+    from roguenerf.models.enhancer import build_enhancer
+
+    assert exported is build_enhancer

@@ -286,6 +286,71 @@ def test_enhance_ok_and_over_capacity(client, scene_id, toy, server):
     assert enhance(client, scene_id, view).status_code == 200
 
 
+def _png_of(array: np.ndarray) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(array).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def test_enhance_integer_png_renders_follow_the_documented_rule(client, scene_id, toy):
+    """8-bit, 16-bit and 1-bit (bool) PNG renders are decoded by read_image's rule (/ 255,
+    / 65535, 0/1): the same image in any of these encodings gives the same answer, and the
+    answer is the library's for the float render (never the all-white image of a clamp)."""
+    import torch
+    from PIL import Image
+
+    from roguenerf import load_checkpoint, load_scene
+    from roguenerf.imageio import read_image
+    from roguenerf.inference import SceneEnhancer
+
+    scene = toy["scene"]
+    view = view_request(scene, 6)
+
+    def answer(render: bytes) -> bytes:
+        r = enhance(client, scene_id, {**view, "render": render})
+        assert r.status_code == 200, r.text
+        return r.content
+
+    rgb8 = np.asarray(Image.open(io.BytesIO(view["render"])).convert("RGB"))
+    gray8 = np.asarray(Image.fromarray(rgb8).convert("L"))
+    gray16 = gray8.astype(np.uint16) * 257  # v / 255 == 257 v / 65535
+    assert answer(_png_of(gray16)) == answer(_png_of(gray8))
+    mask = gray8 > 100
+    assert answer(_bool_png(mask)) == answer(_png_of(np.where(mask, 255, 0).astype(np.uint8)))
+
+    got = read_image(answer(view["render"]))
+    model, _ = load_checkpoint_from_bytes(toy["checkpoint"], load_checkpoint)
+    frame = scene.frames[6]
+    with torch.no_grad():
+        want = SceneEnhancer(load_scene(scene.root), model).enhance(
+            read_image(view["render"]), scene.depth(6), frame.K, frame.world_from_cam).image
+    assert float(got.mean()) < 0.9
+    assert float((got - want).abs().max()) <= 1.5 / 255
+
+
+def _bool_png(mask: np.ndarray) -> bytes:
+    """A 1-bit PNG (Pillow mode "1") of a bool mask."""
+    from PIL import Image
+
+    img = Image.new("1", (mask.shape[1], mask.shape[0]))
+    img.putdata([int(v) for v in mask.reshape(-1)])
+    buf = io.BytesIO()
+    img.save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def load_checkpoint_from_bytes(data: bytes, load_checkpoint):
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "model.safetensors"
+        path.write_bytes(data)
+        return load_checkpoint(path)
+
+
 def test_job_rules_without_worker(client, scene_id, server):
     # No worker runs here, so a job stays queued: the rules are checked deterministically.
     r = client.post(f"/scenes/{scene_id}/finetune", json={"steps": 3}, headers={"Idempotency-Key": "k-1"})

@@ -17,7 +17,8 @@ exact toy photos and z-depths, :class:`Degradation` applies, per view and in thi
 5. **Noise**: Gaussian, standard deviation ``~ U(noise)``; the result is clipped to [0, 1].
 
 Depth error: the depth is multiplied by ``1 + depth_noise * n(x)`` with ``n`` a smooth
-(4x4 control points, bilinear) standard normal field. Missing depth (<= 0 or non-finite)
+(4x4 control points, bilinear) standard normal field. Missing depth (unknown per
+:mod:`roguenerf.geometry.depth`: non-finite, <= 1e-6 or >= 1e10)
 stays missing.
 
 Deterministic for a given ``torch.Generator`` state (all random numbers are drawn on the CPU
@@ -35,6 +36,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from roguenerf.errors import InputError
+from roguenerf.geometry.depth import known_depth_mask
+from roguenerf.images import check_float_image
 
 
 def _check_range(name: str, value) -> tuple[float, float]:
@@ -94,7 +97,7 @@ class Degradation:
 
         Args:
             photos: ``(M, 3, H, W)`` in [0, 1].
-            depths: ``(M, 1, H, W)`` z-depth (<= 0 / non-finite: missing).
+            depths: ``(M, 1, H, W)`` z-depth (unknown per :mod:`roguenerf.geometry.depth`: missing).
             generator: a CPU ``torch.Generator``; same state, same output.
             K: ``(3, 3)`` or ``(M, 3, 3)`` pixel-centre intrinsics for the pose error; None
                 assumes a focal length of ``W`` pixels (about 53 degrees) and a centred
@@ -102,6 +105,8 @@ class Degradation:
         Returns:
             ``(renders (M, 3, H, W) in [0, 1], depths (M, 1, H, W))``.
         """
+        if isinstance(photos, Tensor):
+            check_float_image(photos, "photos")
         if not isinstance(photos, Tensor) or photos.ndim != 4 or photos.shape[1] != 3 or not photos.is_floating_point():
             raise InputError(f"photos: expected a float (M, 3, H, W) tensor, got {getattr(photos, 'shape', type(photos))}")
         m, _, h, w = photos.shape
@@ -133,9 +138,9 @@ class Degradation:
         noise = randn(m, 3, h, w)
         depth_field = randn(m, 1, 4, 4)
 
-        known = torch.isfinite(depths) & (depths > 0)
+        known = known_depth_mask(depths)
         images, depths = _pose_error(photos, depths, known, K, rot, trans)
-        known = torch.isfinite(depths) & (depths > 0)
+        known = known_depth_mask(depths)
         inv_depth = torch.where(known, 1.0 / torch.where(known, depths, 1.0), 0.0)
         images = _gaussian(images, sigma)
         images = _defocus(images, inv_depth, known, radius, focus_q)
@@ -200,7 +205,7 @@ def _pose_error(images: Tensor, depths: Tensor, known: Tensor, K: Tensor, rot: T
     # Nearest for depth: bilinear would invent depths between foreground and background.
     src = torch.where(known, depths, torch.nan)
     sampled = F.grid_sample(src, grid, mode="nearest", padding_mode="border", align_corners=False)
-    got = torch.isfinite(sampled) & (sampled > 0)
+    got = known_depth_mask(sampled)
     sampled = torch.where(got, sampled, 0.0).reshape(m, 1, -1)
     # The sampled exact-view point, moved back into the perturbed camera: its z is the new depth.
     source_pts = torch.linalg.solve(K, torch.cat([_grid_to_pix(grid, h, w), torch.ones_like(sampled)], dim=1))

@@ -6,7 +6,8 @@ are kept in an LRU cache bounded in bytes.
 
 Conventions (see :mod:`roguenerf.geometry`): poses are OpenCV camera-to-world float64,
 ``K`` uses the pixel-centre convention (centre of pixel (row v, col u) at (u + 0.5, v + 0.5)),
-depth is z-depth in pose units with ``<= 0`` / non-finite meaning "unknown".
+depth is z-depth in pose units, unknown where :func:`roguenerf.geometry.depth.known_depth_mask`
+is False (non-finite, ``<= 1e-6`` or ``>= 1e10``).
 """
 
 from __future__ import annotations

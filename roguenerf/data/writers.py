@@ -20,6 +20,7 @@ from torch import Tensor
 from roguenerf.errors import InputError
 from roguenerf.geometry.cameras import check_intrinsics, check_pose, opencv_to_opengl
 from roguenerf.imageio import atomic_write, encode_npy, encode_png
+from roguenerf.images import float_image_error
 
 _SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]*$")
 
@@ -135,5 +136,7 @@ def _check_images(name: str, x: Tensor, m: int, channels: int, size: tuple[int, 
         want = f"({m}, {channels}, {size[0]}, {size[1]})" if size else f"({m}, {channels}, H, W)"
         raise InputError(f"{name}: expected shape {want}, got {tuple(x.shape)}")
     if not x.is_floating_point():
+        if name != "depths":  # photos, renders, acc: images in [0, 1] (roguenerf.images)
+            raise float_image_error(name, x.dtype)
         raise InputError(f"{name}: expected a float tensor, got {x.dtype}")
     return int(x.shape[2]), int(x.shape[3])

@@ -6,8 +6,12 @@ Conventions used everywhere in the library:
   (x right, y down, z forward), named ``world_from_cam``.
 * Intrinsics ``K`` are 3x3 with the **pixel-centre convention** of nerfstudio/COLMAP:
   the centre of pixel (row v, col u) is at image coordinates (u + 0.5, v + 0.5).
-* Depth is z-depth along the optical axis, in the poses' units; ``<= 0`` or non-finite
-  depth means "unknown".
+* Depth is z-depth along the optical axis, in the poses' units. It is **known** where
+  :func:`~roguenerf.geometry.depth.known_depth_mask` is True: finite and
+  ``DEPTH_EPS (1e-6) < z < MAX_DEPTH (1e10)``; anything else (0, negative, NaN, inf,
+  denormals such as 1e-40) means "unknown". One rule, used everywhere.
+* Poses may be float64 and stay so until a relative pose ``C_i^-1 C_k`` is formed
+  (:func:`relative_pose`, float64); only relative quantities are cast to float32.
 """
 
 from roguenerf.geometry.cameras import (
@@ -18,13 +22,17 @@ from roguenerf.geometry.cameras import (
     opencv_to_opengl,
     opengl_to_opencv,
     ray_to_z_depth,
+    relative_pose,
     scale_intrinsics,
 )
+from roguenerf.geometry.depth import DEPTH_EPS, MAX_DEPTH, known_depth, known_depth_mask, median_known_depth
 from roguenerf.geometry.euler import angular_distance, euler_angles, euler_distance, wrap_angle
 from roguenerf.geometry.neighbours import select_neighbours
 from roguenerf.geometry.reproject import Reprojection, reproject, sampling_source
 
 __all__ = [
+    "DEPTH_EPS",
+    "MAX_DEPTH",
     "Reprojection",
     "angular_distance",
     "check_intrinsics",
@@ -32,10 +40,14 @@ __all__ = [
     "euler_angles",
     "euler_distance",
     "intrinsics_matrix",
+    "known_depth",
+    "known_depth_mask",
     "llff_to_opencv",
+    "median_known_depth",
     "opencv_to_opengl",
     "opengl_to_opencv",
     "ray_to_z_depth",
+    "relative_pose",
     "reproject",
     "sampling_source",
     "scale_intrinsics",

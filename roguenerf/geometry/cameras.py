@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from roguenerf.errors import InputError
+from roguenerf.geometry.depth import known_depth_mask
 
 ORTHONORMAL_TOL = 1e-3
 """Rotations with ``max|R^T R - I| <= ORTHONORMAL_TOL`` are re-orthonormalised (SVD); worse ones raise."""
@@ -157,11 +158,32 @@ def check_pose(world_from_cam: Tensor, name: str = "pose", tol: float = ORTHONOR
     return out
 
 
+def relative_pose(world_from_a: Tensor, world_from_b: Tensor) -> Tensor:
+    """``a_from_b = C_a^-1 C_b`` of two rigid camera-to-world poses, formed in **float64**.
+
+    ``R = R_a^T R_b``, ``t = R_a^T (t_b - t_a)``: the translations are subtracted first, so two
+    cameras 5e6 units from the origin and a few units apart give their relative pose to
+    float64 rounding (1e-9), whatever dtype the caller casts the result to afterwards. Cast
+    poses to float32 only *after* this step. Inputs ``(..., 4, 4)`` broadcast; returns float64.
+    """
+    A = world_from_a.to(torch.float64)
+    B = world_from_b.to(torch.float64)
+    R_a_T = A[..., :3, :3].transpose(-1, -2)
+    rot = R_a_T @ B[..., :3, :3]
+    trans = R_a_T @ (B[..., :3, 3:] - A[..., :3, 3:])
+    shape = torch.broadcast_shapes(A.shape, B.shape)
+    out = torch.zeros(shape, dtype=torch.float64, device=A.device)
+    out[..., :3, :3] = rot
+    out[..., :3, 3:] = trans
+    out[..., 3, 3] = 1.0
+    return out
+
+
 def ray_to_z_depth(ray_depth: Tensor, K: Tensor) -> Tensor:
     """Convert distance along the ray to z-depth: ``z = d / ||K^-1 [u+0.5, v+0.5, 1]||``.
 
     Args:
-        ray_depth: ``(..., H, W)``; non-finite / <= 0 stays "unknown" (returned as 0).
+        ray_depth: ``(..., H, W)``; unknown depth (:mod:`roguenerf.geometry.depth`) is returned as 0.
         K: ``(3, 3)`` or ``(..., 3, 3)`` broadcastable.
     Returns:
         ``(..., H, W)`` z-depth.
@@ -179,5 +201,5 @@ def ray_to_z_depth(ray_depth: Tensor, K: Tensor) -> Tensor:
     y = (v[:, None] - cy) / fy
     x = (u[None, :] - cx - skew * y) / fx
     norm = torch.sqrt(x * x + y * y + 1.0)
-    known = torch.isfinite(ray_depth) & (ray_depth > 0)
+    known = known_depth_mask(ray_depth)
     return torch.where(known, torch.nan_to_num(ray_depth, nan=0.0, posinf=0.0, neginf=0.0) / norm, 0.0)

@@ -20,13 +20,11 @@ from torch import Tensor
 
 from roguenerf.errors import InputError
 from roguenerf.fastpath import fast_enabled
-from roguenerf.geometry.cameras import check_intrinsics, check_pose
+from roguenerf.geometry.cameras import check_intrinsics, check_pose, relative_pose
+from roguenerf.geometry.depth import DEPTH_EPS, MAX_DEPTH, known_depth_mask  # noqa: F401 (re-exported)
 from roguenerf.geometry.sampling import bilinear_sample
 
 DEFAULT_LENIENCY = 0.25
-DEPTH_EPS = 1e-6
-MAX_DEPTH = 1e10
-"""Depth at or beyond this is treated as unknown: it would overflow float32 geometry."""
 
 
 @dataclass
@@ -34,8 +32,9 @@ class Reprojection:
     features: Tensor
     """``(B, C, H, W)`` neighbour features sampled at the projected points, times ``valid``."""
     valid: Tensor
-    """``(B, 1, H, W)`` float 0/1: finite target depth > eps, z_{k->i} > eps, projection inside the
-    neighbour image, neighbour depth known there, and the visibility test passed."""
+    """``(B, 1, H, W)`` float 0/1: target depth known (:mod:`roguenerf.geometry.depth`),
+    z_{k->i} > eps, projection inside the neighbour image, neighbour depth known there, and the
+    visibility test passed."""
     depth: Tensor
     """``(B, 1, H, W)`` D_{i->k}: the neighbour's own depth sampled at the projected point
     (0 where not valid). Without ``src_depth`` it is z_{k->i}, the target point's depth in the
@@ -82,12 +81,13 @@ def _make_pixel_centres(h: int, w: int, device: str, dtype) -> Tensor:
 
 
 def _known(depth: Tensor, eps: float) -> tuple[Tensor, Tensor]:
-    """Mask of usable depth and the depth with every unusable entry replaced by 1.
+    """Mask of known depth (:func:`~roguenerf.geometry.depth.known_depth_mask`) and the depth
+    with every unknown entry replaced by 1.
 
     Replacing (rather than masking afterwards) keeps NaN/inf out of every later division,
     so their gradients stay finite.
     """
-    known = torch.isfinite(depth) & (depth > eps) & (depth < MAX_DEPTH)
+    known = known_depth_mask(depth, eps=eps)
     return known, torch.where(known, torch.nan_to_num(depth, nan=1.0, posinf=1.0, neginf=1.0), 1.0)
 
 
@@ -138,9 +138,11 @@ def reproject(
     y in [-0.5, Hs - 0.5] (pixel centres at integers); in the outer half pixel the edge pixel
     is repeated rather than blended with zeros. Everything outside is invalid and 0. The
     neighbour depth z_i is the bilinear mean over the known neighbour pixels and counts as
-    known where they carry at least half of the bilinear weight. Depth ``>= MAX_DEPTH`` is
-    unknown. The relative pose is computed in float64, so large translations (1e4) shared by
-    both cameras lose no precision.
+    known where they carry at least half of the bilinear weight. Depth is known where
+    :func:`~roguenerf.geometry.depth.known_depth_mask` says so (finite, ``eps < z < MAX_DEPTH``).
+    The relative pose C_i^-1 C_k is formed in float64 from the poses as given and only then
+    cast to the features' dtype: pass float64 poses when the cameras are far from the origin
+    (UTM / ECEF coordinates, 1e6 units), since float32 cannot even store such positions.
 
     Args:
         src_features: ``(B, C, Hs, Ws)``.
@@ -176,8 +178,8 @@ def reproject(
     dst_K = _batched(check_intrinsics(dst_K, "dst_K"), "dst_K", (3, 3), B).to(device, dtype)
     world_from_src = _batched(check_pose(world_from_src, "world_from_src"), "world_from_src", (4, 4), B)
     world_from_dst = _batched(check_pose(world_from_dst, "world_from_dst"), "world_from_dst", (4, 4), B)
-    # float64 here: with both cameras 1e4 units from the origin, float32 would leave mm-scale errors.
-    src_from_dst = (torch.linalg.inv(world_from_src.double()) @ world_from_dst.double()).to(device, dtype)
+    # float64 here: with both cameras 5e6 units from the origin, float32 would lose the geometry.
+    src_from_dst = relative_pose(world_from_src, world_from_dst).to(device, dtype)
 
     dst_known, z = _known(dst_depth.to(dtype), eps)
     # The pinhole maths with K is plain torch: kornia's (un)project helpers ignore K's skew

@@ -1,8 +1,12 @@
-"""Model hyper-parameters as dataclasses; named variants as data; one factory.
+"""Model hyper-parameters as dataclasses; named variants as data; one config factory.
 
 ``make_config("T", flow_iters=2, embed_dim=24)`` starts from :class:`EnhancerConfig` defaults,
 applies the variant's entries from :data:`VARIANTS`, then the caller's overrides (caller wins).
 Keys may name an :class:`EnhancerConfig` field or, flat, a :class:`UformerConfig` field.
+
+This module imports no model code (imports run one way: ``config`` <- ``enhancer``); the model
+factory ``build_enhancer`` lives in :mod:`roguenerf.models.enhancer` and is exported by
+:mod:`roguenerf.models`.
 """
 
 from __future__ import annotations
@@ -221,23 +225,3 @@ def make_config(variant: str = "nano", **overrides) -> EnhancerConfig:
     sub = {k: v for k, v in merged.items() if k in _UFORMER_KEYS}
     top.setdefault("variant", variant)
     return EnhancerConfig.from_dict({**top, "uformer": sub})
-
-
-def build_enhancer(variant: str | EnhancerConfig = "nano", **overrides):
-    """Build an :class:`~roguenerf.models.enhancer.Enhancer` from a variant name or config."""
-    from roguenerf.models.enhancer import Enhancer
-
-    if isinstance(variant, EnhancerConfig):
-        config = variant
-        if overrides:
-            d = config.to_dict()
-            sub = {k: overrides.pop(k) for k in list(overrides) if k in _UFORMER_KEYS}
-            d["uformer"].update(sub)
-            d["uformer"].update(overrides.pop("uformer", None) or {})
-            d.update(overrides)
-            config = EnhancerConfig.from_dict(d)
-    elif isinstance(variant, str):
-        config = make_config(variant, **overrides)
-    else:
-        raise InputError(f"variant: expected a variant name or EnhancerConfig, got {type(variant).__name__}")
-    return Enhancer(config)

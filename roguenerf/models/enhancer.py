@@ -12,10 +12,16 @@ features cached per scene):
 
 Scale invariance (a deviation from the paper, which feeds raw depths and absolute camera
 positions): scenes come in arbitrary units, so the depths fed to the attention are divided by
-the target's median valid depth ``s`` (then clamped to [0, MAX_RELATIVE_DEPTH]) and the camera
+the target's median known depth ``s`` (known: :mod:`roguenerf.geometry.depth`, so ``s`` lies in
+``(DEPTH_EPS, MAX_DEPTH)``; then clamped to [0, MAX_RELATIVE_DEPTH]) and the camera
 attention sees the neighbour's position relative to the target, ``(t_i - t_k) / s`` (clamped
 to +-MAX_RELATIVE_DEPTH), instead of ``t_i, t_k``. Scaling a scene's units (depths and
 translations together) therefore leaves the output unchanged.
+
+Poses may be float64 and should be when cameras are far from the origin: relative poses
+(reprojection) and relative positions (camera attention) are formed in float64 from the poses
+as given, and only then cast to the features' dtype, so translating a whole scene (1e6 units)
+leaves the output unchanged to float32 rounding.
 
 Neighbours are processed one at a time and max-pooled on the fly, so memory does not grow
 with their number and the output is exactly invariant to their order.
@@ -35,7 +41,9 @@ from torch import Tensor, nn
 
 from roguenerf.errors import InputError
 from roguenerf.geometry import euler_angles, reproject, sampling_source
-from roguenerf.models.config import EnhancerConfig
+from roguenerf.geometry.depth import DEPTH_EPS, MAX_DEPTH, known_depth, known_depth_mask, median_known_depth
+from roguenerf.images import check_float_image
+from roguenerf.models.config import _UFORMER_KEYS, EnhancerConfig, make_config
 from roguenerf.models.flow import FLOW_STRIDE, FlowRefiner, flow_warp
 from roguenerf.models import fastops
 from roguenerf.models.layers import (
@@ -93,21 +101,16 @@ class NeighbourBatch:
         return self.depth[:, j]
 
 
-def known_depth(depth: Tensor) -> Tensor:
-    """Depth with every unknown entry (<= 0, NaN, inf) replaced by 0; same shape."""
-    return torch.where(torch.isfinite(depth) & (depth > 0), depth, torch.zeros_like(depth))
+median_depth = median_known_depth
+"""``(B, 1, H, W)`` z-depth -> ``(B,)`` median over known pixels (1.0 where none is known);
+see :func:`roguenerf.geometry.depth.median_known_depth`."""
 
 
-def median_depth(depth: Tensor) -> Tensor:
-    """``(B, 1, H, W)`` z-depth -> ``(B,)`` median over known pixels (1.0 where none is known)."""
-    d = depth.detach().flatten(1).to(torch.float64)
-    d = torch.where(torch.isfinite(d) & (d > 0), d, torch.nan)
-    med = torch.nanmedian(d, dim=1).values
-    return torch.where(torch.isfinite(med), med, torch.ones_like(med)).to(depth.dtype)
-
-
-def _check(x, name: str, shape: tuple) -> Tensor:
-    """``shape`` entries: int = exact size, None = any size >= 1."""
+def _check(x, name: str, shape: tuple, *, image: bool = False) -> Tensor:
+    """``shape`` entries: int = exact size, None = any size >= 1. ``image``: an RGB image in
+    [0, 1] (integer dtypes are refused with the conversion rule, :mod:`roguenerf.images`)."""
+    if image:
+        check_float_image(x, name)
     if not isinstance(x, Tensor) or not x.is_floating_point():
         got = x.dtype if isinstance(x, Tensor) else type(x).__name__
         raise InputError(f"{name}: expected a floating-point tensor, got {got}")
@@ -159,7 +162,7 @@ class Enhancer(nn.Module):
 
     def encode_neighbours(self, photos: Tensor) -> Tensor:
         """conv_H: ``(N, 3, H, W)`` photos in [0,1] -> ``(N, F, H, W)``. Independent of the target."""
-        _check(photos, "photos", (None, 3, None, None))
+        _check(photos, "photos", (None, 3, None, None), image=True)
         if self.conv_H is None:
             raise InputError("encode_neighbours: this enhancer was built with use_neighbours=False "
                              "and has no neighbour encoder")
@@ -174,15 +177,17 @@ class Enhancer(nn.Module):
         """Enhance renders.
 
         Args:
-            render: ``(B, 3, H, W)`` in [0, 1]; depth ``(B, 1, H, W)`` z-depth (missing <= 0 / NaN);
-            K ``(B, 3, 3)``; world_from_cam ``(B, 4, 4)`` OpenCV; neighbours or None.
+            render: ``(B, 3, H, W)`` float in [0, 1]; depth ``(B, 1, H, W)`` z-depth (unknown where
+            :func:`~roguenerf.geometry.depth.known_depth_mask` is False); K ``(B, 3, 3)``;
+            world_from_cam ``(B, 4, 4)`` OpenCV (float64 keeps far-from-origin scenes exact);
+            neighbours or None.
             depth_scale: ``(B,)`` scene scale s used to normalise depths and camera positions;
                 default :meth:`depth_scale` of ``depth``. Tiling passes the whole image's scale
                 so every tile is normalised alike.
         Returns:
             ``(B, 3, H, W)`` = render + Uformer(...) (global residual), any H x W.
         """
-        _check(render, "render", (None, 3, None, None))
+        _check(render, "render", (None, 3, None, None), image=True)
         b, _, h, w = render.shape
         _check(depth, "depth", (b, 1, h, w))
         with stage("encoders"):
@@ -223,10 +228,13 @@ class Enhancer(nn.Module):
                           else _check(world_from_cam, "world_from_cam", (b, 4, 4)))
 
         scale = self.depth_scale(depth) if depth_scale is None else depth_scale.to(feats)
-        if scale.shape != (b,) or not bool(torch.isfinite(scale).all() and (scale > 0).all()):
-            raise InputError(f"depth_scale: expected ({b},) finite positive values, got {scale}")
-        inv_scale = (1.0 / scale)[:, None, None, None]
-        target_depth = (known_depth(depth) * inv_scale).clamp(0, MAX_RELATIVE_DEPTH)
+        if scale.shape != (b,) or not bool(known_depth_mask(scale).all()):
+            raise InputError(f"depth_scale: expected ({b},) known depths (finite, in "
+                             f"({DEPTH_EPS:g}, {MAX_DEPTH:g})), got {scale}")
+        # Divide (never multiply by 1 / s): depth / s of known depths is finite, and the clamp
+        # bounds it; 0 * (1 / s) could meet an overflowed reciprocal and give NaN.
+        scale_b = scale[:, None, None, None]
+        target_depth = (known_depth(depth) / scale_b).clamp(0, MAX_RELATIVE_DEPTH)
         camera_inputs = None
         if self.camera_attention is not None:
             camera_inputs = self._camera_inputs(world_from_cam, nbrs.world_from_cam, scale).to(feats.dtype)
@@ -243,7 +251,7 @@ class Enhancer(nn.Module):
                 attention_term = self.pixel_attention.target_term(feats, target_depth)
 
         if fast:
-            return self._fuse_fast(feats, depth, K, world_from_cam, nbrs, inv_scale, camera_inputs,
+            return self._fuse_fast(feats, depth, K, world_from_cam, nbrs, scale_b, camera_inputs,
                                    target_low, attention_term)
         pooled = None
         for j in range(n):
@@ -259,7 +267,7 @@ class Enhancer(nn.Module):
                     aligned, nb_depth = warped[:, :f], warped[:, f:]
             if self.pixel_attention is not None:
                 with stage("attention"):
-                    nb_rel = (nb_depth * inv_scale).clamp(0, MAX_RELATIVE_DEPTH)
+                    nb_rel = (nb_depth / scale_b).clamp(0, MAX_RELATIVE_DEPTH)
                     psi_pix = self.pixel_attention(aligned, feats, nb_rel, target_depth)
                     psi_cam = self.camera_attention(camera_inputs[:, j])[:, :, None, None]
                     aligned = psi_cam * psi_pix * aligned
@@ -268,7 +276,7 @@ class Enhancer(nn.Module):
         return pooled
 
     def _fuse_fast(self, feats: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,
-                   nbrs: NeighbourBatch, inv_scale: Tensor, camera_inputs: Tensor | None,
+                   nbrs: NeighbourBatch, scale_b: Tensor, camera_inputs: Tensor | None,
                    target_low: Tensor | None, attention_term: Tensor | None) -> Tensor:
         """:meth:`_fuse` without gradient, same result: each neighbour's [H, D, ...] lives in one
         channels-last buffer that every stage reads whole and writes in place (no per-neighbour
@@ -296,7 +304,7 @@ class Enhancer(nn.Module):
             aligned = buf[:, :f]
             if self.pixel_attention is not None:
                 with stage("attention"):
-                    buf[:, f:f + 1] = (buf[:, f:f + 1] * inv_scale).clamp(0, MAX_RELATIVE_DEPTH)
+                    buf[:, f:f + 1] = (buf[:, f:f + 1] / scale_b).clamp(0, MAX_RELATIVE_DEPTH)
                     psi_pix = self.pixel_attention.from_target_term(buf, attention_term)
                     psi_cam = self.camera_attention(camera_inputs[:, j])[:, :, None, None]
                     # aligned first: the product keeps its channels-last layout (same values).
@@ -328,3 +336,21 @@ class Enhancer(nn.Module):
         rel = (neighbours[..., :3, 3].double() - target[:, None, :3, 3].double()) / scale.double()[:, None, None]
         rel = rel.clamp(-MAX_RELATIVE_DEPTH, MAX_RELATIVE_DEPTH).to(euler_i.dtype)
         return torch.cat([euler_i, euler_k, rel], dim=-1)
+
+
+def build_enhancer(variant: str | EnhancerConfig = "nano", **overrides):
+    """Build an :class:`~roguenerf.models.enhancer.Enhancer` from a variant name or config."""
+    if isinstance(variant, EnhancerConfig):
+        config = variant
+        if overrides:
+            d = config.to_dict()
+            sub = {k: overrides.pop(k) for k in list(overrides) if k in _UFORMER_KEYS}
+            d["uformer"].update(sub)
+            d["uformer"].update(overrides.pop("uformer", None) or {})
+            d.update(overrides)
+            config = EnhancerConfig.from_dict(d)
+    elif isinstance(variant, str):
+        config = make_config(variant, **overrides)
+    else:
+        raise InputError(f"variant: expected a variant name or EnhancerConfig, got {type(variant).__name__}")
+    return Enhancer(config)

@@ -41,7 +41,7 @@ class SceneData:
     """One scene's training views in memory, with each view's neighbour list computed once.
 
     photos, renders: ``(M, 3, H, W)``; depths ``(M, 1, H, W)``; K ``(M, 3, 3)``;
-    poses ``(M, 4, 4)``; neighbours ``(M, N)`` int64 positions into these tensors.
+    poses ``(M, 4, 4)`` float64; neighbours ``(M, N)`` int64 positions into these tensors.
     """
 
     def __init__(self, scene, num_neighbours: int):
@@ -60,7 +60,9 @@ class SceneData:
         self.renders = torch.stack([scene.render(i) for i in self.train])
         self.depths = torch.stack([scene.depth(i) for i in self.train])
         self.K = scene.intrinsics(self.train).to(torch.float32)
-        self.poses = scene.poses(self.train).to(torch.float32)
+        # float64, as the scene holds them: relative poses are formed from these in float64
+        # (reprojection, camera attention, neighbour ranking) and only then cast to float32.
+        self.poses = scene.poses(self.train).to(torch.float64)
         n = min(num_neighbours, len(self.train) - 1)
         lists = [select_neighbours(self.poses[m], self.poses, n, exclude=m) for m in range(len(self.train))]
         self.neighbours = torch.stack(lists) if n > 0 else torch.zeros(len(self.train), 0, dtype=torch.int64)
