@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, required=True, help="folder of posed photo sets")
     parser.add_argument("--cache", type=Path, required=True, help="output root (outside the repository)")
     parser.add_argument("--presets", default="coarse,fine", help=f"comma-separated, of {', '.join(PRESETS)}")
-    parser.add_argument("--scenes", default="", help="comma-separated scene names (default: all)")
+    parser.add_argument("--scenes", default="", help="comma-separated scene names, fitted in this order (default: all, sorted)")
     parser.add_argument("--minutes-scale", type=float, default=1.0, help="multiply every preset's budget")
     parser.add_argument("--manifest", type=Path, help="CSV manifest to (re)write after every fit")
     parser.add_argument("--examples", type=Path, help="folder for one render|photo example per scene")
@@ -107,11 +107,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--data: {args.data} is not a directory")
     scenes = scene_folders(args.data)
     if args.scenes:
-        wanted = set(args.scenes.split(","))
-        missing = wanted - {s.name for s in scenes}
+        wanted = [w for w in args.scenes.split(",") if w]
+        by_name = {s.name: s for s in scenes}
+        missing = [w for w in wanted if w not in by_name]
         if missing:
-            parser.error(f"--scenes: not in {args.data}: {', '.join(sorted(missing))}")
-        scenes = [s for s in scenes if s.name in wanted]
+            parser.error(f"--scenes: not in {args.data}: {', '.join(missing)}")
+        scenes = [by_name[w] for w in wanted]  # in the order given
     from tqdm import tqdm
 
     for scene in scenes:

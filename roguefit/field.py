@@ -72,7 +72,6 @@ class GridField(nn.Module):
         self.use_mlp = False
         """The MLP's view-dependent correction is switched on after the coarse stage (DVGO's
         coarse stage has none): until then colour is the RGB grid alone, which is far cheaper."""
-        self.background = nn.Parameter(torch.zeros(3))
         self.register_buffer("occupancy", torch.ones(occupancy_size, occupancy_size, occupancy_size, dtype=torch.bool))
 
     @property
@@ -135,8 +134,9 @@ class GridField(nn.Module):
             samples: S per ray.
             generator: stratified jitter of the samples (training); None: bin centres.
         Returns:
-            ``rgb (B, 3)``, ``depth (B,)`` expected z of the terminating mass (``sum w z / acc``),
-            ``acc (B,)`` accumulated opacity.
+            ``rgb (B, 3)``, ``depth (B,)`` median z of the ray's weights (the far bound where nothing
+            stopped half the light before it),
+            ``acc (B,)`` opacity accumulated before the far bound.
         """
         b = origins.shape[0]
         base = torch.arange(samples, dtype=origins.dtype)
@@ -155,16 +155,23 @@ class GridField(nn.Module):
         if keep.any():
             sigma = sigma.masked_scatter(keep, self.sigma(u[keep]))
         alpha = 1.0 - torch.exp(-sigma * delta)
+        # The last sample (at the far bound) takes whatever light is left, as NeRF's open last
+        # interval does: content beyond the far bound lands there, never in a free background.
+        alpha = torch.cat([alpha[:, :-1], torch.ones(b, 1, dtype=alpha.dtype)], dim=1)
         trans = torch.cumprod(torch.cat([torch.ones(b, 1), 1.0 - alpha + 1e-10], dim=1), dim=1)[:, :-1]
         weights = alpha * trans
-        acc = weights.sum(dim=1)
+        acc = 1.0 - trans[:, -1]
         shade = weights.detach() > WEIGHT_EPS
         colour = torch.zeros(b, samples, 3, dtype=origins.dtype)
         if shade.any():
             unit = F.normalize(dirs, dim=-1)[:, None, :].expand(b, samples, 3)
             colour = colour.masked_scatter(shade[..., None], self.rgb(u[shade], unit[shade]))
-        rgb = (weights[..., None] * colour).sum(dim=1) + (1.0 - acc)[:, None] * torch.sigmoid(self.background)
-        depth = (weights * t).sum(dim=1) / acc.clamp_min(1e-6)
+        rgb = (weights[..., None] * colour).sum(dim=1)
+        # Median depth (where the accumulated weight passes 1/2): a surface's depth, never a mix
+        # of a surface and the far bound or of a floater and what is behind it, as the mean is.
+        cum = torch.cumsum(weights.detach(), dim=1)
+        k = torch.searchsorted(cum, torch.full((b, 1), 0.5, dtype=cum.dtype)).clamp_(max=samples - 1)
+        depth = torch.gather(t, 1, k)[:, 0]
         return {"rgb": rgb, "depth": depth, "acc": acc}
 
     # -- schedule helpers ------------------------------------------------------------------

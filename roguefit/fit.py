@@ -69,11 +69,12 @@ class FitConfig:
         return d
 
 
-# Two looks per scene for pre-training: a blurry, view-independent field fitted briefly and a
-# sharper view-dependent one with a finer grid and a longer budget.
+# Two looks per scene for pre-training: a blurry, view-independent field on a coarse grid and a
+# sharper view-dependent one on a finer grid with a longer budget. Budgets are in steps, so the
+# pairs do not depend on how busy the machine was (--minutes on the CLI overrides).
 PRESETS: dict[str, FitConfig] = {
-    "coarse": FitConfig(resolution=112, features=0, minutes=4.0, samples=64),
-    "fine": FitConfig(resolution=176, features=6, minutes=10.0, samples=80),
+    "coarse": FitConfig(resolution=96, features=0, minutes=None, steps=500, samples=64),
+    "fine": FitConfig(resolution=160, features=6, minutes=None, steps=1500, samples=80),
 }
 
 
@@ -120,8 +121,7 @@ class _Fitter:
         self._make_optimizer()
 
     def _make_optimizer(self) -> None:
-        groups = [{"params": [self.field.density, self.field.colour], "lr": self.config.lr_grid},
-                  {"params": [self.field.background], "lr": self.config.lr_mlp}]
+        groups = [{"params": [self.field.density, self.field.colour], "lr": self.config.lr_grid}]
         if self.field.mlp is not None:
             groups.append({"params": list(self.field.mlp.parameters()), "lr": self.config.lr_mlp})
         self.optimizer = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
@@ -254,8 +254,7 @@ class _Fitter:
             rgb.append(out["rgb"]), depth.append(out["depth"]), acc.append(out["acc"])
         rgb = torch.cat(rgb).reshape(h, w, 3).permute(2, 0, 1).clamp(0, 1)
         acc = torch.cat(acc).reshape(1, h, w).clamp(0, 1)
-        depth = torch.cat(depth).reshape(1, h, w)
-        depth = torch.where(acc > 1e-3, depth, self.far[i]).to(torch.float32)
+        depth = torch.cat(depth).reshape(1, h, w).to(torch.float32)
         return rgb, depth, acc
 
 

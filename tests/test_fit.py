@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from roguefit import FitConfig, make_pairs, read_photo_set
 from roguefit.field import GridField
@@ -21,14 +22,16 @@ from roguenerf.geometry.cameras import opencv_to_opengl
 from roguenerf.imageio import write_png
 
 H, W, VIEWS = 30, 40, 17
-SMALL = FitConfig(resolution=40, features=0, steps=160, minutes=None, rays=1024, samples=48, prune_every=40)
+SMALL = FitConfig(resolution=40, features=0, steps=240, minutes=None, rays=1024, samples=48, prune_every=40)
 
 
-def write_photo_set(root: Path, *, views: int = VIEWS, seed: int = 3) -> dict:
-    """A toy photo set as ``../shared/data/real`` holds them (JPEG-free: PNG photos, OpenGL poses,
-    per-view near/far from the exact depth); returns the exact depths by view name."""
+def write_photo_set(root: Path, *, views: int = VIEWS, seed: int = 3, kind: str = "orbit") -> dict:
+    """A toy photo set as ``../shared/data/real`` holds them (PNG photos, OpenGL poses, per-view
+    near/far from the exact depth); returns the exact depths by view name. The orbit path's wide
+    baseline pins the geometry down (a narrow forward-facing one leaves depth ambiguous at the
+    test's tiny budget)."""
     world = make_toy_world(seed)
-    poses = toy_camera_path(world, views, seed=seed, kind="forward")
+    poses = toy_camera_path(world, views, seed=seed, kind=kind)
     K = toy_intrinsics(H, W)
     frames, truth = [], {}
     for i, pose in enumerate(poses):
@@ -85,13 +88,12 @@ def test_rendered_depth_is_close_to_the_true_depth(fitted):
         if frame.split != "train":
             continue
         depth, true = scene.depth(i)[0], truth[frame.name][0]
-        acc = torch.from_numpy(np.asarray(__import__("PIL.Image", fromlist=["Image"]).open(out / "acc" / f"{frame.name}.png"),
-                                          dtype=np.float32) / 255.0)
-        near = true < 6.0  # the floor, wall and boxes; the far backdrop sphere is ill-posed for any field
+        acc = torch.from_numpy(np.asarray(Image.open(out / "acc" / f"{frame.name}.png"), dtype=np.float32) / 255.0)
+        near = true < 8.0  # the floor, wall and boxes; the far backdrop sphere is ill-posed for any field
         ok = near & (acc > 0.5)
-        assert ok.float().mean() > 0.5
+        assert ok.float().sum() > 0.9 * near.float().sum()
         errors.append(((depth[ok] - true[ok]).abs() / true[ok]).median())
-    assert float(torch.stack(errors).median()) < 0.06, errors
+    assert float(torch.stack(errors).median()) < 0.08, errors
 
 
 def test_interrupted_fit_resumes_to_the_same_result(tmp_path):
