@@ -91,7 +91,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cache", type=Path, required=True, help="output root (outside the repository)")
     parser.add_argument("--presets", default="coarse,fine", help=f"comma-separated, of {', '.join(PRESETS)}")
     parser.add_argument("--scenes", default="", help="comma-separated scene names, fitted in this order (default: all, sorted)")
-    parser.add_argument("--minutes-scale", type=float, default=1.0, help="multiply every preset's budget")
+    parser.add_argument("--budget-scale", type=float, default=1.0,
+                        help="multiply every preset's budget (steps or minutes); a smoke test uses 0.01")
     parser.add_argument("--manifest", type=Path, help="CSV manifest to (re)write after every fit")
     parser.add_argument("--examples", type=Path, help="folder for one render|photo example per scene")
     args = parser.parse_args(argv)
@@ -103,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     for p in presets:
         if p not in PRESETS:
             parser.error(f"--presets: unknown preset {p!r} (expected {', '.join(PRESETS)})")
+    if not args.budget_scale > 0:
+        parser.error(f"--budget-scale: expected > 0, got {args.budget_scale}")
     if not args.data.is_dir():
         parser.error(f"--data: {args.data} is not a directory")
     scenes = scene_folders(args.data)
@@ -118,8 +121,11 @@ def main(argv: list[str] | None = None) -> int:
     for scene in scenes:
         for preset in presets:
             config = PRESETS[preset]
-            if config.minutes is not None and args.minutes_scale != 1.0:
-                config = dataclasses.replace(config, minutes=config.minutes * args.minutes_scale)
+            if args.budget_scale != 1.0:
+                if config.steps is not None:
+                    config = dataclasses.replace(config, steps=max(1, round(config.steps * args.budget_scale)))
+                else:
+                    config = dataclasses.replace(config, minutes=config.minutes * args.budget_scale)
             out = args.cache / scene.name / preset
             t0 = time.monotonic()
             bar = tqdm(total=100, desc=f"{scene.name}/{preset}", unit="%", file=sys.stderr, mininterval=5)

@@ -174,3 +174,30 @@ def test_make_pairs_cli_runs_and_the_library_never_imports_the_fitter(tmp_path):
             "print(sorted(m for m in sys.modules if m.startswith('roguefit')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_pretraining_pipeline_smoke(tmp_path):
+    """scripts/pretrain_real.sh end to end on two toy photo sets, one held out: pairs (tiny
+    budgets), a manifest, a 2-step pre-training that never sees the held-out scene, the shipped
+    copy, and the held-out evaluation bench."""
+    data = tmp_path / "real"
+    write_photo_set(data / "alpha", views=9, seed=1)
+    write_photo_set(data / "beta", views=9, seed=2)
+    repo = Path(__file__).resolve().parents[1]
+    env = {**__import__("os").environ, "DATA": str(data), "CACHE": str(tmp_path / "cache"), "PRESETS": "coarse",
+           "HOLDOUT": "beta", "EXTRA": "", "BUDGET_SCALE": "0.01", "STEPS": "2", "OUT": str(tmp_path / "run"),
+           "DEST": str(tmp_path / "weights" / "default.safetensors"), "MANIFEST": str(tmp_path / "docs" / "manifest.csv"),
+           "PY": sys.executable, "EVAL_ARGS": f"--quick --output {tmp_path / 'bench' / 'real'}"}
+    proc = subprocess.run(["bash", str(repo / "scripts" / "pretrain_real.sh")], env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    manifest = (tmp_path / "docs" / "manifest.csv").read_text().splitlines()
+    assert manifest[0].startswith("scene,fit,") and len(manifest) == 3
+    assert {line.split(",")[0] for line in manifest[1:]} == {"alpha", "beta"}
+    assert (tmp_path / "docs" / "alpha_coarse.png").is_file()
+    # Pre-training saw alpha only, never the held-out beta.
+    assert f"pre-training on 1 scene folders: {tmp_path / 'cache' / 'alpha' / 'coarse'}" in proc.stderr
+    assert (tmp_path / "weights" / "default.safetensors").is_file()
+    rows = (tmp_path / "bench" / "real_quick.csv").read_text().splitlines()
+    assert len(rows) == 1 + 1 + 2  # header, zero-shot new, two fine-tuning budgets
+    assert all("beta" in r for r in rows[1:])

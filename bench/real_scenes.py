@@ -1,0 +1,141 @@
+"""Honest evaluation on real scenes kept out of pre-training (issue 11).
+
+For every scene folder given (made by ``python -m roguefit.batch`` from ``../shared/data/real``;
+the held-out scenes are never pre-trained on, and only their training views are fine-tuned on):
+
+- the renders' PSNR/SSIM on the held-out (test) views;
+- zero-shot: the old and the new default checkpoint, no fine-tuning;
+- after ``finetune --minutes M`` for each M in ``--minutes`` (1, 3, 10), from the new checkpoint:
+  one run that resumes exactly from its saved state, evaluated after each budget;
+
+each with its mean gain, SSIM, the worst view's gain, steps and seconds. Writes CSV + a plot of
+gain against fine-tuning minutes (date, machine, commit on every row and in the plot's title).
+
+    .venv/bin/python bench/real_scenes.py ~/.cache/roguenerf/pairs/dtu_scan37/fine \\
+        ~/.cache/roguenerf/pairs/mary_rose/fine --old-checkpoint old.safetensors
+    .venv/bin/python bench/real_scenes.py SCENE --quick      # seconds-long budgets (proves it runs)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.common import RESULTS, stamp, write_csv  # noqa: E402
+
+
+def _floats(text: str) -> list[float]:
+    return [float(x) for x in text.split(",") if x.strip()]
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scenes", type=Path, nargs="+", help="scene folders (renders from roguefit)")
+    p.add_argument("--checkpoint", type=Path, default=None, help="new checkpoint (default: the shipped default)")
+    p.add_argument("--old-checkpoint", type=Path, default=None, help="the checkpoint to compare zero-shot against")
+    p.add_argument("--minutes", type=_floats, default=[1, 3, 10], help="comma-separated fine-tuning budgets")
+    p.add_argument("--max-views", type=int, default=None)
+    p.add_argument("--quick", action="store_true", help="tiny budgets, 2 views")
+    p.add_argument("--output", type=Path, default=RESULTS / "real_scenes")
+    args = p.parse_args(argv)
+    if args.quick:
+        args.minutes = [0.02, 0.05]
+        args.max_views = args.max_views or 2
+    return args
+
+
+def _label(scene_dir: Path) -> str:
+    parts = scene_dir.resolve().parts
+    return "/".join(parts[-2:]) if scene_dir.name in ("coarse", "fine") else scene_dir.name
+
+
+def summarise(report: dict) -> dict:
+    """Mean render/enhanced PSNR and SSIM, gain, and the worst view's gain."""
+    gains = [v["enhanced"]["psnr"] - v["render"]["psnr"] for v in report["views"]]
+    worst = min(range(len(gains)), key=gains.__getitem__)
+    r, e = report["render"], report["enhanced"]
+    return {"views": len(gains), "render_psnr": round(r["psnr"], 4), "enhanced_psnr": round(e["psnr"], 4),
+            "gain_db": round(e["psnr"] - r["psnr"], 4), "render_ssim": round(r["ssim"], 5),
+            "enhanced_ssim": round(e["ssim"], 5), "ssim_gain": round(e["ssim"] - r["ssim"], 5),
+            "worst_view": report["views"][worst]["name"], "worst_view_gain_db": round(gains[worst], 4)}
+
+
+def run(args) -> list[dict]:
+    from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
+    from roguenerf.data.readers import load_scene
+    from roguenerf.training import TrainConfig, evaluate, finetune
+
+    new = args.checkpoint or default_checkpoint_path()
+    base = stamp()
+    rows = []
+    work = Path(tempfile.mkdtemp(prefix="real_scenes_"))
+    for scene_dir in args.scenes:
+        scene = load_scene(scene_dir)
+        label = _label(scene_dir)
+
+        def record(kind: str, minutes: float, steps: int, seconds: float, report: dict, **extra) -> None:
+            row = {**base, "scene": label, "kind": kind, "minutes": minutes, "steps": steps,
+                   "train_seconds": round(seconds, 1), **summarise(report), **extra}
+            print(", ".join(f"{k}={v}" for k, v in row.items() if k not in base), flush=True)
+            rows.append(row)
+
+        for kind, ckpt in (("zero-shot old", args.old_checkpoint), ("zero-shot new", new)):
+            if ckpt is None:
+                continue
+            model, _ = load_checkpoint(ckpt)
+            record(kind, 0.0, 0, 0.0, evaluate(scene, model, max_views=args.max_views), checkpoint=str(ckpt))
+        run_dir = work / label.replace("/", "_")
+        for minutes in sorted(args.minutes):
+            result = finetune(scene, run_dir, checkpoint=new, config=TrainConfig(minutes=minutes, evaluate=False))
+            model, _ = load_checkpoint(result.checkpoint)
+            record("finetune", minutes, result.steps, result.seconds, evaluate(scene, model, max_views=args.max_views),
+                   checkpoint=str(new), plan=f"{result.config['variant']} crop {result.config['crop_used']} "
+                                              f"batch {result.config['batch']} n{result.config['num_neighbours']}")
+    return rows
+
+
+def plot(rows: list[dict], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        mine = [r for r in rows if r["scene"] == scene and r["kind"] in ("zero-shot new", "finetune")]
+        line, = ax.plot([r["minutes"] for r in mine], [r["gain_db"] for r in mine], "o-", label=scene)
+        old = [r for r in rows if r["scene"] == scene and r["kind"] == "zero-shot old"]
+        if old:
+            ax.scatter([0], [old[0]["gain_db"]], marker="x", color=line.get_color(), label=f"{scene}: old checkpoint")
+    ax.axhline(0, color="grey", lw=0.8)
+    ax.set_xlabel("fine-tuning minutes (0 = zero-shot)")
+    ax.set_ylabel("PSNR gain over renders, held-out views (dB)")
+    ax.legend(fontsize=7)
+    if rows:
+        ax.set_title(f"{rows[0]['machine'][:60]} | {rows[0]['commit']} | {rows[0]['date'][:10]}", fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    from roguenerf import runtime
+
+    print(f"runtime: {runtime.configure()}", flush=True)
+    rows = run(args)
+    suffix = "_quick" if args.quick else ""
+    csv_path = write_csv(args.output.with_name(args.output.name + suffix + ".csv"), rows)
+    png_path = plot(rows, args.output.with_name(args.output.name + suffix + ".png"))
+    print(f"wrote {csv_path} and {png_path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

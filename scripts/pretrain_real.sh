@@ -1,0 +1,84 @@
+#!/usr/bin/env bash
+# Pre-train the default checkpoint on real scenes (issue 11): make render/photo pairs, pre-train,
+# ship, evaluate. Every step resumes: run the same command again after an interruption.
+#
+#   scripts/pretrain_real.sh                       # all of it, with the defaults below
+#   STAGE=pairs scripts/pretrain_real.sh           # only the pairs (hours on 2 CPU cores)
+#   STAGE=pretrain MINUTES=120 scripts/pretrain_real.sh
+#
+# 1. pairs: `python -m roguefit.batch` fits a coarse and a fine radiance field to the TRAINING views
+#    (every 8th view held out) of every scene in $DATA and renders every view into $CACHE
+#    (outside the repository); docs/pairs/manifest.csv lists the fits.
+# 2. pretrain: `roguenerf pretrain` over every fit of every scene except $HOLDOUT (never seen in
+#    pre-training: they are the honest evaluation), plus $EXTRA scene folders (lego's training
+#    views by default: its test views are never used), from $START.
+# 3. ship: copy to $DEST (roguenerf/weights/default.safetensors) with its JSON sidecar.
+# 4. evaluate: bench/real_scenes.py on the held-out scenes' $EVAL_PRESET fits (default: the last preset) (zero-shot old and new, 1/3/10-minute
+#    fine-tunes) when STAGE=all or STAGE=evaluate.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+SHARED=${ROGUENERF_SHARED_DATA:-../shared/data}
+DATA=${DATA:-$SHARED/real}
+CACHE=${CACHE:-$HOME/.cache/roguenerf/pairs}
+PRESETS=${PRESETS:-coarse,fine}
+HOLDOUT=${HOLDOUT:-dtu_scan37,mary_rose}
+EXTRA=${EXTRA-$SHARED/lego}
+MINUTES=${MINUTES:-90}
+VARIANT=${VARIANT:-micro}
+CROP=${CROP:-64}
+LR=${LR:-5e-4}
+START=${START-roguenerf/weights/default.safetensors}
+OUT=${OUT:-runs/pretrain_real}
+DEST=${DEST:-roguenerf/weights/default.safetensors}
+STAGE=${STAGE:-all}
+PY=${PY:-.venv/bin/python}
+MANIFEST=${MANIFEST:-docs/pairs/manifest.csv}
+BUDGET_SCALE=${BUDGET_SCALE:-1}
+
+if [ "$STAGE" = all ] || [ "$STAGE" = pairs ]; then
+  "$PY" -m roguefit.batch --data "$DATA" --cache "$CACHE" --presets "$PRESETS" \
+    --budget-scale "$BUDGET_SCALE" --manifest "$MANIFEST" --examples "$(dirname "$MANIFEST")"
+fi
+
+if [ "$STAGE" = all ] || [ "$STAGE" = pretrain ]; then
+  scenes=()
+  IFS=, read -r -a held <<< "$HOLDOUT"
+  IFS=, read -r -a presets <<< "$PRESETS"
+  for dir in "$CACHE"/*/; do
+    name=$(basename "$dir")
+    skip=0
+    for h in "${held[@]}"; do [ "$name" = "$h" ] && skip=1; done
+    [ "$skip" = 1 ] && continue
+    for p in "${presets[@]}"; do
+      if [ -f "$dir$p/fit.json" ]; then scenes+=("$dir$p"); fi
+    done
+  done
+  if [ "${#scenes[@]}" = 0 ]; then
+    echo "no finished fits under $CACHE outside the held-out scenes ($HOLDOUT): run STAGE=pairs first" >&2
+    exit 2
+  fi
+  if [ -n "$EXTRA" ]; then IFS=, read -r -a extra_scenes <<< "$EXTRA"; scenes+=("${extra_scenes[@]}"); fi
+  echo "pre-training on ${#scenes[@]} scene folders: ${scenes[*]}" >&2
+  start=()
+  if [ -n "$START" ]; then start=(--checkpoint "$START"); fi
+  extra=()
+  if [ -n "${VGG_WEIGHTS:-}" ]; then extra+=(--vgg-weights "$VGG_WEIGHTS"); fi
+  if [ -n "${STEPS:-}" ]; then budget=(--steps "$STEPS"); else budget=(--minutes "$MINUTES"); fi
+  "$PY" -m roguenerf.cli pretrain "${scenes[@]}" "${start[@]}" "${budget[@]}" --variant "$VARIANT" \
+    --crop "$CROP" --lr "$LR" --output "$OUT" "${extra[@]}"
+  mkdir -p "$(dirname "$DEST")"
+  cp "$OUT/model.safetensors" "$DEST"
+  if [ -f "$OUT/model.json" ]; then cp "$OUT/model.json" "${DEST%.safetensors}.json"; fi
+  echo "default checkpoint: $DEST" >&2
+fi
+
+if [ "$STAGE" = all ] || [ "$STAGE" = evaluate ]; then
+  IFS=, read -r -a held <<< "$HOLDOUT"
+  eval_scenes=()
+  eval_preset=${EVAL_PRESET:-${PRESETS##*,}}
+  for h in "${held[@]}"; do eval_scenes+=("$CACHE/$h/$eval_preset"); done
+  old=()
+  if [ -n "${OLD_CHECKPOINT:-}" ]; then old=(--old-checkpoint "$OLD_CHECKPOINT"); fi
+  read -r -a eval_args <<< "${EVAL_ARGS:-}"
+  "$PY" bench/real_scenes.py "${eval_scenes[@]}" --checkpoint "$DEST" "${old[@]}" "${eval_args[@]}"
+fi
