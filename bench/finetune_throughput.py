@@ -31,7 +31,7 @@ neighbours they need) are drawn and cut in a background thread
 (``roguenerf.training.batches.Prefetcher``), and each step is
 ``roguenerf.training.loop.optimise``: conv_H on the neighbour photos (with grad), enhancer
 forward, loss (L1, or L1 + 1e-3 VGG-19 with ``--vgg-weights``), backward, finiteness checks,
-Adam step. Encodings (``TrainConfig.neighbour_encoding``): ``whole`` encodes the U distinct
+Adam step (fused, as ``finetune`` makes it). Encodings (``TrainConfig.neighbour_encoding``): ``whole`` encodes the U distinct
 neighbour photos the batch uses, whole (the path before issue 12); ``window`` only the window
 of each neighbour photo that each crop can see (same loss and gradients). The timed step is
 waiting for the next batch plus ``optimise``. Per point: up to ``--warmup`` untimed steps (no
@@ -152,7 +152,7 @@ def measure(variant: str, data, crop: int, batch: int, neighbours: int, encoding
 
     from roguenerf.models import build_enhancer
     from roguenerf.training.batches import Prefetcher, prepare_batch, sample_crops
-    from roguenerf.training.loop import batch_encoding, neighbour_margin, optimise
+    from roguenerf.training.loop import batch_encoding, make_optimizer, neighbour_margin, optimise
 
     device = torch.device("cpu")
     torch.manual_seed(args.seed)
@@ -160,7 +160,7 @@ def measure(variant: str, data, crop: int, batch: int, neighbours: int, encoding
     if model.config.num_neighbours != neighbours and neighbours > 0:
         model.config = dataclasses.replace(model.config, num_neighbours=neighbours)
     model.to(device).train()
-    optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
+    optimizer = make_optimizer(model, args.lr)
     generator = torch.Generator().manual_seed(args.seed)
     margin, enc = neighbour_margin(model), batch_encoding(model, encoding)
 
