@@ -17,7 +17,9 @@ COMPONENTS = ("neighbours", "alignment", "refinement", "attention")
 CPU_CROP = 64
 GPU_CROP = 512
 CPU_NEIGHBOURS = 2
-"""On a CPU, conv_H of every neighbour runs at full resolution each step; 2 keeps it affordable."""
+"""Chosen when conv_H encoded every neighbour photo whole each step. Training now encodes only
+the crop windows (``neighbour_encoding="window"``), which makes more neighbours cheap; the
+re-plan waits for measured quality per minute on real scenes (issue 12)."""
 CPU_VARIANT = "micro"
 """On a CPU, micro at 64 px crops trains at ~1.8 steps/s on 2 busy cores (nano: ~0.3 at 96 px)."""
 CPU_MINUTES = 10.0
