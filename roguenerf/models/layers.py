@@ -60,6 +60,27 @@ class ConvEncoder(nn.Sequential):
         return fastops.conv2d(x, self[2], "leaky_relu", LEAKY_SLOPE)
 
 
+def receptive_radius(module: nn.Module) -> int:
+    """Receptive radius r of a stack of stride-1 convolutions with "same" zero padding and
+    pointwise layers (conv_H): an output pixel depends on the input pixels at most r away.
+
+    Sum over the Conv2d layers of ``dilation * (kernel - 1) / 2``. Raises ValueError for a
+    layer whose output grid is not its input grid (stride, asymmetric or non-"same" padding,
+    non-zero padding mode) or a sub-module that is neither a Conv2d nor parameter-free.
+    """
+    radius = 0
+    for name, m in module.named_modules():
+        if isinstance(m, nn.Conv2d):
+            reach = [d * (k - 1) for k, d in zip(m.kernel_size, m.dilation)]
+            if (any(s != 1 for s in m.stride) or any(r % 2 for r in reach) or m.padding_mode != "zeros"
+                    or (m.padding != "same" and tuple(m.padding) != tuple(r // 2 for r in reach))):
+                raise ValueError(f"{name}: expected a stride-1 'same' zero-padded convolution, got {m}")
+            radius += max(reach) // 2
+        elif m is not module and next(m.parameters(recurse=False), None) is not None:
+            raise ValueError(f"{name}: {type(m).__name__} has parameters; its reach is unknown")
+    return radius
+
+
 def conv_act(block: nn.Sequential, x: Tensor) -> Tensor:
     """``block`` = Sequential(Conv2d, LeakyReLU) applied to ``x``, fused on the fast path (channels-last out)."""
     if not fastops.fast_enabled(x):

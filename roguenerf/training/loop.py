@@ -5,9 +5,11 @@ F feature channels, c crop side, H x W full image size.
 
 Each training view is a target: its render (random c x c crop; K's principal point shifted by
 the crop offset) is enhanced with its precomputed nearest training views as neighbours (never
-itself), and the result is compared with the same crop of its photo. Neighbours stay whole.
-conv_H is trained, so neighbour features are recomputed every step, but only for the U photos
-the batch actually uses.
+itself), and the result is compared with the same crop of its photo. conv_H is trained, so neighbour
+features are recomputed every step, by default only on the window of each neighbour photo
+that the target crop can see (``TrainConfig.neighbour_encoding``; see
+:mod:`roguenerf.training.batches`, which also proves the equality with whole photos). Batches
+are drawn and cut in a background thread while the model trains.
 """
 
 from __future__ import annotations
@@ -24,6 +26,15 @@ import torch
 from torch import Tensor
 
 from roguenerf.errors import InputError, TrainingCancelled, TrainingDivergedError
+from roguenerf.models.layers import receptive_radius
+from roguenerf.training.batches import (
+    Prefetcher,
+    StepBatch,
+    crop_targets,
+    model_inputs,
+    prepare_batch,
+    sample_crops,
+)
 from roguenerf.training.evaluate import evaluate
 from roguenerf.training.config import TrainConfig, TrainProgress, TrainResult, describe_plan, plan_training
 from roguenerf.training.losses import build_loss
@@ -33,6 +44,8 @@ log = logging.getLogger("roguenerf.training")
 
 MODEL_FILE = "model.safetensors"
 STATE_FILE = "train_state.safetensors"
+PREFETCH = 2
+"""Batches the background thread prepares ahead of the training step."""
 SWITCHES = {"neighbours": "use_neighbours", "alignment": "use_alignment",
             "refinement": "use_refinement", "attention": "use_attention"}
 
@@ -76,57 +89,62 @@ def _crop_batch(data: SceneData, targets: Tensor, crop: int, generator: torch.Ge
 
     Returns render ``(B, 3, c, c)``, depth ``(B, 1, c, c)``, photo ``(B, 3, c, c)``, K ``(B, 3, 3)``.
     """
-    c_h, c_w = min(crop, data.height), min(crop, data.width)
-    renders, depths, photos, Ks = [], [], [], []
-    for t in targets.tolist():
-        y0 = int(torch.randint(0, data.height - c_h + 1, (1,), generator=generator))
-        x0 = int(torch.randint(0, data.width - c_w + 1, (1,), generator=generator))
-        window = (slice(None), slice(y0, y0 + c_h), slice(x0, x0 + c_w))
-        renders.append(data.renders[t][window])
-        depths.append(data.depths[t][window])
-        photos.append(data.photos[t][window])
-        K = data.K[t].clone()
-        K[0, 2] -= x0
-        K[1, 2] -= y0
-        Ks.append(K)
-    return torch.stack(renders), torch.stack(depths), torch.stack(photos), torch.stack(Ks)
+    return crop_targets(data, targets, sample_crops(data, len(targets), crop, generator), crop)
+
+
+def neighbour_margin(model) -> int:
+    """conv_H's receptive radius (0 without neighbours): how far beyond its taps a window must reach."""
+    return receptive_radius(model.conv_H) if model.conv_H is not None else 0
+
+
+def batch_encoding(model, encoding: str) -> str:
+    """``encoding``, or "whole" when windows cannot stand for the photos: without 3D alignment
+    the enhancer resizes each neighbour photo whole to the target's size."""
+    return encoding if model.config.use_alignment else "whole"
+
+
+def draw_batch(model, data: SceneData, targets: Tensor, crop: int, generator: torch.Generator, *,
+               encoding: str = "window") -> StepBatch:
+    """Random crops of ``targets`` and the neighbour windows (or photos) they need (no model call)."""
+    origins = sample_crops(data, len(targets), crop, generator)
+    return prepare_batch(data, targets, origins, crop, encoding=batch_encoding(model, encoding),
+                         margin=neighbour_margin(model),
+                         use_neighbours=model.config.use_neighbours)
 
 
 def training_step_inputs(model, data: SceneData, targets: Tensor, crop: int, generator: torch.Generator,
-                         device: torch.device):
+                         device: torch.device, *, encoding: str = "window"):
     """Inputs and ground truth of one step; neighbour features are computed here (with grad).
 
+    ``encoding``: ``"window"`` encodes only the windows of the neighbour photos the crops can
+    see, ``"whole"`` the whole photos (same values; :mod:`roguenerf.training.batches`).
     Returns ``(args, photo)`` where ``model(*args)`` is the enhanced crop ``(B, 3, c, c)``.
     """
-    from roguenerf.models import NeighbourBatch
-
-    render, depth, photo, K = _crop_batch(data, targets, crop, generator)
-    pose = data.poses[targets]
-    nb = None
-    lists = data.neighbours[targets]
-    if lists.shape[1] > 0 and model.config.use_neighbours:
-        used, slot = torch.unique(lists, return_inverse=True)
-        features = model.encode_neighbours(data.photos[used].to(device))
-        nb = NeighbourBatch(features=features[slot.to(device)],
-                            depth=data.depths[lists].to(device),
-                            K=data.K[lists].to(device),
-                            world_from_cam=data.poses[lists].to(device))
-    args = (render.to(device), depth.to(device), K.to(device), pose.to(device), nb)
-    return args, photo.to(device)
+    return model_inputs(model, draw_batch(model, data, targets, crop, generator, encoding=encoding), device)
 
 
-def train_step(model, data: SceneData, targets: Tensor, crop: int, generator: torch.Generator,
-               device: torch.device, loss_fn, optimizer: torch.optim.Optimizer, *, step: int = 0,
-               checkpoint: str | None = None) -> float:
-    """One optimisation step on ``targets`` ``(B,)`` of ``data``, as fine-tuning and pre-training make it.
+def make_optimizer(model, lr: float) -> torch.optim.Optimizer:
+    """Adam over ``model``'s parameters, fused (one kernel for all of them) where the device has
+    it: the per-parameter loop of the default CPU Adam costs more than conv_H's crop windows
+    (micro has 189 parameter tensors). Same update rule and state (resumable either way)."""
+    params = list(model.parameters())
+    try:
+        return torch.optim.Adam(params, lr=lr, fused=True)
+    except (RuntimeError, ValueError):  # a device or dtype without the fused kernel
+        return torch.optim.Adam(params, lr=lr)
 
-    Random c x c crops and neighbour features (:func:`training_step_inputs`) -> ``model`` forward
-    -> ``loss_fn(output, photo)`` -> backward -> ``optimizer.step()``. Returns the loss value.
+
+def optimise(model, batch: StepBatch, device: torch.device, loss_fn, optimizer: torch.optim.Optimizer, *,
+             step: int = 0, checkpoint: str | None = None) -> float:
+    """One optimisation step on a prepared batch: conv_H on its neighbour photos or windows ->
+    ``model`` forward -> ``loss_fn(output, photo)`` -> backward -> ``optimizer.step()``.
+    Returns the loss value.
+
     Raises:
         TrainingDivergedError: non-finite loss or gradients, reported as step ``step + 1`` with
             ``checkpoint`` as the last good one; the weights are left unchanged.
     """
-    args, photo = training_step_inputs(model, data, targets, crop, generator, device)
+    args, photo = model_inputs(model, batch, device)
     output = model(*args)
     loss = loss_fn(output, photo)
     loss_value = float(loss.detach())
@@ -139,6 +157,21 @@ def train_step(model, data: SceneData, targets: Tensor, crop: int, generator: to
         raise TrainingDivergedError(step + 1, float("nan"), checkpoint)
     optimizer.step()
     return loss_value
+
+
+def train_step(model, data: SceneData, targets: Tensor, crop: int, generator: torch.Generator,
+               device: torch.device, loss_fn, optimizer: torch.optim.Optimizer, *, step: int = 0,
+               checkpoint: str | None = None, encoding: str = "window") -> float:
+    """One optimisation step on ``targets`` ``(B,)`` of ``data``, as fine-tuning and pre-training make it.
+
+    Random c x c crops and the neighbours they need (:func:`draw_batch`, ``encoding`` as in
+    :func:`training_step_inputs`), then :func:`optimise`. Returns the loss value.
+    Raises:
+        TrainingDivergedError: non-finite loss or gradients, reported as step ``step + 1`` with
+            ``checkpoint`` as the last good one; the weights are left unchanged.
+    """
+    batch = draw_batch(model, data, targets, crop, generator, encoding=encoding)
+    return optimise(model, batch, device, loss_fn, optimizer, step=step, checkpoint=checkpoint)
 
 
 def _apply_without(config, without: Sequence[str]):
@@ -248,12 +281,17 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
     if loss_fn.kind == "l1":
         log.info("no VGG-19 weights given: training with the L1 loss alone (the paper adds 1e-3 VGG-19)")
     log.info("%s", describe_plan(plan))
+    from roguenerf.runtime import available_cpus
+
+    if device.type == "cpu" and torch.get_num_threads() != available_cpus():
+        log.info("torch uses %d threads on %d available cores (roguenerf.runtime.configure() sets one per core)",
+                 torch.get_num_threads(), available_cpus())
 
     datasets = [SceneData(s, plan["num_neighbours"] if model.config.use_neighbours else 0) for s in scenes]
     if kind == "finetune" and config.evaluate and saved is None and datasets[0].scene.indices("test"):
         before = _summary(evaluate(datasets[0].scene, model))
 
-    optimizer = torch.optim.Adam(model.parameters(), lr=plan["lr"])
+    optimizer = make_optimizer(model, plan["lr"])
     generator = torch.Generator().manual_seed(plan["seed"])
     step, elapsed_before = 0, 0.0
     if saved is not None:
@@ -265,6 +303,23 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
         torch.manual_seed(plan["seed"])
 
     weights = torch.tensor([float(len(d)) for d in datasets])
+    margin = neighbour_margin(model)
+    encoding = batch_encoding(model, plan["neighbour_encoding"])
+
+    def make_batch() -> StepBatch:
+        # Runs in the prefetch thread, which owns ``generator`` from the first batch on.
+        index = int(torch.multinomial(weights, 1, generator=generator))
+        d = datasets[index]
+        targets = torch.randint(0, len(d), (plan["batch"],), generator=generator)
+        origins = sample_crops(d, plan["batch"], plan["crop"], generator)
+        batch = prepare_batch(d, targets, origins, plan["crop"], encoding=encoding, margin=margin,
+                              use_neighbours=model.config.use_neighbours)
+        batch.dataset, batch.sampler_state = index, generator.get_state()
+        return batch
+
+    # The sampler state of the batches consumed so far: what a checkpoint stores (the prefetch
+    # thread is ahead), so a resumed run draws the very batches this one would have drawn next.
+    sampler_state = generator.get_state()
     meta_base = {"kind": kind, "plan": plan, "loss_kind": loss_fn.kind, "transfer": transfer,
                  "scenes": [str(d.scene.root) for d in datasets]}
 
@@ -272,7 +327,9 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
         if loss_value is not None and not math.isfinite(loss_value):
             loss_value = None
         info = {**meta_base, "model_config": model.config.to_dict(), "before": before}
-        save_state(state_path, model=model, optimizer=optimizer, generator=generator, step=current_step,
+        consumed = torch.Generator()
+        consumed.set_state(sampler_state)
+        save_state(state_path, model=model, optimizer=optimizer, generator=consumed, step=current_step,
                    elapsed_s=elapsed, info=info)
         save_checkpoint(model_path, model, meta={"training": {**meta_base, "steps": current_step,
                                                                "seconds": round(elapsed, 3),
@@ -292,16 +349,18 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
     last_save = start
     first_step = step
     loss_value = float("nan")
+    batches = None
     try:
         while not _budget_done(step, elapsed_before + time.perf_counter() - start, plan):
             if should_stop is not None and should_stop():
                 elapsed = elapsed_before + time.perf_counter() - start
                 save(step, elapsed, loss_value)
                 raise TrainingCancelled(step, str(model_path))
-            d = datasets[int(torch.multinomial(weights, 1, generator=generator))]
-            targets = torch.randint(0, len(d), (plan["batch"],), generator=generator)
-            loss_value = train_step(model, d, targets, plan["crop"], generator, device, loss_fn, optimizer,
-                                    step=step, checkpoint=str(model_path))
+            if batches is None:
+                batches = Prefetcher(make_batch, depth=PREFETCH)
+            batch = next(batches)
+            loss_value = optimise(model, batch, device, loss_fn, optimizer, step=step, checkpoint=str(model_path))
+            sampler_state = batch.sampler_state
             step += 1
 
             now = time.perf_counter()
@@ -328,6 +387,8 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
                 save(step, elapsed, loss_value)
                 last_save = time.perf_counter()
     finally:
+        if batches is not None:
+            batches.close()
         if bar is not None:
             bar.close()
         model.eval()
