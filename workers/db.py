@@ -44,6 +44,13 @@ class Tx:
             return None
         return dict(zip([d[0] for d in self._cur.description], row))
 
+    def columns(self, table: str) -> list[str]:
+        """Column names of ``table`` (portable: an empty SELECT's description)."""
+        self._cur.execute(f"SELECT * FROM {table} WHERE 1 = 0")
+        names = [d[0] for d in self._cur.description]
+        self._cur.fetchall()
+        return names
+
     def all(self, sql: str, params: Sequence[Any] = ()) -> list[dict]:
         self._cur.execute(self._sql(sql), tuple(params))
         names = [d[0] for d in self._cur.description]

@@ -65,12 +65,25 @@ SCHEMA = [
         updated_at DOUBLE PRECISION NOT NULL,
         started_at DOUBLE PRECISION,
         finished_at DOUBLE PRECISION,
-        heartbeat_at DOUBLE PRECISION
+        heartbeat_at DOUBLE PRECISION,
+        phase TEXT
     )""",
     "CREATE UNIQUE INDEX IF NOT EXISTS jobs_one_active_per_scene ON jobs (scene_id) "
     "WHERE state IN ('queued', 'running')",
     "CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs (state)",
+    "CREATE INDEX IF NOT EXISTS jobs_by_created ON jobs (created_at, id)",
+    "CREATE INDEX IF NOT EXISTS scenes_by_created ON scenes (created_at, id)",
 ]
+
+ADDED_COLUMNS = {"jobs": [("phase", "TEXT")]}
+"""Columns added after the first release: ``init_schema`` adds them to an older table."""
+
+PHASES = ("training", "evaluating")
+"""What a running job is doing: optimiser steps, or measuring the held-out views (before the
+first step and after the last), when no step happens and no ETA is known."""
+
+MAX_PAGE = 200
+"""Largest page of :meth:`JobStore.list_jobs` / :meth:`JobStore.list_scenes`."""
 
 
 class ActiveJobExists(Exception):
@@ -111,6 +124,18 @@ def _job_view(row: dict | None) -> dict | None:
     return row
 
 
+def _page(limit: int) -> int:
+    return max(1, min(int(limit), MAX_PAGE))
+
+
+def _before(before: tuple[float, str] | None) -> tuple[str, tuple]:
+    """The keyset condition "older than this row" in newest-first order."""
+    if before is None:
+        return "", ()
+    created_at, row_id = before
+    return " WHERE (created_at < ? OR (created_at = ? AND id < ?))", (created_at, created_at, row_id)
+
+
 class JobStore:
     """Scenes and jobs in one database (see the module docstring for the state machine)."""
 
@@ -119,7 +144,14 @@ class JobStore:
 
     def init_schema(self) -> None:
         with self.db.tx() as tx:
-            for statement in SCHEMA:
+            for statement in SCHEMA[:2]:
+                tx.execute(statement)
+            for table, columns in ADDED_COLUMNS.items():
+                have = set(tx.columns(table))
+                for name, kind in columns:
+                    if name not in have:
+                        tx.execute(f"ALTER TABLE {table} ADD COLUMN {name} {kind}")
+            for statement in SCHEMA[2:]:
                 tx.execute(statement)
 
     # ---------------------------------------------------------------- scenes
@@ -149,6 +181,25 @@ class JobStore:
             if active is not None:
                 raise SceneBusy(active["id"])
             return tx.execute("DELETE FROM scenes WHERE id = ?", (scene_id,)) == 1
+
+    def list_scenes(self, *, limit: int = 50, before: tuple[float, str] | None = None) -> list[dict]:
+        """Scenes, newest first: at most ``limit`` rows created before the ``(created_at, id)``
+        of ``before`` (the last row of the previous page; keyset pagination, so a page is stable
+        while scenes are added or deleted)."""
+        where, params = _before(before)
+        with self.db.tx(write=False) as tx:
+            return tx.all(f"SELECT * FROM scenes{where} ORDER BY created_at DESC, id DESC LIMIT ?",
+                          (*params, _page(limit)))
+
+    def active_jobs(self, scene_ids: list[str]) -> dict[str, str]:
+        """``{scene id: id of its queued or running job}`` for those of ``scene_ids`` that have one."""
+        if not scene_ids:
+            return {}
+        marks = ", ".join("?" * len(scene_ids))
+        with self.db.tx(write=False) as tx:
+            rows = tx.all(f"SELECT id, scene_id FROM jobs WHERE state IN ('queued', 'running')"
+                          f" AND scene_id IN ({marks})", tuple(scene_ids))
+        return {row["scene_id"]: row["id"] for row in rows}
 
     def allocate_version(self, scene_id: str) -> int | None:
         """Reserve the next checkpoint version number of a scene (None if the scene is gone)."""
@@ -213,6 +264,23 @@ class JobStore:
         with self.db.tx(write=False) as tx:
             return _job_view(tx.one("SELECT * FROM jobs WHERE id = ?", (job_id,)))
 
+    def list_jobs(self, *, scene_id: str | None = None, states: tuple[str, ...] | list[str] = (),
+                  limit: int = 50, before: tuple[float, str] | None = None) -> list[dict]:
+        """Jobs, newest first, optionally of one scene and in some states; at most ``limit``
+        created before the ``(created_at, id)`` of ``before`` (keyset pagination)."""
+        where, params = _before(before)
+        clauses = [where[len(" WHERE "):]] if where else []
+        if scene_id is not None:
+            clauses.append("scene_id = ?")
+            params = (*params, scene_id)
+        if states:
+            clauses.append(f"state IN ({', '.join('?' * len(states))})")
+            params = (*params, *states)
+        sql = "SELECT * FROM jobs" + (" WHERE " + " AND ".join(clauses) if clauses else "")
+        with self.db.tx(write=False) as tx:
+            rows = tx.all(sql + " ORDER BY created_at DESC, id DESC LIMIT ?", (*params, _page(limit)))
+        return [_job_view(row) for row in rows]
+
     def active_job(self, scene_id: str) -> dict | None:
         with self.db.tx(write=False) as tx:
             return _job_view(tx.one(
@@ -269,11 +337,23 @@ class JobStore:
             losses = (_loads(row["losses"]) or [])[-(LOSS_HISTORY - 1):] + [[step, loss]]
             tx.execute(
                 "UPDATE jobs SET step = ?, total_steps = ?, progress = ?, eta_s = ?, loss = ?,"
-                " losses = ?, heartbeat_at = ?, updated_at = ? WHERE id = ? AND lease = ?",
+                " losses = ?, heartbeat_at = ?, updated_at = ?, phase = 'training' WHERE id = ? AND lease = ?",
                 (step, total_steps, min(max(fraction, 0.0), 1.0), eta_s, loss, json.dumps(losses),
                  now, now, job_id, lease),
             )
             return True
+
+    def record_phase(self, job_id: str, lease: str, phase: str) -> bool:
+        """A running job entered ``phase`` (:data:`PHASES`); evaluating has no ETA. False when
+        this worker no longer owns the job."""
+        assert phase in PHASES
+        now = time.time()
+        with self.db.tx() as tx:
+            return tx.execute(
+                "UPDATE jobs SET phase = ?, eta_s = CASE WHEN ? = 'evaluating' THEN NULL ELSE eta_s END,"
+                " heartbeat_at = ?, updated_at = ? WHERE id = ? AND lease = ? AND state = 'running'",
+                (phase, phase, now, now, job_id, lease),
+            ) == 1
 
     def should_stop(self, job_id: str, lease: str) -> bool:
         """True when a cancel was asked or this worker lost the job."""
@@ -290,7 +370,7 @@ class JobStore:
         now = time.time()
         with self.db.tx() as tx:
             n = tx.execute(
-                "UPDATE jobs SET state = ?, lease = NULL, error_code = ?, error_message = ?, result = ?,"
+                "UPDATE jobs SET state = ?, lease = NULL, phase = NULL, error_code = ?, error_message = ?, result = ?,"
                 " checkpoint_path = ?, checkpoint_version = ?, finished_at = ?, updated_at = ?,"
                 " progress = CASE WHEN ? = 'succeeded' THEN 1.0 ELSE progress END,"
                 " eta_s = CASE WHEN ? = 'succeeded' THEN 0.0 ELSE eta_s END"
@@ -311,7 +391,7 @@ class JobStore:
         now = time.time()
         with self.db.tx() as tx:
             return tx.execute(
-                "UPDATE jobs SET state = 'queued', lease = NULL, heartbeat_at = ?, updated_at = ?"
+                "UPDATE jobs SET state = 'queued', lease = NULL, phase = NULL, heartbeat_at = ?, updated_at = ?"
                 " WHERE id = ? AND lease = ? AND state = 'running'",
                 (now, now, job_id, lease),
             ) == 1
@@ -347,7 +427,7 @@ class JobStore:
                 where = " WHERE id = ? AND state = 'running' AND heartbeat_at < ?"
                 if job["cancel_requested"]:
                     tx.execute(
-                        "UPDATE jobs SET state = 'cancelled', lease = NULL, finished_at = ?, updated_at = ?,"
+                        "UPDATE jobs SET state = 'cancelled', lease = NULL, phase = NULL, finished_at = ?, updated_at = ?,"
                         " error_code = 'cancelled', error_message = 'cancelled; its worker was lost'" + where,
                         (now, now, job["id"], cutoff),
                     )
@@ -355,7 +435,7 @@ class JobStore:
                 elif job["attempt"] >= max_attempts:
                     silent = now - job["heartbeat_at"]
                     tx.execute(
-                        "UPDATE jobs SET state = 'failed', lease = NULL, finished_at = ?, updated_at = ?,"
+                        "UPDATE jobs SET state = 'failed', lease = NULL, phase = NULL, finished_at = ?, updated_at = ?,"
                         " error_code = 'worker_lost', error_message = ?" + where,
                         (now, now, f"the worker running attempt {job['attempt']} of {max_attempts} "
                          f"stopped sending heartbeats {silent:.0f} s ago; no attempts left",
@@ -364,7 +444,7 @@ class JobStore:
                     actions.append(SweepAction(job["id"], "failed", job["attempt"]))
                 else:
                     tx.execute(
-                        "UPDATE jobs SET state = 'queued', lease = NULL, attempt = attempt + 1,"
+                        "UPDATE jobs SET state = 'queued', lease = NULL, phase = NULL, attempt = attempt + 1,"
                         " heartbeat_at = ?, updated_at = ?" + where,
                         (now, now, job["id"], cutoff),
                     )
