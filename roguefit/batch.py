@@ -134,10 +134,20 @@ def main(argv: list[str] | None = None) -> int:
                 bar.set_postfix(psnr=f"{p['psnr']:.2f}", grid=p["resolution"], refresh=False)
                 bar.update(int(100 * p["fraction"]) - bar.n)
 
+            bars = [bar]
+
+            def render_progress(done: int, total: int, bars=bars) -> None:
+                if len(bars) == 1:
+                    bars[0].close()
+                    bars.append(tqdm(total=total, desc=f"{scene.name}/{preset} rendering", unit="view",
+                                     file=sys.stderr, mininterval=5))
+                bars[1].update(done - bars[1].n)
+
             try:
-                report = make_pairs(scene, out, config, progress=progress)
+                report = make_pairs(scene, out, config, progress=progress, render_progress=render_progress)
             finally:
-                bar.close()
+                for b in bars:
+                    b.close()
             log.info("%s/%s: train %.2f dB, held-out %s dB (%.0f s)", scene.name, preset, report["train"]["psnr"],
                      f"{report['test']['psnr']:.2f}" if report["test"] else "-", time.monotonic() - t0)
             if args.manifest:
