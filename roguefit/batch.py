@@ -56,6 +56,7 @@ def write_manifest(cache: Path, path: Path) -> list[dict]:
     from roguenerf.imageio import atomic_write
 
     rows = manifest_rows(cache)
+    path.parent.mkdir(parents=True, exist_ok=True)
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=MANIFEST_FIELDS, lineterminator="\n")
     writer.writeheader()
@@ -81,6 +82,7 @@ def write_example(scene_dir: Path, out: Path, max_width: int = 640) -> Path | No
     if pair.shape[2] > max_width:
         scale = max_width / pair.shape[2]
         pair = F.interpolate(pair[None], scale_factor=scale, mode="area")[0]
+    out.parent.mkdir(parents=True, exist_ok=True)
     write_png(out, pair.clamp(0, 1))
     return out
 

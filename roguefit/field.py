@@ -28,6 +28,8 @@ from torch import Tensor, nn
 
 DENSITY_SHIFT = -4.0
 """``sigma = softplus(raw + DENSITY_SHIFT)``: a zero grid starts almost transparent."""
+BACKGROUND = 0.5
+"""Colour of the light that reaches the far bound when rendering."""
 WEIGHT_EPS = 1e-4
 """Samples whose rendering weight is below this get no colour evaluation."""
 
@@ -135,7 +137,7 @@ class GridField(nn.Module):
 
     # -- rendering -------------------------------------------------------------------------
     def render(self, origins: Tensor, dirs: Tensor, near: Tensor, far: Tensor, samples: int,
-               generator: torch.Generator | None = None) -> dict[str, Tensor]:
+               generator: torch.Generator | None = None, background: Tensor | None = None) -> dict[str, Tensor]:
         """Volume-render rays.
 
         Args:
@@ -144,6 +146,9 @@ class GridField(nn.Module):
             near, far: ``(B,)`` z bounds; samples are uniform in 1/z between them.
             samples: S per ray.
             generator: stratified jitter of the samples (training); None: bin centres.
+            background: ``(B, 3)`` colour of the light that reaches the far bound (training draws it
+                at random per ray, so the field must become opaque rather than let a background
+                explain the photo); None: ``BACKGROUND`` grey.
         Returns:
             ``rgb (B, 3)``, ``depth (B,)`` median z of the ray's weights (the far bound where nothing
             stopped half the light before it),
@@ -158,23 +163,26 @@ class GridField(nn.Module):
             sigma = sigma.masked_scatter(keep, self.sigma(u[keep]))
         alpha = 1.0 - torch.exp(-sigma * delta)
         # The last sample (at the far bound) takes whatever light is left, as NeRF's open last
-        # interval does: content beyond the far bound lands there, never in a free background.
+        # interval does, with a background colour (random in training): a colour per ray from the
+        # grid there would be a sky box that memorises the training photos.
         alpha = torch.cat([alpha[:, :-1], torch.ones(b, 1, dtype=alpha.dtype)], dim=1)
         trans = torch.cumprod(torch.cat([torch.ones(b, 1), 1.0 - alpha + 1e-10], dim=1), dim=1)[:, :-1]
         weights = alpha * trans
         acc = 1.0 - trans[:, -1]
         shade = weights.detach() > WEIGHT_EPS
+        shade[:, -1] = False
         colour = torch.zeros(b, samples, 3, dtype=origins.dtype)
         if shade.any():
             unit = F.normalize(dirs, dim=-1)[:, None, :].expand(b, samples, 3)
             colour = colour.masked_scatter(shade[..., None], self.rgb(u[shade], unit[shade]))
-        rgb = (weights[..., None] * colour).sum(dim=1)
+        rgb = (weights[:, :-1, None] * colour[:, :-1]).sum(dim=1) + weights[:, -1:] * (
+            background if background is not None else torch.full((b, 3), BACKGROUND))
         # Median depth (where the accumulated weight passes 1/2): a surface's depth, never a mix
         # of a surface and the far bound or of a floater and what is behind it, as the mean is.
         cum = torch.cumsum(weights.detach(), dim=1)
         k = torch.searchsorted(cum, torch.full((b, 1), 0.5, dtype=cum.dtype)).clamp_(max=samples - 1)
         depth = torch.gather(t, 1, k)[:, 0]
-        return {"rgb": rgb, "depth": depth, "acc": acc, "distortion": _distortion(weights, s, samples)}
+        return {"rgb": rgb, "depth": depth, "acc": acc, "distortion": _distortion(weights[:, :-1], s[:, :-1], samples)}
 
     def _samples(self, dirs: Tensor, near: Tensor, far: Tensor, samples: int,
                  generator: torch.Generator | None) -> tuple[Tensor, Tensor, Tensor]:
@@ -228,6 +236,9 @@ class GridField(nn.Module):
             local = torch.cumprod(torch.cat([torch.ones(a, 1), 1.0 - alpha + 1e-10], dim=1), dim=1)
             weights = alpha * local[:, :-1] * trans[active, None]
             shade = weights > WEIGHT_EPS
+            if last:
+                shade[:, -1] = False
+                rgb[active] += weights[:, -1:] * BACKGROUND
             if shade.any():
                 colour = torch.zeros(a, k, 3)
                 colour[shade] = self.rgb(u[shade], unit[active, None, :].expand(a, k, 3)[shade])

@@ -193,7 +193,9 @@ class _Fitter:
         views = torch.as_tensor(self.train)[m]
         origins, dirs = camera_rays(ps.K[views], ps.world_from_cam[views], v, u)
         target = self.pixels[m, v, u].to(torch.float32) / 255.0
-        out = self.field.render(origins, dirs, self.near[views], self.far[views], c.samples, self.generator)
+        background = torch.rand(c.rays, 3, generator=self.generator)
+        out = self.field.render(origins, dirs, self.near[views], self.far[views], c.samples, self.generator,
+                                background=background)
         mse = F.mse_loss(out["rgb"], target)
         loss = mse
         if c.distortion_weight > 0:
