@@ -79,13 +79,12 @@ PRESETS: dict[str, FitConfig] = {
 }
 
 
-def camera_rays(ps_K: Tensor, world_from_cam: Tensor, v: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+def camera_rays(K: Tensor, world_from_cam: Tensor, v: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
     """Rays through pixel centres ``(v, u)`` (row, col) of cameras ``K (B,3,3)``, ``world_from_cam (B,4,4)``.
 
     Returns origins and directions ``(B, 3)`` float32 with the direction's camera-z equal to 1, so
     the ray parameter is z-depth.
     """
-    K = ps_K
     x = (u.to(torch.float64) + 0.5 - K[:, 0, 2]) / K[:, 0, 0]
     y = (v.to(torch.float64) + 0.5 - K[:, 1, 2]) / K[:, 1, 1]
     d_cam = torch.stack([x, y, torch.ones_like(x)], dim=-1)
