@@ -139,6 +139,19 @@ class JobStore:
         with self.db.tx(write=False) as tx:
             return tx.one("SELECT * FROM scenes WHERE id = ?", (scene_id,))
 
+    def list_scenes(self, *, limit: int, after: tuple[float, str] | None = None) -> list[dict]:
+        """Scenes newest first (``created_at``, then id, descending); ``after`` is the
+        ``(created_at, id)`` of the last scene of the previous page."""
+        with self.db.tx(write=False) as tx:
+            if after is None:
+                return tx.all("SELECT * FROM scenes ORDER BY created_at DESC, id DESC LIMIT ?", (limit,))
+            created, last_id = after
+            return tx.all(
+                "SELECT * FROM scenes WHERE created_at < ? OR (created_at = ? AND id < ?)"
+                " ORDER BY created_at DESC, id DESC LIMIT ?",
+                (created, created, last_id, limit),
+            )
+
     def delete_scene(self, scene_id: str) -> bool:
         """Remove the scene's row; False if unknown. Raises SceneBusy while a job is active."""
         with self.db.tx() as tx:

@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import base64
+import binascii
+import json
 import logging
+import math
 from typing import Annotated
 
-from fastapi import APIRouter, File, Header, Response, UploadFile
+from fastapi import APIRouter, File, Header, Query, Response, UploadFile
 
 from roguenerf.errors import RoGUENeRFError
 from service.errors import ApiError, error_responses, library_error
 from service.limits import checkpoint_error, ensure_queue_capacity
-from service.schemas import JobCreate, JobPublic, ScenePublic, iso
+from service.schemas import JobCreate, JobPublic, ScenePage, ScenePublic, iso
 from service.state import Services, ServicesDep
 from service.storage import ZipLimits, discard, extract_scene_zip, place, save_upload
 from workers.jobs import ActiveJobExists, IdempotencyMismatch, SceneBusy
@@ -98,6 +102,38 @@ def create_scene(
     checkpoint: Annotated[UploadFile, File(description="optional enhancer checkpoint (.safetensors)")] = None,
 ) -> ScenePublic:
     return _register(services, archive, checkpoint)
+
+
+def _encode_cursor(row: dict) -> str:
+    raw = json.dumps([row["created_at"], row["id"]]).encode()
+    return base64.urlsafe_b64encode(raw).decode().rstrip("=")
+
+
+def _decode_cursor(cursor: str) -> tuple[float, str]:
+    try:
+        created, scene_id = json.loads(base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)))
+        if not (isinstance(created, (int, float)) and math.isfinite(created) and isinstance(scene_id, str)
+                and ID_RE.match(scene_id)):
+            raise ValueError
+    except (ValueError, TypeError, binascii.Error):
+        raise ApiError(422, "validation_error",
+                       "cursor: not a cursor of this API (use the 'next' of the previous page)") from None
+    return float(created), scene_id
+
+
+@router.get("", response_model=ScenePage, summary="List scenes, newest first (paginated)",
+            responses=error_responses(422))
+def list_scenes(
+    services: ServicesDep,
+    limit: Annotated[int, Query(ge=1, le=200, description="scenes per page")] = 50,
+    cursor: Annotated[str | None, Query(max_length=200, description="'next' of the previous page")] = None,
+) -> ScenePage:
+    after = _decode_cursor(cursor) if cursor is not None else None
+    rows = services.store.list_scenes(limit=limit + 1, after=after)
+    more = len(rows) > limit
+    rows = rows[:limit]
+    return ScenePage(items=[scene_public(services, r) for r in rows],
+                     next=_encode_cursor(rows[-1]) if more else None)
 
 
 @router.get("/{scene_id}", response_model=ScenePublic, summary="Describe a scene",
