@@ -269,7 +269,10 @@
   function drawLoss() {
     const pts = [...losses.entries()].sort((a, b) => a[0] - b[0]);
     const svg = $("loss-curve");
-    if (!pts.length) { $("loss-line").setAttribute("points", ""); svg.setAttribute("aria-label", "loss curve: no steps yet"); return; }
+    if (!pts.length) {
+      $("loss-line").setAttribute("points", ""); svg.setAttribute("aria-label", "loss curve: no steps yet");
+      $("loss-caption").textContent = "Training loss per step"; return;
+    }
     const steps = pts.map((p) => p[0]), values = pts.map((p) => p[1]);
     const s0 = Math.min(...steps), s1 = Math.max(...steps), lo = Math.min(...values), hi = Math.max(...values);
     const x = (s) => s1 === s0 ? 160 : 8 + 304 * (s - s0) / (s1 - s0);
@@ -279,6 +282,7 @@
     $("loss-line").setAttribute("points", points);
     svg.dataset.points = String(pts.length);
     svg.setAttribute("aria-label", `loss curve: ${pts.length} steps, from ${values[0].toPrecision(3)} to ${values[values.length - 1].toPrecision(3)}`);
+    $("loss-caption").textContent = `Training loss per step: steps ${s0}–${s1}, loss ${lo.toPrecision(3)} (bottom) to ${hi.toPrecision(3)} (top)`;
   }
 
   // ------------------------------------------------------------------ compare
