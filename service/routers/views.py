@@ -150,7 +150,7 @@ def _score(services: Services, scene_id: str, index: int, data: bytes) -> ImageS
 
 @router.post("/{scene_id}/views/{index}/score", response_model=ImageScore,
              summary="PSNR and SSIM of an image (PNG/JPEG of the view's size) against the view's photo",
-             responses=error_responses(404, 413, 422))
+             responses=error_responses(400, 404, 413, 422))
 async def score_image(
     scene_id: str,
     index: int,
