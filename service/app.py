@@ -12,12 +12,14 @@ from pathlib import Path
 
 from fastapi import FastAPI
 from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse
+from starlette.staticfiles import StaticFiles
 from starlette.middleware.cors import CORSMiddleware
 
 from service.auth import BearerAuthMiddleware
 from service.docs import install_docs
 from service.errors import error_response, install_error_handlers
-from service.routers import checkpoints, enhance, health, jobs, scenes
+from service.routers import checkpoints, enhance, health, jobs, scenes, views
 from service.settings import Settings
 from service.state import EnhancerCache, Services
 from workers.jobs import JobStore
@@ -26,6 +28,19 @@ from workers.queue import JobQueue
 from workers.tasks import bundled_checkpoint
 
 log = logging.getLogger("roguenerf.service")
+
+UI_DIR = Path(__file__).resolve().parent / "ui"
+"""The web page (static HTML/JS/CSS, no build step): served at ``/`` and ``/ui/``."""
+
+UI_HEADERS = {
+    "Content-Security-Policy": "default-src 'self'; img-src 'self' blob:; connect-src 'self'; "
+                               "style-src 'self'; script-src 'self'; object-src 'none'; "
+                               "base-uri 'none'; form-action 'none'; frame-ancestors 'none'",
+    "Referrer-Policy": "no-referrer",
+    "X-Content-Type-Options": "nosniff",
+    "Cache-Control": "no-cache",
+}
+"""The page may load and contact only this origin (the browser enforces it)."""
 
 FORM_LIMITS = {"max_files": 4, "max_fields": 16, "max_part_size": 1 << 20}
 """Multipart: at most archive + checkpoint or render + depth files; small text fields."""
@@ -123,6 +138,27 @@ class RoGUENeRFApp(FastAPI):
         await super().__call__(scope, receive, send)
 
 
+class _UiFiles(StaticFiles):
+    """The page's assets with the same security headers as the page."""
+
+    def file_response(self, *args, **kwargs):
+        response = super().file_response(*args, **kwargs)
+        response.headers.update(UI_HEADERS)
+        return response
+
+
+def _add_ui(app: FastAPI) -> None:
+    """``/``: the web page; ``/ui/``: its script and style sheet. Both are public files with
+    no data in them (no key needed to load them, see service/auth.py); everything the page
+    shows comes from the API with the key the user types in."""
+
+    @app.get("/", include_in_schema=False)
+    async def web_page() -> FileResponse:
+        return FileResponse(UI_DIR / "index.html", media_type="text/html", headers=UI_HEADERS)
+
+    app.mount("/ui", _UiFiles(directory=UI_DIR), name="ui")
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     app = RoGUENeRFApp(
@@ -138,8 +174,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     install_error_handlers(app)
     install_docs(app)
-    for module in (health, scenes, checkpoints, enhance, jobs):
+    for module in (health, scenes, views, checkpoints, enhance, jobs):
         app.include_router(module.router)
+    _add_ui(app)
     if settings.api_key is not None:
         app.add_middleware(BearerAuthMiddleware, api_key=settings.api_key.get_secret_value())
     if settings.cors_origins:

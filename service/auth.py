@@ -3,6 +3,10 @@
 A pure ASGI middleware (not a dependency) so unknown paths, /docs and /openapi.json are
 covered too and an unauthenticated caller learns nothing, not even which routes exist.
 The key is compared with ``hmac.compare_digest`` and never logged.
+
+Open without the key: ``/healthz`` and the web page's static files (``/`` and ``/ui/...``:
+HTML, script and style sheet that hold no data; the page asks the user for the key and
+sends it with every API call like any other client).
 """
 
 from __future__ import annotations
@@ -15,6 +19,9 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from service.errors import error_response
 
 OPEN_PATHS = frozenset({"/healthz"})
+PAGE_PATHS = frozenset({"/"})
+PAGE_PREFIXES = ("/ui/",)
+"""The web page's files: open to GET and HEAD only."""
 
 
 class BearerAuthMiddleware:
@@ -23,7 +30,9 @@ class BearerAuthMiddleware:
         self._key = api_key.encode()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or scope["path"] in OPEN_PATHS:
+        path = scope.get("path", "")
+        if scope["type"] != "http" or path in OPEN_PATHS or (
+                scope.get("method") in ("GET", "HEAD") and (path in PAGE_PATHS or path.startswith(PAGE_PREFIXES))):
             await self.app(scope, receive, send)
             return
         header = Headers(scope=scope).get("authorization", "")

@@ -49,6 +49,46 @@ class ScenePage(BaseModel):
     """Pass as ``cursor`` for the next (older) page; None on the last page."""
 
 
+class ViewCamera(BaseModel):
+    """A view's camera in the form ``POST /enhance`` takes (its ``camera`` field)."""
+
+    transform_matrix: list[list[float]]
+    convention: Literal["opengl"]
+    fl_x: float
+    fl_y: float
+    cx: float
+    cy: float
+    depth_type: Literal["z"]
+    """The ``depth`` of ``GET /scenes/{id}/views/{index}/depth`` is z-depth."""
+    w: int
+    h: int
+
+
+class ViewPublic(BaseModel):
+    index: int
+    """Position in the scene; the ``{index}`` of the view routes."""
+    name: str
+    split: str
+    width: int
+    height: int
+    has_photo: bool
+    has_render: bool
+    has_depth: bool
+    camera: ViewCamera
+
+
+class ViewList(BaseModel):
+    items: list[ViewPublic]
+
+
+class ImageScore(BaseModel):
+    """An image compared with a view's photo (the library's ``psnr`` and ``ssim``)."""
+
+    psnr: float | None
+    """dB; null when the image equals the photo (infinite PSNR)."""
+    ssim: float
+
+
 class JobCreate(BaseModel):
     """A fine-tuning budget: exactly one of ``steps`` or ``minutes``."""
 

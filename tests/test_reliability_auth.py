@@ -54,7 +54,10 @@ def _routes(scene_id: str) -> list[tuple[str, str]]:
     return [("GET", "/readyz"), ("GET", "/docs"), ("GET", "/openapi.json"), ("GET", f"/scenes/{scene_id}"),
             ("DELETE", f"/scenes/{scene_id}"), ("POST", "/scenes"), ("POST", f"/scenes/{scene_id}/finetune"),
             ("POST", f"/scenes/{scene_id}/checkpoints"), ("POST", "/enhance"), ("GET", f"/jobs/{job}"),
-            ("POST", f"/jobs/{job}/cancel"), ("GET", "/no/such/route")]
+            ("POST", f"/jobs/{job}/cancel"), ("GET", "/no/such/route"), ("GET", "/scenes"),
+            ("GET", f"/scenes/{scene_id}/views"), ("GET", f"/scenes/{scene_id}/views/0/render"),
+            ("GET", f"/scenes/{scene_id}/views/0/photo"), ("GET", f"/scenes/{scene_id}/views/0/depth"),
+            ("POST", f"/scenes/{scene_id}/views/0/score"), ("POST", "/"), ("POST", "/ui/app.js")]
 
 
 @pytest.mark.parametrize("auth", [None, "Bearer wrong-key", f"Basic {KEY}", f"Bearer {KEY}x", "Bearer"])
@@ -119,6 +122,11 @@ def test_hostile_ids_are_404_or_422_and_touch_nothing(s, hostile):
         s.client.post(f"/jobs/{hostile}/cancel"),
     ]
     for r in calls:
+        if r.request.method == "GET" and r.request.url.path == "/":
+            # The client itself resolved "/scenes/.." to "/": the web page's static file, no data.
+            assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+            assert s.scene_id not in r.text
+            continue
         assert_error(r, (404, 405, 422))
     view = s.view()
     raw = hostile.replace("%2F", "/").replace("%2f", "/").replace("%00", "\x00").replace("%2e", ".")

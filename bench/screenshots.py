@@ -1,0 +1,90 @@
+"""Screenshots of each screen of the web page (docs/screenshots/*.png).
+
+Starts the embedded server (API + worker) on loopback in a temporary data dir, drives
+Debian's headless Chromium with Playwright like a user: upload a toy scene (with the bundled
+default checkpoint), fine-tune it for a few steps, open a test view in Compare. Takes each
+screen at 1280x800 and the compare screen at 390x844 too. Nothing leaves the machine.
+
+    ./dev python bench/screenshots.py [--out docs/screenshots] [--steps 20] [--size 160x120]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tests.browser_helpers import CHROMIUM_ARGS, chromium_path, embedded_server, wait_for  # noqa: E402
+from tests.service_helpers import zip_folder  # noqa: E402
+
+KEY = "screenshot-key"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "screenshots")
+    parser.add_argument("--steps", type=int, default=20, help="fine-tuning steps of the shown job")
+    parser.add_argument("--size", default="160x120", help="toy scene WxH")
+    args = parser.parse_args()
+    width, height = (int(v) for v in args.size.split("x"))
+    exe = chromium_path()
+    if exe is None:
+        sys.exit("chromium not found: apt-get install -y chromium (or set ROGUENERF_CHROMIUM)")
+    from playwright.sync_api import sync_playwright
+
+    from roguenerf import make_toy_scene
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        make_toy_scene(tmp / "scene", seed=7, n_train=8, n_test=3, height=height, width=width)
+        (tmp / "toy-scene.zip").write_bytes(zip_folder(tmp / "scene"))
+        with embedded_server(tmp / "data", log_path=tmp / "server.log", api_key=KEY, finetune_crop=48,
+                             finetune_batch=2, finetune_evaluate="true") as url, sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=exe, args=CHROMIUM_ARGS, headless=True)
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            foreign: list[str] = []
+            page.on("request", lambda r: None if r.url.startswith((url + "/", "blob:")) else foreign.append(r.url))
+            page.goto(url + "/")
+            page.get_by_label("API key").fill(KEY)
+            page.get_by_label("API key").press("Enter")
+            page.get_by_label("Scene zip").set_input_files(str(tmp / "toy-scene.zip"))
+            page.get_by_role("button", name="Upload", exact=True).click()
+            page.locator("#scenes-table tbody tr").first.wait_for(timeout=120_000)
+            page.screenshot(path=str(args.out / "scenes.png"))
+
+            page.get_by_role("link", name="Fine-tuning").click()
+            page.get_by_label("Budget").fill(str(args.steps))
+            page.get_by_label("Unit").select_option("steps")
+            page.get_by_role("button", name="Start fine-tuning").click()
+            wait_for(page, "() => document.getElementById('job').dataset.state === 'running' && "
+                           "Number(document.getElementById('loss-curve').dataset.points || 0) >= 3", timeout_s=300)
+            page.screenshot(path=str(args.out / "finetune-running.png"))
+            wait_for(page, "() => ['succeeded', 'failed', 'cancelled'].includes(document.getElementById('job').dataset.state)",
+                     timeout_s=600)
+            page.screenshot(path=str(args.out / "finetune.png"))
+
+            page.get_by_role("link", name="Compare").click()
+            wait_for(page, "() => document.getElementById('compare').dataset.ready === 'true'", timeout_s=300)
+            page.get_by_label("Zoom").select_option("4")
+            page.locator("#cmp-handle").focus()
+            for _ in range(15):
+                page.keyboard.press("ArrowLeft")
+            page.locator("#cmp-handle").blur()
+            page.screenshot(path=str(args.out / "compare.png"))
+            page.set_viewport_size({"width": 390, "height": 844})
+            page.get_by_label("Zoom").select_option("2")
+            page.screenshot(path=str(args.out / "compare-390x844.png"), full_page=True)
+            browser.close()
+            if foreign:
+                sys.exit(f"the page contacted other origins: {foreign}")
+    for name in sorted(args.out.glob("*.png")):
+        print(name.relative_to(ROOT))
+
+
+if __name__ == "__main__":
+    main()
