@@ -21,7 +21,7 @@ def main(argv: list[str] | None = None) -> None:
     interrupted = threading.Event()
     signal.signal(signal.SIGINT, lambda signum, frame: interrupted.set())
 
-    from service.settings import Settings
+    from workers.settings import Settings
     from workers.worker import run_worker
 
     parser = argparse.ArgumentParser(prog="python -m workers", description=__doc__)

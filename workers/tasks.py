@@ -32,7 +32,7 @@ SHOULD_STOP_POLL_S = 0.5
 @dataclass
 class WorkerContext:
     settings: object
-    """service.settings.Settings."""
+    """workers.settings.Settings."""
     store: JobStore
     layout: Layout
     enqueue: Callable[[str], None]
