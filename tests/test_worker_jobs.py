@@ -354,3 +354,68 @@ def test_train_options_follow_settings(tmp_path):
 def test_settings_refuse_inconsistent_heartbeats(tmp_path):
     with pytest.raises(ValueError, match="heartbeat_timeout"):
         Settings(data_dir=tmp_path, heartbeat_period=5, heartbeat_timeout=5)
+
+
+def test_workers_package_never_imports_service():
+    # Statically: no module of workers/ names the service package ...
+    import ast
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    offenders = []
+    for path in sorted((root / "workers").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            offenders += [f"{path.name}: {n}" for n in names if n == "service" or n.startswith("service.")]
+    assert offenders == []
+    # ... and at run time, importing all of it (the worker's entry point included) loads none of it.
+    code = ("import sys, workers.__main__, workers.worker, workers.tasks, workers.jobs, workers.settings; "
+            "print(sorted(m for m in sys.modules if m == 'service' or m.startswith('service.') "
+            "or m.startswith('fastapi')))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
+def test_stale_temp_files_of_a_killed_writer_are_swept_at_start(tmp_path):
+    import os
+
+    from workers.worker import build_worker
+
+    layout = Layout(tmp_path / "data")
+    layout.ensure()
+    sid = new_id()
+    ckpts = layout.checkpoint(sid, 1).parent
+    ckpts.mkdir(parents=True)
+    old_upload = layout.tmp / new_id()
+    (old_upload / "scene").mkdir(parents=True)
+    (old_upload / "scene" / "a.png").write_bytes(b"x")
+    old_copy = ckpts / f".v2.safetensors.{new_id()}.tmp"   # copy_atomic's temp name
+    old_copy.write_bytes(b"partial")
+    live_upload = layout.tmp / new_id()                     # another machine's upload in progress
+    live_upload.mkdir()
+    (live_upload / "archive.zip").write_bytes(b"y")
+    kept = [ckpts / "v1.safetensors", ckpts / ".hidden-but-not-ours.tmp"]
+    for path in kept:
+        path.write_bytes(b"keep")
+    hours_ago = time.time() - 7 * 3600
+    for path in [old_upload, old_upload / "scene", old_upload / "scene" / "a.png", old_copy, *kept]:
+        os.utime(path, (hours_ago, hours_ago))
+    # A live upload whose folder is old but whose file is still being written is kept too.
+    os.utime(live_upload, (hours_ago, hours_ago))
+
+    settings = Settings(data_dir=tmp_path / "data")
+    assert settings.stale_temp_after_s == 6 * 3600
+    build_worker(settings)[2].db.close()
+    assert not old_upload.exists() and not old_copy.exists()
+    assert live_upload.is_dir() and all(p.exists() for p in kept)
+    # The API sweeps at start the same way.
+    from service.app import _open
+
+    old_copy.write_bytes(b"again")
+    os.utime(old_copy, (hours_ago, hours_ago))
+    _open(settings).store.db.close()
+    assert not old_copy.exists() and live_upload.is_dir()
