@@ -94,6 +94,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import roguenerf  # noqa: E402,F401  (first: OpenMP's wait policy is set before torch loads)
 import torch  # noqa: E402
 
 from bench.common import REPO, RESULTS, stamp, write_csv, write_json  # noqa: E402

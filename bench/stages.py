@@ -36,9 +36,9 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import roguenerf  # noqa: E402,F401  (first: OpenMP's wait policy is set before torch loads)
+import torch  # noqa: E402
 
 from bench.common import stamp, write_csv, write_json  # noqa: E402
 from roguenerf import runtime  # noqa: E402

@@ -2,6 +2,14 @@
 
     python bench/threads.py --output bench/results/threads.csv [--variant micro] [--size 378x504]
                             [--repeats 5] [--trials 1]
+    python bench/threads.py --cli-evaluate ../shared/data/lego --output bench/results/threads_cli.csv
+                            [--trials 2]
+
+``--cli-evaluate SCENE`` times the whole ``roguenerf evaluate SCENE --json`` command instead (a
+fresh CLI process per run; wall time from start to exit, and the CLI's own seconds per view),
+idle and beside the competing process, with the CLI's own choice (no variable set: PASSIVE
+since issue 17), libgomp's default (``GOMP_SPINCOUNT=300000``, what an unset policy means) and
+a shorter spin (``GOMP_SPINCOUNT=10000``).
 
 Each configuration runs in a fresh child process (OpenMP reads its wait policy when torch is
 imported), on an idle machine and again beside a competing process that keeps both cores
@@ -59,6 +67,55 @@ CONFIGS = [  # (threads, OMP_WAIT_POLICY or None for the default, keep freed mem
 ]
 
 
+CLI_CONFIGS = [  # (label, extra environment of the CLI process)
+    ("CLI as shipped (PASSIVE)", {}),
+    ("libgomp default (GOMP_SPINCOUNT=300000)", {"GOMP_SPINCOUNT": "300000"}),
+    ("GOMP_SPINCOUNT=10000", {"GOMP_SPINCOUNT": "10000"}),
+]
+
+
+def _clean_env() -> dict:
+    return {k: v for k, v in os.environ.items()
+            if k not in ("OMP_WAIT_POLICY", "OMP_NUM_THREADS", "GOMP_SPINCOUNT")}
+
+
+def run_cli_evaluate(scene: Path, extra_env: dict) -> dict:
+    """One ``roguenerf evaluate SCENE --json`` process: wall seconds, the CLI's seconds per view."""
+    env = {**_clean_env(), **extra_env}
+    load = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    out = subprocess.run([sys.executable, "-m", "roguenerf", "evaluate", str(scene), "--json"], env=env,
+                         capture_output=True, text=True, check=True)
+    wall = time.perf_counter() - t0
+    report = json.loads(out.stdout)
+    return {"wall_s": round(wall, 2), "seconds_per_view": round(report["seconds_per_view"], 4),
+            "views": len(report["views"]), "enhanced_psnr": round(report["enhanced"]["psnr"], 4),
+            "loadavg_1min_before": round(load, 2)}
+
+
+def cli_main(args, meta: dict) -> None:
+    rows = []
+    for load in ("idle", "competing process"):
+        competitor = None
+        if load != "idle":
+            competitor = subprocess.Popen([sys.executable, "-c", COMPETITOR], env=_clean_env())
+            time.sleep(2.0)
+        try:
+            for trial in range(1 if load == "idle" else max(1, args.trials)):
+                for label, extra in CLI_CONFIGS:
+                    r = run_cli_evaluate(args.cli_evaluate, extra)
+                    rows.append({**meta, "command": f"roguenerf evaluate {args.cli_evaluate} --json",
+                                 "load": load, "setting": label, "trial": trial, **r})
+                    print(f"{load:18s} {label:40s} trial {trial}: {r['wall_s']:.1f} s "
+                          f"({r['seconds_per_view']:.3f} s/view, load {r['loadavg_1min_before']})", flush=True)
+        finally:
+            if competitor is not None:
+                competitor.kill()
+                competitor.wait()
+    write_csv(args.output, rows)
+    print(f"wrote {args.output}")
+
+
 def run_child(repo: Path, variant: str, h: int, w: int, repeats: int, threads: int, policy: str | None,
               keep: bool) -> dict:
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "OMP_NUM_THREADS")}
@@ -79,7 +136,12 @@ def main(argv=None) -> None:
     p.add_argument("--trials", type=int, default=1,
                    help="child processes per configuration beside a competitor (the default wait "
                         "policy's slowdowns come and go with the process, so one child can miss them)")
+    p.add_argument("--cli-evaluate", type=Path, metavar="SCENE",
+                   help="time `roguenerf evaluate SCENE --json` processes instead of bare forwards")
     args = p.parse_args(argv)
+    if args.cli_evaluate is not None:
+        cli_main(args, stamp())
+        return
     h, w = (int(v) for v in args.size.lower().split("x"))
     repo = Path(__file__).resolve().parents[1]
     meta = stamp()

@@ -21,11 +21,11 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-import torch.nn.functional as F
-from einops import rearrange
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import roguenerf  # noqa: E402,F401  (first: OpenMP's wait policy is set before torch loads)
+import torch  # noqa: E402
+import torch.nn.functional as F  # noqa: E402
+from einops import rearrange  # noqa: E402
 
 from bench.common import stamp, write_csv  # noqa: E402
 from bench.stages import matmul_peak  # noqa: E402

@@ -56,6 +56,7 @@ def write_manifest(cache: Path, path: Path) -> list[dict]:
     from roguenerf.imageio import atomic_write
 
     rows = manifest_rows(cache)
+    path.parent.mkdir(parents=True, exist_ok=True)
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=MANIFEST_FIELDS, lineterminator="\n")
     writer.writeheader()
@@ -81,6 +82,7 @@ def write_example(scene_dir: Path, out: Path, max_width: int = 640) -> Path | No
     if pair.shape[2] > max_width:
         scale = max_width / pair.shape[2]
         pair = F.interpolate(pair[None], scale_factor=scale, mode="area")[0]
+    out.parent.mkdir(parents=True, exist_ok=True)
     write_png(out, pair.clamp(0, 1))
     return out
 
@@ -134,10 +136,20 @@ def main(argv: list[str] | None = None) -> int:
                 bar.set_postfix(psnr=f"{p['psnr']:.2f}", grid=p["resolution"], refresh=False)
                 bar.update(int(100 * p["fraction"]) - bar.n)
 
+            bars = [bar]
+
+            def render_progress(done: int, total: int, bars=bars) -> None:
+                if len(bars) == 1:
+                    bars[0].close()
+                    bars.append(tqdm(total=total, desc=f"{scene.name}/{preset} rendering", unit="view",
+                                     file=sys.stderr, mininterval=5))
+                bars[1].update(done - bars[1].n)
+
             try:
-                report = make_pairs(scene, out, config, progress=progress)
+                report = make_pairs(scene, out, config, progress=progress, render_progress=render_progress)
             finally:
-                bar.close()
+                for b in bars:
+                    b.close()
             log.info("%s/%s: train %.2f dB, held-out %s dB (%.0f s)", scene.name, preset, report["train"]["psnr"],
                      f"{report['test']['psnr']:.2f}" if report["test"] else "-", time.monotonic() - t0)
             if args.manifest:

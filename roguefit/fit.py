@@ -51,6 +51,7 @@ class FitConfig:
     lr_grid: float = 0.1
     lr_mlp: float = 2e-3
     tv_weight: float = 1e-4
+    distortion_weight: float = 0.01
     grow_at: tuple[float, ...] = (0.15, 0.35)
     prune_every: int = 200
     seed: int = 0
@@ -192,9 +193,13 @@ class _Fitter:
         views = torch.as_tensor(self.train)[m]
         origins, dirs = camera_rays(ps.K[views], ps.world_from_cam[views], v, u)
         target = self.pixels[m, v, u].to(torch.float32) / 255.0
-        out = self.field.render(origins, dirs, self.near[views], self.far[views], c.samples, self.generator)
+        background = torch.rand(c.rays, 3, generator=self.generator)
+        out = self.field.render(origins, dirs, self.near[views], self.far[views], c.samples, self.generator,
+                                background=background)
         mse = F.mse_loss(out["rgb"], target)
         loss = mse
+        if c.distortion_weight > 0:
+            loss = loss + c.distortion_weight * out["distortion"].mean()
         if c.tv_weight > 0:
             loss = loss + c.tv_weight * self.field.total_variation(32, self.generator)
         self.optimizer.zero_grad(set_to_none=True)
@@ -250,7 +255,7 @@ class _Fitter:
             v, u = vv[s:s + chunk], uu[s:s + chunk]
             n = v.shape[0]
             origins, dirs = camera_rays(ps.K[i].expand(n, 3, 3), ps.world_from_cam[i].expand(n, 4, 4), v, u)
-            out = self.field.render(origins, dirs, self.near[i].expand(n), self.far[i].expand(n), c.samples)
+            out = self.field.render_fast(origins, dirs, self.near[i].expand(n), self.far[i].expand(n), c.samples)
             rgb.append(out["rgb"]), depth.append(out["depth"]), acc.append(out["acc"])
         rgb = torch.cat(rgb).reshape(h, w, 3).permute(2, 0, 1).clamp(0, 1)
         acc = torch.cat(acc).reshape(1, h, w).clamp(0, 1)

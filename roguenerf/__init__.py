@@ -8,7 +8,13 @@ from __future__ import annotations
 
 import importlib
 
-from roguenerf.errors import (
+from roguenerf import runtime as _runtime
+
+# Before anything loads torch: OpenMP's default spin-wait collapses beside any busy process
+# (README, *Process settings*); PASSIVE unless the user chose a policy.
+_runtime.prefer_passive_wait()
+
+from roguenerf.errors import (  # noqa: E402
     CheckpointError,
     InputError,
     NonFiniteOutputError,

@@ -76,7 +76,7 @@ def save_checkpoint(path: str | os.PathLike, model: nn.Module, *, meta: dict | N
         # clone: safetensors refuses tensors that share storage (views, tied weights)
         tensors[name] = tensor.detach().to("cpu").contiguous().clone()
     metadata = {"format": FORMAT, "format_version": FORMAT_VERSION, "config": config_json, "meta": meta_json}
-    atomic_write(path, save(tensors, metadata=metadata))
+    atomic_write(path, save(tensors, metadata=metadata), make_parents=True)
     sidecar = {"format": FORMAT, "format_version": FORMAT_VERSION, "config": json.loads(config_json),
                "meta": json.loads(meta_json), "weights": path.name}
     atomic_write(path.with_suffix(".json"), json.dumps(sidecar, indent=1, sort_keys=True).encode("utf-8"))

@@ -19,13 +19,19 @@ import typer
 
 from roguenerf.errors import InputError, RoGUENeRFError
 
+# rich_markup_mode=None: typer's rich help shows flags (--json, --help) as taking a "<bool>" value.
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="RoGUENeRF: enhance radiance-field renders with geometry-aligned training photos.")
+                  rich_markup_mode=None, help="RoGUENeRF: enhance radiance-field renders with geometry-aligned training photos.")
 
 CheckpointOpt = Annotated[Path | None, typer.Option(
     "--checkpoint", help="Enhancer .safetensors; default: the shipped default checkpoint.")]
-MinutesOpt = Annotated[float | None, typer.Option("--minutes", help="Training budget in minutes.")]
-StepsOpt = Annotated[int | None, typer.Option("--steps", help="Training budget in optimiser steps.")]
+DEFAULT_MINUTES_CPU, DEFAULT_MINUTES_GPU = 10, 60
+"""The library's default budget (roguenerf.training.config CPU_MINUTES / GPU_MINUTES; a test
+checks they agree). Not imported from there: that module loads torch, and --help should not."""
+MinutesOpt = Annotated[float | None, typer.Option("--minutes", help=(
+    f"Training budget in minutes (> 0). Default without --steps: {DEFAULT_MINUTES_CPU} minutes on a CPU, "
+    f"{DEFAULT_MINUTES_GPU} on a GPU."))]
+StepsOpt = Annotated[int | None, typer.Option("--steps", help="Training budget in optimiser steps (> 0).")]
 WithoutOpt = Annotated[list[str] | None, typer.Option(
     "--without", help="Switch a component off (repeatable): neighbours, alignment, refinement, attention.")]
 VariantOpt = Annotated[str | None, typer.Option("--variant", help="Model variant: nano, micro, T, S, B.")]
@@ -104,6 +110,12 @@ def _train_config(*, minutes, steps, without, variant, crop, vgg_weights, seed, 
 
     if minutes is not None and steps is not None:
         raise InputError("give either --minutes or --steps, not both")
+    if minutes is not None and not (math.isfinite(minutes) and minutes > 0):
+        raise InputError(f"--minutes: expected a number > 0, got {minutes:g} "
+                         "(to measure a checkpoint without training, use `roguenerf evaluate`)")
+    if steps is not None and steps <= 0:
+        raise InputError(f"--steps: expected > 0, got {steps} "
+                         "(to measure a checkpoint without training, use `roguenerf evaluate`)")
     without = tuple(without or ())
     for w in without:
         if w not in COMPONENTS:
@@ -291,6 +303,26 @@ def make_pairs_command(
         typer.echo(str(output))
 
 
+@contextlib.contextmanager
+def _progress_bar(desc: str, unit: str):
+    """A ``progress(done, total)`` callback drawing a tqdm bar on stderr (created on first call)."""
+    bar = None
+
+    def progress(done: int, total: int) -> None:
+        nonlocal bar
+        if bar is None:
+            from tqdm import tqdm
+
+            bar = tqdm(total=total, unit=unit, desc=desc, file=sys.stderr, dynamic_ncols=True)
+        bar.update(done - bar.n)
+
+    try:
+        yield progress
+    finally:
+        if bar is not None:
+            bar.close()
+
+
 @app.command()
 def evaluate(
     scene_dir: Annotated[Path, typer.Argument(help="Scene folder.")],
@@ -307,7 +339,8 @@ def evaluate(
             raise InputError(f"--split: expected test, train or all, got {split!r}")
         scene = _load_scene(scene_dir)
         model = _load_model(checkpoint)
-        report = run_evaluate(scene, model, split=split, num_neighbours=neighbours)
+        with _progress_bar(f"evaluating {split} views", "view") as progress:
+            report = run_evaluate(scene, model, split=split, num_neighbours=neighbours, progress=progress)
     if as_json:
         typer.echo(json.dumps(_finite(report)))
         return
@@ -334,25 +367,16 @@ def enhance(
     with _errors():
         if output.suffix.lower() != ".png":
             raise InputError(f"--output: expected a .png path, got {output}")
+        # Only the file is created (as by any program writing one): checked before the work.
+        folder = output.parent
+        if not folder.is_dir():
+            raise InputError(f"--output: folder {folder} does not exist" if not folder.exists()
+                             else f"--output: {folder} is not a folder")
         scene = _load_scene(scene_dir)
         index = scene.index(view)
         model = _load_model(checkpoint)
-        bar = None
-
-        def progress(done: int, total: int) -> None:
-            nonlocal bar
-            if bar is None:
-                from tqdm import tqdm
-
-                bar = tqdm(total=total, unit="tile", desc=f"enhancing {view}", file=sys.stderr)
-            bar.update(done - bar.n)
-
-        try:
+        with _progress_bar(f"enhancing {view}", "tile") as progress:
             result = SceneEnhancer(scene, model, num_neighbours=neighbours).enhance_view(index, progress=progress)
-        finally:
-            if bar is not None:
-                bar.close()
-        output.parent.mkdir(parents=True, exist_ok=True)
         write_png(output, result.image)
         used = ", ".join(result.neighbours) or "none"
         typer.echo(f"enhanced {view} in {result.seconds:.2f} s with neighbours: {used}", err=True)
@@ -368,11 +392,8 @@ def serve(
     data_dir: Annotated[Path, typer.Option("--data-dir", help="Where scenes, jobs and checkpoints live.")] = Path("./data"),
 ) -> None:
     """Start the HTTP API with its embedded job worker."""
-    from roguenerf.runtime import prefer_passive_wait
-
-    # Before torch loads (this module does not import it): the API and its worker share the
-    # cores, where OpenMP's default spin-wait sometimes runs 10x slower (roguenerf.runtime).
-    prefer_passive_wait()
+    # OpenMP's wait policy was chosen when this module imported roguenerf (roguenerf.runtime:
+    # PASSIVE unless the user set one), before torch loads; the worker inherits it.
     with _errors():
         try:
             from service.server import run

@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import io
 import os
-import tempfile
+import secrets
+import stat
 import zlib
 from pathlib import Path
 from typing import BinaryIO, Union
@@ -305,12 +306,33 @@ def _read_png_depth(stream: BinaryIO, name: str, max_pixels: int) -> np.ndarray:
     return np.asarray(img).astype(np.float32)
 
 
-def atomic_write(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically: temporary file in the same folder, fsync, rename."""
+def atomic_write(path: str | os.PathLike, data: bytes, *, make_parents: bool = False) -> Path:
+    """Write ``data`` to ``path`` atomically: temporary file in the same folder, fsync, rename.
+
+    The file gets the permissions an ordinary ``open(path, "wb")`` would give it: a new file
+    ``0o666`` less the process umask, a replaced file keeps its mode (``tempfile.mkstemp``
+    would make it ``0o600``). The folder must exist unless ``make_parents`` is true.
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    if make_parents:
+        path.parent.mkdir(parents=True, exist_ok=True)
     try:
+        mode = stat.S_IMODE(os.stat(path).st_mode)
+    except (FileNotFoundError, NotADirectoryError):
+        mode = None
+    for _ in range(100):
+        tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
+        try:
+            # O_EXCL: never follows or reuses an existing name; 0o666 & ~umask, as open() does.
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
+            break
+        except FileExistsError:
+            continue
+    else:  # pragma: no cover - 100 collisions of 48 random bits
+        raise FileExistsError(f"cannot create a temporary file beside {path}")
+    try:
+        if mode is not None:
+            os.fchmod(fd, mode)
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
@@ -382,7 +404,8 @@ def write_png(path: str | os.PathLike | None, image: Tensor | np.ndarray, *,
     Values are clipped to [0, 1] and rounded (``round(255 * x)``); NaN/inf raise InputError.
     ``compress_level`` (zlib, 0-9; default 6) and ``strategy`` (``"default"`` or ``"rle"``,
     see :data:`PNG_STRATEGIES`) trade file size for encoding time; the pixels are the same
-    whatever they are. Returns the PNG bytes.
+    whatever they are. Returns the PNG bytes. The file's folder must exist (as for ``open``);
+    the file gets ``open``'s permissions (:func:`atomic_write`).
     """
     data = encode_png(image, compress_level=compress_level, strategy=strategy)
     if path is not None:

@@ -8,15 +8,16 @@ Two settings measured to matter more than any kernel on this project's CPUs
   every activation again (T at 512x512: ~0.5 M faults, ~1 s of system time per forward).
   :func:`configure` raises glibc's mmap and trim thresholds (``mallopt``) so freed blocks are
   reused. Cost: the process keeps its peak heap (bounded by tiling) instead of shrinking.
-* **Threads.** torch uses one thread per core it may run on (``sched_getaffinity``).
-  OpenMP's wait policy is read once, when torch is loaded. Measured (``bench/threads.py
-  --trials 4``, micro at 504x378): ``PASSIVE`` is slower on an idle machine (0.49 s against
-  0.35 s) but steady beside a busy process (0.69-0.74 s in all 8 child processes), where the
-  default spin-then-sleep policy sometimes collapses for a process's lifetime (4 of 8 children
-  took 2.1-9.9 s, the others 0.64-0.75 s). So the
-  service's processes (``roguenerf serve``: API and embedded worker; ``python -m workers``)
-  start with it (:func:`prefer_passive_wait`, unless the user set ``OMP_WAIT_POLICY`` or
-  ``GOMP_SPINCOUNT``); the CLI's one-shot commands keep the default.
+* **Threads and OpenMP's wait policy.** torch uses one thread per core it may run on
+  (``sched_getaffinity``). OpenMP reads its wait policy once, when torch is loaded. Its default
+  (spin about 3 ms, then sleep) collapses beside any other busy process: measured
+  (``bench/threads.py``, README *Process settings*) the CLI's ``evaluate`` on lego took minutes
+  instead of seconds in some processes, and enhancements ran 3-14x slower. ``PASSIVE`` never
+  collapsed, at a small price on an idle machine. So every entry point starts with it:
+  ``import roguenerf`` calls :func:`prefer_passive_wait` before anything loads torch (the CLI,
+  the service, the worker, the benches and library users who import roguenerf before torch),
+  unless the user chose a policy (``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` set;
+  ``GOMP_SPINCOUNT=300000`` is libgomp's default). :func:`configure` reports what is in effect.
 
 Nothing here changes results. ``ROGUENERF_KEEP_FREED_MEMORY=0`` turns the allocator change off.
 """
@@ -37,13 +38,36 @@ KEEP_BYTES = 1 << 30
 _applied: dict | None = None
 
 
+_wait_policy: str | None = None
+"""The OpenMP wait policy this process's torch runs with, as decided by the first
+:func:`prefer_passive_wait` call (None: not called)."""
+
+
 def prefer_passive_wait() -> bool:
-    """Set ``OMP_WAIT_POLICY=PASSIVE`` unless the user chose a wait policy (``OMP_WAIT_POLICY``
-    or ``GOMP_SPINCOUNT``) for this process and its children. Returns whether PASSIVE is in
-    effect: OpenMP reads the variable when torch is loaded, so it must be called before that."""
-    if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
-        os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
-    return os.environ.get("OMP_WAIT_POLICY", "").upper() == "PASSIVE" and "torch" not in sys.modules
+    """Set ``OMP_WAIT_POLICY=PASSIVE`` for this process and its children, unless the user chose a
+    wait policy (``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` in the environment) or torch is already
+    loaded (OpenMP read the environment then; changing it now would only mislead).
+
+    Returns whether PASSIVE is what this process's torch uses. ``import roguenerf`` calls it.
+    """
+    global _wait_policy
+    if _wait_policy is None:
+        _wait_policy = wait_policy_in_effect()
+        if (_wait_policy == "default" and "torch" not in sys.modules
+                and "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ):
+            os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+            _wait_policy = "PASSIVE"
+    return _wait_policy == "PASSIVE"
+
+
+def wait_policy_in_effect() -> str:
+    """``OMP_WAIT_POLICY`` (upper case), ``GOMP_SPINCOUNT=N``, or ``default`` (libgomp's spin, then sleep)."""
+    policy = os.environ.get("OMP_WAIT_POLICY", "").strip().upper()
+    if policy:
+        return policy
+    if "GOMP_SPINCOUNT" in os.environ:
+        return f"GOMP_SPINCOUNT={os.environ['GOMP_SPINCOUNT']}"
+    return "default"
 
 
 @functools.lru_cache(maxsize=None)
@@ -106,5 +130,5 @@ def configure(threads: int | None = None) -> dict:
             threads = int(os.environ.get("ROGUENERF_THREADS", "0")) or available_cpus()
     if threads is not None:
         torch.set_num_threads(max(1, int(threads)))
-    _applied.update(threads=torch.get_num_threads(), omp_wait_policy=os.environ.get("OMP_WAIT_POLICY", "default"))
+    _applied.update(threads=torch.get_num_threads(), omp_wait_policy=_wait_policy or wait_policy_in_effect())
     return dict(_applied)

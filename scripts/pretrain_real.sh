@@ -4,6 +4,7 @@
 #
 #   scripts/pretrain_real.sh                       # all of it, with the defaults below
 #   STAGE=pairs scripts/pretrain_real.sh           # only the pairs (hours on 2 CPU cores)
+#   SCENES=cup,dtu_scan37 STAGE=pairs ...          # these scenes, in this order
 #   STAGE=pretrain MINUTES=120 scripts/pretrain_real.sh
 #
 # 1. pairs: `python -m roguefit.batch` fits a coarse and a fine radiance field to the TRAINING views
@@ -36,8 +37,12 @@ MANIFEST=${MANIFEST:-docs/pairs/manifest.csv}
 BUDGET_SCALE=${BUDGET_SCALE:-1}
 
 if [ "$STAGE" = all ] || [ "$STAGE" = pairs ]; then
-  "$PY" -m roguefit.batch --data "$DATA" --cache "$CACHE" --presets "$PRESETS" \
-    --budget-scale "$BUDGET_SCALE" --manifest "$MANIFEST" --examples "$(dirname "$MANIFEST")"
+  # One preset over every scene, then the next: a cut-short run leaves whole passes behind.
+  IFS=, read -r -a presets <<< "$PRESETS"
+  for p in "${presets[@]}"; do
+    "$PY" -m roguefit.batch --data "$DATA" --cache "$CACHE" --presets "$p" ${SCENES:+--scenes "$SCENES"} \
+      --budget-scale "$BUDGET_SCALE" --manifest "$MANIFEST" --examples "$(dirname "$MANIFEST")"
+  done
 fi
 
 if [ "$STAGE" = all ] || [ "$STAGE" = pretrain ]; then

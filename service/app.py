@@ -15,6 +15,7 @@ from fastapi.concurrency import run_in_threadpool
 from starlette.middleware.cors import CORSMiddleware
 
 from service.auth import BearerAuthMiddleware
+from service.docs import install_docs
 from service.errors import error_response, install_error_handlers
 from service.routers import checkpoints, enhance, health, jobs, scenes
 from service.settings import Settings
@@ -133,9 +134,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
         max_body_size=settings.max_body_bytes,
         form_limits=FORM_LIMITS,
+        docs_url=None,  # served from the package by install_docs: FastAPI's page needs a CDN
+        redoc_url=None,
     )
     app.state.settings = settings
     install_error_handlers(app)
+    install_docs(app)
     for module in (health, scenes, checkpoints, enhance, jobs):
         app.include_router(module.router)
     if settings.api_key is not None:

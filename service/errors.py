@@ -15,6 +15,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from roguenerf.errors import CheckpointError, InputError, RoGUENeRFError, SceneFormatError
+from workers.layout import public_message
 
 log = logging.getLogger("roguenerf.service")
 
@@ -53,21 +54,31 @@ def error_response(status: int, code: str, message: str, *, headers: dict | None
     return JSONResponse(error_body(code, message, **extra), status_code=status, headers=headers)
 
 
-def library_error(exc: RoGUENeRFError) -> ApiError:
-    """Map a library error raised by user input to a 4xx (or 413 for oversized images)."""
+def library_error(exc: RoGUENeRFError, *, root=None) -> ApiError:
+    """Map a library error raised by user input to a 4xx (or 413 for oversized images).
+
+    ``root``: the scene folder the input came from; paths inside it are shown relative to it
+    (the message handlers below also replace anything left under the data directory)."""
     from roguenerf.imageio import ImageTooLargeError
 
+    message = str(exc) if root is None else public_message(str(exc), root=root)
     if isinstance(exc, ImageTooLargeError):
-        return ApiError(413, "image_too_large", str(exc))
+        return ApiError(413, "image_too_large", message)
     if isinstance(exc, SceneFormatError):
-        return ApiError(422, "invalid_scene", str(exc))
+        return ApiError(422, "invalid_scene", message)
     if isinstance(exc, CheckpointError):
-        return ApiError(422, "invalid_checkpoint", str(exc))
+        return ApiError(422, "invalid_checkpoint", message)
     if isinstance(exc, InputError):
-        return ApiError(422, "invalid_input", str(exc))
+        return ApiError(422, "invalid_input", message)
     # Not the caller's input (e.g. the model produced NaN/inf): a server-side failure.
     log.error("library failure (answered 500): %s", exc)
-    return ApiError(500, "enhance_failed", str(exc))
+    return ApiError(500, "enhance_failed", message)
+
+
+def _public(request: Request, message: str) -> str:
+    """Last line of defence: no server path under the data directory reaches a client."""
+    settings = getattr(request.app.state, "settings", None)
+    return message if settings is None else public_message(message, data_dir=settings.data_dir)
 
 
 def _location(loc) -> str:
@@ -76,7 +87,7 @@ def _location(loc) -> str:
 
 
 async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
-    return error_response(exc.status, exc.code, exc.message, headers=exc.headers)
+    return error_response(exc.status, exc.code, _public(request, exc.message), headers=exc.headers)
 
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
@@ -92,6 +103,16 @@ async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResp
 
 
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+    for e in exc.errors():
+        if e.get("type") == "json_invalid":
+            # FastAPI reports an unparseable body as a validation error whose "location" is the
+            # character offset; it is a malformed request, not an invalid field.
+            loc = e.get("loc", ())
+            position = loc[1] if len(loc) > 1 and isinstance(loc[1], int) else None
+            reason = (e.get("ctx") or {}).get("error") or e.get("msg", "JSON decode error")
+            where = f" at character {position}" if position is not None else ""
+            return error_response(400, "invalid_json", f"request body is not valid JSON: {reason}{where}",
+                                  **({"position": position} if position is not None else {}))
     details = [
         {"field": _location(e.get("loc", ())), "message": e.get("msg", ""), "type": e.get("type", "")}
         for e in exc.errors()
@@ -102,7 +123,7 @@ async def _validation_error(request: Request, exc: RequestValidationError) -> JS
 
 async def _library_error(request: Request, exc: RoGUENeRFError) -> JSONResponse:
     mapped = library_error(exc)
-    return error_response(mapped.status, mapped.code, mapped.message)
+    return error_response(mapped.status, mapped.code, _public(request, mapped.message))
 
 
 async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
@@ -119,7 +140,7 @@ def install_error_handlers(app: FastAPI) -> None:
 
 
 _DESCRIPTIONS = {
-    400: "malformed request (multipart syntax, too many parts or fields, a part too large)",
+    400: "malformed request (multipart syntax, too many parts or fields, a part too large, unparseable JSON, a bad cursor)",
     401: "missing or wrong API key",
     404: "unknown id",
     409: "conflicts with the current state",

@@ -41,6 +41,14 @@ class ScenePublic(BaseModel):
     """Id of the queued or running fine-tuning job, if any."""
 
 
+class ScenePage(BaseModel):
+    """One page of ``GET /scenes``, newest first."""
+
+    items: list[ScenePublic]
+    next_cursor: str | None
+    """Pass as ``cursor`` for the next (older) page; None on the last page."""
+
+
 class JobCreate(BaseModel):
     """A fine-tuning budget: exactly one of ``steps`` or ``minutes``."""
 
@@ -72,6 +80,10 @@ class JobPublic(BaseModel):
     id: str
     scene_id: str
     state: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    phase: Literal["training", "evaluating"] | None = None
+    """While running: ``training`` (optimiser steps; progress, ETA) or ``evaluating`` (measuring
+    the held-out views before the first step or after the last; no ETA). None otherwise, and
+    while a job loads its scene."""
     request: dict
     progress: float
     """0 to 1."""
@@ -107,7 +119,8 @@ class JobPublic(BaseModel):
         if result is not None:
             summary = {k: v for k, v in result.items() if k not in ("before", "after")}
         return cls(
-            id=row["id"], scene_id=row["scene_id"], state=row["state"], request=row["request"],
+            id=row["id"], scene_id=row["scene_id"], state=row["state"], phase=row.get("phase"),
+            request=row["request"],
             progress=row["progress"], eta_s=row["eta_s"], step=row["step"], total_steps=row["total_steps"],
             loss=row["loss"], recent_losses=[tuple(x) for x in (row["losses"] or [])],
             attempt=row["attempt"], cancel_requested=row["cancel_requested"], error=error,
@@ -116,6 +129,14 @@ class JobPublic(BaseModel):
             started_at=iso(row["started_at"]), finished_at=iso(row["finished_at"]),
             heartbeat_at=iso(row["heartbeat_at"]),
         )
+
+
+class JobPage(BaseModel):
+    """One page of ``GET /jobs``, newest first."""
+
+    items: list[JobPublic]
+    next_cursor: str | None
+    """Pass as ``cursor`` for the next (older) page; None on the last page."""
 
 
 class Camera(BaseModel):

@@ -64,7 +64,7 @@ class EnhancerCache:
     def _build(self, scene_id: str, version: int):
         from roguenerf import SceneEnhancer, load_checkpoint, load_scene
 
-        scene = load_scene(self.layout.scene_files(scene_id))
+        scene = load_scene(self.layout.scene_files(scene_id), confine=True)
         if version == 0 and self.default_model is not None:
             model = self.default_model
         else:

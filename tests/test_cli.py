@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -92,7 +93,7 @@ def test_enhance_writes_the_png(scene_dir, checkpoint, tmp_path):
     from roguenerf.imageio import read_image
     from roguenerf.inference import SceneEnhancer
 
-    out = tmp_path / "sub" / "enhanced.png"
+    out = tmp_path / "enhanced.png"
     result = _run("enhance", scene_dir, "--view", "test_001", "--checkpoint", checkpoint, "--output", out)
     assert result.exit_code == 0, result.output
     image = read_image(out)
@@ -194,3 +195,140 @@ def test_serve_sets_passive_openmp_wait_before_torch_loads(env, expected):
                           text=True, timeout=120)
     assert "torch loaded before serve False" in proc.stdout, proc.stdout + proc.stderr
     assert f"policy {expected}" in proc.stdout, proc.stdout + proc.stderr
+
+
+# ------------------------------------------------------------------ issue 17: CLI edge cases
+
+
+@pytest.mark.parametrize("budget, message", [
+    (["--minutes", "0"], "--minutes: expected a number > 0, got 0"),
+    (["--minutes", "-1"], "--minutes: expected a number > 0"),
+    (["--steps", "0"], "--steps: expected > 0, got 0"),
+])
+def test_finetune_refuses_an_empty_budget(scene_dir, tmp_path, budget, message):
+    out = tmp_path / "ft"
+    result = _run("finetune", scene_dir, "--scratch", "--output", out, *budget, *FAST)
+    assert result.exit_code == 2, result.output
+    assert message in result.stderr and "roguenerf evaluate" in result.stderr
+    assert not out.exists()  # refused before anything was written
+
+
+def test_help_states_the_default_budget_and_shows_flags_as_flags():
+    from roguenerf.cli import DEFAULT_MINUTES_CPU, DEFAULT_MINUTES_GPU
+    from roguenerf.training.config import CPU_MINUTES, GPU_MINUTES
+
+    assert (DEFAULT_MINUTES_CPU, DEFAULT_MINUTES_GPU) == (CPU_MINUTES, GPU_MINUTES)
+    text = " ".join(_run("finetune", "--help").stdout.split())
+    assert "Default without --steps: 10 minutes on a CPU, 60 on a GPU." in text
+    for command in ("finetune", "evaluate", "enhance", "pretrain", "serve"):
+        help_text = _run(command, "--help").stdout
+        assert "<bool>" not in help_text and "BOOLEAN" not in help_text, help_text
+        assert re.search(r"^\s+--help\s+Show this message and exit", help_text, re.M), help_text
+    evaluate_help = _run("evaluate", "--help").stdout
+    assert re.search(r"^\s+--json\s+Print one JSON object", evaluate_help, re.M), evaluate_help
+
+
+def test_enhance_creates_only_the_file(scene_dir, checkpoint, tmp_path):
+    missing = tmp_path / "no_such_dir"
+    result = _run("enhance", scene_dir, "--view", "test_001", "--checkpoint", checkpoint,
+                  "--output", missing / "x.png")
+    assert result.exit_code == 2
+    assert f"--output: folder {missing} does not exist" in result.stderr
+    assert not missing.exists()
+    a_file = tmp_path / "plain"
+    a_file.write_text("x")
+    result = _run("enhance", scene_dir, "--view", "test_001", "--checkpoint", checkpoint,
+                  "--output", a_file / "x.png")
+    assert result.exit_code == 2 and "is not a folder" in result.stderr
+
+
+def test_evaluate_draws_a_bar_per_view_on_stderr(scene_dir, checkpoint):
+    result = _run("evaluate", scene_dir, "--checkpoint", checkpoint, "--split", "train", "--json")
+    assert result.exit_code == 0, result.output
+    json.loads(result.stdout)  # stdout stays one JSON object
+    assert "evaluating train views" in result.stderr and "5/5" in result.stderr, result.stderr
+
+
+def test_time_budget_bar_counts_seconds_not_a_moving_step_total(scene_dir, tmp_path):
+    result = _run("finetune", scene_dir, "--scratch", "--minutes", "0.05", "--output", tmp_path / "ft",
+                  "--no-eval", *FAST)
+    assert result.exit_code == 0, result.output
+    totals = set(re.findall(r"\d+/(\d+) s\b", result.stderr))
+    assert totals == {"3"}, result.stderr  # 0.05 min = 3 s, the whole way
+    assert "step=" in result.stderr
+
+
+UMASK_PROBE = r"""
+import os, sys
+os.umask(int(sys.argv[1], 8))
+from roguenerf.cli import main
+sys.argv = ["roguenerf"] + sys.argv[2:]
+main()
+"""
+
+
+@pytest.mark.parametrize("umask, mode", [("022", 0o644), ("077", 0o600), ("002", 0o664)])
+def test_written_files_get_the_mode_open_would_give(scene_dir, checkpoint, tmp_path, umask, mode):
+    out = tmp_path / "x.png"
+    proc = subprocess.run([sys.executable, "-c", UMASK_PROBE, umask, "enhance", str(scene_dir), "--view",
+                           "test_001", "--checkpoint", str(checkpoint), "--output", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert oct(out.stat().st_mode & 0o777) == oct(mode)
+    ft = tmp_path / "ft"
+    proc = subprocess.run([sys.executable, "-c", UMASK_PROBE, umask, "finetune", str(scene_dir), "--scratch",
+                           "--steps", "1", "--no-eval", "--output", str(ft), *FAST],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    written = sorted(p for p in ft.iterdir() if p.is_file())
+    assert {p.name for p in written} >= {"model.safetensors", "model.json"}
+    assert {p.name: oct(p.stat().st_mode & 0o777) for p in written} == {p.name: oct(mode) for p in written}
+
+
+def test_replacing_a_file_keeps_its_mode(tmp_path):
+    from roguenerf.imageio import atomic_write
+
+    path = tmp_path / "f.bin"
+    path.write_bytes(b"old")
+    os.chmod(path, 0o640)
+    atomic_write(path, b"new")
+    assert path.read_bytes() == b"new" and (path.stat().st_mode & 0o777) == 0o640
+    assert [p.name for p in tmp_path.iterdir()] == ["f.bin"]  # no temp file left
+    with pytest.raises(FileNotFoundError):
+        atomic_write(tmp_path / "absent" / "f.bin", b"x")
+    assert not (tmp_path / "absent").exists()
+
+
+# ------------------------------------------------------------------ issue 17: OpenMP wait policy
+
+POLICY_PROBE = r"""
+import os, sys
+first = sys.argv[1]
+if first == "torch":
+    import torch  # noqa: F401
+import roguenerf
+from roguenerf import runtime
+import torch
+print("env", os.environ.get("OMP_WAIT_POLICY"), "configure", runtime.configure()["omp_wait_policy"])
+"""
+
+
+@pytest.mark.parametrize("first, env, expected", [
+    ("roguenerf", {}, "env PASSIVE configure PASSIVE"),
+    ("roguenerf", {"OMP_WAIT_POLICY": "active"}, "env active configure ACTIVE"),
+    ("roguenerf", {"GOMP_SPINCOUNT": "300000"}, "env None configure GOMP_SPINCOUNT=300000"),
+    ("torch", {}, "env None configure default"),  # too late to choose: say so, change nothing
+])
+def test_library_and_cli_choose_passive_wait_before_torch_loads(first, env, expected):
+    base = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    proc = subprocess.run([sys.executable, "-c", POLICY_PROBE, first], env={**base, **env},
+                          capture_output=True, text=True, timeout=120)
+    assert proc.stdout.strip() == expected, proc.stdout + proc.stderr
+
+
+def test_cli_process_runs_with_passive_wait():
+    # The console command: importing roguenerf.cli alone (what the entry point does) decides it.
+    base = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    code = "import os, sys, roguenerf.cli; print(os.environ.get('OMP_WAIT_POLICY'), 'torch' in sys.modules)"
+    proc = subprocess.run([sys.executable, "-c", code], env=base, capture_output=True, text=True, timeout=120)
+    assert proc.stdout.strip() == "PASSIVE False", proc.stdout + proc.stderr

@@ -149,6 +149,10 @@ def test_jpeg_decodes_close_to_source():
 def test_write_png_round_trip_atomic(tmp_path):
     image = torch.rand(3, 5, 7, generator=torch.Generator().manual_seed(0))
     path = tmp_path / "sub" / "x.png"
+    with pytest.raises(FileNotFoundError):  # like open(): the folder must exist
+        write_png(path, image)
+    assert not path.parent.exists()
+    path.parent.mkdir()
     data = write_png(path, image)
     assert path.read_bytes() == data
     assert os.listdir(path.parent) == ["x.png"]  # no temporary file left behind

@@ -167,7 +167,8 @@ def test_cancel_mid_run(client, toy, embedded):
     assert not (embedded["data"] / "jobs" / job_id).exists()  # a cancelled job leaves no training state
     scene = client.get(f"/scenes/{sid}").json()
     assert scene["active_version"] == 1 and scene["checkpoint_versions"] == [1]
-    assert client.post(f"/jobs/{job_id}/cancel").json()["state"] == "cancelled"
+    again = client.post(f"/jobs/{job_id}/cancel")  # a finished job, cancelled ones included: 409
+    assert again.status_code == 409 and again.json()["error"]["code"] == "job_finished"
     assert client.delete(f"/scenes/{sid}").status_code == 204
 
 

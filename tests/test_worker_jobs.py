@@ -4,7 +4,8 @@ PostgreSQL server (Debian's, on loopback): every store test runs on both.
 Claims happen once (also when two workers race), leases fence stale workers, the sweeper
 requeues or fails lost jobs by the clock it is given, at most one active job per scene, the
 queue limit holds under concurrent submissions, idempotency keys, schema versions and
-upgrades, and the worker's settings-to-TrainConfig mapping.
+upgrades (v3: the job's phase), the newest-first keyset listings of scenes and jobs, and the
+worker's settings-to-TrainConfig mapping.
 """
 
 from __future__ import annotations
@@ -212,6 +213,11 @@ def _indexes(db: Database) -> set[str]:
         return {i["name"] for i in sa.inspect(tx.conn).get_indexes("jobs")}
 
 
+def _columns(db: Database) -> set[str]:
+    with db.tx(write=False) as tx:
+        return {c["name"] for c in sa.inspect(tx.conn).get_columns("jobs")}
+
+
 def test_schema_is_versioned_and_a_legacy_database_is_upgraded(database_url):
     legacy = Database(database_url)
     with legacy.tx() as tx:
@@ -220,8 +226,9 @@ def test_schema_is_versioned_and_a_legacy_database_is_upgraded(database_url):
     assert "jobs_by_scene_created" not in _indexes(legacy)
     store = JobStore(database_url)
     assert store.init_schema() == 0  # no version table: the legacy schema, adopted as v1
-    assert store.schema_version() == SCHEMA_VERSION == 2
+    assert store.schema_version() == SCHEMA_VERSION == 3
     assert "jobs_by_scene_created" in _indexes(store.db)  # the v2 step ran
+    assert {"jobs_by_created", "phase"} <= _indexes(store.db) | _columns(store.db)  # and v3
     job = store.get_job("b" * 32)
     assert job["request"] == {"steps": 3} and job["state"] == "queued"  # rows kept
     with pytest.raises(ActiveJobExists):  # and the v1 constraints still hold
@@ -240,11 +247,97 @@ def test_processes_starting_together_create_the_schema_once(database_url):
     stores = [JobStore(database_url) for _ in range(4)]
     try:
         found = _race(4, lambda i: stores[i].init_schema())
-        assert sorted(found) == [0, 2, 2, 2], found
+        assert sorted(found) == [0, 3, 3, 3], found
         assert stores[0].schema_version() == SCHEMA_VERSION
     finally:
         for s in stores:
             s.db.close()
+
+
+def test_a_v2_database_gets_the_phase_column(database_url):
+    """Schema v3 adds jobs.phase (training / evaluating) to a table made by v1/v2, rows kept."""
+    old = Database(database_url)
+    with old.tx() as tx:
+        for statement in LEGACY_SCHEMA:
+            tx.conn.exec_driver_sql(statement)
+        tx.conn.exec_driver_sql("CREATE INDEX jobs_by_scene_created ON jobs (scene_id, created_at)")
+        tx.conn.exec_driver_sql("CREATE TABLE schema_version (id INTEGER PRIMARY KEY, version INTEGER NOT NULL,"
+                                " upgraded_at DOUBLE PRECISION NOT NULL)")
+        tx.conn.exec_driver_sql("INSERT INTO schema_version VALUES (1, 2, 1.0)")
+    assert "phase" not in _columns(old)
+    store = JobStore(database_url)
+    assert store.init_schema() == 2
+    assert store.init_schema() == 3  # idempotent
+    assert "phase" in _columns(store.db) and "jobs_by_created" in _indexes(store.db)
+    job = store.get_job("b" * 32)
+    assert job["phase"] is None and job["request"] == {"steps": 3}
+    assert store.claim(job["id"], "lease")
+    assert store.record_phase(job["id"], "lease", "evaluating")
+    assert store.get_job(job["id"])["phase"] == "evaluating"
+    for db in (old, store.db):
+        db.close()
+
+
+def test_phase_follows_the_running_job(store):
+    job, _ = store.create_job(SCENE, {"steps": 3})
+    assert store.get_job(job["id"])["phase"] is None
+    assert store.claim(job["id"], "L1")
+    assert store.record_phase(job["id"], "L1", "evaluating")
+    assert store.get_job(job["id"])["phase"] == "evaluating" and store.get_job(job["id"])["eta_s"] is None
+    assert store.record_progress(job["id"], "L1", step=1, total_steps=3, fraction=1 / 3, eta_s=2.0, loss=0.5)
+    row = store.get_job(job["id"])
+    assert row["phase"] == "training" and row["eta_s"] == 2.0
+    assert store.record_phase(job["id"], "L1", "evaluating")
+    assert store.get_job(job["id"])["eta_s"] is None  # evaluating: no ETA
+    assert not store.record_phase(job["id"], "other", "training")  # fenced by the lease
+    assert store.release(job["id"], "L1")
+    assert store.get_job(job["id"])["phase"] is None  # queued again: no phase
+    assert store.claim(job["id"], "L2") and store.record_phase(job["id"], "L2", "training")
+    assert store.finish(job["id"], "L2", "succeeded")
+    assert store.get_job(job["id"])["phase"] is None
+
+
+def test_listings_newest_first_keyset_paginated_and_filtered(store):
+    scene_ids = [SCENE] + [new_id() for _ in range(4)]
+    for scene_id in scene_ids[1:]:
+        _scene(store, scene_id)
+    # Scenes: newest first; equal timestamps are ordered by id (the keyset's tie-break).
+    listed = store.list_scenes(limit=50)
+    assert [s["id"] for s in listed] == [s["id"] for s in sorted(
+        listed, key=lambda s: (s["created_at"], s["id"]), reverse=True)]
+    assert {s["id"] for s in listed} == set(scene_ids)
+    seen, before = [], None
+    while True:
+        page = store.list_scenes(limit=2, before=before)
+        if not page:
+            break
+        seen += [s["id"] for s in page]
+        before = (page[-1]["created_at"], page[-1]["id"])
+    assert seen == [s["id"] for s in listed]
+    assert len(store.list_scenes(limit=10_000)) == 5 and len(store.list_scenes(limit=0)) == 1  # clamped
+
+    # Jobs: a cancelled and a queued one on scene 0, a running one on scene 1.
+    j0, _ = store.create_job(scene_ids[0], {"steps": 1})
+    store.request_cancel(j0["id"])
+    j1, _ = store.create_job(scene_ids[1], {"steps": 1})
+    assert store.claim(j1["id"], "L")
+    j2, _ = store.create_job(scene_ids[0], {"steps": 2})
+    order = [j["id"] for j in sorted((store.get_job(j["id"]) for j in (j0, j1, j2)),
+                                     key=lambda j: (j["created_at"], j["id"]), reverse=True)]
+
+    def ids(**kw):
+        return [j["id"] for j in store.list_jobs(**kw)]
+
+    assert ids() == order
+    assert ids(scene_id=scene_ids[0]) == [i for i in order if i != j1["id"]]
+    assert ids(states=("queued", "running")) == [i for i in order if i != j0["id"]]
+    assert ids(scene_id=scene_ids[0], states=["queued"]) == [j2["id"]]
+    assert ids(scene_id="f" * 32) == [] and ids(states=("failed",)) == []
+    first = store.list_jobs(limit=2)
+    assert [j["id"] for j in first] == order[:2] and first[0]["request"] is not None  # rows decoded
+    assert ids(limit=2, before=(first[-1]["created_at"], first[-1]["id"])) == order[2:]
+    assert store.active_jobs(scene_ids[:3]) == {scene_ids[0]: j2["id"], scene_ids[1]: j1["id"]}
+    assert store.active_jobs([]) == {}
 
 
 def test_claim_once_and_lease_fencing(store):

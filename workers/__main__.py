@@ -5,11 +5,10 @@ from __future__ import annotations
 import argparse
 import logging
 
-from roguenerf.runtime import prefer_passive_wait
-
-# Before torch loads: a training job's idle OpenMP threads sleep instead of spinning against
-# the API's enhancements on the same cores (see roguenerf.runtime and bench/threads.py).
-prefer_passive_wait()
+# Importing roguenerf (first, before torch loads) sets OpenMP's PASSIVE wait policy unless the
+# user chose one: a training job's idle threads then sleep instead of spinning against the API's
+# enhancements on the same cores (roguenerf.runtime, bench/threads.py).
+import roguenerf  # noqa: F401
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -21,7 +20,7 @@ def main(argv: list[str] | None = None) -> None:
     interrupted = threading.Event()
     signal.signal(signal.SIGINT, lambda signum, frame: interrupted.set())
 
-    from workers.settings import Settings
+    from workers.settings import WorkerSettings
     from workers.worker import run_worker
 
     parser = argparse.ArgumentParser(prog="python -m workers", description=__doc__)
@@ -37,7 +36,7 @@ def main(argv: list[str] | None = None) -> None:
     if exit_with_parent:
         _watch_parent()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    run_worker(Settings(**overrides), interrupted=interrupted)
+    run_worker(WorkerSettings(**overrides), interrupted=interrupted)
 
 
 def _watch_parent() -> None:

@@ -16,6 +16,11 @@ dead cannot overwrite a job that moved on. At most one job per scene is queued o
 (a partial unique index), and at most ``max_queued`` jobs wait (counted and inserted under
 one lock): both hold across API processes and machines.
 
+A running job also has a ``phase`` (:data:`PHASES`): ``training`` while optimiser steps
+happen, ``evaluating`` while it measures the held-out views (no ETA then); finished and queued
+jobs have none. Scenes and jobs are listed newest first with keyset pagination
+(:meth:`JobStore.list_scenes`, :meth:`JobStore.list_jobs`).
+
 The schema is versioned in a ``schema_version`` table; :data:`UPGRADES` are the ordered
 steps, run by whichever process starts first (see :meth:`JobStore.init_schema`).
 """
@@ -36,6 +41,11 @@ ACTIVE_STATES = ("queued", "running")
 TERMINAL_STATES = ("succeeded", "failed", "cancelled")
 LOSS_HISTORY = 20
 """Recent losses kept per job (GET /jobs/{id} shows them)."""
+PHASES = ("training", "evaluating")
+"""What a running job is doing: optimiser steps, or measuring the held-out views (before the
+first step and after the last), when no step happens and no ETA is known."""
+MAX_PAGE = 200
+"""Largest page of :meth:`JobStore.list_jobs` / :meth:`JobStore.list_scenes`."""
 
 metadata = sa.MetaData()
 
@@ -79,6 +89,8 @@ jobs = sa.Table(
     sa.Column("started_at", sa.Double),
     sa.Column("finished_at", sa.Double),
     sa.Column("heartbeat_at", sa.Double),
+    sa.Column("phase", sa.Text),
+    # Schema v3 added ``phase`` (a table made by v1/v2 gets it from the v3 step).
 )
 
 _ACTIVE = jobs.c.state.in_(ACTIVE_STATES)
@@ -88,6 +100,9 @@ one_active_per_scene = sa.Index("jobs_one_active_per_scene", jobs.c.scene_id, un
 by_state = sa.Index("jobs_by_state", jobs.c.state)
 by_scene_newest = sa.Index("jobs_by_scene_created", jobs.c.scene_id, jobs.c.created_at)
 """Schema v2: listing a scene's jobs newest first without a sort of the whole table."""
+jobs_newest = sa.Index("jobs_by_created", jobs.c.created_at, jobs.c.id)
+scenes_newest = sa.Index("scenes_by_created", scenes.c.created_at, scenes.c.id)
+"""Schema v3: GET /jobs and GET /scenes without a filter, newest first, page by page."""
 
 schema_version = sa.Table(
     "schema_version", metadata,
@@ -110,7 +125,17 @@ def _v2(tx: Tx) -> None:
     by_scene_newest.create(tx.conn, checkfirst=True)
 
 
-UPGRADES: list[tuple[int, Callable[[Tx], None]]] = [(1, _v1), (2, _v2)]
+def _v3(tx: Tx) -> None:
+    # The job's phase (training / evaluating) and the indexes of the unfiltered listings. A new
+    # database already has them (v1 creates the current tables); an older one gets them here.
+    have = {c["name"] for c in sa.inspect(tx.conn).get_columns("jobs")}
+    if "phase" not in have:
+        tx.conn.exec_driver_sql("ALTER TABLE jobs ADD COLUMN phase TEXT")
+    for index in (jobs_newest, scenes_newest):
+        index.create(tx.conn, checkfirst=True)
+
+
+UPGRADES: list[tuple[int, Callable[[Tx], None]]] = [(1, _v1), (2, _v2), (3, _v3)]
 """(version, step): each step takes the schema from version - 1 to version. Append, never edit."""
 SCHEMA_VERSION = UPGRADES[-1][0]
 
@@ -164,6 +189,23 @@ def _job_view(row: dict | None) -> dict | None:
 def select_jobs() -> sa.Select:
     """``SELECT * FROM jobs``: every job query (one, by key, active, listings) starts here."""
     return sa.select(jobs)
+
+
+def _page(limit: int) -> int:
+    return max(1, min(int(limit), MAX_PAGE))
+
+
+def _newest_first(query: sa.Select, table: sa.Table, limit: int,
+                  before: tuple[float, str] | None) -> sa.Select:
+    """``query`` newest first, at most ``limit`` rows, older than the ``(created_at, id)`` of
+    ``before`` (keyset pagination: a page is stable while rows are added or deleted)."""
+    if before is not None:
+        created_at, row_id = before
+        query = query.where(sa.or_(
+            table.c.created_at < created_at,
+            sa.and_(table.c.created_at == created_at, table.c.id < row_id),
+        ))
+    return query.order_by(table.c.created_at.desc(), table.c.id.desc()).limit(_page(limit))
 
 
 class JobStore:
@@ -225,6 +267,22 @@ class JobStore:
             if active is not None:
                 raise SceneBusy(active["id"])
             return tx.execute(sa.delete(scenes).where(scenes.c.id == scene_id)).rowcount == 1
+
+    def list_scenes(self, *, limit: int = 50, before: tuple[float, str] | None = None) -> list[dict]:
+        """Scenes, newest first: at most ``limit`` rows created before the ``(created_at, id)``
+        of ``before`` (the last row of the previous page; keyset pagination, so a page is stable
+        while scenes are added or deleted)."""
+        with self.db.tx(write=False) as tx:
+            return tx.all(_newest_first(sa.select(scenes), scenes, limit, before))
+
+    def active_jobs(self, scene_ids: list[str]) -> dict[str, str]:
+        """``{scene id: id of its queued or running job}`` for those of ``scene_ids`` that have one."""
+        if not scene_ids:
+            return {}
+        with self.db.tx(write=False) as tx:
+            rows = tx.all(sa.select(jobs.c.id, jobs.c.scene_id)
+                          .where(_ACTIVE, jobs.c.scene_id.in_(list(scene_ids))))
+        return {row["scene_id"]: row["id"] for row in rows}
 
     def allocate_version(self, scene_id: str) -> int | None:
         """Reserve the next checkpoint version number of a scene (None if the scene is gone)."""
@@ -307,6 +365,21 @@ class JobStore:
         with self.db.tx(write=False) as tx:
             return _job_view(tx.one(select_jobs().where(jobs.c.id == job_id)))
 
+    def list_jobs(self, *, scene_id: str | None = None, states: tuple[str, ...] | list[str] = (),
+                  limit: int = 50, before: tuple[float, str] | None = None) -> list[dict]:
+        """Jobs, newest first, optionally of one scene and in some states; at most ``limit``
+        created before the ``(created_at, id)`` of ``before`` (keyset pagination). One scene's
+        jobs come from the ``(scene_id, created_at)`` index (v2), all jobs from ``(created_at,
+        id)`` (v3)."""
+        query = select_jobs()
+        if scene_id is not None:
+            query = query.where(jobs.c.scene_id == scene_id)
+        if states:
+            query = query.where(jobs.c.state.in_(list(states)))
+        with self.db.tx(write=False) as tx:
+            rows = tx.all(_newest_first(query, jobs, limit, before))
+        return [_job_view(row) for row in rows]
+
     def active_job(self, scene_id: str) -> dict | None:
         with self.db.tx(write=False) as tx:
             return _job_view(tx.one(select_jobs().where(jobs.c.scene_id == scene_id, _ACTIVE)))
@@ -363,9 +436,20 @@ class JobStore:
             losses = (_loads(row["losses"]) or [])[-(LOSS_HISTORY - 1):] + [[step, loss]]
             tx.execute(sa.update(jobs).where(self._owned(job_id, lease)).values(
                 step=step, total_steps=total_steps, progress=min(max(fraction, 0.0), 1.0), eta_s=eta_s,
-                loss=loss, losses=json.dumps(losses), heartbeat_at=now, updated_at=now,
+                loss=loss, losses=json.dumps(losses), heartbeat_at=now, updated_at=now, phase="training",
             ))
             return True
+
+    def record_phase(self, job_id: str, lease: str, phase: str) -> bool:
+        """A running job entered ``phase`` (:data:`PHASES`); evaluating has no ETA. False when
+        this worker no longer owns the job."""
+        assert phase in PHASES
+        now = time.time()
+        with self.db.tx() as tx:
+            return tx.execute(sa.update(jobs).where(self._owned(job_id, lease)).values(
+                phase=phase, eta_s=None if phase == "evaluating" else jobs.c.eta_s,
+                heartbeat_at=now, updated_at=now,
+            )).rowcount == 1
 
     def should_stop(self, job_id: str, lease: str) -> bool:
         """True when a cancel was asked or this worker lost the job."""
@@ -385,7 +469,7 @@ class JobStore:
         with self.db.tx() as tx:
             row = tx.one(
                 sa.update(jobs).where(self._owned(job_id, lease)).values(
-                    state=state, lease=None, error_code=error_code, error_message=error_message,
+                    state=state, lease=None, phase=None, error_code=error_code, error_message=error_message,
                     result=None if result is None else json.dumps(result),
                     checkpoint_path=checkpoint_path, checkpoint_version=checkpoint_version,
                     finished_at=now, updated_at=now,
@@ -405,7 +489,7 @@ class JobStore:
         now = time.time()
         with self.db.tx() as tx:
             return tx.execute(sa.update(jobs).where(self._owned(job_id, lease)).values(
-                state="queued", lease=None, heartbeat_at=now, updated_at=now)).rowcount == 1
+                state="queued", lease=None, phase=None, heartbeat_at=now, updated_at=now)).rowcount == 1
 
     def stale_queued(self, *, stale_after: float, now: float | None = None) -> list[str]:
         """Queued jobs nobody took for ``stale_after`` seconds; their clock restarts.
@@ -438,19 +522,20 @@ class JobStore:
                                                 jobs.c.heartbeat_at < cutoff)
                 if job["cancel_requested"]:
                     n = tx.execute(expired.values(
-                        state="cancelled", lease=None, finished_at=now, updated_at=now,
+                        state="cancelled", lease=None, phase=None, finished_at=now, updated_at=now,
                         error_code="cancelled", error_message="cancelled; its worker was lost")).rowcount
                     action = SweepAction(job["id"], "cancelled", job["attempt"])
                 elif job["attempt"] >= max_attempts:
                     silent = now - job["heartbeat_at"]
                     n = tx.execute(expired.values(
-                        state="failed", lease=None, finished_at=now, updated_at=now, error_code="worker_lost",
+                        state="failed", lease=None, phase=None, finished_at=now, updated_at=now,
+                        error_code="worker_lost",
                         error_message=f"the worker running attempt {job['attempt']} of {max_attempts} "
                                       f"stopped sending heartbeats {silent:.0f} s ago; no attempts left",
                     )).rowcount
                     action = SweepAction(job["id"], "failed", job["attempt"])
                 else:
-                    n = tx.execute(expired.values(state="queued", lease=None, attempt=jobs.c.attempt + 1,
+                    n = tx.execute(expired.values(state="queued", lease=None, phase=None, attempt=jobs.c.attempt + 1,
                                                   heartbeat_at=now, updated_at=now)).rowcount
                     action = SweepAction(job["id"], "requeued", job["attempt"] + 1)
                 if n == 1:

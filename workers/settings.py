@@ -1,57 +1,49 @@
-"""Every knob of the service and the worker, in one pydantic-settings class.
+"""Every knob of the worker and the service, from ``ROGUENERF_*`` environment variables.
 
 Each field reads the environment variable ``ROGUENERF_<FIELD>`` (case-insensitive), e.g.
 ``ROGUENERF_DATA_DIR=/srv/roguenerf``. Lists (``cors_origins``) are JSON:
 ``ROGUENERF_CORS_ORIGINS='["https://app.example"]'``.
 
-This module imports only pydantic: the worker uses it without pulling in FastAPI, and the
-service re-exports it (``service.settings``); the workers package never imports ``service``.
+:class:`WorkerSettings` holds what the fine-tuning worker needs (data, job table, queue,
+training, liveness); :class:`Settings` extends it with the API's own knobs, so one set of
+variables configures both processes. Both live here, below the service and the worker: the
+service re-exports :class:`Settings` (``service.settings``) and the workers package never
+imports ``service``. This module imports only pydantic.
 """
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
-class Settings(BaseSettings):
-    """Configuration of the API and the fine-tuning worker (env prefix ``ROGUENERF_``)."""
+def _unset_if_empty(value):
+    # docker compose passes ${VAR:-} as an empty string; that means "not configured".
+    if isinstance(value, str) and not value.strip():
+        return None
+    if isinstance(value, SecretStr) and not value.get_secret_value().strip():
+        return None
+    return value
+
+
+class WorkerSettings(BaseSettings):
+    """Configuration of the fine-tuning worker: data, job table, queue, training, liveness."""
 
     model_config = SettingsConfigDict(env_prefix="ROGUENERF_", extra="ignore")
 
     data_dir: Path = Path("./data")
     """Scenes, checkpoints, job outputs, the SQLite job table and the SQLite queue live here."""
-    api_key: SecretStr | None = None
-    """When set, every route but /healthz needs ``Authorization: Bearer <key>``."""
     redis_url: str | None = None
     """``redis://host:6379/0``: use RedisHuey for the queue; unset: SqliteHuey in data_dir."""
     database_url: str | None = None
     """Job/scene table: ``sqlite:///path.db`` (default: data_dir/roguenerf.db, WAL mode) or
     ``postgresql://user:pass@host/db`` (psycopg 3: the ``postgresql`` extra)."""
-
-    max_body_bytes: int = Field(default=1 << 30, ge=1024)
-    """Largest request body (a zipped scene upload), chunked bodies included."""
-    max_upload_pixels: int = Field(default=4096 * 4096, ge=1)
-    """Largest render / depth accepted by /enhance (H * W)."""
-    max_scene_files: int = Field(default=20_000, ge=1)
-    """Largest number of members of a scene zip."""
-    max_scene_bytes: int = Field(default=4 << 30, ge=1024)
-    """Largest total uncompressed size of a scene zip."""
-    max_checkpoint_bytes: int = Field(default=512 << 20, ge=1024)
-
-    enhance_concurrency: int = Field(default=1, ge=1)
-    """/enhance calls computed at once; more answer 503 with Retry-After at once."""
-    enhancer_cache_size: int = Field(default=4, ge=1)
-    """SceneEnhancers (one per scene and checkpoint version) kept in memory."""
     default_checkpoint: Path | None = None
     """Checkpoint for scenes registered without one (default: the library's bundled weights)."""
 
-    max_queued_jobs: int = Field(default=64, ge=1)
-    """Fine-tuning jobs waiting in the queue at most; more answer 503 with Retry-After."""
-    max_job_steps: int = Field(default=200_000, ge=1)
-    max_job_minutes: float = Field(default=24 * 60, gt=0)
     finetune_crop: int | None = Field(default=None, ge=8)
     """Training crop side for fine-tuning jobs (None: the library's default)."""
     finetune_batch: int = Field(default=4, ge=1)
@@ -82,18 +74,10 @@ class Settings(BaseSettings):
     the data directory. Several machines share it: younger ones may be another process's
     upload in progress and are left alone."""
 
-    cors_origins: list[str] = []
-    """Origins allowed by CORS; empty: no CORS headers at all. Credentials are never allowed."""
-
-    @field_validator("api_key", "redis_url", "database_url", mode="before")
+    @field_validator("redis_url", "database_url", mode="before")
     @classmethod
     def _empty_is_unset(cls, value):
-        # docker compose passes ${VAR:-} as an empty string; that means "not configured".
-        if isinstance(value, str) and not value.strip():
-            return None
-        if isinstance(value, SecretStr) and not value.get_secret_value().strip():
-            return None
-        return value
+        return _unset_if_empty(value)
 
     @field_validator("data_dir")
     @classmethod
@@ -101,7 +85,7 @@ class Settings(BaseSettings):
         return value.expanduser().resolve()
 
     @model_validator(mode="after")
-    def _consistent(self) -> Settings:
+    def _consistent(self):
         if self.heartbeat_timeout <= self.heartbeat_period:
             raise ValueError(
                 f"heartbeat_timeout ({self.heartbeat_timeout}) must exceed heartbeat_period "
@@ -126,8 +110,41 @@ class Settings(BaseSettings):
             if isinstance(value, SecretStr):
                 value = value.get_secret_value()
             if isinstance(value, list):
-                import json
-
                 value = json.dumps(value)
             out[f"ROGUENERF_{name.upper()}"] = str(value)
         return out
+
+
+class Settings(WorkerSettings):
+    """Configuration of the API and the fine-tuning worker (env prefix ``ROGUENERF_``)."""
+
+    api_key: SecretStr | None = None
+    """When set, every route but /healthz needs ``Authorization: Bearer <key>``."""
+
+    max_body_bytes: int = Field(default=1 << 30, ge=1024)
+    """Largest request body (a zipped scene upload), chunked bodies included."""
+    max_upload_pixels: int = Field(default=4096 * 4096, ge=1)
+    """Largest render / depth accepted by /enhance (H * W)."""
+    max_scene_files: int = Field(default=20_000, ge=1)
+    """Largest number of members of a scene zip."""
+    max_scene_bytes: int = Field(default=4 << 30, ge=1024)
+    """Largest total uncompressed size of a scene zip."""
+    max_checkpoint_bytes: int = Field(default=512 << 20, ge=1024)
+
+    enhance_concurrency: int = Field(default=1, ge=1)
+    """/enhance calls computed at once; more answer 503 with Retry-After at once."""
+    enhancer_cache_size: int = Field(default=4, ge=1)
+    """SceneEnhancers (one per scene and checkpoint version) kept in memory."""
+
+    max_queued_jobs: int = Field(default=64, ge=1)
+    """Fine-tuning jobs waiting in the queue at most; more answer 503 with Retry-After."""
+    max_job_steps: int = Field(default=200_000, ge=1)
+    max_job_minutes: float = Field(default=24 * 60, gt=0)
+
+    cors_origins: list[str] = []
+    """Origins allowed by CORS; empty: no CORS headers at all. Credentials are never allowed."""
+
+    @field_validator("api_key", mode="before")
+    @classmethod
+    def _empty_key_is_unset(cls, value):
+        return _unset_if_empty(value)

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from workers.jobs import JobStore
-from workers.layout import Layout, copy_atomic
+from workers.layout import Layout, copy_atomic, public_message
 
 log = logging.getLogger("roguenerf.worker")
 
@@ -32,7 +32,7 @@ SHOULD_STOP_POLL_S = 0.5
 @dataclass
 class WorkerContext:
     settings: object
-    """workers.settings.Settings."""
+    """workers.settings.WorkerSettings (or the API's Settings, which extends it)."""
     store: JobStore
     layout: Layout
     enqueue: Callable[[str], None]
@@ -147,7 +147,9 @@ def _train(ctx: WorkerContext, job: dict, lease: str, beat: _Heartbeat) -> str:
 
     def fail(code: str, message: str) -> str:
         log.warning("job %s failed: %s: %s", job_id, code, message)
-        store.finish(job_id, lease, "failed", error_code=code, error_message=message)
+        # Clients read the message (GET /jobs): paths relative to the scene, none of the server's.
+        public = public_message(message, root=layout.scene_files(scene_id), data_dir=layout.root)
+        store.finish(job_id, lease, "failed", error_code=code, error_message=public)
         return "failed"
 
     scene_row = store.get_scene(scene_id)
@@ -171,10 +173,13 @@ def _train(ctx: WorkerContext, job: dict, lease: str, beat: _Heartbeat) -> str:
 
     def progress(p) -> None:
         try:
-            owned = store.record_progress(
-                job_id, lease, step=int(p.step), total_steps=p.total_steps,
-                fraction=float(p.fraction), eta_s=p.eta_s, loss=float(p.loss),
-            )
+            if getattr(p, "phase", "training") == "evaluating":
+                owned = store.record_phase(job_id, lease, "evaluating")
+            else:
+                owned = store.record_progress(
+                    job_id, lease, step=int(p.step), total_steps=p.total_steps,
+                    fraction=float(p.fraction), eta_s=p.eta_s, loss=float(p.loss),
+                )
         except Exception:
             log.exception("job %s: could not record progress", job_id)
             return
@@ -183,7 +188,7 @@ def _train(ctx: WorkerContext, job: dict, lease: str, beat: _Heartbeat) -> str:
 
     request = job["request"]
     try:
-        scene = load_scene(layout.scene_files(scene_id))
+        scene = load_scene(layout.scene_files(scene_id), confine=True)
         checkpoint = base_checkpoint(settings, layout, scene_id, scene_row["active_version"])
         config = TrainConfig(**train_options(TrainConfig, settings, request))
         output_dir = layout.job_dir(job_id)

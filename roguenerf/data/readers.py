@@ -50,6 +50,7 @@ def load_scene(
     llff_factor: int | None = None,
     llff_hold: int = 8,
     check_files: bool = True,
+    confine: bool = False,
 ) -> Scene:
     """Load a scene folder, a nerfstudio dataset or an LLFF dataset (format autodetected).
 
@@ -60,6 +61,9 @@ def load_scene(
         llff_hold: every ``llff_hold``-th LLFF view is a test view (0: all train).
         check_files: read each image/depth header to check that it exists, is decodable and has
             the size the metadata states (no pixels are decoded).
+        confine: refuse file paths that lead outside the scene's folder (absolute, ``..``,
+            symbolic links): for scenes from someone else, e.g. an uploaded zip, whose
+            ``transforms.json`` could otherwise name any file of the machine.
     Raises:
         SceneFormatError: naming the offending file and what is wrong with it.
     """
@@ -72,10 +76,10 @@ def load_scene(
         if path.name == "poses_bounds.npy":
             return _load_llff(path, llff_factor, llff_hold, check_files)
         if path.suffix == ".json":
-            return _load_transforms(path, depth_type, check_files)
+            return _load_transforms(path, depth_type, check_files, confine)
         raise SceneFormatError(path, "expected a scene folder, a transforms.json or a poses_bounds.npy")
     if (path / "transforms.json").is_file():
-        return _load_transforms(path / "transforms.json", depth_type, check_files)
+        return _load_transforms(path / "transforms.json", depth_type, check_files, confine)
     if (path / "poses_bounds.npy").is_file():
         return _load_llff(path / "poses_bounds.npy", llff_factor, llff_hold, check_files)
     raise SceneFormatError(
@@ -86,8 +90,17 @@ def load_scene(
 # -- transforms.json (scene folder and nerfstudio) ---------------------------------------
 
 
-def _load_transforms(json_path: Path, depth_type: str | None, check_files: bool) -> Scene:
+def _load_transforms(json_path: Path, depth_type: str | None, check_files: bool, confine: bool = False) -> Scene:
     root = json_path.parent
+
+    def _resolve(root: Path, relative: str) -> Path:
+        path = _resolve_path(root, relative)
+        if confine:
+            inside = root.resolve()
+            if not path.resolve().is_relative_to(inside):
+                raise SceneFormatError(json_path, f"{where}: {relative!r} leads outside the scene folder")
+        return path
+
     try:
         text = json_path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
@@ -216,7 +229,7 @@ def _int(json_path: Path, value, where: str) -> int:
     return value
 
 
-def _resolve(root: Path, relative: str) -> Path:
+def _resolve_path(root: Path, relative: str) -> Path:
     path = Path(relative)
     return path if path.is_absolute() else root / path
 

@@ -88,17 +88,17 @@ def write_scene_folder(
     frames = []
     for i, name in enumerate(names):
         frame = {"file_path": f"images/{name}.png"}
-        atomic_write(root / frame["file_path"], encode_png(photos[i], name=f"photos[{i}]"))
+        atomic_write(root / frame["file_path"], encode_png(photos[i], name=f"photos[{i}]"), make_parents=True)
         if renders is not None:
             frame["render_path"] = f"renders/{name}.png"
-            atomic_write(root / frame["render_path"], encode_png(renders[i], name=f"renders[{i}]"))
+            atomic_write(root / frame["render_path"], encode_png(renders[i], name=f"renders[{i}]"), make_parents=True)
         if depths is not None:
             frame["depth_path"] = f"depths/{name}.npy"
             depth = depths[i, 0].detach().cpu().numpy().astype(np.float32)
-            atomic_write(root / frame["depth_path"], encode_npy(depth))
+            atomic_write(root / frame["depth_path"], encode_npy(depth), make_parents=True)
         if acc is not None:
             frame["acc_path"] = f"acc/{name}.png"
-            atomic_write(root / frame["acc_path"], encode_png(acc[i], name=f"acc[{i}]"))
+            atomic_write(root / frame["acc_path"], encode_png(acc[i], name=f"acc[{i}]"), make_parents=True)
         if not shared:
             frame.update(_camera(K[i], width, height))
         frame["transform_matrix"] = gl[i].tolist()
@@ -114,7 +114,7 @@ def write_scene_folder(
             "frames": frames,
         }
     )
-    atomic_write(root / "transforms.json", json.dumps(transforms, indent=1).encode("utf-8"))
+    atomic_write(root / "transforms.json", json.dumps(transforms, indent=1).encode("utf-8"), make_parents=True)
     return root
 
 

@@ -93,6 +93,9 @@ class TrainProgress:
     steps_per_s: float
     eta_s: float | None
     elapsed_s: float
+    phase: str = "training"
+    """"training" (after each step) or "evaluating" (measuring the held-out views before the
+    first step or after the last; no steps meanwhile, ``eta_s`` None)."""
 
 
 @dataclass

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import torch
 
@@ -28,7 +29,8 @@ def _mean(views: list[dict], key: str) -> dict:
 
 
 def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = None,
-             max_views: int | None = None, device: str | torch.device = "cpu") -> dict:
+             max_views: int | None = None, device: str | torch.device = "cpu",
+             progress: Callable[[int, int], None] | None = None) -> dict:
     """Compare renders and enhanced renders of ``split`` views with their photos.
 
     Neighbours always come from the scene's TRAIN views (a train view never uses itself).
@@ -39,6 +41,7 @@ def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = 
         split: "test", "train" or "all".
         num_neighbours: override of the model's default.
         max_views: evaluate only the first views of the split (quick benchmarks).
+        progress: called as ``progress(done, total)`` before the first view and after each.
     Returns:
         ``{"split", "views": [{"name", "render": {"psnr", "ssim"}, "enhanced": {...},
         "neighbours", "seconds"}], "render": {mean psnr, ssim}, "enhanced": {...},
@@ -57,6 +60,8 @@ def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = 
         was_training = model.training
         enhancer = SceneEnhancer(scene, model, num_neighbours=num_neighbours, device=device)
     views = []
+    if progress is not None:
+        progress(0, len(indices))
     try:
         for i in indices:
             photo = scene.photo(i)
@@ -69,6 +74,8 @@ def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = 
                           "enhanced": _metrics_of(result.image, photo),
                           "neighbours": result.neighbours,
                           "seconds": seconds})
+            if progress is not None:
+                progress(len(views), len(indices))
     finally:
         if not isinstance(model, SceneEnhancer) and was_training:
             model.train()

@@ -289,6 +289,7 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
 
     datasets = [SceneData(s, plan["num_neighbours"] if model.config.use_neighbours else 0) for s in scenes]
     if kind == "finetune" and config.evaluate and saved is None and datasets[0].scene.indices("test"):
+        _evaluating(progress, 0, plan)
         before = _summary(evaluate(datasets[0].scene, model))
 
     optimizer = make_optimizer(model, plan["lr"])
@@ -340,10 +341,19 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
 
     total = plan["steps"]
     bar = None
+    # A step budget counts steps; a time budget counts seconds (its step total is only an
+    # estimate that moves with the step rate, so a bar of steps would keep changing its total).
+    by_time = plan["steps"] is None
     if config.progress_bar:
         from tqdm import tqdm
 
-        bar = tqdm(total=total, initial=step, desc=kind, unit="step", file=sys.stderr, dynamic_ncols=True)
+        if by_time:
+            budget_s = round(plan["minutes"] * 60.0)
+            bar = tqdm(total=budget_s, initial=min(round(elapsed_before), budget_s),
+                       desc=f"{kind} ({plan['minutes']:g} min)", unit="s", file=sys.stderr, dynamic_ncols=True,
+                       bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}{postfix}]")
+        else:
+            bar = tqdm(total=total, initial=step, desc=kind, unit="step", file=sys.stderr, dynamic_ncols=True)
     model.train()
     start = time.perf_counter()
     last_save = start
@@ -376,10 +386,12 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
             eta = min(remaining) if remaining else None
             fraction = step / total_est if total_est else 1.0
             if bar is not None:
-                if plan["steps"] is None:
-                    bar.total = total_est
-                bar.update(1)
-                bar.set_postfix(loss=f"{loss_value:.4f}", eta=f"{eta:.0f}s" if eta is not None else "?")
+                if by_time:
+                    bar.update(min(elapsed, bar.total) - bar.n)
+                    bar.set_postfix(step=step, loss=f"{loss_value:.4f}", steps_per_s=f"{rate:.2f}")
+                else:
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{loss_value:.4f}", eta=f"{eta:.0f}s" if eta is not None else "?")
             if progress is not None:
                 progress(TrainProgress(step=step, total_steps=total_est, fraction=min(fraction, 1.0),
                                        loss=loss_value, steps_per_s=rate, eta_s=eta, elapsed_s=elapsed))
@@ -397,10 +409,22 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
     save(step, elapsed, loss_value)
     after = None
     if kind == "finetune" and config.evaluate and datasets[0].scene.indices("test"):
+        _evaluating(progress, step, plan, loss=loss_value, elapsed=elapsed)
         after = _summary(evaluate(datasets[0].scene, model))
     plan_out = {**plan, "loss_kind": loss_fn.kind, "model": model.config.to_dict(), "transfer": transfer}
     return TrainResult(checkpoint=model_path, steps=step, seconds=elapsed, final_loss=loss_value,
                        loss_kind=loss_fn.kind, before=before, after=after, config=plan_out)
+
+
+def _evaluating(progress, step: int, plan: dict, *, loss: float = float("nan"), elapsed: float = 0.0) -> None:
+    """Tell ``progress`` that the held-out views are being evaluated (before or after training):
+    no training step happens meanwhile, and how long it takes is not a step rate."""
+    if progress is None:
+        return
+    total = plan["steps"] if plan["steps"] is not None else (step or None)
+    fraction = 0.0 if step == 0 else 1.0
+    progress(TrainProgress(step=step, total_steps=total, fraction=fraction, loss=loss, steps_per_s=0.0,
+                           eta_s=None, elapsed_s=elapsed, phase="evaluating"))
 
 
 def _summary(report: dict) -> dict:

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Response
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Query, Response
 
 from service.errors import ApiError, error_responses
-from service.schemas import JobPublic
+from service.pagination import CursorQuery, LimitQuery, decode_cursor, page
+from service.schemas import JobPage, JobPublic
 from service.state import ServicesDep
+from workers.jobs import ACTIVE_STATES
 from workers.layout import ID_RE
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
@@ -17,6 +21,24 @@ def job_or_404(services, job_id: str) -> dict:
     if row is None:
         raise ApiError(404, "not_found", f"job {job_id!r} not found")
     return row
+
+
+JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+
+
+@router.get("", response_model=JobPage, summary="List jobs, newest first (paginated; filter by scene and state)",
+            responses=error_responses(400, 422))
+def list_jobs(
+    services: ServicesDep,
+    scene_id: Annotated[str | None, Query(max_length=64, description="only this scene's jobs")] = None,
+    state: Annotated[list[JobState] | None, Query(description="only jobs in these states (repeatable)")] = None,
+    limit: LimitQuery = 50,
+    cursor: CursorQuery = None,
+) -> JobPage:
+    rows = services.store.list_jobs(scene_id=scene_id, states=tuple(dict.fromkeys(state or ())),
+                                    limit=limit + 1, before=decode_cursor(cursor))
+    rows, next_cursor = page(rows, limit)
+    return JobPage(items=[JobPublic.from_row(r) for r in rows], next_cursor=next_cursor)
 
 
 @router.get("/{job_id}", response_model=JobPublic, summary="State, progress, ETA, loss, metrics",
@@ -31,9 +53,12 @@ def read_job(job_id: str, services: ServicesDep) -> JobPublic:
                         202: {"description": "cancellation requested; the job stops at its next step"}})
 def cancel_job(job_id: str, services: ServicesDep, response: Response) -> JobPublic:
     job = job_or_404(services, job_id)
-    if job["state"] in ("succeeded", "failed"):
+    if job["state"] not in ACTIVE_STATES:  # succeeded, failed or already cancelled: finished
         raise ApiError(409, "job_finished", f"job {job_id} already {job['state']}; nothing to cancel")
     job = services.store.request_cancel(job_id)
+    if job["state"] not in ACTIVE_STATES and job["state"] != "cancelled":
+        # It finished between the read and the cancel (a worker completed it meanwhile).
+        raise ApiError(409, "job_finished", f"job {job_id} already {job['state']}; nothing to cancel")
     if job["state"] == "running":
         response.status_code = 202
     return JobPublic.from_row(job)

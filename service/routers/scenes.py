@@ -10,7 +10,8 @@ from fastapi import APIRouter, File, Header, Response, UploadFile
 from roguenerf.errors import RoGUENeRFError
 from service.errors import ApiError, error_responses, library_error
 from service.limits import checkpoint_error, queue_full
-from service.schemas import JobCreate, JobPublic, ScenePublic, iso
+from service.pagination import CursorQuery, LimitQuery, decode_cursor, page
+from service.schemas import JobCreate, JobPublic, ScenePage, ScenePublic, iso
 from service.state import Services, ServicesDep
 from service.storage import ZipLimits, discard, extract_scene_zip, place, save_upload
 from workers.jobs import ActiveJobExists, IdempotencyMismatch, QueueFull, SceneBusy
@@ -28,13 +29,16 @@ def scene_or_404(services: Services, scene_id: str) -> dict:
     return row
 
 
-def scene_public(services: Services, row: dict) -> ScenePublic:
-    active = services.store.active_job(row["id"])
+def scene_public(services: Services, row: dict, *, active_job: str | None | bool = False) -> ScenePublic:
+    """The public view of a scene row (``active_job``: its active job's id when already known)."""
+    if active_job is False:
+        active = services.store.active_job(row["id"])
+        active_job = active["id"] if active else None
     return ScenePublic(
         id=row["id"], views=row["views"], train_views=row["train_views"], test_views=row["test_views"],
         width=row["width"], height=row["height"], created_at=iso(row["created_at"]),
         active_version=row["active_version"], checkpoint_versions=services.layout.versions(row["id"]),
-        active_job=active["id"] if active else None,
+        active_job=active_job,
     )
 
 
@@ -54,9 +58,10 @@ def _register(services: Services, archive: UploadFile, checkpoint: UploadFile | 
             (tmp / "scene").rmdir()
             staging.rename(tmp / "scene")
         try:
-            scene = load_scene(tmp / "scene")
+            # confine: an uploaded transforms.json must not name files outside the upload.
+            scene = load_scene(tmp / "scene", confine=True)
         except RoGUENeRFError as exc:
-            raise library_error(exc) from None
+            raise library_error(exc, root=tmp / "scene") from None
         train = len(scene.indices("train"))
         if train == 0:
             raise ApiError(422, "invalid_scene", "scene has no 'train' views: neighbours come from them")
@@ -98,6 +103,16 @@ def create_scene(
     checkpoint: Annotated[UploadFile, File(description="optional enhancer checkpoint (.safetensors)")] = None,
 ) -> ScenePublic:
     return _register(services, archive, checkpoint)
+
+
+@router.get("", response_model=ScenePage, summary="List scenes, newest first (paginated)",
+            responses=error_responses(400, 422))
+def list_scenes(services: ServicesDep, limit: LimitQuery = 50, cursor: CursorQuery = None) -> ScenePage:
+    rows = services.store.list_scenes(limit=limit + 1, before=decode_cursor(cursor))
+    rows, next_cursor = page(rows, limit)
+    active = services.store.active_jobs([r["id"] for r in rows])
+    return ScenePage(items=[scene_public(services, r, active_job=active.get(r["id"])) for r in rows],
+                     next_cursor=next_cursor)
 
 
 @router.get("/{scene_id}", response_model=ScenePublic, summary="Describe a scene",
