@@ -9,7 +9,7 @@ FROM python:${PYTHON_VERSION}-slim
 
 ARG TORCH_VERSION=2.13.0
 ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
-# Extra pip packages, e.g. "psycopg[binary]" for a PostgreSQL job table.
+# Extra pip packages (the image already has psycopg for a PostgreSQL job table).
 ARG EXTRA_PIP=""
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
@@ -25,7 +25,7 @@ COPY pyproject.toml README.md ./
 COPY roguenerf ./roguenerf
 COPY service ./service
 COPY workers ./workers
-RUN pip install ".[service]" ${EXTRA_PIP}
+RUN pip install ".[service,postgresql]" ${EXTRA_PIP}
 
 RUN useradd --create-home --uid 10001 roguenerf \
     && mkdir -p /data && chown roguenerf:roguenerf /data

@@ -79,6 +79,8 @@ def _load_default_model(settings: Settings):
 def _open(settings: Settings) -> Services:
     layout = Layout(settings.data_dir)
     layout.ensure()
+    for path in layout.sweep_stale_temp(settings.stale_temp_after_s):
+        log.info("swept a stale temp file left by a killed writer: %s", path)
     store = JobStore(settings.db_url)
     store.init_schema()
     import roguenerf.inference  # noqa: F401  (torch's import cost belongs to startup, not the first request)

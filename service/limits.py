@@ -44,26 +44,19 @@ def check_depth_coverage(depth, *, field: str = "depth") -> float:
     return fraction
 
 
-def ensure_queue_capacity(services, idempotency_key: str | None) -> None:
-    """Refuse a new fine-tuning job with 503 + Retry-After when ``max_queued_jobs`` jobs wait.
+def queue_full(exc) -> ApiError:
+    """A :class:`workers.jobs.QueueFull` refusal as 503 + Retry-After.
 
-    A replay of an already accepted ``Idempotency-Key`` is never refused: it creates nothing.
-    Counting and inserting are two transactions, so concurrent submits can overshoot the
-    limit by at most the number of API workers; the queue stays bounded.
+    The store counts waiting jobs and inserts the new one under one lock (one transaction),
+    so ``max_queued_jobs`` holds under concurrent submissions to any number of API processes;
+    a replay of an already accepted ``Idempotency-Key`` is never refused (it creates nothing).
     """
-    store = services.store
-    if idempotency_key is not None and store._by_key(idempotency_key) is not None:
-        return
-    limit = services.settings.max_queued_jobs
-    with store.db.tx(write=False) as tx:
-        waiting = tx.one("SELECT COUNT(*) AS n FROM jobs WHERE state = 'queued'")["n"]
-    if waiting >= limit:
-        raise ApiError(
-            503, "queue_full",
-            f"{waiting} fine-tuning jobs are already waiting (limit {limit}, ROGUENERF_MAX_QUEUED_JOBS); "
-            "retry later",
-            headers={"Retry-After": str(QUEUE_FULL_RETRY_AFTER_S)},
-        )
+    return ApiError(
+        503, "queue_full",
+        f"{exc.waiting} fine-tuning jobs are already waiting (limit {exc.limit}, ROGUENERF_MAX_QUEUED_JOBS); "
+        "retry later",
+        headers={"Retry-After": str(QUEUE_FULL_RETRY_AFTER_S)},
+    )
 
 
 def decode_field(field: str, decode, data: bytes, **kwargs):

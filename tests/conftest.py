@@ -27,3 +27,21 @@ def lego_dir() -> Path:
     if not (path / "transforms.json").is_file():
         pytest.fail(f"the real lego scene is missing at {path} (set ROGUENERF_SHARED_DATA)")
     return path
+
+
+@pytest.fixture(scope="session")
+def postgres_server():
+    """One PostgreSQL server (Debian's, on loopback, in a temp dir) for the whole session."""
+    from tests.service_helpers import PostgresServer
+
+    server = PostgresServer()
+    with server:
+        yield server
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database_url(request, tmp_path):
+    """The job database, once on a SQLite file (WAL) and once on a fresh PostgreSQL database."""
+    if request.param == "sqlite":
+        return f"sqlite:///{tmp_path / 'jobs.db'}"
+    return request.getfixturevalue("postgres_server").new_database()

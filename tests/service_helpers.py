@@ -236,3 +236,109 @@ def toy_upload(root: Path) -> dict:
     scene = make_scene(root / "scene")
     return {"scene": scene, "zip": zip_folder(root / "scene"),
             "checkpoint": make_checkpoint(root / "micro.safetensors").read_bytes()}
+
+
+def _postgres_bin() -> Path | None:
+    """The folder with Debian's initdb / postgres (not on PATH there), or PATH's."""
+    import glob
+
+    found = shutil.which("initdb")
+    if found:
+        return Path(found).resolve().parent
+    versions = sorted(glob.glob("/usr/lib/postgresql/*/bin/initdb"),
+                      key=lambda p: int(Path(p).parts[-3]) if Path(p).parts[-3].isdigit() else 0)
+    return Path(versions[-1]).parent if versions else None
+
+
+class PostgresServer:
+    """A throwaway PostgreSQL server on a free loopback port, its cluster in a temp dir.
+
+    Trust authentication on 127.0.0.1 only, no Unix socket, fsync off (a test server).
+    As root the server runs as the ``postgres`` user (postgres refuses root).
+    :meth:`new_database` gives each test its own database.
+    """
+
+    def __init__(self):
+        import pwd
+        import tempfile
+
+        bindir = _postgres_bin()
+        if bindir is None:
+            import pytest
+
+            message = "PostgreSQL is not installed (apt-get install -y postgresql; ./dev test does it)"
+            if os.environ.get("CI"):
+                pytest.fail(message)
+            pytest.skip(message)
+        self.bindir = bindir
+        self.root = Path(tempfile.mkdtemp(prefix="roguenerf-pg-"))
+        self.user = None
+        if os.geteuid() == 0:
+            self.user = "postgres"
+            pw = pwd.getpwnam("postgres")
+            os.chown(self.root, pw.pw_uid, pw.pw_gid)
+        self.data = self.root / "cluster"
+        self.port = free_port()
+        self.log_path = self.root / "server.log"
+        self.proc = None
+        self._dbs = 0
+
+    def _run(self, *args: str) -> None:
+        subprocess.run([str(self.bindir / args[0]), *args[1:]], check=True, user=self.user,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=self.root)
+
+    def start(self) -> PostgresServer:
+        self._run("initdb", "-D", str(self.data), "-U", "roguenerf", "--auth=trust", "-E", "UTF8",
+                  "--no-sync", "--locale=C")
+        log = open(self.log_path, "ab")
+        try:
+            self.proc = subprocess.Popen(
+                [str(self.bindir / "postgres"), "-D", str(self.data), "-p", str(self.port),
+                 "-c", "listen_addresses=127.0.0.1", "-c", "unix_socket_directories=",
+                 "-c", "fsync=off", "-c", "synchronous_commit=off", "-c", "full_page_writes=off",
+                 "-c", "max_connections=200", "-c", "shared_buffers=32MB"],
+                user=self.user, stdout=log, stderr=subprocess.STDOUT, cwd=self.root)
+        finally:
+            log.close()
+        import psycopg
+
+        def up():
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"postgres exited:\n{self.log_path.read_text(errors='replace')}")
+            try:
+                with psycopg.connect(self.url("postgres"), connect_timeout=2):
+                    return True
+            except psycopg.OperationalError:
+                return False
+
+        wait_until(up, timeout=60, interval=0.2, what="postgres")
+        return self
+
+    def url(self, database: str) -> str:
+        return f"postgresql://roguenerf@127.0.0.1:{self.port}/{database}"
+
+    def new_database(self) -> str:
+        """A fresh, empty database; returns its URL."""
+        import psycopg
+
+        self._dbs += 1
+        name = f"t{os.getpid()}_{self._dbs}"
+        with psycopg.connect(self.url("postgres"), autocommit=True) as conn:
+            conn.execute(f'CREATE DATABASE "{name}"')
+        return self.url(name)
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGQUIT)  # immediate shutdown: a throwaway cluster
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+        shutil.rmtree(self.root, ignore_errors=True)
+
+    def __enter__(self) -> PostgresServer:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from service.settings import Settings
+from workers.settings import Settings
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -33,8 +33,9 @@ def _env(service: dict) -> dict[str, str]:
 
 def test_services_and_network_exposure(compose):
     services = compose["services"]
-    assert set(services) == {"api", "worker", "redis"}
-    assert "ports" not in services["redis"] and "ports" not in services["worker"]
+    assert set(services) == {"api", "worker", "redis", "postgres"}
+    for name in ("redis", "worker", "postgres"):
+        assert "ports" not in services[name], name
     ports = services["api"]["ports"]
     assert ports and all(str(p).startswith("127.0.0.1:") for p in ports)
 
@@ -63,6 +64,8 @@ def test_api_and_worker_share_settings_and_data(compose):
     for service in (api, worker):
         env = _env(service)
         assert env["ROGUENERF_REDIS_URL"].startswith("redis://redis:")
+        assert env["ROGUENERF_DATABASE_URL"].startswith("postgresql://")
+        assert service["depends_on"]["postgres"]["condition"] == "service_healthy"
         unknown = {k for k in env if k.removeprefix("ROGUENERF_").lower() not in fields}
         assert not unknown, f"compose sets variables Settings does not know: {unknown}"
         assert service["depends_on"]["redis"]["condition"] == "service_healthy"
@@ -86,7 +89,7 @@ def test_dockerfile_cpu_torch_and_non_root():
     assert re.search(r"^ARG TORCH_VERSION=2\.13\.0$", text, re.M)
     assert re.search(r"^ARG TORCH_INDEX_URL=https://download\.pytorch\.org/whl/cpu$", text, re.M)
     torch_line = text.index('pip install "torch==${TORCH_VERSION}" --index-url "${TORCH_INDEX_URL}"')
-    assert torch_line < text.index('pip install ".[service]"'), "torch must be installed before the package"
+    assert torch_line < text.index('pip install ".[service,postgresql]"'), "torch must be installed before the package"
     assert re.search(r"^USER (?!root)\S+", text, re.M)
     assert "/healthz" in text
     # API and worker containers share the host's cores (as `roguenerf serve` sets it)
@@ -96,3 +99,54 @@ def test_dockerfile_cpu_torch_and_non_root():
 def test_dockerignore_keeps_secrets_and_bulk_out():
     ignored = set((ROOT / ".dockerignore").read_text().split())
     assert {".git", ".venv", "data"} <= ignored
+
+
+def test_postgres_job_table_matches_its_server(compose):
+    from sqlalchemy.engine import make_url
+
+    pg = compose["services"]["postgres"]
+    env = _env(pg)
+    url = make_url(_env(compose["services"]["worker"])["ROGUENERF_DATABASE_URL"])
+    assert (url.host, url.port or 5432) == ("postgres", 5432)
+    assert (url.username, url.database) == (env["POSTGRES_USER"], env["POSTGRES_DB"])
+    assert url.password == env["POSTGRES_PASSWORD"]  # the same ${ROGUENERF_DB_PASSWORD:-...}
+    # The data survives a restart: the cluster lives on a named volume.
+    (volume,) = [v for v in pg["volumes"] if v.endswith(":/var/lib/postgresql/data")]
+    assert volume.split(":")[0] in compose["volumes"]
+    assert "pg_isready" in pg["healthcheck"]["test"]
+
+
+def test_every_service_has_a_healthcheck_and_workers_scale(compose):
+    services = compose["services"]
+    for name, service in services.items():
+        test = service.get("healthcheck", {}).get("test")
+        assert test and test[0] == "CMD", name
+    # The API container's check is the service's liveness route (no key needed there).
+    assert "/healthz" in " ".join(services["api"]["healthcheck"]["test"])
+    # Workers: several by default, more with --scale (no container_name, no published port,
+    # which would make replicas collide).
+    worker = services["worker"]
+    assert worker["deploy"]["replicas"] >= 2 and "container_name" not in worker
+    assert worker["depends_on"]["api"]["condition"] == "service_healthy"
+    text = (ROOT / "docker-compose.yml").read_text()
+    assert "--scale worker=3" in text
+    assert "--scale worker=3" in (ROOT / "docs" / "service.md").read_text()
+
+
+def test_worker_healthcheck_runs_against_a_real_database(compose, tmp_path):
+    # The worker's check command, run here against a real SQLite job table and a dead URL.
+    import os
+    import subprocess
+    import sys
+
+    cmd = compose["services"]["worker"]["healthcheck"]["test"][1:]
+    assert cmd[0] == "python"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("ROGUENERF_")}
+    env["PYTHONPATH"] = str(ROOT)
+    ok = subprocess.run([sys.executable, *cmd[1:]], env={**env, "ROGUENERF_DATA_DIR": str(tmp_path)},
+                        capture_output=True, timeout=60)
+    assert ok.returncode == 0, ok.stderr.decode()
+    bad = subprocess.run([sys.executable, *cmd[1:]], capture_output=True, timeout=60,
+                         env={**env, "ROGUENERF_DATA_DIR": str(tmp_path),
+                              "ROGUENERF_DATABASE_URL": "postgresql://u@127.0.0.1:1/db"})
+    assert bad.returncode != 0 and b"DatabaseError" in bad.stderr

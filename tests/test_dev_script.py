@@ -23,7 +23,7 @@ def _fake_venv(tmp_path: Path) -> tuple[Path, Path, dict]:
     bin_dir.mkdir(parents=True)
     tools = tmp_path / "tools"
     tools.mkdir()
-    for exe in (bin_dir / "python", bin_dir / "roguenerf", tools / "redis-server"):
+    for exe in (bin_dir / "python", bin_dir / "roguenerf", tools / "redis-server", tools / "initdb"):
         exe.write_text(RECORDER.format(log=log))
         exe.chmod(exe.stat().st_mode | stat.S_IXUSR)
     env = {**os.environ, "ROGUENERF_VENV": str(venv), "PATH": f"{tools}:{os.environ['PATH']}"}
@@ -63,4 +63,7 @@ def test_the_extras_are_what_the_script_promises():
     for tool in ("pytest", "schemathesis", "matplotlib", "hypothesis"):
         assert tool not in serving
     assert "swagger-ui-bundle-v2" in serving  # /docs offline needs it when serving
-    assert "roguenerf[service,bench]" in extras["dev"]
+    assert "psycopg" not in serving  # PostgreSQL is its own extra (the postgresql one) ...
+    assert any(x.startswith("psycopg") for x in extras["postgresql"])
+    assert "roguenerf[service,postgresql,bench]" in extras["dev"]  # ... that the tests need
+

@@ -318,25 +318,5 @@ def test_job_reports_evaluating_instead_of_done_while_it_evaluates(tmp_path, toy
     assert final["state"] == "succeeded" and final["phase"] is None and final["after"] is not None
 
 
-def test_old_job_table_gets_the_phase_column(tmp_path):
-    import sqlite3
-
-    from workers.jobs import SCHEMA, JobStore
-
-    path = tmp_path / "old.db"
-    conn = sqlite3.connect(path)
-    old_jobs = SCHEMA[1].replace(",\n        phase TEXT", "")
-    assert "phase" not in old_jobs
-    conn.execute(SCHEMA[0])
-    conn.execute(old_jobs)
-    conn.execute("INSERT INTO scenes VALUES ('s', 1, 8, 6, 2, 64, 48, 0, 1)")
-    conn.commit()
-    conn.close()
-    store = JobStore(f"sqlite:///{path}")
-    store.init_schema()
-    store.init_schema()  # idempotent
-    job, _ = store.create_job("s", {"steps": 1})
-    assert store.get_job(job["id"])["phase"] is None
-    assert store.claim(job["id"], "lease")
-    assert store.record_phase(job["id"], "lease", "evaluating")
-    assert store.get_job(job["id"])["phase"] == "evaluating"
+# An older job table getting the phase column (schema v3) is tested on SQLite and PostgreSQL in
+# tests/test_worker_jobs.py (test_a_v2_database_gets_the_phase_column).

@@ -1,6 +1,7 @@
 """kill -9 a worker mid-job: the next worker's sweeper requeues the job and training resumes
 from its last checkpoint; with no attempts left the job fails with ``worker_lost``. The
-scene's files are untouched either way. Real processes, real SQLite, real HTTP.
+scene's files are untouched either way. Real processes, real HTTP, the job table on a SQLite
+file and on a real PostgreSQL server.
 """
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ import time
 
 import pytest
 
-from service.settings import Settings
+from workers.settings import Settings
 from tests.service_helpers import (
     toy_upload,
     FAST,
@@ -31,9 +32,9 @@ def _job(client, job_id):
     return client.get(f"/jobs/{job_id}").json()
 
 
-def test_kill9_requeues_and_resumes_then_fails_when_out_of_attempts(tmp_path, toy):
+def test_kill9_requeues_and_resumes_then_fails_when_out_of_attempts(tmp_path, toy, database_url):
     data = tmp_path / "data"
-    settings = Settings(data_dir=data, max_attempts=2, **FAST)
+    settings = Settings(data_dir=data, database_url=database_url, max_attempts=2, **FAST)
     workers = [WorkerProcess(settings, tmp_path / "w1.log")]  # starts while the scene uploads
     with LiveServer(settings) as live, live.client() as c:
         try:

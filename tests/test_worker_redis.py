@@ -1,7 +1,8 @@
 """The same job flow with RedisHuey: Debian's redis-server on a loopback port (no
 persistence), the API in this process, the worker as a separate process. Also: SIGINT
 drains a running job back to the queue (its attempt not counted) and the next worker
-resumes it; /readyz reports the queue down when Redis goes away.
+resumes it; /readyz reports the queue down when Redis goes away. The job table on a SQLite
+file and on a real PostgreSQL server.
 """
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ from __future__ import annotations
 import pytest
 
 from roguenerf.imageio import read_image
-from service.settings import Settings
+from workers.settings import Settings
 from tests.service_helpers import (
     toy_upload,
     FAST,
@@ -29,12 +30,12 @@ def toy(tmp_path_factory):
     return toy_upload(tmp_path_factory.mktemp("toy"))
 
 
-def test_redis_job_flow_drain_and_readiness(tmp_path, toy):
+def test_redis_job_flow_drain_and_readiness(tmp_path, toy, database_url):
     (tmp_path / "redis").mkdir()
     redis = redis_server(tmp_path / "redis")
     url = redis.__enter__()
     data = tmp_path / "data"
-    settings = Settings(data_dir=data, redis_url=url, **FAST)
+    settings = Settings(data_dir=data, redis_url=url, database_url=database_url, **FAST)
     workers = []
     try:
         with LiveServer(settings) as live, live.client() as c:

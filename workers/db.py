@@ -1,18 +1,29 @@
-"""A small portable SQL layer: SQLite (WAL mode) by default, PostgreSQL through psycopg.
+"""The job database through SQLAlchemy Core 2.x: SQLite (WAL) by default, PostgreSQL via psycopg 3.
 
-Queries are written once with ``?`` placeholders and portable SQL (no RETURNING, no UPSERT);
-the PostgreSQL connection rewrites placeholders to ``%s``. One connection per thread.
+:class:`Database` owns one engine (a connection pool) and hands out transactions with
+:meth:`Database.tx`; the statements themselves live in :mod:`workers.jobs` as Core
+expressions, so no SQL text is rewritten per dialect.
+
+Write transactions serialise where the job layer needs it:
+
+* SQLite: a write transaction starts with ``BEGIN IMMEDIATE`` (the write lock up front), so
+  read-then-write sequences cannot interleave between processes; WAL readers never wait.
+* PostgreSQL: READ COMMITTED; the few read-then-write sequences whose outcome depends on
+  other rows (the queue limit, schema upgrades) take a transaction-scoped advisory lock
+  (:meth:`Tx.lock`), single-row transitions are one conditional ``UPDATE``.
 """
 
 from __future__ import annotations
 
-import sqlite3
-import threading
-from collections.abc import Iterator, Sequence
+import zlib
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlparse
+
+import sqlalchemy as sa
+from sqlalchemy import event, exc as sa_exc
+from sqlalchemy.engine import make_url
 
 
 class DatabaseError(RuntimeError):
@@ -23,38 +34,57 @@ class IntegrityConflict(Exception):
     """A unique constraint refused a write (an active job exists, a key is taken ...)."""
 
 
+def _engine_url(url: str) -> tuple[str, sa.URL]:
+    """``sqlite:///abs/path.db`` or ``postgresql://...`` (also ``postgres://`` and
+    ``postgresql+psycopg://``) -> (kind, SQLAlchemy URL with the psycopg 3 driver)."""
+    try:
+        parsed = make_url(url)
+    except sa_exc.ArgumentError as exc:
+        raise DatabaseError(f"database_url {url!r} is not a database URL: {exc}") from None
+    backend, _, driver = parsed.drivername.partition("+")
+    if backend == "sqlite":
+        if driver:
+            raise DatabaseError(f"database_url: use plain sqlite:///PATH, got {parsed.drivername!r}")
+        if not parsed.database or parsed.database in ("/", ":memory:"):
+            raise DatabaseError(f"database_url {url!r} names no file (expected sqlite:///path.db)")
+        return "sqlite", parsed
+    if backend in ("postgresql", "postgres"):
+        if driver not in ("", "psycopg"):
+            raise DatabaseError(f"database_url: only the psycopg (3) driver is supported, got {driver!r}")
+        return "postgresql", parsed.set(drivername="postgresql+psycopg")
+    raise DatabaseError(
+        f"database_url: expected sqlite:///PATH or postgresql://..., got scheme {parsed.drivername!r}"
+    )
+
+
 class Tx:
-    """An open transaction: run statements, read rows as dicts."""
+    """An open transaction: a SQLAlchemy Connection plus helpers that return plain dicts."""
 
-    def __init__(self, cursor, paramstyle: str):
-        self._cur = cursor
-        self._pg = paramstyle == "pg"
+    def __init__(self, conn: sa.Connection, kind: str):
+        self.conn, self.kind = conn, kind
 
-    def _sql(self, sql: str) -> str:
-        return sql.replace("?", "%s") if self._pg else sql
+    def execute(self, statement, params: dict | None = None) -> sa.CursorResult:
+        return self.conn.execute(statement, params or {})
 
-    def execute(self, sql: str, params: Sequence[Any] = ()) -> int:
-        self._cur.execute(self._sql(sql), tuple(params))
-        return self._cur.rowcount
+    def one(self, statement, params: dict | None = None) -> dict | None:
+        row = self.conn.execute(statement, params or {}).mappings().first()
+        return None if row is None else dict(row)
 
-    def one(self, sql: str, params: Sequence[Any] = ()) -> dict | None:
-        self._cur.execute(self._sql(sql), tuple(params))
-        row = self._cur.fetchone()
-        if row is None:
-            return None
-        return dict(zip([d[0] for d in self._cur.description], row))
+    def all(self, statement, params: dict | None = None) -> list[dict]:
+        return [dict(r) for r in self.conn.execute(statement, params or {}).mappings()]
 
-    def columns(self, table: str) -> list[str]:
-        """Column names of ``table`` (portable: an empty SELECT's description)."""
-        self._cur.execute(f"SELECT * FROM {table} WHERE 1 = 0")
-        names = [d[0] for d in self._cur.description]
-        self._cur.fetchall()
-        return names
+    def scalar(self, statement, params: dict | None = None) -> Any:
+        return self.conn.execute(statement, params or {}).scalar()
 
-    def all(self, sql: str, params: Sequence[Any] = ()) -> list[dict]:
-        self._cur.execute(self._sql(sql), tuple(params))
-        names = [d[0] for d in self._cur.description]
-        return [dict(zip(names, row)) for row in self._cur.fetchall()]
+    def lock(self, name: str) -> None:
+        """Serialise this transaction with every other one that locks ``name`` (until it ends).
+
+        PostgreSQL: ``pg_advisory_xact_lock``. SQLite: a write transaction already holds
+        the database's only write lock (``BEGIN IMMEDIATE``), so nothing more is needed.
+        """
+        if self.kind == "postgresql":
+            key = zlib.crc32(f"roguenerf:{name}".encode()) - (1 << 31)
+            self.conn.execute(sa.select(sa.func.pg_advisory_xact_lock(key)))
 
 
 class Database:
@@ -62,89 +92,69 @@ class Database:
 
     def __init__(self, url: str):
         self.url = url
-        parsed = urlparse(url)
-        if parsed.scheme == "sqlite":
-            # sqlite:///abs/path -> path "/abs/path"; sqlite:////abs also tolerated.
-            self.kind = "sqlite"
-            self.path = Path(parsed.path if parsed.netloc == "" else parsed.netloc + parsed.path)
-            if str(self.path) in ("", "/"):
-                raise DatabaseError(f"database_url {url!r} names no file (expected sqlite:///path.db)")
-        elif parsed.scheme in ("postgresql", "postgres"):
-            self.kind = "postgresql"
-            self.path = None
-        else:
-            raise DatabaseError(
-                f"database_url: expected sqlite:///PATH or postgresql://..., got scheme {parsed.scheme!r}"
-            )
-        self._local = threading.local()
-
-    def _connect(self):
+        self.kind, engine_url = _engine_url(url)
+        self.path: Path | None = None
         if self.kind == "sqlite":
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            conn = sqlite3.connect(self.path, timeout=30.0, isolation_level=None)
-            conn.execute("PRAGMA journal_mode=WAL")
-            conn.execute("PRAGMA synchronous=NORMAL")
-            conn.execute("PRAGMA busy_timeout=30000")
-            return conn
-        try:
-            import psycopg
-        except ImportError as exc:  # pragma: no cover - depends on the environment
-            raise DatabaseError(
-                "database_url is postgresql:// but psycopg is not installed (pip install 'psycopg[binary]')"
-            ) from exc
-        return psycopg.connect(self.url, autocommit=True)
+            self.path = Path(engine_url.database)
+            self.engine = sa.create_engine(engine_url, connect_args={"timeout": 30.0},
+                                           pool_size=8, max_overflow=32)
+            self._sqlite_events()
+        else:
+            try:
+                import psycopg  # noqa: F401
+            except ImportError as exc:  # pragma: no cover - depends on the environment
+                raise DatabaseError(
+                    "database_url is postgresql:// but psycopg is not installed "
+                    "(pip install 'roguenerf[postgresql]' or 'psycopg[binary]')"
+                ) from exc
+            # pre_ping: a restarted PostgreSQL must not leave dead pooled connections behind.
+            self.engine = sa.create_engine(engine_url, pool_pre_ping=True, pool_size=8,
+                                           max_overflow=32, pool_timeout=60)
 
-    def _conn(self):
-        conn = getattr(self._local, "conn", None)
-        if conn is None:
-            conn = self._connect()
-            self._local.conn = conn
-        return conn
+    def _sqlite_events(self) -> None:
+        @event.listens_for(self.engine, "connect")
+        def _connect(dbapi_conn, record):
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            # The driver must not open transactions on its own: we emit BEGIN ourselves.
+            dbapi_conn.isolation_level = None
+            cur = dbapi_conn.cursor()
+            cur.execute("PRAGMA journal_mode=WAL")
+            cur.execute("PRAGMA synchronous=NORMAL")
+            cur.execute("PRAGMA busy_timeout=30000")
+            cur.close()
+
+        @event.listens_for(self.engine, "begin")
+        def _begin(conn):
+            write = conn.get_execution_options().get("roguenerf_write", True)
+            conn.exec_driver_sql("BEGIN IMMEDIATE" if write else "BEGIN")
 
     def close(self) -> None:
-        conn = getattr(self._local, "conn", None)
-        if conn is not None:
-            conn.close()
-            self._local.conn = None
+        """Close the pooled connections (the engine stays usable; it reconnects on demand)."""
+        self.engine.dispose()
 
     @contextmanager
     def tx(self, *, write: bool = True) -> Iterator[Tx]:
         """One transaction; commits on success, rolls back on any exception.
 
-        A unique-constraint violation surfaces as :class:`IntegrityConflict`.
-        ``write=False`` marks a read-only transaction (on SQLite it takes no write lock).
+        A unique-constraint violation surfaces as :class:`IntegrityConflict`, an unreachable
+        or locked database as :class:`DatabaseError`. ``write=False`` marks a read-only
+        transaction (on SQLite it takes no write lock).
         """
-        conn = self._conn()
         try:
-            if self.kind == "sqlite":
-                # IMMEDIATE takes the write lock up front, so read-then-write sequences
-                # (sweeper, claims) cannot interleave between processes; WAL readers never wait.
-                conn.execute("BEGIN IMMEDIATE" if write else "BEGIN")
-                cur = conn.cursor()
-                try:
-                    yield Tx(cur, "qmark")
-                except BaseException:
-                    conn.execute("ROLLBACK")
-                    raise
-                conn.execute("COMMIT")
-            else:
-                with conn.transaction():
-                    yield Tx(conn.cursor(), "pg")
-        except sqlite3.IntegrityError as exc:
-            raise IntegrityConflict(str(exc)) from exc
-        except sqlite3.OperationalError as exc:
-            raise DatabaseError(f"job database {self.url}: {exc}") from exc
-        except Exception as exc:
-            if type(exc).__module__.startswith("psycopg"):
-                import psycopg
+            with self.engine.connect() as conn:
+                conn = conn.execution_options(roguenerf_write=write)
+                with conn.begin():
+                    yield Tx(conn, self.kind)
+        except sa_exc.IntegrityError as exc:
+            raise IntegrityConflict(str(exc.orig)) from exc
+        except (sa_exc.OperationalError, sa_exc.InterfaceError) as exc:
+            raise DatabaseError(f"job database {self._safe_url()}: {exc.orig}") from exc
+        except sa_exc.TimeoutError as exc:
+            raise DatabaseError(f"job database {self._safe_url()}: {exc}") from exc
 
-                if isinstance(exc, psycopg.IntegrityError):
-                    raise IntegrityConflict(str(exc)) from exc
-                if isinstance(exc, psycopg.OperationalError):
-                    self.close()
-                    raise DatabaseError(f"job database: {exc}") from exc
-            raise
+    def _safe_url(self) -> str:
+        return make_url(self.url).render_as_string(hide_password=True)
 
     def ping(self) -> None:
         with self.tx(write=False) as tx:
-            tx.one("SELECT 1 AS ok")
+            tx.scalar(sa.select(sa.literal(1)))

@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import time
 import uuid
 from pathlib import Path
 
@@ -83,6 +84,29 @@ class Layout:
         found = (_VERSION_RE.match(p.name) for p in folder.iterdir())
         return sorted(int(m.group(1)) for m in found if m)
 
+    def sweep_stale_temp(self, older_than_s: float, *, now: float | None = None) -> list[Path]:
+        """Remove what killed writers left behind: entries of ``tmp/`` (uploads, trash,
+        readiness probes) and ``.NAME.HEX.tmp`` files of :func:`copy_atomic` under
+        ``scenes/``, whose newest modification is older than ``older_than_s``. Younger ones
+        may belong to a live process on another machine sharing the data directory."""
+        now = time.time() if now is None else now
+        removed: list[Path] = []
+        candidates = list(self.tmp.iterdir()) if self.tmp.is_dir() else []
+        if self.scenes.is_dir():
+            candidates += [p for p in self.scenes.glob("*/*/.*.tmp") if _TEMP_RE.match(p.name)]
+        for path in candidates:
+            try:
+                if now - _newest_mtime(path) <= older_than_s:
+                    continue
+                if path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path)
+                else:
+                    path.unlink()
+                removed.append(path)
+            except FileNotFoundError:  # another process swept it first
+                continue
+        return removed
+
     def job_dir(self, job_id: str) -> Path:
         return self.jobs / self._check_id(job_id)
 
@@ -98,6 +122,22 @@ class Layout:
         trash = self.tmp / f"trash-{new_id()}"
         os.replace(path, trash)
         shutil.rmtree(trash, ignore_errors=True)
+
+
+_TEMP_RE = re.compile(r"^\..+\.[0-9a-f]{32}\.tmp$")
+"""copy_atomic's temp names: ``.<name>.<uuid hex>.tmp``."""
+
+
+def _newest_mtime(path: Path) -> float:
+    newest = path.lstat().st_mtime
+    if path.is_dir() and not path.is_symlink():
+        for root, dirs, files in os.walk(path):
+            for name in dirs + files:
+                try:
+                    newest = max(newest, os.lstat(os.path.join(root, name)).st_mtime)
+                except FileNotFoundError:
+                    pass
+    return newest
 
 
 def fsync_dir(path: Path) -> None:

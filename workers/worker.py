@@ -73,6 +73,8 @@ class DrainingConsumer(Consumer):
 def build_worker(settings) -> tuple[WorkerContext, JobQueue, JobStore]:
     layout = Layout(settings.data_dir)
     layout.ensure()
+    for path in layout.sweep_stale_temp(settings.stale_temp_after_s):
+        log.info("swept a stale temp file left by a killed writer: %s", path)
     store = JobStore(settings.db_url)
     store.init_schema()
     holder: dict = {}

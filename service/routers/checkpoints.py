@@ -53,8 +53,7 @@ def _replace(services: Services, scene_id: str, upload: UploadFile) -> ScenePubl
         fsync_dir(final.parent)
     finally:
         discard(tmp)
-    with store.db.tx() as tx:
-        tx.execute("UPDATE scenes SET active_version = ? WHERE id = ?", (version, scene_id))
+    store.set_active_version(scene_id, version)
     log.info("scene %s: uploaded checkpoint is now v%d", scene_id, version)
     return scene_public(services, store.get_scene(scene_id))
 

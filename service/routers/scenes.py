@@ -9,12 +9,12 @@ from fastapi import APIRouter, File, Header, Query, Response, UploadFile
 
 from roguenerf.errors import RoGUENeRFError
 from service.errors import ApiError, error_responses, library_error
-from service.limits import checkpoint_error, ensure_queue_capacity
+from service.limits import checkpoint_error, queue_full
 from service.pagination import CursorQuery, LimitQuery, decode_cursor, page
 from service.schemas import JobCreate, JobPublic, ScenePage, ScenePublic, iso
 from service.state import Services, ServicesDep
 from service.storage import ZipLimits, discard, extract_scene_zip, place, save_upload
-from workers.jobs import ActiveJobExists, IdempotencyMismatch, SceneBusy
+from workers.jobs import ActiveJobExists, IdempotencyMismatch, QueueFull, SceneBusy
 from workers.layout import ID_RE, new_id
 from workers.queue import QueueUnavailable
 
@@ -154,11 +154,13 @@ def create_finetune_job(
     if body.minutes is not None and body.minutes > settings.max_job_minutes:
         raise ApiError(422, "validation_error",
                        f"minutes: at most {settings.max_job_minutes}, got {body.minutes}")
-    ensure_queue_capacity(services, idempotency_key)
     request = body.model_dump(exclude_none=True)
     try:
         job, created = services.store.create_job(scene_id, request, idempotency_key=idempotency_key,
-                                                 base_version=row["active_version"])
+                                                 base_version=row["active_version"],
+                                                 max_queued=settings.max_queued_jobs)
+    except QueueFull as exc:
+        raise queue_full(exc) from None
     except ActiveJobExists as exc:
         raise ApiError(409, "job_active",
                        f"scene {scene_id} already has an active fine-tuning job ({exc.job_id}); "
