@@ -8,7 +8,8 @@ for the two ways of encoding the neighbour photos, on one or more scenes, in one
     # at 504x378 and 200x200, one run
     .venv/bin/python bench/finetune_throughput.py --output bench/results/finetune_batched.csv \
         --toy 378x504 --toy 200x200 --variants micro --crops 64 --batches 4 --neighbours 5 \
-        --encodings whole-loop,whole,window --steps 6 --warmup 1 --rounds 2 --reference toy-200x200
+        --encodings whole-loop,whole,window --steps 6 --warmup 1 --rounds 2 --max-seconds 60 \
+        --reference toy-200x200
 
     # issue 12, first step (crop windows only): the run of bench/results/finetune_windows.csv
     .venv/bin/python bench/finetune_throughput.py --output bench/results/finetune_windows.csv \
