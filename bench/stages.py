@@ -61,6 +61,56 @@ def matmul_peak(n: int = 2048, repeats: int = 5) -> float:
     return 2 * n**3 / best / 1e9
 
 
+def memory_bandwidth(mib: int = 256, repeats: int = 5) -> float:
+    """Best GB/s of ``repeats`` copies of a ``mib`` MiB float32 tensor into another (bytes read
+    + bytes written), torch's threads: what a memory-bound op can stream, far beyond the caches."""
+    src = torch.rand(mib * 2**18)
+    dst = torch.empty_like(src)
+    dst.copy_(src)
+    best = math.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        dst.copy_(src)
+        best = min(best, time.perf_counter() - t)
+    return 2 * src.numel() * 4 / best / 1e9
+
+
+def _stage_bytes(fn) -> dict:
+    """Bytes each stage's operators read and write, per stage: the sum over every aten operator
+    run inside the stage of its tensor arguments' and outputs' bytes (each operator as if it
+    streamed its operands from memory: what the code as written moves, not what a fused kernel
+    would). Views and metadata-only operators count 0."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+    from torch.utils._pytree import tree_flatten
+
+    from roguenerf import profiling
+
+    free = {"view", "_unsafe_view", "reshape", "permute", "transpose", "t", "expand", "slice", "select",
+            "unsqueeze", "squeeze", "as_strided", "alias", "detach", "split", "chunk", "unbind",
+            "split_with_sizes", "lift_fresh", "empty", "empty_like", "empty_strided", "unfold",
+            "_reshape_alias", "narrow", "view_as", "resize_", "set_", "is_nonzero", "_local_scalar_dense"}
+    counts: dict[str, float] = {}
+
+    class Bytes(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            out = func(*args, **(kwargs or {}))
+            name = func.overloadpacket.__name__
+            if name not in free:
+                seen, total = set(), 0
+                for t in tree_flatten((args, kwargs or {}, out))[0]:
+                    if isinstance(t, torch.Tensor) and id(t) not in seen:
+                        seen.add(id(t))
+                        total += t.numel() * t.element_size()
+                active = profiling._active
+                key = (active._current if active is not None else None) or "other"
+                counts[key] = counts.get(key, 0.0) + total
+            return out
+
+    with StageProfile() as _, Bytes():
+        fn()
+    return {k: v / 1e9 for k, v in counts.items()}
+
+
 def randomise_zero_layers(model, std: float = 0.02) -> None:
     """The output projection and flow increment head start at 0; give them weights."""
     with torch.no_grad():
@@ -115,6 +165,7 @@ def profile(variant: str, h: int, w: int, repeats: int, reference: bool) -> tupl
         fast_out = run()
         seconds, total = _stage_times(run, repeats)
         executed = _stage_flops(run)
+        moved = _stage_bytes(run)
     ref_seconds, ref_total, diff = {}, float("nan"), float("nan")
     with torch.no_grad(), reference_mode():
         model_flops = _stage_flops(run)
@@ -130,9 +181,10 @@ def profile(variant: str, h: int, w: int, repeats: int, reference: bool) -> tupl
         else:
             sec, ref = seconds[stage], ref_seconds.get(stage, float("nan"))
             gm, ge = model_flops.get(stage, 0.0), executed.get(stage, 0.0)
+        gb = sum(moved.values()) if stage == "total" else moved.get(stage, 0.0)
         rows.append(dict(variant=variant, height=h, width=w, neighbours=NEIGHBOURS, stage=stage,
                          seconds=round(sec, 4), seconds_reference=round(ref, 4), gflop_model=round(gm, 3),
-                         gflop_executed=round(ge, 3), max_abs_diff=diff))
+                         gflop_executed=round(ge, 3), gb_moved=round(gb, 4), max_abs_diff=diff))
     official = Uformer(model.config.uformer, in_channels=3, out_channels=3).eval()
     rgb = torch.rand(1, 3, h, w)
     with torch.no_grad(), reference_mode():
@@ -143,6 +195,7 @@ def profile(variant: str, h: int, w: int, repeats: int, reference: bool) -> tupl
         official_gflop = _stage_flops(lambda: official(rgb))["other"]
     summary = dict(variant=variant, height=h, width=w, seconds=total, seconds_reference=ref_total,
                    gflop_model=sum(model_flops.values()), gflop_executed=sum(executed.values()),
+                   gb_moved=sum(moved.values()),
                    uformer_official_seconds=official_s, uformer_official_gflop=official_gflop,
                    max_abs_diff=diff)
     return rows, summary
@@ -203,7 +256,8 @@ def main(argv=None) -> None:
     meta = stamp()
     print(f"runtime: {applied}", flush=True)
     peaks = [matmul_peak()]
-    print(f"matmul peak: {peaks[0]:.1f} GFLOP/s", flush=True)
+    bandwidths = [memory_bandwidth()]
+    print(f"matmul peak: {peaks[0]:.1f} GFLOP/s, memory bandwidth (copy): {bandwidths[0]:.1f} GB/s", flush=True)
     rows, summaries = [], []
     for variant in variants:
         for h, w in sizes:
@@ -215,18 +269,33 @@ def main(argv=None) -> None:
                   f"max |fast - plain| {s['max_abs_diff']:.2e}, official Uformer alone "
                   f"{s['uformer_official_seconds']:.3f} s", flush=True)
     peaks.append(matmul_peak())
-    peak = max(peaks)
+    bandwidths.append(memory_bandwidth())
+    peak, bandwidth = max(peaks), max(bandwidths)
     for row in rows:
         row["peak_gflops"] = round(peak, 1)
         row["gflops_per_s"] = round(row["gflop_executed"] / row["seconds"], 2) if row["seconds"] else 0.0
         row["efficiency"] = round(row["gflop_model"] / row["seconds"] / peak, 4) if row["seconds"] else 0.0
         row["efficiency_executed"] = round(row["gflop_executed"] / row["seconds"] / peak, 4) if row["seconds"] else 0.0
         row["threads"] = applied["threads"]
+        # Roofline floor of the stage as written: its FLOPs at the matmul peak, or its operators'
+        # bytes at the copy bandwidth, whichever is longer (no overlap, no fusion assumed).
+        row["bandwidth_gbs"] = round(bandwidth, 1)
+        row["floor_flops_s"] = round(row["gflop_executed"] / peak, 5)
+        row["floor_bytes_s"] = round(row["gb_moved"] / bandwidth, 5)
+        row["floor_s"] = max(row["floor_flops_s"], row["floor_bytes_s"])
+        row["seconds_over_floor"] = round(row["seconds"] / row["floor_s"], 2) if row["floor_s"] else 0.0
     for s in summaries:
         stage_rows = [r for r in rows if (r["variant"], r["height"], r["width"]) == (s["variant"], s["height"], s["width"])
                       and r["stage"] not in ("total", "other")]
         # The stage costing the most time beyond what it would take at the matmul peak.
         limiting = max(stage_rows, key=lambda r: r["seconds"] - r["gflop_model"] / peak)
+        floor = sum(r["floor_s"] for r in stage_rows) + next(
+            (r["floor_s"] for r in rows if (r["variant"], r["height"], r["width"], r["stage"])
+             == (s["variant"], s["height"], s["width"], "other")), 0.0)
+        s.update(bandwidth_gbs=bandwidth, bandwidths_measured=bandwidths, floor_s=floor,
+                 floor_table={r["stage"]: {k: r[k] for k in ("seconds", "gflop_executed", "gb_moved", "floor_flops_s",
+                                                             "floor_bytes_s", "floor_s")} for r in rows
+                              if (r["variant"], r["height"], r["width"]) == (s["variant"], s["height"], s["width"])})
         s.update(peak_gflops=peak, peaks_measured=peaks, threads=applied["threads"],
                  efficiency_model=s["gflop_model"] / s["seconds"] / peak,
                  efficiency_executed=s["gflop_executed"] / s["seconds"] / peak,
@@ -237,6 +306,11 @@ def main(argv=None) -> None:
         print(f"{s['variant']} {s['width']}x{s['height']}: efficiency {s['efficiency_model']:.1%} of peak "
               f"(executed FLOPs: {s['efficiency_executed']:.1%}), {s['speedup_vs_plain']:.2f}x the plain path, "
               f"limited by {s['limiting_stage']}", flush=True)
+        print(f"  floor (per stage max(FLOP / {peak:.0f} GFLOP/s, bytes / {bandwidth:.1f} GB/s)): "
+              f"{s['floor_s']:.4f} s of {s['seconds']:.4f} s", flush=True)
+        for stage, r in s["floor_table"].items():
+            print(f"    {stage:>12} {r['seconds']:8.4f} s  {r['gflop_executed']:7.3f} GFLOP -> {r['floor_flops_s']:.4f} s"
+                  f"  {r['gb_moved']:7.3f} GB -> {r['floor_bytes_s']:.4f} s", flush=True)
     write_csv(args.output, rows)
     write_json(args.output.with_suffix(".json"), {**meta, "runtime": applied, "configs": summaries})
     plot(rows, summaries, args.output.with_suffix(".png"))

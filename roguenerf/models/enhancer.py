@@ -23,8 +23,11 @@ Poses may be float64 and should be when cameras are far from the origin: relativ
 as given, and only then cast to the features' dtype, so translating a whole scene (1e6 units)
 leaves the output unchanged to float32 rounding.
 
-Neighbours are processed one at a time and max-pooled on the fly, so memory does not grow
-with their number and the output is exactly invariant to their order.
+Without gradients, neighbours are processed one at a time and max-pooled on the fly, so memory
+does not grow with their number and the output is exactly invariant to their order. With
+gradients (training) they go through refinement and attention as one batch of N * B, sharing
+the target's work (``_fuse_batched``; autograd keeps every neighbour's activations either
+way); ``reference_mode()`` keeps the per-neighbour loop, equal in output and gradients.
 
 Dimension letters: B batch, N neighbours, F feature channels, H x W target size,
 Hs x Ws neighbour size.
