@@ -11,6 +11,13 @@ merge, uformer, other.
 
 Columns per stage:
   seconds            median over ``--repeats`` timed runs of the fast path (after one warm-up)
+  seconds_previous   the fast path before issue 12's inference work (``previous_fast_path()``),
+                     its runs alternating with the present one's
+  gb_moved           GB the stage's operators read and write (every aten operator's tensor
+                     arguments and outputs: the code as written, each operator streaming its
+                     operands; views free)
+  floor_s            max(gflop_executed / peak, gb_moved / bandwidth): the stage's roofline floor
+                     as written, bandwidth = best copy GB/s of a 256 MiB tensor (read + write)
   seconds_reference  the plain implementation (``reference_mode()``: no fused kernels, NCHW,
                      grid_sample, unshared target work, per-call masks), same weights and inputs
   gflop_model        FLOPs of the architecture as written (counted on the reference path:
@@ -42,7 +49,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.common import stamp, write_csv, write_json  # noqa: E402
 from roguenerf import runtime  # noqa: E402
-from roguenerf.fastpath import reference_mode  # noqa: E402
+from roguenerf.fastpath import previous_fast_path, reference_mode  # noqa: E402
 from roguenerf.models import VARIANTS, NeighbourBatch, Uformer, build_enhancer  # noqa: E402
 from roguenerf.profiling import STAGES, StageProfile  # noqa: E402
 
@@ -137,16 +144,21 @@ def make_inputs(model, h: int, w: int, n: int = NEIGHBOURS):
     return render, depth, K[None], poses[:1], nb
 
 
-def _stage_times(fn, repeats: int) -> tuple[dict, float]:
-    per_stage: dict[str, list[float]] = {}
-    totals = []
+def _stage_times(fn, repeats: int, other=None) -> tuple[dict, float] | tuple[tuple[dict, float], tuple[dict, float]]:
+    """Median seconds per stage and in total over ``repeats`` runs of ``fn``; with ``other``, the
+    same for it, the two alternating run by run (fair under a varying load)."""
+    fns = [fn] if other is None else [fn, other]
+    per_stage: list[dict[str, list[float]]] = [{} for _ in fns]
+    totals: list[list[float]] = [[] for _ in fns]
     for _ in range(repeats):
-        with StageProfile() as prof:
-            fn()
-        totals.append(prof.total_seconds)
-        for row in prof.rows():
-            per_stage.setdefault(row["stage"], []).append(row["seconds"])
-    return {k: statistics.median(v) for k, v in per_stage.items()}, statistics.median(totals)
+        for i, f in enumerate(fns):
+            with StageProfile() as prof:
+                f()
+            totals[i].append(prof.total_seconds)
+            for row in prof.rows():
+                per_stage[i].setdefault(row["stage"], []).append(row["seconds"])
+    out = [({k: statistics.median(v) for k, v in ps.items()}, statistics.median(t)) for ps, t in zip(per_stage, totals)]
+    return out[0] if other is None else (out[0], out[1])
 
 
 def _stage_flops(fn) -> dict:
@@ -163,7 +175,13 @@ def profile(variant: str, h: int, w: int, repeats: int, reference: bool) -> tupl
         render, depth, K, pose, nb = make_inputs(model, h, w)
         run = lambda: model(render, depth, K, pose, nb)  # noqa: E731
         fast_out = run()
-        seconds, total = _stage_times(run, repeats)
+
+        def run_previous():
+            with previous_fast_path():
+                return run()
+
+        prev_diff = float((run_previous() - fast_out).abs().max())
+        (seconds, total), (prev_seconds, prev_total) = _stage_times(run, repeats, run_previous)
         executed = _stage_flops(run)
         moved = _stage_bytes(run)
     ref_seconds, ref_total, diff = {}, float("nan"), float("nan")
@@ -178,12 +196,15 @@ def profile(variant: str, h: int, w: int, repeats: int, reference: bool) -> tupl
     for stage in names + ["total"]:
         if stage == "total":
             sec, ref, gm, ge = total, ref_total, sum(model_flops.values()), sum(executed.values())
+            prev = prev_total
         else:
             sec, ref = seconds[stage], ref_seconds.get(stage, float("nan"))
+            prev = prev_seconds.get(stage, float("nan"))
             gm, ge = model_flops.get(stage, 0.0), executed.get(stage, 0.0)
         gb = sum(moved.values()) if stage == "total" else moved.get(stage, 0.0)
         rows.append(dict(variant=variant, height=h, width=w, neighbours=NEIGHBOURS, stage=stage,
-                         seconds=round(sec, 4), seconds_reference=round(ref, 4), gflop_model=round(gm, 3),
+                         seconds=round(sec, 4), seconds_previous=round(prev, 4),
+                         seconds_reference=round(ref, 4), gflop_model=round(gm, 3),
                          gflop_executed=round(ge, 3), gb_moved=round(gb, 4), max_abs_diff=diff))
     official = Uformer(model.config.uformer, in_channels=3, out_channels=3).eval()
     rgb = torch.rand(1, 3, h, w)
@@ -193,7 +214,9 @@ def profile(variant: str, h: int, w: int, repeats: int, reference: bool) -> tupl
         official(rgb)
         official_s = time.perf_counter() - t
         official_gflop = _stage_flops(lambda: official(rgb))["other"]
-    summary = dict(variant=variant, height=h, width=w, seconds=total, seconds_reference=ref_total,
+    summary = dict(variant=variant, height=h, width=w, seconds=total, seconds_previous=prev_total,
+                   speedup_vs_previous=prev_total / total, max_abs_diff_previous=prev_diff,
+                   seconds_reference=ref_total,
                    gflop_model=sum(model_flops.values()), gflop_executed=sum(executed.values()),
                    gb_moved=sum(moved.values()),
                    uformer_official_seconds=official_s, uformer_official_gflop=official_gflop,
@@ -264,7 +287,9 @@ def main(argv=None) -> None:
             r, s = profile(variant, h, w, args.repeats, not args.no_reference)
             rows += [{**meta, **row} for row in r]
             summaries.append(s)
-            print(f"{variant} {w}x{h}: {s['seconds']:.3f} s (plain {s['seconds_reference']:.3f} s), "
+            print(f"{variant} {w}x{h}: {s['seconds']:.3f} s (previous fast path {s['seconds_previous']:.3f} s: "
+                  f"{s['speedup_vs_previous']:.2f}x, max |diff| {s['max_abs_diff_previous']:.1e}; "
+                  f"plain {s['seconds_reference']:.3f} s), "
                   f"{s['gflop_model']:.1f} GFLOP model / {s['gflop_executed']:.1f} executed, "
                   f"max |fast - plain| {s['max_abs_diff']:.2e}, official Uformer alone "
                   f"{s['uformer_official_seconds']:.3f} s", flush=True)
@@ -306,6 +331,9 @@ def main(argv=None) -> None:
         print(f"{s['variant']} {s['width']}x{s['height']}: efficiency {s['efficiency_model']:.1%} of peak "
               f"(executed FLOPs: {s['efficiency_executed']:.1%}), {s['speedup_vs_plain']:.2f}x the plain path, "
               f"limited by {s['limiting_stage']}", flush=True)
+        print(f"  stage seconds now / previous fast path: " + ", ".join(
+            f"{r['stage']} {r['seconds']:.4f}/{r['seconds_previous']:.4f}" for r in rows
+            if (r["variant"], r["height"], r["width"]) == (s["variant"], s["height"], s["width"])), flush=True)
         print(f"  floor (per stage max(FLOP / {peak:.0f} GFLOP/s, bytes / {bandwidth:.1f} GB/s)): "
               f"{s['floor_s']:.4f} s of {s['seconds']:.4f} s", flush=True)
         for stage, r in s["floor_table"].items():
