@@ -4,12 +4,19 @@ for the two ways of encoding the neighbour photos, on one or more scenes, in one
     .venv/bin/python bench/finetune_throughput.py --output bench/results/finetune_throughput.csv \
         --skip 'T@256x8'
 
-    # issue 12: old (whole photos) vs new (crop windows) at 504x378 and 200x200, one run
+    # issue 12: old (whole photos, per-neighbour fusion) vs new (crop windows, batched fusion)
+    # at 504x378 and 200x200, one run
+    .venv/bin/python bench/finetune_throughput.py --output bench/results/finetune_batched.csv \
+        --toy 378x504 --toy 200x200 --variants micro --crops 64 --batches 4 --neighbours 5 \
+        --encodings whole-loop,whole,window --steps 6 --warmup 1 --rounds 2 --max-seconds 60 \
+        --reference toy-200x200
+
+    # issue 12, first step (crop windows only): the run of bench/results/finetune_windows.csv
     .venv/bin/python bench/finetune_throughput.py --output bench/results/finetune_windows.csv \
         --toy 378x504 --toy 200x200 --scene ../shared/data/lego --variants micro --crops 64 \
         --batches 4 --neighbours 5 --steps 8 --reference toy-200x200
 
-    options: [--scene DIR ...] [--toy HxW ...] [--toy-views 24] [--encodings whole,window]
+    options: [--scene DIR ...] [--toy HxW ...] [--toy-views 24] [--encodings whole-loop,whole,window]
              [--variants micro,T] [--crops 64,128,256] [--batches 1,2,4,8] [--neighbours 2]
              [--steps 5] [--max-seconds 20] [--warmup 2] [--threads N] [--skip VARIANT@CROPxBATCH ...]
              [--reference SCENE]
@@ -32,8 +39,11 @@ neighbours they need) are drawn and cut in a background thread
 ``roguenerf.training.loop.optimise``: conv_H on the neighbour photos (with grad), enhancer
 forward, loss (L1, or L1 + 1e-3 VGG-19 with ``--vgg-weights``), backward, finiteness checks,
 Adam step (fused, as ``finetune`` makes it). Encodings (``TrainConfig.neighbour_encoding``): ``whole`` encodes the U distinct
-neighbour photos the batch uses, whole (the path before issue 12); ``window`` only the window
-of each neighbour photo that each crop can see (same loss and gradients). The timed step is
+neighbour photos the batch uses, whole; ``window`` only the window
+of each neighbour photo that each crop can see (same loss and gradients); ``whole-loop`` is the
+step before issue 12: whole photos, and each neighbour refined, weighed and pooled one at a time
+(``reference_mode()``; ``whole`` and ``window`` run the neighbours as one batch, sharing the
+target's work: same loss and gradients, tests/test_training_batched.py). The timed step is
 waiting for the next batch plus ``optimise``. Per point: up to ``--warmup`` untimed steps (no
 more once they have taken ``--max-seconds``/4), then timed steps until ``--steps`` of them or
 ``--max-seconds`` (at least one is always timed). Reported: median seconds/step, steps/s =
@@ -79,6 +89,12 @@ import torch  # noqa: E402
 from bench.common import LEGO, stamp, write_csv  # noqa: E402
 
 
+ENCODINGS = ("whole-loop", "whole", "window")
+"""Bench labels: ``whole`` and ``window`` are ``TrainConfig.neighbour_encoding``; ``whole-loop``
+is the training step before issue 12: whole photos, and the enhancer's plain per-neighbour
+fusion (``reference_mode()``, which in training switches off only the batched neighbour fusion)."""
+
+
 def _ints(text: str) -> list[int]:
     return [int(x) for x in text.split(",") if x.strip()]
 
@@ -98,7 +114,8 @@ def parse_args(argv=None):
                    help="also a toy scene rendered at H x W (repeatable), e.g. 378x504")
     p.add_argument("--toy-views", type=int, default=24, help="training views of each toy scene")
     p.add_argument("--encodings", type=_names, default=["whole", "window"],
-                   help="neighbour encodings to compare: whole (before issue 12), window")
+                   help="neighbour encodings to compare: whole, window, and the step before issue 12: "
+                        "whole-loop (whole photos, neighbours fused one at a time)")
     p.add_argument("--rounds", type=int, default=1,
                    help="repeat the whole sweep this many times (interleaves scenes and encodings over time "
                         "on a busy machine); the JSON, plot and table use each point's median over rounds")
@@ -119,9 +136,9 @@ def parse_args(argv=None):
     p.add_argument("--vgg-weights", type=Path, default=None, help="torchvision VGG-19 state dict: L1 + VGG loss")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
-    bad = [e for e in args.encodings if e not in ("whole", "window")]
+    bad = [e for e in args.encodings if e not in ENCODINGS]
     if bad or not args.encodings:
-        p.error(f"--encodings: expected some of whole, window, got {args.encodings}")
+        p.error(f"--encodings: expected some of {', '.join(ENCODINGS)}, got {args.encodings}")
     try:
         args.toy = [tuple(int(v) for v in t.lower().split("x")) for t in args.toy]
     except ValueError:
@@ -162,7 +179,10 @@ def measure(variant: str, data, crop: int, batch: int, neighbours: int, encoding
     model.to(device).train()
     optimizer = make_optimizer(model, args.lr)
     generator = torch.Generator().manual_seed(args.seed)
-    margin, enc = neighbour_margin(model), batch_encoding(model, encoding)
+    from roguenerf.fastpath import reference_mode
+
+    loop = encoding == "whole-loop"
+    margin, enc = neighbour_margin(model), batch_encoding(model, "whole" if loop else encoding)
 
     def make():  # as finetune's batch thread draws them
         targets = torch.randint(0, len(data), (batch,), generator=generator)
@@ -176,7 +196,8 @@ def measure(variant: str, data, crop: int, batch: int, neighbours: int, encoding
     def step(pre, i: int) -> float:
         t0 = time.perf_counter()
         b = next(pre)
-        optimise(model, b, device, loss_fn, optimizer, step=i)
+        with reference_mode(loop):
+            optimise(model, b, device, loss_fn, optimizer, step=i)
         dt = time.perf_counter() - t0
         photos = b.neighbour_photos if isinstance(b.neighbour_photos, list) else [b.neighbour_photos]
         encoded.append(sum(p.shape[0] * p.shape[-2] * p.shape[-1] for p in photos if p is not None))
@@ -272,11 +293,13 @@ def summary(rows: list[dict], reference: str | None) -> dict:
                 if (r["variant"], r["neighbours"], r["crop"], r["batch"]) == point}
         entry = {"variant": point[0], "neighbours": point[1], "crop": point[2], "batch": point[3],
                  "steps_per_s": {f"{sc}/{enc}": v for (sc, enc), v in mine.items()}, "window_over_whole": {},
-                 f"over_{reference}": {}}
+                 "window_over_whole_loop": {}, f"over_{reference}": {}}
         for sc in sizes:
             if (sc, "window") in mine and (sc, "whole") in mine:
                 entry["window_over_whole"][sc] = round(mine[(sc, "window")] / mine[(sc, "whole")], 3)
-            for enc in ("whole", "window"):
+            if (sc, "window") in mine and (sc, "whole-loop") in mine:
+                entry["window_over_whole_loop"][sc] = round(mine[(sc, "window")] / mine[(sc, "whole-loop")], 3)
+            for enc in ENCODINGS:
                 if (sc, enc) in mine and (reference, enc) in mine:
                     entry[f"over_{reference}"][f"{sc}/{enc}"] = round(mine[(sc, enc)] / mine[(reference, enc)], 3)
         out.append(entry)
@@ -390,7 +413,8 @@ def main(argv=None) -> int:
     print()
     for entry in result["points"]:
         print(f"{entry['variant']} crop {entry['crop']} batch {entry['batch']} {entry['neighbours']} neighbours: "
-              f"window/whole {entry['window_over_whole']}; over {result['reference']} "
+              f"window/whole {entry['window_over_whole']}; window/whole-loop (the step before issue 12) "
+              f"{entry['window_over_whole_loop']}; over {result['reference']} "
               f"{entry['over_' + result['reference']]}")
     print(f"\nwrote {args.output}, {json_path} and {png}")
     return 0

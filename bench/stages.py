@@ -11,6 +11,13 @@ merge, uformer, other.
 
 Columns per stage:
   seconds            median over ``--repeats`` timed runs of the fast path (after one warm-up)
+  seconds_previous   the fast path before issue 12's inference work (``previous_fast_path()``),
+                     its runs alternating with the present one's
+  gb_moved           GB the stage's operators read and write (every aten operator's tensor
+                     arguments and outputs: the code as written, each operator streaming its
+                     operands; views free)
+  floor_s            max(gflop_executed / peak, gb_moved / bandwidth): the stage's roofline floor
+                     as written, bandwidth = best copy GB/s of a 256 MiB tensor (read + write)
   seconds_reference  the plain implementation (``reference_mode()``: no fused kernels, NCHW,
                      grid_sample, unshared target work, per-call masks), same weights and inputs
   gflop_model        FLOPs of the architecture as written (counted on the reference path:
@@ -42,7 +49,7 @@ import torch  # noqa: E402
 
 from bench.common import stamp, write_csv, write_json  # noqa: E402
 from roguenerf import runtime  # noqa: E402
-from roguenerf.fastpath import reference_mode  # noqa: E402
+from roguenerf.fastpath import previous_fast_path, reference_mode  # noqa: E402
 from roguenerf.models import VARIANTS, NeighbourBatch, Uformer, build_enhancer  # noqa: E402
 from roguenerf.profiling import STAGES, StageProfile  # noqa: E402
 
@@ -59,6 +66,56 @@ def matmul_peak(n: int = 2048, repeats: int = 5) -> float:
         a @ b
         best = min(best, time.perf_counter() - t)
     return 2 * n**3 / best / 1e9
+
+
+def memory_bandwidth(mib: int = 256, repeats: int = 5) -> float:
+    """Best GB/s of ``repeats`` copies of a ``mib`` MiB float32 tensor into another (bytes read
+    + bytes written), torch's threads: what a memory-bound op can stream, far beyond the caches."""
+    src = torch.rand(mib * 2**18)
+    dst = torch.empty_like(src)
+    dst.copy_(src)
+    best = math.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        dst.copy_(src)
+        best = min(best, time.perf_counter() - t)
+    return 2 * src.numel() * 4 / best / 1e9
+
+
+def _stage_bytes(fn) -> dict:
+    """Bytes each stage's operators read and write, per stage: the sum over every aten operator
+    run inside the stage of its tensor arguments' and outputs' bytes (each operator as if it
+    streamed its operands from memory: what the code as written moves, not what a fused kernel
+    would). Views and metadata-only operators count 0."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+    from torch.utils._pytree import tree_flatten
+
+    from roguenerf import profiling
+
+    free = {"view", "_unsafe_view", "reshape", "permute", "transpose", "t", "expand", "slice", "select",
+            "unsqueeze", "squeeze", "as_strided", "alias", "detach", "split", "chunk", "unbind",
+            "split_with_sizes", "lift_fresh", "empty", "empty_like", "empty_strided", "unfold",
+            "_reshape_alias", "narrow", "view_as", "resize_", "set_", "is_nonzero", "_local_scalar_dense"}
+    counts: dict[str, float] = {}
+
+    class Bytes(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            out = func(*args, **(kwargs or {}))
+            name = func.overloadpacket.__name__
+            if name not in free:
+                seen, total = set(), 0
+                for t in tree_flatten((args, kwargs or {}, out))[0]:
+                    if isinstance(t, torch.Tensor) and id(t) not in seen:
+                        seen.add(id(t))
+                        total += t.numel() * t.element_size()
+                active = profiling._active
+                key = (active._current if active is not None else None) or "other"
+                counts[key] = counts.get(key, 0.0) + total
+            return out
+
+    with StageProfile() as _, Bytes():
+        fn()
+    return {k: v / 1e9 for k, v in counts.items()}
 
 
 def randomise_zero_layers(model, std: float = 0.02) -> None:
@@ -87,16 +144,21 @@ def make_inputs(model, h: int, w: int, n: int = NEIGHBOURS):
     return render, depth, K[None], poses[:1], nb
 
 
-def _stage_times(fn, repeats: int) -> tuple[dict, float]:
-    per_stage: dict[str, list[float]] = {}
-    totals = []
+def _stage_times(fn, repeats: int, other=None) -> tuple[dict, float] | tuple[tuple[dict, float], tuple[dict, float]]:
+    """Median seconds per stage and in total over ``repeats`` runs of ``fn``; with ``other``, the
+    same for it, the two alternating run by run (fair under a varying load)."""
+    fns = [fn] if other is None else [fn, other]
+    per_stage: list[dict[str, list[float]]] = [{} for _ in fns]
+    totals: list[list[float]] = [[] for _ in fns]
     for _ in range(repeats):
-        with StageProfile() as prof:
-            fn()
-        totals.append(prof.total_seconds)
-        for row in prof.rows():
-            per_stage.setdefault(row["stage"], []).append(row["seconds"])
-    return {k: statistics.median(v) for k, v in per_stage.items()}, statistics.median(totals)
+        for i, f in enumerate(fns):
+            with StageProfile() as prof:
+                f()
+            totals[i].append(prof.total_seconds)
+            for row in prof.rows():
+                per_stage[i].setdefault(row["stage"], []).append(row["seconds"])
+    out = [({k: statistics.median(v) for k, v in ps.items()}, statistics.median(t)) for ps, t in zip(per_stage, totals)]
+    return out[0] if other is None else (out[0], out[1])
 
 
 def _stage_flops(fn) -> dict:
@@ -113,8 +175,15 @@ def profile(variant: str, h: int, w: int, repeats: int, reference: bool) -> tupl
         render, depth, K, pose, nb = make_inputs(model, h, w)
         run = lambda: model(render, depth, K, pose, nb)  # noqa: E731
         fast_out = run()
-        seconds, total = _stage_times(run, repeats)
+
+        def run_previous():
+            with previous_fast_path():
+                return run()
+
+        prev_diff = float((run_previous() - fast_out).abs().max())
+        (seconds, total), (prev_seconds, prev_total) = _stage_times(run, repeats, run_previous)
         executed = _stage_flops(run)
+        moved = _stage_bytes(run)
     ref_seconds, ref_total, diff = {}, float("nan"), float("nan")
     with torch.no_grad(), reference_mode():
         model_flops = _stage_flops(run)
@@ -127,12 +196,16 @@ def profile(variant: str, h: int, w: int, repeats: int, reference: bool) -> tupl
     for stage in names + ["total"]:
         if stage == "total":
             sec, ref, gm, ge = total, ref_total, sum(model_flops.values()), sum(executed.values())
+            prev = prev_total
         else:
             sec, ref = seconds[stage], ref_seconds.get(stage, float("nan"))
+            prev = prev_seconds.get(stage, float("nan"))
             gm, ge = model_flops.get(stage, 0.0), executed.get(stage, 0.0)
+        gb = sum(moved.values()) if stage == "total" else moved.get(stage, 0.0)
         rows.append(dict(variant=variant, height=h, width=w, neighbours=NEIGHBOURS, stage=stage,
-                         seconds=round(sec, 4), seconds_reference=round(ref, 4), gflop_model=round(gm, 3),
-                         gflop_executed=round(ge, 3), max_abs_diff=diff))
+                         seconds=round(sec, 4), seconds_previous=round(prev, 4),
+                         seconds_reference=round(ref, 4), gflop_model=round(gm, 3),
+                         gflop_executed=round(ge, 3), gb_moved=round(gb, 4), max_abs_diff=diff))
     official = Uformer(model.config.uformer, in_channels=3, out_channels=3).eval()
     rgb = torch.rand(1, 3, h, w)
     with torch.no_grad(), reference_mode():
@@ -141,8 +214,11 @@ def profile(variant: str, h: int, w: int, repeats: int, reference: bool) -> tupl
         official(rgb)
         official_s = time.perf_counter() - t
         official_gflop = _stage_flops(lambda: official(rgb))["other"]
-    summary = dict(variant=variant, height=h, width=w, seconds=total, seconds_reference=ref_total,
+    summary = dict(variant=variant, height=h, width=w, seconds=total, seconds_previous=prev_total,
+                   speedup_vs_previous=prev_total / total, max_abs_diff_previous=prev_diff,
+                   seconds_reference=ref_total,
                    gflop_model=sum(model_flops.values()), gflop_executed=sum(executed.values()),
+                   gb_moved=sum(moved.values()),
                    uformer_official_seconds=official_s, uformer_official_gflop=official_gflop,
                    max_abs_diff=diff)
     return rows, summary
@@ -203,30 +279,48 @@ def main(argv=None) -> None:
     meta = stamp()
     print(f"runtime: {applied}", flush=True)
     peaks = [matmul_peak()]
-    print(f"matmul peak: {peaks[0]:.1f} GFLOP/s", flush=True)
+    bandwidths = [memory_bandwidth()]
+    print(f"matmul peak: {peaks[0]:.1f} GFLOP/s, memory bandwidth (copy): {bandwidths[0]:.1f} GB/s", flush=True)
     rows, summaries = [], []
     for variant in variants:
         for h, w in sizes:
             r, s = profile(variant, h, w, args.repeats, not args.no_reference)
             rows += [{**meta, **row} for row in r]
             summaries.append(s)
-            print(f"{variant} {w}x{h}: {s['seconds']:.3f} s (plain {s['seconds_reference']:.3f} s), "
+            print(f"{variant} {w}x{h}: {s['seconds']:.3f} s (previous fast path {s['seconds_previous']:.3f} s: "
+                  f"{s['speedup_vs_previous']:.2f}x, max |diff| {s['max_abs_diff_previous']:.1e}; "
+                  f"plain {s['seconds_reference']:.3f} s), "
                   f"{s['gflop_model']:.1f} GFLOP model / {s['gflop_executed']:.1f} executed, "
                   f"max |fast - plain| {s['max_abs_diff']:.2e}, official Uformer alone "
                   f"{s['uformer_official_seconds']:.3f} s", flush=True)
     peaks.append(matmul_peak())
-    peak = max(peaks)
+    bandwidths.append(memory_bandwidth())
+    peak, bandwidth = max(peaks), max(bandwidths)
     for row in rows:
         row["peak_gflops"] = round(peak, 1)
         row["gflops_per_s"] = round(row["gflop_executed"] / row["seconds"], 2) if row["seconds"] else 0.0
         row["efficiency"] = round(row["gflop_model"] / row["seconds"] / peak, 4) if row["seconds"] else 0.0
         row["efficiency_executed"] = round(row["gflop_executed"] / row["seconds"] / peak, 4) if row["seconds"] else 0.0
         row["threads"] = applied["threads"]
+        # Roofline floor of the stage as written: its FLOPs at the matmul peak, or its operators'
+        # bytes at the copy bandwidth, whichever is longer (no overlap, no fusion assumed).
+        row["bandwidth_gbs"] = round(bandwidth, 1)
+        row["floor_flops_s"] = round(row["gflop_executed"] / peak, 5)
+        row["floor_bytes_s"] = round(row["gb_moved"] / bandwidth, 5)
+        row["floor_s"] = max(row["floor_flops_s"], row["floor_bytes_s"])
+        row["seconds_over_floor"] = round(row["seconds"] / row["floor_s"], 2) if row["floor_s"] else 0.0
     for s in summaries:
         stage_rows = [r for r in rows if (r["variant"], r["height"], r["width"]) == (s["variant"], s["height"], s["width"])
                       and r["stage"] not in ("total", "other")]
         # The stage costing the most time beyond what it would take at the matmul peak.
         limiting = max(stage_rows, key=lambda r: r["seconds"] - r["gflop_model"] / peak)
+        floor = sum(r["floor_s"] for r in stage_rows) + next(
+            (r["floor_s"] for r in rows if (r["variant"], r["height"], r["width"], r["stage"])
+             == (s["variant"], s["height"], s["width"], "other")), 0.0)
+        s.update(bandwidth_gbs=bandwidth, bandwidths_measured=bandwidths, floor_s=floor,
+                 floor_table={r["stage"]: {k: r[k] for k in ("seconds", "gflop_executed", "gb_moved", "floor_flops_s",
+                                                             "floor_bytes_s", "floor_s")} for r in rows
+                              if (r["variant"], r["height"], r["width"]) == (s["variant"], s["height"], s["width"])})
         s.update(peak_gflops=peak, peaks_measured=peaks, threads=applied["threads"],
                  efficiency_model=s["gflop_model"] / s["seconds"] / peak,
                  efficiency_executed=s["gflop_executed"] / s["seconds"] / peak,
@@ -237,6 +331,14 @@ def main(argv=None) -> None:
         print(f"{s['variant']} {s['width']}x{s['height']}: efficiency {s['efficiency_model']:.1%} of peak "
               f"(executed FLOPs: {s['efficiency_executed']:.1%}), {s['speedup_vs_plain']:.2f}x the plain path, "
               f"limited by {s['limiting_stage']}", flush=True)
+        print(f"  stage seconds now / previous fast path: " + ", ".join(
+            f"{r['stage']} {r['seconds']:.4f}/{r['seconds_previous']:.4f}" for r in rows
+            if (r["variant"], r["height"], r["width"]) == (s["variant"], s["height"], s["width"])), flush=True)
+        print(f"  floor (per stage max(FLOP / {peak:.0f} GFLOP/s, bytes / {bandwidth:.1f} GB/s)): "
+              f"{s['floor_s']:.4f} s of {s['seconds']:.4f} s", flush=True)
+        for stage, r in s["floor_table"].items():
+            print(f"    {stage:>12} {r['seconds']:8.4f} s  {r['gflop_executed']:7.3f} GFLOP -> {r['floor_flops_s']:.4f} s"
+                  f"  {r['gb_moved']:7.3f} GB -> {r['floor_bytes_s']:.4f} s", flush=True)
     write_csv(args.output, rows)
     write_json(args.output.with_suffix(".json"), {**meta, "runtime": applied, "configs": summaries})
     plot(rows, summaries, args.output.with_suffix(".png"))

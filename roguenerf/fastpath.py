@@ -29,6 +29,23 @@ def reference_mode(enabled: bool = True):
         _state.reference = previous
 
 
+@contextmanager
+def previous_fast_path(enabled: bool = True):
+    """Inside: the fast path as it was before issue 12's inference work (per-tap bilinear
+    sampling, the plain projection maths), for ``bench/stages.py`` to time against the present
+    one in one run. Same outputs; not for other use."""
+    previous = getattr(_state, "previous", False)
+    _state.previous = enabled
+    try:
+        yield
+    finally:
+        _state.previous = previous
+
+
+def in_previous_fast_path() -> bool:
+    return getattr(_state, "previous", False)
+
+
 def in_reference_mode() -> bool:
     return getattr(_state, "reference", False)
 

@@ -19,7 +19,7 @@ from kornia.geometry.transform import remap
 from torch import Tensor
 
 from roguenerf.errors import InputError
-from roguenerf.fastpath import fast_enabled
+from roguenerf.fastpath import fast_enabled, in_previous_fast_path
 from roguenerf.geometry.cameras import check_intrinsics, check_pose, relative_pose
 from roguenerf.geometry.depth import DEPTH_EPS, MAX_DEPTH, known_depth_mask  # noqa: F401 (re-exported)
 from roguenerf.geometry.sampling import bilinear_sample
@@ -115,6 +115,81 @@ def sampling_source(src_features: Tensor, src_depth: Tensor | None, *, eps: floa
     return torch.cat(stack, dim=1)
 
 
+def _project(dst_depth: Tensor, src_from_dst: Tensor, src_K: Tensor, dst_K: Tensor, src_size: tuple[int, int],
+             eps: float, dtype) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Target pixels into the neighbour: ``valid`` ``(B, H, W)`` bool (known target depth, in
+    front, inside), ``coords`` ``(B, H, W, 2)``, ``sample_at`` (coords, 0 where not valid) and
+    ``z_proj`` ``(B, H, W)`` (1 where not in front)."""
+    B, H, W = dst_depth.shape[0], *dst_depth.shape[-2:]
+    Hs, Ws = src_size
+    device = dst_depth.device
+    dst_known, z = _known(dst_depth.to(dtype), eps)
+    # The pinhole maths with K is plain torch: kornia's (un)project helpers ignore K's skew
+    # and put pixel centres at integers (ours are at +0.5).
+    pix_h = _pixel_centres(H, W, device, dtype)  # (1, H, W, 3)
+    rays = torch.einsum("bij,bhwj->bhwi", torch.linalg.inv(dst_K), pix_h.expand(B, -1, -1, -1))
+    pts_dst = rays * z[:, 0, :, :, None]  # (B, H, W, 3)
+    pts_src = transform_points(src_from_dst, pts_dst.reshape(B, H * W, 3)).reshape(B, H, W, 3)
+
+    uvw = torch.einsum("bij,bhwj->bhwi", src_K, pts_src)
+    z_proj = pts_src[..., 2]
+    in_front = torch.isfinite(uvw).all(dim=-1) & (z_proj > eps)
+    # Sanitise before dividing, so NaN/inf never meet a zero gradient (0 * inf = NaN).
+    uvw = torch.where(in_front[..., None], uvw, 0.0)
+    z_proj = torch.where(in_front, z_proj, 1.0)
+    coords = uvw[..., :2] / z_proj[..., None] - 0.5  # (B, H, W, 2), pixel centres at integers
+    x, y = coords.unbind(-1)
+    inside = (x >= -0.5) & (x <= Ws - 0.5) & (y >= -0.5) & (y <= Hs - 0.5)
+    valid = dst_known[:, 0] & in_front & inside
+    coords = torch.where(in_front[..., None], coords, 0.0)
+    sample_at = torch.where(valid[..., None], coords, 0.0)
+    return valid, coords, sample_at, z_proj
+
+
+def _project_fast(dst_depth: Tensor, src_from_dst: Tensor, src_K: Tensor, dst_K: Tensor,
+                  src_size: tuple[int, int], eps: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`_project` in fewer passes over the image (fast path: float32, no gradient).
+
+    The pinhole chain is linear in the target pixel for a fixed depth, so it is composed once
+    per batch item in float64: ``x_num = z * (K_i R K_k^-1)_0 . [u, v, 1] + (K_i t)_0`` (and
+    y, and ``z_proj`` with ``R K_k^-1``); each map is then a few broadcast operations of a
+    per-row and a per-column term, with no ``(B, H, W, 3)`` intermediates. Same function, to
+    float32 rounding of the coordinates (the plain path rounds each factor to float32 instead).
+    """
+    B, H, W = dst_depth.shape[0], *dst_depth.shape[-2:]
+    Hs, Ws = src_size
+    device = dst_depth.device
+    dtype = torch.float32
+    dst_known, z = _known(dst_depth, eps)
+    z = z[:, 0]
+    rot, trans = src_from_dst[:, :3, :3], src_from_dst[:, :3, 3]
+    ray = rot @ torch.linalg.inv(dst_K)  # (B, 3, 3): point in the neighbour camera per unit depth
+    M = torch.cat([src_K[:, :2] @ ray, ray[:, 2:]], dim=1)  # rows: x numerator, y numerator, z
+    c = torch.cat([(src_K[:, :2] @ trans[..., None])[..., 0], trans[:, 2:]], dim=1)  # (B, 3)
+    u = torch.arange(W, device=device, dtype=torch.float64) + 0.5
+    v = torch.arange(H, device=device, dtype=torch.float64) + 0.5
+    cols = (M[:, :, 0, None] * u).to(dtype)  # (B, 3, W)
+    rows = (M[:, :, 1, None] * v + M[:, :, 2, None]).to(dtype)  # (B, 3, H)
+    c = c.to(dtype)
+
+    def along(i: int) -> Tensor:  # z * (M_i . [u, v, 1]) + c_i, (B, H, W)
+        return torch.add(rows[:, i, :, None], cols[:, i, None, :]).mul_(z).add_(c[:, i, None, None])
+
+    z_proj = along(2)
+    x, y = along(0), along(1)
+    in_front = torch.isfinite(x) & torch.isfinite(y) & torch.isfinite(z_proj) & (z_proj > eps)
+    z_proj = torch.where(in_front, z_proj, 1.0)
+    x = torch.where(in_front, x, 0.0).div_(z_proj).sub_(0.5)
+    y = torch.where(in_front, y, 0.0).div_(z_proj).sub_(0.5)
+    inside = (x >= -0.5) & (x <= Ws - 0.5) & (y >= -0.5) & (y <= Hs - 0.5)
+    valid = dst_known[:, 0] & in_front & inside
+    x = torch.where(in_front, x, 0.0)
+    y = torch.where(in_front, y, 0.0)
+    coords = torch.stack([x, y], dim=-1)
+    sample_at = torch.stack([torch.where(valid, x, 0.0), torch.where(valid, y, 0.0)], dim=-1)
+    return valid, coords, sample_at, z_proj
+
+
 def reproject(
     src_features: Tensor,
     src_depth: Tensor | None,
@@ -179,28 +254,15 @@ def reproject(
     world_from_src = _batched(check_pose(world_from_src, "world_from_src"), "world_from_src", (4, 4), B)
     world_from_dst = _batched(check_pose(world_from_dst, "world_from_dst"), "world_from_dst", (4, 4), B)
     # float64 here: with both cameras 5e6 units from the origin, float32 would lose the geometry.
-    src_from_dst = relative_pose(world_from_src, world_from_dst).to(device, dtype)
+    src_from_dst64 = relative_pose(world_from_src, world_from_dst).to(device)
+    src_from_dst = src_from_dst64.to(dtype)
 
-    dst_known, z = _known(dst_depth.to(dtype), eps)
-    # The pinhole maths with K is plain torch: kornia's (un)project helpers ignore K's skew
-    # and put pixel centres at integers (ours are at +0.5).
-    pix_h = _pixel_centres(H, W, device, dtype)  # (1, H, W, 3)
-    rays = torch.einsum("bij,bhwj->bhwi", torch.linalg.inv(dst_K), pix_h.expand(B, -1, -1, -1))
-    pts_dst = rays * z[:, 0, :, :, None]  # (B, H, W, 3)
-    pts_src = transform_points(src_from_dst, pts_dst.reshape(B, H * W, 3)).reshape(B, H, W, 3)
-
-    uvw = torch.einsum("bij,bhwj->bhwi", src_K, pts_src)
-    z_proj = pts_src[..., 2]
-    in_front = torch.isfinite(uvw).all(dim=-1) & (z_proj > eps)
-    # Sanitise before dividing, so NaN/inf never meet a zero gradient (0 * inf = NaN).
-    uvw = torch.where(in_front[..., None], uvw, 0.0)
-    z_proj = torch.where(in_front, z_proj, 1.0)
-    coords = uvw[..., :2] / z_proj[..., None] - 0.5  # (B, H, W, 2), pixel centres at integers
-    x, y = coords.unbind(-1)
-    inside = (x >= -0.5) & (x <= Ws - 0.5) & (y >= -0.5) & (y <= Hs - 0.5)
-    valid = dst_known[:, 0] & in_front & inside
-    coords = torch.where(in_front[..., None], coords, 0.0)
-    sample_at = torch.where(valid[..., None], coords, 0.0)
+    if fast_enabled(dst_depth) and dtype == torch.float32 and not in_previous_fast_path():
+        valid, coords, sample_at, z_proj = _project_fast(
+            dst_depth, src_from_dst64,
+            src_K.to(torch.float64), dst_K.to(torch.float64), (Hs, Ws), eps)
+    else:
+        valid, coords, sample_at, z_proj = _project(dst_depth, src_from_dst, src_K, dst_K, (Hs, Ws), eps, dtype)
 
     if source is None:
         source = sampling_source(src_features, src_depth, eps=eps)

@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from roguenerf.errors import InputError
+from roguenerf.fastpath import in_previous_fast_path
 
 
 def bilinear_sample(source: Tensor, x: Tensor, y: Tensor, *, padding: str = "zeros") -> Tensor:
@@ -29,6 +30,43 @@ def bilinear_sample(source: Tensor, x: Tensor, y: Tensor, *, padding: str = "zer
     """
     if padding not in ("zeros", "border"):
         raise InputError(f"padding: expected 'zeros' or 'border', got {padding!r}")
+    if in_previous_fast_path():
+        return _bilinear_sample_per_tap(source, x, y, padding=padding)
+    b, c, hs, ws = source.shape
+    h, w = x.shape[-2:]
+    table = source.permute(0, 2, 3, 1).reshape(b * hs * ws, c)  # free when source is channels-last
+    if padding == "border":
+        x = x.clamp(0, ws - 1)
+        y = y.clamp(0, hs - 1)
+    x0f, y0f = x.floor(), y.floor()
+    wx1, wy1 = x - x0f, y - y0f
+    wx0, wy0 = 1.0 - wx1, 1.0 - wy1
+    x0, y0 = x0f.long(), y0f.long()
+    if padding == "zeros":
+        # A tap outside the image weighs 0: masked per axis (the tap's weight is the product).
+        wx0 = torch.where((x0 >= 0) & (x0 < ws), wx0, 0.0)
+        wx1 = torch.where((x0 >= -1) & (x0 < ws - 1), wx1, 0.0)
+        wy0 = torch.where((y0 >= 0) & (y0 < hs), wy0, 0.0)
+        wy1 = torch.where((y0 >= -1) & (y0 < hs - 1), wy1, 0.0)
+    # With border padding the coordinates lie in the image: only x1 = ws (or y1 = hs) can fall
+    # outside, where its weight x - x0 is exactly 0; the clamped index keeps the gather inside.
+    x0c, x1c = x0.clamp(0, ws - 1), (x0 + 1).clamp_(0, ws - 1)
+    base = (torch.arange(b, device=source.device) * (hs * ws)).view(b, 1, 1)
+    row0 = y0.clamp(0, hs - 1).mul_(ws).add_(base)
+    row1 = (y0 + 1).clamp_(0, hs - 1).mul_(ws).add_(base)
+    # Taps (x0, y0), (x1, y0), (x0, y1), (x1, y1), written in place into one (B, H, W, 4) table.
+    index = torch.empty(b, h, w, 4, dtype=torch.int64, device=source.device)
+    weight = torch.empty(b, h, w, 4, dtype=source.dtype, device=source.device)
+    for k, (row, col, wy, wx) in enumerate(((row0, x0c, wy0, wx0), (row0, x1c, wy0, wx1),
+                                            (row1, x0c, wy1, wx0), (row1, x1c, wy1, wx1))):
+        torch.add(row, col, out=index[..., k])
+        torch.mul(wx, wy, out=weight[..., k])
+    out = F.embedding_bag(index.view(-1, 4), table, per_sample_weights=weight.view(-1, 4), mode="sum")
+    return out.view(b, h, w, c).permute(0, 3, 1, 2)
+
+
+def _bilinear_sample_per_tap(source: Tensor, x: Tensor, y: Tensor, *, padding: str) -> Tensor:
+    """The previous implementation (each tap masked in 2-D), kept for ``previous_fast_path()``."""
     b, c, hs, ws = source.shape
     h, w = x.shape[-2:]
     table = source.permute(0, 2, 3, 1).reshape(b * hs * ws, c)  # free when source is channels-last

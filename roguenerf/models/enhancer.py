@@ -23,8 +23,11 @@ Poses may be float64 and should be when cameras are far from the origin: relativ
 as given, and only then cast to the features' dtype, so translating a whole scene (1e6 units)
 leaves the output unchanged to float32 rounding.
 
-Neighbours are processed one at a time and max-pooled on the fly, so memory does not grow
-with their number and the output is exactly invariant to their order.
+Without gradients, neighbours are processed one at a time and max-pooled on the fly, so memory
+does not grow with their number and the output is exactly invariant to their order. With
+gradients (training) they go through refinement and attention as one batch of N * B, sharing
+the target's work (``_fuse_batched``; autograd keeps every neighbour's activations either
+way); ``reference_mode()`` keeps the per-neighbour loop, equal in output and gradients.
 
 Dimension letters: B batch, N neighbours, F feature channels, H x W target size,
 Hs x Ws neighbour size.
@@ -253,6 +256,8 @@ class Enhancer(nn.Module):
         if fast:
             return self._fuse_fast(feats, depth, K, world_from_cam, nbrs, scale_b, camera_inputs,
                                    target_low, attention_term)
+        if torch.is_grad_enabled() and not fastops.in_reference_mode():
+            return self._fuse_batched(feats, depth, K, world_from_cam, nbrs, scale_b, target_depth, camera_inputs)
         pooled = None
         for j in range(n):
             src, src_depth = nbrs.feature_map(j), nbrs.depth_map(j)
@@ -273,6 +278,49 @@ class Enhancer(nn.Module):
                     aligned = psi_cam * psi_pix * aligned
             with stage("fusion"):
                 pooled = aligned if pooled is None else torch.maximum(pooled, aligned)
+        return pooled
+
+    def _fuse_batched(self, feats: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,
+                      nbrs: NeighbourBatch, scale_b: Tensor, target_depth: Tensor,
+                      camera_inputs: Tensor | None) -> Tensor:
+        """:meth:`_fuse` for training (gradient recorded), same function and gradients: after
+        the per-neighbour reprojection, the N neighbours of the B targets go through the flow
+        refinement, the warp and the attention as one batch of N * B (neighbour-major), and the
+        work that depends only on the target is done once: the flow network's target encoding
+        (:meth:`FlowRefiner.forward` with a batch of N * B neighbours) and the target half of
+        the pixel attention's first convolution (:meth:`PixelAttention.target_term`, shared
+        by :meth:`PixelAttention.from_target_term`). The max-pool is the same chain of
+        ``torch.maximum`` as the per-neighbour loop, so ties split their gradient alike.
+        Memory grows with N (autograd keeps every neighbour's activations in either path)."""
+        b, f, h, w = feats.shape
+        n = len(nbrs)
+        aligned, nb_depth = [], []
+        for j in range(n):
+            with stage("reprojection"):
+                source = nbrs.sources[j] if nbrs.sources is not None else None
+                a, d, _ = self._align(nbrs.feature_map(j), nbrs.depth_map(j), depth, nbrs.K[:, j], K,
+                                      nbrs.world_from_cam[:, j], world_from_cam, (h, w), source)
+                aligned.append(a)
+                nb_depth.append(d)
+        with stage("reprojection"):
+            buf = torch.cat([torch.cat(aligned, dim=0), torch.cat(nb_depth, dim=0)], dim=1)  # (N*B, F+1, H, W)
+        if self.flow is not None:
+            with stage("flow"):
+                buf = flow_warp(buf, self.flow(buf, feats))
+        aligned = buf[:, :f]
+        if self.pixel_attention is not None:
+            with stage("attention"):
+                nb_rel = (buf[:, f:].view(n, b, 1, h, w) / scale_b).clamp(0, MAX_RELATIVE_DEPTH)
+                term = self.pixel_attention.target_term(feats, target_depth)
+                psi_pix = self.pixel_attention.from_target_term(
+                    torch.cat([aligned, nb_rel.view(n * b, 1, h, w)], dim=1), term)
+                psi_cam = self.camera_attention(camera_inputs.transpose(0, 1).reshape(n * b, -1))
+                aligned = psi_cam[:, :, None, None] * psi_pix * aligned
+        with stage("fusion"):
+            per = aligned.view(n, b, f, h, w)
+            pooled = per[0]
+            for j in range(1, n):
+                pooled = torch.maximum(pooled, per[j])
         return pooled
 
     def _fuse_fast(self, feats: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,

@@ -98,12 +98,20 @@ class FlowRefiner(nn.Module):
         zero_init(self.to_delta[-1])
 
     def forward(self, neighbour: Tensor, target: Tensor, target_low: Tensor | None = None) -> Tensor:
+        """``neighbour`` may hold k neighbours of each target, ``(k * B, ...)`` neighbour-major
+        (row ``j * B + i`` is neighbour j of target i): the target is encoded once and its
+        encoding shared by the k (same values and gradients as k calls); ``(k * B, 2, H, W)``."""
         b, _, height, width = target.shape
+        k, rest = divmod(neighbour.shape[0], b)
+        if rest or k < 1:
+            raise ValueError(f"neighbour batch {neighbour.shape[0]} is not a multiple of the target batch {b}")
         if target_low is None:
             low = self._encode(torch.cat([neighbour[:, :target.shape[1]], target], dim=0))
-            nb, tg = low[:b], low[b:]
+            nb, tg = low[:k * b], low[k * b:]
         else:
             nb, tg = self._encode(neighbour), target_low
+        if k > 1:
+            tg = tg.repeat(k, 1, 1, 1)
         return self._iterate(nb, tg, height, width)
 
     def batched(self, neighbours: list[Tensor], target_low: Tensor, height: int, width: int) -> list[Tensor]:

@@ -131,19 +131,30 @@ class PixelAttention(nn.Module):
         conv = self.net[0]
         f = target.shape[1]
         weight = torch.cat([conv.weight[:, f:2 * f], conv.weight[:, 2 * f + 1:]], dim=1)
-        return F.conv2d(cat_channels_last([target, target_depth]), weight, conv.bias, padding=conv.padding)
+        x = [target, target_depth]
+        x = cat_channels_last(x) if fastops.fast_enabled(target) else torch.cat(x, dim=1)
+        return F.conv2d(x, weight, conv.bias, padding=conv.padding)
 
     def from_target_term(self, neighbour_and_depth: Tensor, term: Tensor) -> Tensor:
         """psi_pix from [H', D_i, ...] ``(B, F + 1 + extra, H, W)`` and :meth:`target_term`
         (equal to :meth:`forward`; channels after D_i are ignored, so a buffer holding more
-        channels is used without copying)."""
+        channels is used without copying). ``neighbour_and_depth`` may also hold k neighbours
+        of each of the B targets, ``(k * B, ...)`` neighbour-major: the one target term serves
+        them all; returns ``(k * B, 1, H, W)``."""
         conv = self.net[0]
         f = (conv.weight.shape[1] - 2) // 2
         extra = neighbour_and_depth.shape[1] - (f + 1)
         weight = torch.cat([conv.weight[:, :f], conv.weight[:, 2 * f:2 * f + 1],
                             conv.weight.new_zeros(conv.weight.shape[0], extra, *conv.weight.shape[2:])], dim=1)
         hidden = F.conv2d(neighbour_and_depth, weight, None, padding=conv.padding)
-        hidden = F.leaky_relu(hidden.add_(term), self.net[1].negative_slope)
+        k = hidden.shape[0] // term.shape[0]
+        if k * term.shape[0] != hidden.shape[0]:
+            raise ValueError(f"neighbour batch {hidden.shape[0]} is not a multiple of the target batch {term.shape[0]}")
+        if k > 1:
+            hidden.view(k, *term.shape).add_(term)
+        else:
+            hidden.add_(term)
+        hidden = F.leaky_relu(hidden, self.net[1].negative_slope)
         return torch.sigmoid(fastops.conv2d(hidden, self.net[2]))
 
 
