@@ -331,7 +331,7 @@ def main(argv=None) -> None:
         print(f"{s['variant']} {s['width']}x{s['height']}: efficiency {s['efficiency_model']:.1%} of peak "
               f"(executed FLOPs: {s['efficiency_executed']:.1%}), {s['speedup_vs_plain']:.2f}x the plain path, "
               f"limited by {s['limiting_stage']}", flush=True)
-        print(f"  stage seconds now / previous fast path: " + ", ".join(
+        print("  stage seconds now / previous fast path: " + ", ".join(
             f"{r['stage']} {r['seconds']:.4f}/{r['seconds_previous']:.4f}" for r in rows
             if (r["variant"], r["height"], r["width"]) == (s["variant"], s["height"], s["width"])), flush=True)
         print(f"  floor (per stage max(FLOP / {peak:.0f} GFLOP/s, bytes / {bandwidth:.1f} GB/s)): "

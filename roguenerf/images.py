@@ -15,7 +15,6 @@ what the CLI, the scene readers and the service's ``/enhance`` use, so an 8-bit,
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 
 from roguenerf.errors import InputError

@@ -15,7 +15,7 @@ from roguenerf.errors import InputError
 from roguenerf.imageio import encode_png, read_image
 from roguenerf.inference import SceneEnhancer
 from roguenerf.metrics import lpips, psnr, ssim
-from roguenerf.models import NeighbourBatch, build_enhancer
+from roguenerf.models import build_enhancer
 
 INTEGER_DTYPES = [torch.uint8, torch.int16, torch.bool]
 HINT = {torch.uint8: r"x\.float\(\) / 255", torch.int16: r"x\.float\(\) / 65535", torch.bool: r"x\.float\(\)"}

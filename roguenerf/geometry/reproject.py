@@ -156,7 +156,7 @@ def _project_fast(dst_depth: Tensor, src_from_dst: Tensor, src_K: Tensor, dst_K:
     per-row and a per-column term, with no ``(B, H, W, 3)`` intermediates. Same function, to
     float32 rounding of the coordinates (the plain path rounds each factor to float32 instead).
     """
-    B, H, W = dst_depth.shape[0], *dst_depth.shape[-2:]
+    H, W = dst_depth.shape[-2:]
     Hs, Ws = src_size
     device = dst_depth.device
     dtype = torch.float32

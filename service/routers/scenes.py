@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 from typing import Annotated
 
-from fastapi import APIRouter, File, Header, Query, Response, UploadFile
+from fastapi import APIRouter, File, Header, Response, UploadFile
 
 from roguenerf.errors import RoGUENeRFError
 from service.errors import ApiError, error_responses, library_error
