@@ -85,6 +85,15 @@ def write_json(path: Path, obj) -> Path:
     return path
 
 
+def write_outputs(output: Path, rows: list[dict], plot, *, quick: bool = False) -> tuple[Path, Path]:
+    """``OUTPUT[_quick].csv`` and ``OUTPUT[_quick].png`` (``plot(rows, path)``); prints both paths."""
+    stem = output.name + ("_quick" if quick else "")
+    csv_path = write_csv(output.with_name(stem + ".csv"), rows)
+    png_path = plot(rows, output.with_name(stem + ".png"))
+    print(f"wrote {csv_path} and {png_path}")
+    return csv_path, png_path
+
+
 def starting_checkpoint(explicit: Path | None, scratch: bool) -> Path | None:
     """The checkpoint to fine-tune from: explicit, else the shipped default, else None (scratch)."""
     from roguenerf.checkpoint import default_checkpoint_path

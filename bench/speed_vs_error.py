@@ -22,7 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import LEGO, RESULTS, scene_metrics, stamp, starting_checkpoint, write_csv  # noqa: E402
+from bench.common import LEGO, RESULTS, scene_metrics, stamp, starting_checkpoint, write_outputs  # noqa: E402
 
 
 def _floats(text: str) -> list[float]:
@@ -131,11 +131,7 @@ def main(argv=None) -> int:
     from roguenerf import runtime
 
     print(f"runtime: {runtime.configure()}", flush=True)
-    rows = run(args)
-    suffix = "_quick" if args.quick else ""
-    csv_path = write_csv(args.output.with_name(args.output.name + suffix + ".csv"), rows)
-    png_path = plot(rows, args.output.with_name(args.output.name + suffix + ".png"))
-    print(f"wrote {csv_path} and {png_path}")
+    write_outputs(args.output, run(args), plot, quick=args.quick)
     return 0
 
 

@@ -106,7 +106,7 @@ class GridField(nn.Module):
         n = x.abs().amax(dim=-1, keepdim=True).clamp_min(1e-9)
         m = 1.0 / (2.0 - n).clamp_min(1e-6)
         x = torch.where(n <= 1.0, x, x * (m / n))
-        return x * self.radius + self.centre
+        return x * self.radius + self.centre.to(u.dtype)
 
     def occupied(self, u: Tensor) -> Tensor:
         """Occupancy of grid coordinates ``(..., 3)`` -> bool ``(...)``."""
@@ -296,12 +296,7 @@ def seen_by_cameras(field: GridField, world_from_cam: Tensor, K: Tensor, near: T
     c = (torch.arange(g, dtype=torch.float64) + 0.5) / g * 2.0 - 1.0
     zz, yy, xx = torch.meshgrid(c, c, c, indexing="ij")
     u = torch.stack([xx, yy, zz], dim=-1).reshape(-1, 3) * 0.999
-    field64 = field.centre.double()
-    x = u * 2.0
-    n = x.abs().amax(dim=-1, keepdim=True).clamp_min(1e-9)
-    m = 1.0 / (2.0 - n).clamp_min(1e-6)
-    x = torch.where(n <= 1.0, x, x * (m / n))
-    pts = x * field.radius + field64
+    pts = field.uncontract(u)
     cam_from_world = torch.linalg.inv(world_from_cam.double())
     margin = 0.05 * max(height, width)
     seen = torch.zeros(pts.shape[0], dtype=torch.bool)

@@ -102,6 +102,7 @@ class _Fitter:
     def __init__(self, ps: PhotoSet, config: FitConfig, state_dir: Path):
         self.ps, self.config, self.state_dir = ps, config, state_dir
         self.train = ps.indices("train")
+        self.train_index = torch.as_tensor(self.train)
         if len(self.train) < 2:
             raise InputError(f"photo set: expected at least 2 training views, got {len(self.train)}")
         pose = ps.world_from_cam[self.train]
@@ -189,7 +190,7 @@ class _Fitter:
         m = torch.randint(0, len(self.train), (c.rays,), generator=self.generator)
         v = torch.randint(0, ps.height, (c.rays,), generator=self.generator)
         u = torch.randint(0, ps.width, (c.rays,), generator=self.generator)
-        views = torch.as_tensor(self.train)[m]
+        views = self.train_index[m]
         origins, dirs = camera_rays(ps.K[views], ps.world_from_cam[views], v, u)
         target = self.pixels[m, v, u].to(torch.float32) / 255.0
         background = torch.rand(c.rays, 3, generator=self.generator)

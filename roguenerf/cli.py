@@ -276,26 +276,21 @@ def make_pairs_command(
         total = config.steps if config.steps is not None else 100
         bar = tqdm(total=total, desc=f"fitting {photos_dir.name}", unit="step" if config.steps else "%",
                    file=sys.stderr)
-        rbar = None
 
         def progress(p: dict) -> None:
             done = p["step"] if config.steps is not None else int(100 * p["fraction"])
             bar.set_postfix(psnr=f"{p['psnr']:.2f}", grid=p["resolution"], refresh=False)
             bar.update(done - bar.n)
 
-        def render_progress(done: int, total_views: int) -> None:
-            nonlocal rbar
-            if rbar is None:
-                bar.close()
-                rbar = tqdm(total=total_views, desc="rendering", unit="view", file=sys.stderr)
-            rbar.update(done - rbar.n)
-
         try:
-            report = make_pairs(photos_dir, output, config, progress=progress, render_progress=render_progress)
+            with _progress_bar("rendering", "view") as view_progress:
+                def render_progress(done: int, total_views: int) -> None:
+                    bar.close()
+                    view_progress(done, total_views)
+
+                report = make_pairs(photos_dir, output, config, progress=progress, render_progress=render_progress)
         finally:
             bar.close()
-            if rbar is not None:
-                rbar.close()
         test = report["test"]
         typer.echo(f"fitted {report['steps']} steps in {report['fit_seconds']:.0f} s: training views "
                    f"{report['train']['psnr']:.2f} dB" + (f", held-out views {test['psnr']:.2f} dB" if test else ""),
