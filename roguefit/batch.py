@@ -1,7 +1,7 @@
 """Make pre-training pairs for every posed photo set in a folder, resumably, with a manifest.
 
     python -m roguefit.batch --data ../shared/data/real --cache ~/.cache/roguenerf/pairs \\
-        --presets coarse,fine --manifest docs/pairs/manifest.csv --examples docs/pairs
+        --presets blur,coarse --manifest docs/pairs/manifest.csv --examples docs/pairs
 
 For each scene folder (a ``transforms.json`` inside) and each preset it runs
 :func:`roguefit.make_pairs` into ``CACHE/SCENE/PRESET`` (outside the repository: the renders are
@@ -27,7 +27,7 @@ from roguefit.fit import FIT_FILE, PRESETS, make_pairs
 
 log = logging.getLogger("roguefit.batch")
 
-MANIFEST_FIELDS = ["scene", "fit", "resolution", "features", "minutes", "steps", "fit_seconds", "render_seconds",
+MANIFEST_FIELDS = ["scene", "fit", "resolution", "features", "render_scale", "minutes", "steps", "fit_seconds", "render_seconds",
                    "train_views", "train_psnr", "train_ssim", "test_views", "test_psnr", "test_ssim"]
 
 
@@ -42,7 +42,7 @@ def manifest_rows(cache: Path) -> list[dict]:
         c, tr, te = report["config"], report["train"], report["test"] or {}
         rows.append({
             "scene": fit_json.parent.parent.name, "fit": fit_json.parent.name,
-            "resolution": c["resolution"], "features": c["features"],
+            "resolution": c["resolution"], "features": c["features"], "render_scale": c.get("render_scale", 1),
             "minutes": c["minutes"], "steps": report["steps"], "fit_seconds": report["fit_seconds"],
             "render_seconds": report["render_seconds"],
             "train_views": tr["views"], "train_psnr": round(tr["psnr"], 3), "train_ssim": round(tr["ssim"], 4),
@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m roguefit.batch", description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, required=True, help="folder of posed photo sets")
     parser.add_argument("--cache", type=Path, required=True, help="output root (outside the repository)")
-    parser.add_argument("--presets", default="coarse,fine", help=f"comma-separated, of {', '.join(PRESETS)}")
+    parser.add_argument("--presets", default="blur,coarse", help=f"comma-separated, of {', '.join(PRESETS)}")
     parser.add_argument("--scenes", default="", help="comma-separated scene names, fitted in this order (default: all, sorted)")
     parser.add_argument("--budget-scale", type=float, default=1.0,
                         help="multiply every preset's budget (steps or minutes); a smoke test uses 0.01")

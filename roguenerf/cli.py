@@ -231,7 +231,7 @@ def make_toy_scenes(root: Path, count: int, *, seed: int = 0, height: int = 96, 
 def make_pairs_command(
     photos_dir: Annotated[Path, typer.Argument(help="Posed photo set: transforms.json + photos (every 8th view is held out).")],
     output: Annotated[Path, typer.Option("--output", help="Scene folder to write (renders, depths, acc for every view).")] = ...,
-    preset: Annotated[str, typer.Option("--preset", help="Field preset: coarse (blurry, RGB grid) or fine (sharper, view-dependent).")] = "fine",
+    preset: Annotated[str, typer.Option("--preset", help="Field preset: blur (64³ RGB grid, half-size render), coarse (96³ RGB grid) or fine (160³, view-dependent).")] = "fine",
     minutes: Annotated[float | None, typer.Option("--minutes", help="Fitting budget in minutes (default: the preset's).")] = None,
     steps: Annotated[int | None, typer.Option("--steps", help="Fitting budget in steps (instead of minutes).")] = None,
     resolution: Annotated[int | None, typer.Option("--resolution", help="Final grid side (default: the preset's).")] = None,

@@ -7,7 +7,8 @@
 #   SCENES=cup,dtu_scan37 STAGE=pairs ...          # these scenes, in this order
 #   STAGE=pretrain MINUTES=120 scripts/pretrain_real.sh
 #
-# 1. pairs: `python -m roguefit.batch` fits a coarse and a fine radiance field to the TRAINING views
+# 1. pairs: `python -m roguefit.batch` fits a blur and a coarse radiance field (PRESETS; fine is a
+#    sharper, ~4x costlier third look) to the TRAINING views
 #    (every 8th view held out) of every scene in $DATA and renders every view into $CACHE
 #    (outside the repository); docs/pairs/manifest.csv lists the fits.
 # 2. pretrain: `roguenerf pretrain` over every fit of every scene except $HOLDOUT (never seen in
@@ -21,7 +22,7 @@ cd "$(dirname "$0")/.."
 SHARED=${ROGUENERF_SHARED_DATA:-../shared/data}
 DATA=${DATA:-$SHARED/real}
 CACHE=${CACHE:-$HOME/.cache/roguenerf/pairs}
-PRESETS=${PRESETS:-coarse,fine}
+PRESETS=${PRESETS:-blur,coarse}
 HOLDOUT=${HOLDOUT:-dtu_scan37,mary_rose}
 EXTRA=${EXTRA-$SHARED/lego}
 MINUTES=${MINUTES:-90}

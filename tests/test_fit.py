@@ -186,7 +186,7 @@ def test_pretraining_pipeline_smoke(tmp_path):
     write_photo_set(data / "alpha", views=9, seed=1)
     write_photo_set(data / "beta", views=9, seed=2)
     repo = Path(__file__).resolve().parents[1]
-    env = {**__import__("os").environ, "DATA": str(data), "CACHE": str(tmp_path / "cache"), "PRESETS": "coarse",
+    env = {**__import__("os").environ, "DATA": str(data), "CACHE": str(tmp_path / "cache"), "PRESETS": "blur,coarse",
            "HOLDOUT": "beta", "EXTRA": "", "BUDGET_SCALE": "0.01", "STEPS": "2", "OUT": str(tmp_path / "run"),
            "DEST": str(tmp_path / "weights" / "default.safetensors"), "MANIFEST": str(tmp_path / "docs" / "manifest.csv"),
            "PY": sys.executable, "EVAL_ARGS": f"--quick --output {tmp_path / 'bench' / 'real'}"}
@@ -194,11 +194,13 @@ def test_pretraining_pipeline_smoke(tmp_path):
                           text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     manifest = (tmp_path / "docs" / "manifest.csv").read_text().splitlines()
-    assert manifest[0].startswith("scene,fit,") and len(manifest) == 3
-    assert {line.split(",")[0] for line in manifest[1:]} == {"alpha", "beta"}
+    assert manifest[0].startswith("scene,fit,") and len(manifest) == 5  # two looks of two scenes
+    assert {tuple(line.split(",")[:2]) for line in manifest[1:]} == {
+        (s, p) for s in ("alpha", "beta") for p in ("blur", "coarse")}
     assert (tmp_path / "docs" / "alpha_coarse.png").is_file()
-    # Pre-training saw alpha only, never the held-out beta.
-    assert f"pre-training on 1 scene folders: {tmp_path / 'cache' / 'alpha' / 'coarse'}" in proc.stderr
+    # Pre-training saw both looks of alpha only, never the held-out beta.
+    cache = tmp_path / "cache"
+    assert f"pre-training on 2 scene folders: {cache / 'alpha' / 'blur'} {cache / 'alpha' / 'coarse'}" in proc.stderr
     assert (tmp_path / "weights" / "default.safetensors").is_file()
     rows = (tmp_path / "bench" / "real_quick.csv").read_text().splitlines()
     assert len(rows) == 1 + 1 + 2  # header, zero-shot new, two fine-tuning budgets
@@ -242,3 +244,24 @@ def test_distortion_loss_prefers_a_surface_to_fog():
     brute = sum(fog[0, i] * fog[0, j] * abs(s[0, i] - s[0, j]) for i in range(32) for j in range(32)) + (fog[0] ** 2).sum() / 96
     assert torch.allclose(d_fog[0], torch.as_tensor(brute, dtype=torch.float32), rtol=1e-5)
     assert (d_fog > 10 * d_surface).all()
+
+
+def test_half_size_render_upsamples_to_the_photo_size_and_stays_close(fitted):
+    """The blur preset renders at half size: same shape, nearly the same image and depth on a
+    field whose voxels span pixels, and its identity differs from the full-size fit's."""
+    from roguefit.fit import STATE_DIR, _Fitter
+
+    root, out, _, _ = fitted
+    fitter = _Fitter(read_photo_set(root), SMALL, out / STATE_DIR)
+    assert fitter.load()
+    full = fitter.render_view(3)
+    fitter.config = dataclasses.replace(SMALL, render_scale=2)
+    half = fitter.render_view(3)
+    for a, b in zip(full, half):
+        assert a.shape == b.shape and a.dtype == b.dtype
+    assert (full[0] - half[0]).abs().mean() < 0.03
+    assert ((full[1] - half[1]).abs() / full[1]).median() < 0.02
+    assert "render_scale" not in SMALL.identity()  # fits made before the option stay complete
+    assert dataclasses.replace(SMALL, render_scale=2).identity()["render_scale"] == 2
+    with pytest.raises(InputError, match="render_scale"):
+        FitConfig(render_scale=0)
