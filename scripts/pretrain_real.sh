@@ -6,6 +6,7 @@
 #   STAGE=pairs scripts/pretrain_real.sh           # only the pairs (hours on 2 CPU cores)
 #   SCENES=cup,dtu_scan37 STAGE=pairs ...          # these scenes, in this order
 #   STAGE=pretrain MINUTES=120 scripts/pretrain_real.sh
+#   STAGE=pretrain FITS=cup/coarse,cup/blur ...   # exactly these fits (held-out scenes still refused)
 #
 # 1. pairs: `python -m roguefit.batch` fits a blur and a coarse radiance field (PRESETS; fine is a
 #    sharper, ~4x costlier third look) to the TRAINING views
@@ -50,14 +51,32 @@ if [ "$STAGE" = all ] || [ "$STAGE" = pretrain ]; then
   scenes=()
   IFS=, read -r -a held <<< "$HOLDOUT"
   IFS=, read -r -a presets <<< "$PRESETS"
-  for dir in "$CACHE"/*/; do
-    name=$(basename "$dir")
+  # FITS (scene/preset,...) names the fits exactly (what a shipped checkpoint was trained on);
+  # otherwise every finished fit of $PRESETS in $CACHE (of $SCENES when set) outside $HOLDOUT.
+  candidates=()
+  if [ -n "${FITS:-}" ]; then
+    IFS=, read -r -a fits <<< "$FITS"
+    for f in "${fits[@]}"; do
+      if [ ! -f "$CACHE/$f/fit.json" ]; then echo "FITS: $CACHE/$f is not a finished fit" >&2; exit 2; fi
+      candidates+=("$CACHE/$f")
+    done
+  else
+    for dir in "$CACHE"/*/; do
+      name=$(basename "$dir")
+      if [ -n "${SCENES:-}" ] && [[ ",$SCENES," != *",$name,"* ]]; then continue; fi
+      for p in "${presets[@]}"; do
+        if [ -f "$dir$p/fit.json" ]; then candidates+=("$dir$p"); fi
+      done
+    done
+  fi
+  for fit in "${candidates[@]}"; do
+    name=$(basename "$(dirname "$fit")")
     skip=0
     for h in "${held[@]}"; do [ "$name" = "$h" ] && skip=1; done
-    [ "$skip" = 1 ] && continue
-    for p in "${presets[@]}"; do
-      if [ -f "$dir$p/fit.json" ]; then scenes+=("$dir$p"); fi
-    done
+    if [ "$skip" = 1 ] && [ -n "${FITS:-}" ]; then
+      echo "FITS: $name is a held-out scene (HOLDOUT=$HOLDOUT): never pre-train on it" >&2; exit 2
+    fi
+    [ "$skip" = 1 ] || scenes+=("${fit%/}")
   done
   if [ "${#scenes[@]}" = 0 ]; then
     echo "no finished fits under $CACHE outside the held-out scenes ($HOLDOUT): run STAGE=pairs first" >&2

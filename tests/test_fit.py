@@ -205,6 +205,14 @@ def test_pretraining_pipeline_smoke(tmp_path):
     rows = (tmp_path / "bench" / "real_quick.csv").read_text().splitlines()
     assert len(rows) == 1 + 1 + 2  # header, zero-shot new, two fine-tuning budgets
     assert all("beta" in r for r in rows[1:])
+    # Naming the fits exactly: a held-out scene or an unfinished fit is refused before any training.
+    for fits, message in (("alpha/coarse,beta/coarse", "beta is a held-out scene"),
+                          ("alpha/fine", "is not a finished fit")):
+        refused = subprocess.run(["bash", str(repo / "scripts" / "pretrain_real.sh")], capture_output=True, text=True,
+                                 env={**env, "STAGE": "pretrain", "FITS": fits, "OUT": str(tmp_path / "refused")},
+                                 timeout=60)
+        assert refused.returncode == 2 and message in refused.stderr, refused.stderr
+        assert not (tmp_path / "refused").exists()
 
 
 def test_early_terminating_renderer_equals_the_training_renderer():
