@@ -49,8 +49,9 @@ def parse_args(argv=None):
 
 
 def _label(scene_dir: Path) -> str:
+    # A roguefit output (scene/preset/fit.json) is named scene/preset; any other folder by its name.
     parts = scene_dir.resolve().parts
-    return "/".join(parts[-2:]) if scene_dir.name in ("coarse", "fine") else scene_dir.name
+    return "/".join(parts[-2:]) if (scene_dir / "fit.json").is_file() else scene_dir.name
 
 
 def summarise(report: dict) -> dict:
