@@ -22,6 +22,7 @@ from torch import Tensor
 
 from roguenerf.errors import InputError, NonFiniteOutputError
 from roguenerf.images import check_float_image
+from roguenerf.models.layers import receptive_radius
 from roguenerf.runtime import release_freed_memory
 
 DEFAULT_TILE = 512
@@ -35,10 +36,6 @@ for very large images, at the cost of re-encoding)."""
 
 PROBE_PIXELS = 128 * 128
 """The "does any neighbour see this view" check looks at about this many target pixels."""
-
-CONV_H_HALO = 2
-"""Receptive radius of conv_H (two 3x3 convolutions): a crop encoded with this margin gives
-exactly the whole photo's features inside the crop."""
 
 NO_NEIGHBOUR_NOTE = "no neighbour sees this view: enhanced without neighbours"
 
@@ -177,6 +174,8 @@ class SceneEnhancer:
         with torch.inference_mode():
             depth_sources = [sampling_source(d[None], d[None]) for d in depths]
 
+        halo = receptive_radius(self.model.conv_H) if self.model.conv_H is not None else 0
+
         def provider(depth_tile: Tensor, K_tile: Tensor):
             # Crop sizes differ from tile to tile: return the last tile's freed blocks to the
             # OS, or the kept-freed heap fragments and the RSS grows tile after tile.
@@ -195,8 +194,10 @@ class SceneEnhancer:
                     y1 = min(int(torch.ceil(ys.max())) + 2, hs)
                 else:  # nothing to see: a small crop whose depth is all unknown
                     x0, x1, y0, y1 = 0, min(ws, 2), 0, min(hs, 2)
-                hx0, hy0 = max(x0 - CONV_H_HALO, 0), max(y0 - CONV_H_HALO, 0)
-                hx1, hy1 = min(x1 + CONV_H_HALO, ws), min(y1 + CONV_H_HALO, hs)
+                # conv_H's receptive radius: a crop encoded with this margin gives exactly the
+                # whole photo's features inside the crop (zero padding only at real borders).
+                hx0, hy0 = max(x0 - halo, 0), max(y0 - halo, 0)
+                hx1, hy1 = min(x1 + halo, ws), min(y1 + halo, hs)
                 feats = self.model.encode_neighbours(photo[None, :, hy0:hy1, hx0:hx1])
                 feats = feats[..., y0 - hy0:y1 - hy0, x0 - hx0:x1 - hx0]
                 crop_depth = depth[None, :, y0:y1, x0:x1]
