@@ -380,6 +380,69 @@ def enhance(
         typer.echo(str(output))
 
 
+def _import_command(tool: str, dataset: Path, renders: Path, output: Path, depth_type, depth_scale: float,
+                    depth_units: str, dataparser_transforms, background) -> None:
+    from roguenerf.data.exports import import_renders
+
+    with _errors():
+        if depth_type not in (None, "z", "ray"):
+            raise InputError(f"--depth-type: expected z or ray, got {depth_type!r}")
+        if background not in (None, "zero", "max"):
+            raise InputError(f"--background: expected zero or max, got {background!r}")
+        if not dataset.exists():
+            raise InputError(f"dataset {dataset} does not exist")
+        if dataparser_transforms is not None and not dataparser_transforms.is_file():
+            raise InputError(f"--dataparser-transforms: {dataparser_transforms} does not exist")
+        with _progress_bar(f"importing {tool} renders", "view") as progress:
+            scene = import_renders(dataset, renders, output, tool=tool, depth_type=depth_type,
+                                   depth_scale=depth_scale, depth_units=depth_units,
+                                   dataparser_transforms=dataparser_transforms, background=background,
+                                   progress=progress)
+        typer.echo(f"wrote {scene!r}", err=True)
+        typer.echo(str(output))
+
+
+DepthTypeOpt = Annotated[str | None, typer.Option("--depth-type", help=(
+    "ray: distance along the ray (nerfacto, gsplat ED); z: along the optical axis (splatfacto, gsplat RGB+ED). "
+    "Default: ray for nerfstudio, z for gsplat."))]
+DepthScaleOpt = Annotated[float, typer.Option("--depth-scale", help="Multiply stored depth by this (0.001 for millimetre PNGs).")]
+BackgroundOpt = Annotated[str | None, typer.Option("--background", help=(
+    "What no-surface pixels hold: zero, or max (the map's maximum; gsplat's default). Made unknown."))]
+DataparserOpt = Annotated[Path | None, typer.Option("--dataparser-transforms", help=(
+    "The trained model's dataparser_transforms.json: kept in the scene for camera paths from nerfstudio's viewer."))]
+
+
+@app.command("import-nerfstudio")
+def import_nerfstudio(
+    dataset: Annotated[Path, typer.Argument(help="nerfstudio dataset: folder with transforms.json and the photos.")],
+    renders: Annotated[Path, typer.Option("--renders", help="ns-render dataset output (<split>/rgb, <split>/raw-depth).")],
+    output: Annotated[Path, typer.Option("--output", help="Scene folder to write.")],
+    depth_type: DepthTypeOpt = None,
+    depth_scale: DepthScaleOpt = 1.0,
+    depth_units: Annotated[str, typer.Option("--depth-units", help=(
+        "dataset: depth in the dataset's pose units (ns-render divides by the dataparser scale); "
+        "model: in the model's world (divided by the scale here)."))] = "dataset",
+    dataparser_transforms: DataparserOpt = None,
+    background: BackgroundOpt = None,
+) -> None:
+    """Turn a nerfstudio dataset plus `ns-render dataset` output into a scene folder (z-depth, pose units)."""
+    _import_command("nerfstudio", dataset, renders, output, depth_type, depth_scale, depth_units,
+                    dataparser_transforms, background)
+
+
+@app.command("import-gsplat")
+def import_gsplat(
+    dataset: Annotated[Path, typer.Argument(help="Dataset with transforms.json (nerfstudio style) and the photos.")],
+    renders: Annotated[Path, typer.Option("--renders", help="Folder with rgb/ and depth/ (.npy, .npy.gz, .npz, 16-bit PNG, float TIFF).")],
+    output: Annotated[Path, typer.Option("--output", help="Scene folder to write.")],
+    depth_type: DepthTypeOpt = None,
+    depth_scale: DepthScaleOpt = 1.0,
+    background: BackgroundOpt = None,
+) -> None:
+    """Turn gsplat renders + expected depth (and the dataset's poses) into a scene folder."""
+    _import_command("gsplat", dataset, renders, output, depth_type, depth_scale, "dataset", None, background)
+
+
 @app.command()
 def serve(
     host: Annotated[str, typer.Option("--host", help="Address to listen on.")] = "127.0.0.1",
