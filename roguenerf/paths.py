@@ -36,6 +36,8 @@ STATE_FILE = "path_state.json"
 FLICKER_FILE = "flicker.json"
 VIDEO_FILE = "enhanced.mp4"
 SIDE_BY_SIDE_FILE = "side_by_side.mp4"
+CAMERA_FILES = ("camera_path.json", "cameras.json", "transforms.json")
+"""Where :func:`find_camera_file` looks for a path's cameras in an uploaded folder (first found)."""
 POSE_MATCH_TOL = 1e-5
 """A path camera "is" a scene view (and has its photo) when rotation and position agree to this
 (position relative to the scene's extent)."""
@@ -147,6 +149,16 @@ def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
     if not (math.isfinite(fps) and 0 < fps <= 240):
         raise _fail(path, f"fps: expected a number in (0, 240], got {fps}")
     return CameraPath(world_from_cam=world_from_cam, K=K, width=width, height=height, fps=fps, source=source)
+
+
+def find_camera_file(folder: str | Path) -> Path:
+    """The camera path file of an uploaded path folder (one of :data:`CAMERA_FILES`)."""
+    folder = Path(folder)
+    for name in CAMERA_FILES:
+        if (folder / name).is_file():
+            return folder / name
+    raise InputError(f"no camera path found: expected one of {', '.join(CAMERA_FILES)} at the top level, "
+                     "beside rgb/ and depth/")
 
 
 def _natural_key(name: str):
