@@ -96,10 +96,10 @@ def render_frame(field, samples, K, pose, width, height, near, far, chunk=16384)
     return rgb, torch.cat(depth).reshape(1, height, width).float()
 
 
-def key_views(scene, count: int) -> list[int]:
-    """``count`` held-out views, in order of azimuth around the cameras' centre, the most
-    evenly spaced contiguous run."""
-    test = scene.indices("test")
+def key_views(scene, count: int, split: str = "test") -> list[int]:
+    """``count`` views of ``split`` ("test" or "all"), in order of azimuth around the cameras'
+    centre: the contiguous run with the smallest largest gap."""
+    test = scene.indices(split)
     centre = scene.poses()[:, :3, 3].mean(0)
     az = {i: math.atan2(float(scene.frames[i].world_from_cam[1, 3] - centre[1]),
                         float(scene.frames[i].world_from_cam[0, 3] - centre[0])) for i in test}
@@ -113,42 +113,23 @@ def key_views(scene, count: int) -> list[int]:
     return best
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--fit", type=Path, default=DEFAULT_FIT, help="make-pairs output with .fit/ state")
-    parser.add_argument("--work", type=Path, default=Path.home() / ".cache" / "roguenerf" / "bench_paths")
-    parser.add_argument("--factor", type=int, default=2, help="downscale of the scene and the path renders")
-    parser.add_argument("--keys", type=int, default=5, help="held-out views the path goes through")
-    parser.add_argument("--steps", type=int, default=15, help="frames per segment between key views")
-    parser.add_argument("--checkpoint", type=Path, default=None, help="enhancer (default: the shipped one)")
-    parser.add_argument("--quality", type=int, default=20, help="x264 CRF of the MP4s")
-    parser.add_argument("--quick", action="store_true", help="3 keys x 4 steps (9 frames)")
-    args = parser.parse_args()
-    if args.quick:
-        args.keys, args.steps = 3, 4
+def field_frames(args):
+    """Scene (downscaled make-pairs output) and the path frames rendered by its fitted field."""
+    from roguenerf import load_scene
+    from roguenerf.geometry import known_depth_mask
+    from roguenerf.imageio import atomic_write, encode_npy, write_png
+    from roguenerf.paths import smooth_path
 
-    import roguenerf.runtime
-    from roguenerf import SceneEnhancer, load_checkpoint, load_scene
-    from roguenerf.checkpoint import default_checkpoint_path
-    from roguenerf.imageio import encode_npy, atomic_write, write_png
-    from roguenerf.paths import CameraPath, enhance_path, smooth_path
-
-    roguenerf.runtime.configure()
-    tag = "quick" if args.quick else "full"
     work = args.work / args.fit.parent.name / f"x{args.factor}"
     scene = downscale_scene(load_scene(args.fit), work / "scene", args.factor)
-    keys = key_views(scene, args.keys)
+    keys = key_views(scene, args.keys, "all" if args.photo_path else "test")
     poses = smooth_path(scene.poses(keys), args.steps)
     K = scene.frames[keys[0]].K
     width, height = scene.frames[keys[0]].width, scene.frames[keys[0]].height
-    frames = work / f"frames_{args.keys}x{args.steps}"
+    frames = work / (f"photo_frames_{args.keys}" if args.photo_path else f"frames_{args.keys}x{args.steps}")
     (frames / "rgb").mkdir(parents=True, exist_ok=True)
     (frames / "depth").mkdir(parents=True, exist_ok=True)
-
-    # Ray bounds from the scene's rendered depth (the field's own; the photo set's near/far
-    # bounds are of the same order).
-    from roguenerf.geometry import known_depth_mask
-
+    # Ray bounds from the scene's rendered depth (the field's own, generously widened).
     known = [scene.depth(i)[known_depth_mask(scene.depth(i))] for i in scene.indices("train")]
     near, far = float(min(k.min() for k in known)) * 0.5, float(max(k.max() for k in known)) * 1.5
     field, samples = load_field(args.fit)
@@ -163,14 +144,85 @@ def main() -> None:
         write_png(rgb_path, rgb)
         rendered += 1
         print(f"rendered frame {t + 1}/{len(poses)}", flush=True)
-    render_s = time.perf_counter() - started
+    return (scene, frames, poses, K, width, height, time.perf_counter() - started, rendered,
+            args.fit.parent.name)
 
+
+def toy_frames(args):
+    """An exact-geometry toy orbit: photos and depth exact, renders degraded per frame."""
+    from roguenerf.data.degrade import Degradation
+    from roguenerf.data.readers import load_scene
+    from roguenerf.data.toy import make_toy_scene, make_toy_world, render_toy_view
+    from roguenerf.imageio import atomic_write, encode_npy, write_png
+    from roguenerf.paths import smooth_path
+
+    work = args.work / "toy"
+    height, width = 96, 128
+    if (work / "scene" / "transforms.json").is_file():
+        scene = load_scene(work / "scene")
+    else:
+        scene = make_toy_scene(work / "scene", seed=0, n_train=16, n_test=6, height=height, width=width,
+                               degradation=Degradation(), kind="orbit")
+    world = make_toy_world(0)
+    keys = key_views(scene, args.keys, "all" if args.photo_path else "test")
+    poses = smooth_path(scene.poses(keys), args.steps)
+    K = scene.frames[keys[0]].K
+    frames = work / f"frames_{args.keys}x{args.steps}"
+    (frames / "rgb").mkdir(parents=True, exist_ok=True)
+    (frames / "depth").mkdir(parents=True, exist_ok=True)
+    started, rendered = time.perf_counter(), 0
+    for t, pose in enumerate(poses):
+        rgb_path, depth_path = frames / "rgb" / f"{t:05d}.png", frames / "depth" / f"{t:05d}.npy"
+        if rgb_path.is_file() and depth_path.is_file():
+            continue
+        photo, z = render_toy_view(world, pose, K, height, width)
+        render, depth = Degradation()(photo[None], z[None], torch.Generator().manual_seed(1000 + t), K=K)
+        atomic_write(depth_path, encode_npy(depth[0, 0].numpy()))
+        write_png(rgb_path, render[0].clamp(0, 1))
+        rendered += 1
+    return scene, frames, poses, K, width, height, time.perf_counter() - started, rendered, "toy"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--fit", type=Path, default=DEFAULT_FIT, help="make-pairs output with .fit/ state")
+    parser.add_argument("--work", type=Path, default=Path.home() / ".cache" / "roguenerf" / "bench_paths")
+    parser.add_argument("--factor", type=int, default=2, help="downscale of the scene and the path renders")
+    parser.add_argument("--keys", type=int, default=5, help="held-out views the path goes through")
+    parser.add_argument("--steps", type=int, default=15, help="frames per segment between key views")
+    parser.add_argument("--checkpoint", type=Path, default=None, help="enhancer (default: the shipped one)")
+    parser.add_argument("--quality", type=int, default=20, help="x264 CRF of the MP4s")
+    parser.add_argument("--quick", action="store_true", help="3 keys x 4 steps (9 frames)")
+    parser.add_argument("--photo-path", action="store_true", help=(
+        "a path made only of the scene's views (train and test, in azimuth order, --steps 1): every "
+        "frame has a photo, so the photos' own flicker is measured too"))
+    parser.add_argument("--toy", action="store_true", help=(
+        "an exact-geometry toy orbit instead of the fitted field (renders: the photos through "
+        "roguenerf's NeRF-like Degradation, drawn anew per frame)"))
+    args = parser.parse_args()
+    if args.quick:
+        args.keys, args.steps = 3, 4
+    if args.photo_path:
+        args.steps = 1
+
+    import roguenerf.runtime
+    from roguenerf import SceneEnhancer, load_checkpoint
+    from roguenerf.checkpoint import default_checkpoint_path
+    from roguenerf.paths import CameraPath, enhance_path
+
+    roguenerf.runtime.configure()
+    tag = ("toy_" if args.toy else "") + ("quick" if args.quick else "full")
+    if args.toy:
+        scene, frames, poses, K, width, height, render_s, rendered, name = toy_frames(args)
+    else:
+        scene, frames, poses, K, width, height, render_s, rendered, name = field_frames(args)
+    keys = key_views(scene, args.keys, "all" if args.photo_path else "test")
     checkpoint = args.checkpoint or default_checkpoint_path()
     model, _ = load_checkpoint(checkpoint)
     enhancer = SceneEnhancer(scene, model)
     camera_path = CameraPath(world_from_cam=poses, K=K.expand(len(poses), 3, 3).clone(), width=width,
                              height=height, fps=24.0)
-    out = work / f"enhanced_{args.keys}x{args.steps}"
+    out = frames.parent / ("enhanced_" + frames.name)
     result = enhance_path(scene, enhancer, camera_path, frames, out, quality=args.quality,
                           checkpoint_id=str(checkpoint), progress=lambda d, n: print(f"enhanced {d}/{n}", flush=True))
     from roguenerf.video import read_video_info
@@ -184,13 +236,14 @@ def main() -> None:
     pairs = {p["to"]: p for p in report["per_pair"]}
     for f in report["per_frame"]:
         pair = pairs.get(f["frame"], {})
-        rows.append({**base, "scene": args.fit.parent.name, "size": f"{width}x{height}", "frame": f["frame"],
+        rows.append({**base, "scene": name, "size": f"{width}x{height}", "frame": f["frame"],
                      "view": f["view"] or "", "render_flicker": pair.get("render"),
                      "enhanced_flicker": pair.get("enhanced"), "photo_flicker": pair.get("photo"),
                      "valid_fraction": pair.get("valid_fraction"), "render_psnr": f.get("render_psnr"),
                      "enhanced_psnr": f.get("enhanced_psnr"), "gain_db": f.get("gain_db")})
     fl, ps_ = report["flicker"], report["psnr"]
-    summary = {**base, "command": " ".join(["bench/paths.py", *sys.argv[1:]]), "scene": str(args.fit),
+    summary = {**base, "command": " ".join(["bench/paths.py", *sys.argv[1:]]),
+               "scene": "toy (exact geometry, Degradation per frame)" if args.toy else str(args.fit),
                "size": f"{width}x{height}", "frames": len(poses), "key_views": [scene.frames[i].name for i in keys],
                "checkpoint": str(checkpoint), "flicker": fl, "psnr": ps_,
                "flicker_ratio_ok": fl["ratio"] is not None and fl["ratio"] <= 1.05,
@@ -199,7 +252,8 @@ def main() -> None:
                "enhance_s_per_frame": round(result.seconds / max(result.enhanced_now, 1), 3) if result.enhanced_now else None,
                "cached_views": result.cached_views, "video": {"enhanced": info, "side_by_side": side},
                "video_path": str(result.video)}
-    stem = "paths" + ("_quick" if args.quick else "")
+    variant = ("_toy" if args.toy else "") + ("_photos" if args.photo_path else "")
+    stem = "paths" + variant + ("_quick" if args.quick else "")
     write_json(RESULTS / f"{stem}.json", summary)
 
     def plot(rows, path):
@@ -212,9 +266,12 @@ def main() -> None:
         xs = [r["frame"] for r in rows if r["render_flicker"] is not None]
         ax.plot(xs, [r["render_flicker"] for r in rows if r["render_flicker"] is not None], label="render")
         ax.plot(xs, [r["enhanced_flicker"] for r in rows if r["render_flicker"] is not None], label="enhanced")
+        photo = [(r["frame"], r["photo_flicker"]) for r in rows if r["photo_flicker"] is not None]
+        if photo:
+            ax.plot(*zip(*photo), label="photos", color="0.5", ls="--")
         ax.set_ylabel("flicker: MAE of frame t-1\nreprojected into t")
         ax.legend()
-        ax.set_title(f"{summary['scene'].split('/')[-2]} path, {len(rows)} frames {width}x{height}: flicker "
+        ax.set_title(f"{name} path, {len(rows)} frames {width}x{height}: flicker "
                      f"render {fl['render']:.4f}, enhanced {fl['enhanced']:.4f} (x{fl['ratio']:.3f})", fontsize=9)
         gx = [r["frame"] for r in rows if r["gain_db"] is not None]
         bx.bar(gx, [r["gain_db"] for r in rows if r["gain_db"] is not None], width=1.5, color="tab:green")
@@ -227,7 +284,7 @@ def main() -> None:
         plt.close(fig)
         return path
 
-    write_outputs(RESULTS / "paths", rows, plot, quick=args.quick)
+    write_outputs(RESULTS / ("paths" + variant), rows, plot, quick=args.quick)
     print(json.dumps({k: summary[k] for k in ("frames", "flicker", "psnr", "enhance_s", "render_s")}, indent=1))
     print(f"{tag}: videos in {out}")
 

@@ -177,3 +177,14 @@ def test_bad_camera_paths_are_named(tmp_path):
                                 "frames": [{"transform_matrix": pose}, {"transform_matrix": pose}]}))
     cp = read_camera_path(ours)
     assert len(cp) == 2 and cp.source == "transforms" and (cp.width, cp.height) == (4, 4)
+
+
+def test_paths_and_exports_import_no_service_stack_no_fitter_no_av():
+    import subprocess
+    import sys
+
+    code = ("import sys, roguenerf.paths, roguenerf.data.exports, roguenerf.video; "
+            "print(sorted(m for m in ('fastapi', 'huey', 'uvicorn', 'roguefit', 'av', 'service', 'workers') "
+            "if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
