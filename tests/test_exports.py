@@ -182,3 +182,24 @@ def test_read_depth_formats_and_refusals(tmp_path):
         bad = tmp_path / "dp.json"
         bad.write_text(json.dumps({"transform": [[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0]], "scale": 1}))
         DataparserTransform.read(bad)
+
+
+def test_import_cli(ours, tmp_path):
+    from typer.testing import CliRunner
+
+    from roguenerf.cli import app
+
+    _nerfstudio_dataset(tmp_path / "ds", ours)
+    _ns_render(tmp_path / "renders", ours)
+    runner = CliRunner()
+    r = runner.invoke(app, ["import-nerfstudio", str(tmp_path / "ds"), "--renders", str(tmp_path / "renders"),
+                            "--output", str(tmp_path / "out"), "--dataparser-transforms",
+                            str(tmp_path / "ds" / "dataparser_transforms.json")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "out" / "dataparser_transforms.json").is_file()
+    bad = runner.invoke(app, ["import-gsplat", str(tmp_path / "nope"), "--renders", str(tmp_path / "renders"),
+                              "--output", str(tmp_path / "o2")])
+    assert bad.exit_code == 2 and "does not exist" in bad.output and "Traceback" not in bad.output
+    bad = runner.invoke(app, ["import-nerfstudio", str(tmp_path / "ds"), "--renders", str(tmp_path / "renders"),
+                              "--output", str(tmp_path / "o3"), "--depth-type", "zz"])
+    assert bad.exit_code == 2 and "--depth-type" in bad.output
