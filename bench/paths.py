@@ -274,7 +274,8 @@ def main() -> None:
         ax.set_title(f"{name} path, {len(rows)} frames {width}x{height}: flicker "
                      f"render {fl['render']:.4f}, enhanced {fl['enhanced']:.4f} (x{fl['ratio']:.3f})", fontsize=9)
         gx = [r["frame"] for r in rows if r["gain_db"] is not None]
-        bx.bar(gx, [r["gain_db"] for r in rows if r["gain_db"] is not None], width=1.5, color="tab:green")
+        bx.bar(gx, [r["gain_db"] for r in rows if r["gain_db"] is not None], width=0.8 if len(gx) > 10 else 1.5,
+               color="tab:green")
         bx.axhline(0, color="k", lw=0.5)
         bx.set_ylabel("PSNR gain (dB)\nframes with photos")
         bx.set_xlabel("frame")
