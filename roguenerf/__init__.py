@@ -18,6 +18,7 @@ from roguenerf.errors import (  # noqa: E402
     CheckpointError,
     InputError,
     NonFiniteOutputError,
+    PathCancelled,
     RoGUENeRFError,
     SceneFormatError,
     TrainingCancelled,
@@ -54,12 +55,20 @@ _LAZY = {
     "finetune": "roguenerf.training",
     "pretrain": "roguenerf.training",
     "evaluate": "roguenerf.training",
+    # camera paths and exports of other tools
+    "CameraPath": "roguenerf.paths",
+    "PathResult": "roguenerf.paths",
+    "read_camera_path": "roguenerf.paths",
+    "enhance_path": "roguenerf.paths",
+    "import_renders": "roguenerf.data.exports",
+    "DataparserTransform": "roguenerf.data.exports",
 }
 
 __all__ = [
     "CheckpointError",
     "InputError",
     "NonFiniteOutputError",
+    "PathCancelled",
     "RoGUENeRFError",
     "SceneFormatError",
     "TrainingCancelled",

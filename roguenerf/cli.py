@@ -1,4 +1,5 @@
-"""The ``roguenerf`` command: finetune, evaluate, enhance, pretrain, make-pairs, serve.
+"""The ``roguenerf`` command: finetune, evaluate, enhance, enhance-path, import-nerfstudio, import-gsplat,
+pretrain, make-pairs, serve.
 
 Errors are one line on stderr and an exit code: 2 for bad input (missing scene, bad
 checkpoint, bad flag values), 1 for failures (divergence, cancellation, anything else).
@@ -378,6 +379,146 @@ def enhance(
         if result.note:
             typer.echo(f"note: {result.note}", err=True)
         typer.echo(str(output))
+
+
+def _import_command(tool: str, dataset: Path, renders: Path, output: Path, depth_type, depth_scale: float,
+                    depth_units: str, dataparser_transforms, background) -> None:
+    from roguenerf.data.exports import import_renders
+
+    with _errors():
+        if depth_type not in (None, "z", "ray"):
+            raise InputError(f"--depth-type: expected z or ray, got {depth_type!r}")
+        if background not in (None, "zero", "max"):
+            raise InputError(f"--background: expected zero or max, got {background!r}")
+        if not dataset.exists():
+            raise InputError(f"dataset {dataset} does not exist")
+        if dataparser_transforms is not None and not dataparser_transforms.is_file():
+            raise InputError(f"--dataparser-transforms: {dataparser_transforms} does not exist")
+        with _progress_bar(f"importing {tool} renders", "view") as progress:
+            scene = import_renders(dataset, renders, output, tool=tool, depth_type=depth_type,
+                                   depth_scale=depth_scale, depth_units=depth_units,
+                                   dataparser_transforms=dataparser_transforms, background=background,
+                                   progress=progress)
+        typer.echo(f"wrote {scene!r}", err=True)
+        typer.echo(str(output))
+
+
+DepthTypeOpt = Annotated[str | None, typer.Option("--depth-type", help=(
+    "ray: distance along the ray (nerfacto, gsplat ED); z: along the optical axis (splatfacto, gsplat RGB+ED). "
+    "Default: ray for nerfstudio, z for gsplat."))]
+DepthScaleOpt = Annotated[float, typer.Option("--depth-scale", help="Multiply stored depth by this (0.001 for millimetre PNGs).")]
+BackgroundOpt = Annotated[str | None, typer.Option("--background", help=(
+    "What no-surface pixels hold: zero, or max (the map's maximum; gsplat's default). Made unknown."))]
+DataparserOpt = Annotated[Path | None, typer.Option("--dataparser-transforms", help=(
+    "The trained model's dataparser_transforms.json: kept in the scene for camera paths from nerfstudio's viewer."))]
+
+
+@app.command("import-nerfstudio")
+def import_nerfstudio(
+    dataset: Annotated[Path, typer.Argument(help="nerfstudio dataset: folder with transforms.json and the photos.")],
+    renders: Annotated[Path, typer.Option("--renders", help="ns-render dataset output (<split>/rgb, <split>/raw-depth).")],
+    output: Annotated[Path, typer.Option("--output", help="Scene folder to write.")],
+    depth_type: DepthTypeOpt = None,
+    depth_scale: DepthScaleOpt = 1.0,
+    depth_units: Annotated[str, typer.Option("--depth-units", help=(
+        "dataset: depth in the dataset's pose units (ns-render divides by the dataparser scale); "
+        "model: in the model's world (divided by the scale here)."))] = "dataset",
+    dataparser_transforms: DataparserOpt = None,
+    background: BackgroundOpt = None,
+) -> None:
+    """Turn a nerfstudio dataset plus `ns-render dataset` output into a scene folder (z-depth, pose units)."""
+    _import_command("nerfstudio", dataset, renders, output, depth_type, depth_scale, depth_units,
+                    dataparser_transforms, background)
+
+
+@app.command("import-gsplat")
+def import_gsplat(
+    dataset: Annotated[Path, typer.Argument(help="Dataset with transforms.json (nerfstudio style) and the photos.")],
+    renders: Annotated[Path, typer.Option("--renders", help="Folder with rgb/ and depth/ (.npy, .npy.gz, .npz, 16-bit PNG, float TIFF).")],
+    output: Annotated[Path, typer.Option("--output", help="Scene folder to write.")],
+    depth_type: DepthTypeOpt = None,
+    depth_scale: DepthScaleOpt = 1.0,
+    background: BackgroundOpt = None,
+) -> None:
+    """Turn gsplat renders + expected depth (and the dataset's poses) into a scene folder."""
+    _import_command("gsplat", dataset, renders, output, depth_type, depth_scale, "dataset", None, background)
+
+
+@app.command("enhance-path")
+def enhance_path_command(
+    scene_dir: Annotated[Path, typer.Argument(help="Scene folder (the training photos, poses, renders, depths).")],
+    frames: Annotated[Path, typer.Option("--frames", help="Folder of the path's renders and depths (rgb/ + depth/, or NAME.png + NAME.npy).")],
+    cameras: Annotated[Path, typer.Option("--cameras", help="nerfstudio camera_path.json, or a transforms-style list of cameras.")],
+    output: Annotated[Path, typer.Option("--output", help="Output folder: frames/, enhanced.mp4, side_by_side.mp4, flicker.json.")],
+    checkpoint: CheckpointOpt = None,
+    neighbours: NeighboursOpt = None,
+    quality: Annotated[int, typer.Option("--quality", help="x264 CRF, 0 (lossless) .. 51; 18-23 look good.")] = 20,
+    fps: Annotated[float | None, typer.Option("--fps", help="Frame rate (default: the camera path's, else 24).")] = None,
+    depth_type: Annotated[str, typer.Option("--depth-type", help="z or ray (distance along the ray, nerfacto).")] = "z",
+    depth_scale: DepthScaleOpt = 1.0,
+    background: Annotated[str, typer.Option("--background", help="No-surface pixels hold zero, or max (gsplat).")] = "zero",
+    dataparser_transforms: Annotated[Path | None, typer.Option("--dataparser-transforms", help=(
+        "Maps a nerfstudio camera path (model world) to the scene's poses; default: the scene folder's "
+        "dataparser_transforms.json when there is one."))] = None,
+    no_video: Annotated[bool, typer.Option("--no-video", help="Write the frames and flicker.json only.")] = False,
+) -> None:
+    """Enhance every frame of a camera path; write the frames, an MP4, a side-by-side MP4 and the flicker.
+
+    Resumable: run the same command again after an interruption.
+    """
+    from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
+    from roguenerf.inference import SceneEnhancer
+    from roguenerf.paths import FLICKER_FILE, enhance_path, read_camera_path
+
+    with _errors():
+        if depth_type not in ("z", "ray"):
+            raise InputError(f"--depth-type: expected z or ray, got {depth_type!r}")
+        if background not in ("zero", "max"):
+            raise InputError(f"--background: expected zero or max, got {background!r}")
+        if not 0 <= quality <= 51:
+            raise InputError(f"--quality: expected 0..51 (x264 CRF), got {quality}")
+        if fps is not None and not (math.isfinite(fps) and 0 < fps <= 240):
+            raise InputError(f"--fps: expected a number in (0, 240], got {fps}")
+        if not no_video:
+            from roguenerf.video import require_av
+
+            require_av()
+        scene = _load_scene(scene_dir)
+        camera_path = read_camera_path(cameras)
+        if camera_path.source == "nerfstudio":
+            parser_file = dataparser_transforms or (scene_dir / DATAPARSER_FILE)
+            if parser_file.is_file():
+                camera_path = read_camera_path(cameras, dataparser=DataparserTransform.read(parser_file))
+            elif dataparser_transforms is not None:
+                raise InputError(f"--dataparser-transforms: {dataparser_transforms} does not exist")
+            else:
+                typer.echo("note: nerfstudio camera path and no dataparser_transforms.json: its poses are "
+                           "taken as the scene's own", err=True)
+        ckpt = _checkpoint_path(checkpoint)
+        from roguenerf.checkpoint import load_checkpoint
+
+        model, _meta = load_checkpoint(ckpt)
+        enhancer = SceneEnhancer(scene, model, num_neighbours=neighbours)
+        stat = ckpt.stat()
+        with _progress_bar(f"enhancing {len(camera_path)} frames", "frame") as progress:
+            result = enhance_path(scene, enhancer, camera_path, frames, output, depth_type=depth_type,
+                                  depth_scale=depth_scale, background=background, video=not no_video,
+                                  quality=quality, fps=fps, checkpoint_id=f"{ckpt.resolve()}:{stat.st_size}:{stat.st_mtime_ns}",
+                                  progress=progress)
+        f, p = result.flicker["flicker"], result.flicker["psnr"]
+        resumed = result.frames - result.enhanced_now
+        typer.echo(f"enhanced {result.enhanced_now} frames in {result.seconds:.1f} s"
+                   + (f" ({resumed} already done)" if resumed else "")
+                   + f"; neighbour features cached for {result.cached_views} training photos", err=True)
+        if f["render"] is not None:
+            typer.echo(f"flicker (mean |frame t reprojected into t+1 - frame t+1| on valid pixels): render "
+                       f"{f['render']:.4f}, enhanced {f['enhanced']:.4f} (x{f['ratio']:.3f})"
+                       + (f", photos {f['photo']:.4f}" if f["photo"] is not None else ""), err=True)
+        if p["frames_with_photos"]:
+            typer.echo(f"{p['frames_with_photos']} frames have photos: PSNR render {p['render']:.2f} dB, enhanced "
+                       f"{p['enhanced']:.2f} dB, mean gain {p['mean_gain_db']:+.2f} dB", err=True)
+        typer.echo(f"wrote {output / FLICKER_FILE}", err=True)
+        typer.echo(str(result.video or output))
 
 
 @app.command()

@@ -51,3 +51,12 @@ class TrainingCancelled(RoGUENeRFError):
         self.step = step
         self.checkpoint = checkpoint
         super().__init__(f"training cancelled at step {step}")
+
+
+class PathCancelled(RoGUENeRFError):
+    """Enhancing a camera path stopped because its ``should_stop`` callback asked it to; the
+    frames done so far are kept and a later call resumes after them."""
+
+    def __init__(self, frame: int):
+        self.frame = frame
+        super().__init__(f"camera path cancelled after {frame} frames")

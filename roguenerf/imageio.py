@@ -211,6 +211,14 @@ def _over_white(rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(rgb * alpha[None] + (1.0 - alpha[None]), dtype=np.float32)
 
 
+GZIP_MAGIC = b"\x1f\x8b"
+ZIP_MAGIC = b"PK\x03\x04"
+TIFF_MAGICS = (b"II*\x00", b"MM\x00*")
+EXR_MAGIC = b"\x76\x2f\x31\x01"
+DEPTH_KINDS = ("npy", "png", "gz", "npz", "tiff")
+"""What :func:`read_depth` decodes (``kind``); detected from the content by default."""
+
+
 def read_depth(
     source: Source,
     *,
@@ -218,21 +226,30 @@ def read_depth(
     max_pixels: int = DEFAULT_MAX_PIXELS,
     kind: str | None = None,
 ) -> Tensor:
-    """Read a depth map: ``.npy`` (any real float/int dtype) or a 16-bit PNG, times ``scale``.
+    """Read a depth map, times ``scale``, from any of the files radiance-field tools write.
 
-    ``.npy`` files are checked from their header first (shape ``(H, W)`` or ``(1, H, W)``,
-    a real numeric dtype, size within ``max_pixels``) and then loaded with
-    ``allow_pickle=False``: object arrays and pickles are refused, never unpickled.
-    PNG depth must be single-channel 16-bit (e.g. millimetres with ``scale=0.001``); an 8-bit
-    PNG cannot hold depth and is refused. Values are returned as stored times ``scale``;
-    unknown values (:func:`roguenerf.geometry.depth.known_depth_mask`: non-finite, ``<= 1e-6``
-    or ``>= 1e10``) are not altered: every consumer applies that one rule.
+    * ``.npy`` (any real float/int dtype), checked from its header first (shape ``(H, W)``,
+      ``(1, H, W)`` or ``(H, W, 1)`` as nerfstudio writes it, a real numeric dtype, size within
+      ``max_pixels``) and then loaded with ``allow_pickle=False``: object arrays and pickles are
+      refused, never unpickled.
+    * ``.npy.gz``: a gzip-compressed ``.npy`` (nerfstudio ``ns-render dataset`` raw depth);
+      decompression stops as soon as more bytes come out than a ``max_pixels`` float64 map
+      needs (a gzip bomb costs nothing).
+    * ``.npz``: the array named ``depth`` or the archive's only array, checked like ``.npy``.
+    * PNG: single-channel 16-bit (e.g. millimetres with ``scale=0.001``); an 8-bit PNG cannot
+      hold depth and is refused.
+    * TIFF: single-channel 32-bit float (or 16-bit integer), decoded by Pillow, already a
+      dependency. OpenEXR is refused with a message: no EXR reader is a dependency.
+
+    Values are returned as stored times ``scale``; unknown values
+    (:func:`roguenerf.geometry.depth.known_depth_mask`: non-finite, ``<= 1e-6`` or ``>= 1e10``)
+    are not altered: every consumer applies that one rule.
 
     Args:
         source: path or the file's bytes.
         scale: multiplier to pose units; finite and > 0.
         max_pixels: larger maps raise :class:`ImageTooLargeError` before the data is read.
-        kind: ``"npy"`` or ``"png"``; by default detected from the content's magic bytes.
+        kind: one of :data:`DEPTH_KINDS`; by default detected from the content's magic bytes.
     Returns:
         ``(1, H, W)`` float32.
     """
@@ -240,27 +257,105 @@ def read_depth(
         raise InputError(f"depth scale must be a finite number > 0, got {scale!r}")
     stream, name = _open_bytes(source)
     with stream:
-        head = stream.read(8)
-        stream.seek(0)
-        if kind is None:
-            if head.startswith(NPY_MAGIC):
-                kind = "npy"
-            elif head.startswith(PNG_SIGNATURE):
-                kind = "png"
-            else:
-                raise InputError(
-                    f"{name}: not a depth file: expected a .npy array or a 16-bit PNG "
-                    f"(first bytes {head!r})"
-                )
-        if kind == "npy":
-            depth = _read_npy(stream, name, max_pixels)
-        elif kind == "png":
-            depth = _read_png_depth(stream, name, max_pixels)
-        else:
-            raise InputError(f"depth kind must be 'npy' or 'png', got {kind!r}")
+        depth = _read_depth_stream(stream, name, max_pixels, kind, nested=False)
     if scale != 1.0:
         depth = depth * np.float32(scale)
     return torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32)[None])
+
+
+def _depth_kind(head: bytes, name: str) -> str:
+    if head.startswith(NPY_MAGIC):
+        return "npy"
+    if head.startswith(PNG_SIGNATURE):
+        return "png"
+    if head.startswith(GZIP_MAGIC):
+        return "gz"
+    if head.startswith(ZIP_MAGIC):
+        return "npz"
+    if head.startswith(TIFF_MAGICS):
+        return "tiff"
+    if head.startswith(EXR_MAGIC):
+        raise InputError(f"{name}: OpenEXR depth is not supported (no EXR reader is a dependency); "
+                         "save it as .npy, .npy.gz, .npz, 32-bit float TIFF or 16-bit PNG")
+    raise InputError(
+        f"{name}: not a depth file: expected .npy, .npy.gz, .npz, a 32-bit float TIFF or a 16-bit PNG "
+        f"(first bytes {head!r})"
+    )
+
+
+def _read_depth_stream(stream: BinaryIO, name: str, max_pixels: int, kind: str | None, *,
+                       nested: bool) -> np.ndarray:
+    head = stream.read(8)
+    stream.seek(0)
+    if kind is None:
+        kind = _depth_kind(head, name)
+    if kind not in DEPTH_KINDS:
+        raise InputError(f"depth kind must be one of {', '.join(DEPTH_KINDS)}, got {kind!r}")
+    if kind == "npy":
+        return _read_npy(stream, name, max_pixels)
+    if kind == "png":
+        return _read_png_depth(stream, name, max_pixels)
+    if kind == "tiff":
+        return _read_tiff_depth(stream, name, max_pixels)
+    if nested:
+        raise InputError(f"{name}: a compressed archive inside a compressed archive is not a depth map")
+    if kind == "gz":
+        return _read_gz_depth(stream, name, max_pixels)
+    return _read_npz_depth(stream, name, max_pixels)
+
+
+def _bounded_bytes(max_pixels: int) -> int:
+    """Largest decompressed depth file accepted: a float64 map of ``max_pixels`` plus a header."""
+    return max_pixels * 8 + 4096
+
+
+def _read_gz_depth(stream: BinaryIO, name: str, max_pixels: int) -> np.ndarray:
+    limit = _bounded_bytes(max_pixels)
+    inflater = zlib.decompressobj(16 + zlib.MAX_WBITS)
+    out = bytearray()
+    try:
+        while chunk := stream.read(1 << 20):
+            out += inflater.decompress(chunk, limit + 1 - len(out))
+            if len(out) > limit or inflater.unconsumed_tail:
+                raise ImageTooLargeError(f"{name} (decompressed)", -1, -1, max_pixels)
+            if inflater.eof:
+                break
+        out += inflater.flush()
+    except zlib.error as exc:
+        raise InputError(f"{name}: corrupt gzip data ({exc})") from None
+    if not inflater.eof:
+        raise InputError(f"{name}: truncated gzip data")
+    return _read_depth_stream(io.BytesIO(bytes(out)), f"{name} (decompressed)", max_pixels, None, nested=True)
+
+
+def _read_npz_depth(stream: BinaryIO, name: str, max_pixels: int) -> np.ndarray:
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(stream) as archive:
+            members = [i for i in archive.infolist() if i.filename.endswith(".npy")]
+            chosen = [i for i in members if i.filename == "depth.npy"] or members
+            if len(chosen) != 1:
+                found = ", ".join(i.filename[:-4] for i in members) or "none"
+                raise InputError(f"{name}: .npz must hold one array or one named 'depth', found: {found}")
+            info = chosen[0]
+            if info.file_size > _bounded_bytes(max_pixels):
+                raise ImageTooLargeError(f"{name}:{info.filename}", -1, -1, max_pixels)
+            data = archive.read(info)
+    except zipfile.BadZipFile as exc:
+        raise InputError(f"{name}: not a valid .npz file ({exc})") from None
+    except (zlib.error, EOFError, NotImplementedError) as exc:
+        raise InputError(f"{name}: corrupt .npz data ({exc})") from None
+    return _read_npy(io.BytesIO(data), f"{name}:{info.filename[:-4]}", max_pixels)
+
+
+def _read_tiff_depth(stream: BinaryIO, name: str, max_pixels: int) -> np.ndarray:
+    img = _open_image(stream, name, ["TIFF"], max_pixels)
+    if img.mode not in ("F", "I;16", "I;16B", "I;16L", "I"):
+        raise InputError(f"{name}: depth TIFF must be single-channel 32-bit float (or 16-bit), "
+                         f"got mode {img.mode!r}")
+    _load_pixels(img, name)
+    return np.asarray(img).astype(np.float32)
 
 
 def _read_npy(stream: BinaryIO, name: str, max_pixels: int) -> np.ndarray:
@@ -284,8 +379,10 @@ def _read_npy(stream: BinaryIO, name: str, max_pixels: int) -> np.ndarray:
         raise InputError(f"{name}: depth dtype must be a real float or integer type, got {dtype}")
     if len(shape) == 3 and shape[0] == 1:
         shape = shape[1:]
+    elif len(shape) == 3 and shape[2] == 1:  # nerfstudio's raw depth: (H, W, 1)
+        shape = shape[:2]
     if len(shape) != 2:
-        raise InputError(f"{name}: depth shape must be (H, W) or (1, H, W), got {tuple(shape)}")
+        raise InputError(f"{name}: depth shape must be (H, W), (1, H, W) or (H, W, 1), got {tuple(shape)}")
     height, width = shape
     _check_pixels(name, width, height, max_pixels)
     stream.seek(0)

@@ -19,7 +19,7 @@ from starlette.middleware.cors import CORSMiddleware
 from service.auth import BearerAuthMiddleware
 from service.docs import install_docs
 from service.errors import error_response, install_error_handlers
-from service.routers import checkpoints, enhance, health, jobs, scenes, views
+from service.routers import checkpoints, enhance, health, jobs, paths, scenes, views
 from service.settings import Settings
 from service.state import EnhancerCache, Services
 from workers.jobs import JobStore
@@ -176,7 +176,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     install_error_handlers(app)
     install_docs(app)
-    for module in (health, scenes, views, checkpoints, enhance, jobs):
+    for module in (health, scenes, views, checkpoints, enhance, jobs, paths):
         app.include_router(module.router)
     _add_ui(app)
     if settings.api_key is not None:

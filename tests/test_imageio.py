@@ -235,7 +235,7 @@ def test_depth_npy_pickle_refused_without_unpickling(tmp_path):
         (np.zeros((2, 2), dtype=bool), "real float or integer"),
         (np.array([["ab", "cd"]]), "real float or integer"),
         (np.zeros((2, 2), dtype=[("a", "f4")]), "real float or integer"),
-        (np.zeros((3, 2, 2), dtype=np.float32), r"\(H, W\) or \(1, H, W\), got \(3, 2, 2\)"),
+        (np.zeros((3, 2, 2), dtype=np.float32), r"\(H, W\), \(1, H, W\) or \(H, W, 1\), got \(3, 2, 2\)"),
         (np.zeros(5, dtype=np.float32), r"got \(5,\)"),
     ],
 )

@@ -440,6 +440,16 @@ class JobStore:
             ))
             return True
 
+    def record_frames(self, job_id: str, lease: str, *, done: int, total: int, eta_s: float | None) -> bool:
+        """Progress of a camera-path job (frames enhanced of ``total``; no loss, no phase). False
+        when this worker no longer owns the job."""
+        now = time.time()
+        with self.db.tx() as tx:
+            return tx.execute(sa.update(jobs).where(self._owned(job_id, lease)).values(
+                step=done, total_steps=total, progress=min(max(done / max(total, 1), 0.0), 1.0), eta_s=eta_s,
+                heartbeat_at=now, updated_at=now,
+            )).rowcount == 1
+
     def record_phase(self, job_id: str, lease: str, phase: str) -> bool:
         """A running job entered ``phase`` (:data:`PHASES`); evaluating has no ETA. False when
         this worker no longer owns the job."""

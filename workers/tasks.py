@@ -126,6 +126,10 @@ def run_job(ctx: WorkerContext, job_id: str) -> str:
     beat = _Heartbeat(ctx.store, job_id, lease, ctx.settings.heartbeat_period)
     beat.start()
     try:
+        if (job.get("request") or {}).get("kind") == "path":
+            from workers.paths import run_path_job
+
+            return run_path_job(ctx, job, lease, beat)
         return _train(ctx, job, lease, beat)
     finally:
         beat.stop.set()

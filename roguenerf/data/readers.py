@@ -340,7 +340,8 @@ def _check_frame_files(frame: Frame) -> None:
 
 
 def _depth_size(path: Path) -> tuple[int, int]:
-    """``(H, W)`` from a depth file's header (``.npy`` header or PNG IHDR) without reading data."""
+    """``(H, W)`` from a depth file's header (``.npy`` header or PNG IHDR) without reading data
+    (compressed formats, which have no such header, are decoded)."""
     if not path.is_file():
         raise SceneFormatError(path, "missing file")
     with open(path, "rb") as f:
@@ -357,9 +358,20 @@ def _depth_size(path: Path) -> tuple[int, int]:
                 raise SceneFormatError(path, f"depth dtype must be a real float or integer type, got {dtype}")
             if len(shape) == 3 and shape[0] == 1:
                 shape = shape[1:]
+            elif len(shape) == 3 and shape[2] == 1:
+                shape = shape[:2]
             if len(shape) != 2:
-                raise SceneFormatError(path, f"depth shape must be (H, W) or (1, H, W), got {tuple(shape)}")
+                raise SceneFormatError(path, f"depth shape must be (H, W), (1, H, W) or (H, W, 1), got {tuple(shape)}")
             return int(shape[0]), int(shape[1])
+        if not head.startswith(b"\x89PNG"):
+            # .npy.gz, .npz, TIFF: no cheap header to read; decode once (bounded by max_pixels).
+            from roguenerf.imageio import read_depth
+
+            try:
+                depth = read_depth(path)
+            except InputError as exc:
+                raise SceneFormatError(path, _strip(exc, path)) from None
+            return int(depth.shape[1]), int(depth.shape[2])
     width, height = _image_size(path)
     return height, width
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Response
+from fastapi.responses import FileResponse
 
 from service.errors import ApiError, error_responses
 from service.pagination import CursorQuery, LimitQuery, decode_cursor, page
@@ -61,4 +62,36 @@ def cancel_job(job_id: str, services: ServicesDep, response: Response) -> JobPub
         raise ApiError(409, "job_finished", f"job {job_id} already {job['state']}; nothing to cancel")
     if job["state"] == "running":
         response.status_code = 202
+    elif job["state"] == "cancelled" and (job["request"] or {}).get("kind") == "path":
+        services.layout.remove_tree(services.layout.job_dir(job_id))  # its upload: no worker will run it
     return JobPublic.from_row(job)
+
+
+RESULT_FILES = {
+    "video": ("output/enhanced.mp4", "video/mp4", "enhanced.mp4"),
+    "side_by_side": ("output/side_by_side.mp4", "video/mp4", "side_by_side.mp4"),
+    "frames": ("output/frames.zip", "application/zip", "frames.zip"),
+    "flicker": ("output/flicker.json", "application/json", "flicker.json"),
+}
+
+
+@router.get("/{job_id}/result", summary="A finished camera-path job's MP4 (or its frames zip, side-by-side, flicker)",
+            response_class=FileResponse,
+            responses={**error_responses(404, 409), 200: {"content": {"video/mp4": {}, "application/zip": {}},
+                                                         "description": "the file"}})
+def read_job_result(
+    job_id: str,
+    services: ServicesDep,
+    what: Annotated[Literal["video", "side_by_side", "frames", "flicker"],
+                    Query(description="video (enhanced MP4), side_by_side (render | enhanced), frames (zip), flicker")] = "video",
+) -> FileResponse:
+    job = job_or_404(services, job_id)
+    if (job["request"] or {}).get("kind") != "path":
+        raise ApiError(404, "not_found", f"job {job_id} is a fine-tuning job: its result is the scene's checkpoint")
+    if job["state"] != "succeeded":
+        raise ApiError(409, "job_not_finished", f"job {job_id} is {job['state']}; its result exists once it succeeded")
+    relative, media_type, filename = RESULT_FILES[what]
+    path = services.layout.job_dir(job_id) / relative
+    if not path.is_file():
+        raise ApiError(404, "not_found", f"job {job_id} has no {what} result")
+    return FileResponse(path, media_type=media_type, filename=filename)

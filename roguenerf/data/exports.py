@@ -1,0 +1,358 @@
+"""Renders and depths as nerfstudio and gsplat write them, turned into our scene folder.
+
+Two tools, one function (:func:`import_renders`):
+
+* **nerfstudio** (nerfacto, splatfacto): ``ns-render dataset --split train+test
+  --rendered-output-names rgb raw-depth --output-path DIR`` writes ``DIR/<split>/rgb/NAME.jpg``
+  (or ``.png``) and ``DIR/<split>/raw-depth/NAME.npy.gz``: a gzip-compressed ``(H, W, 1)``
+  float32 array. nerfacto's depth is the expected *distance along the ray*; splatfacto's is
+  z (gsplat's ``RGB+ED``). ns-render divides it by the dataparser's scale, so it is in the
+  units of the dataset's own poses (``transforms.json``) already. The trained model's
+  ``dataparser_transforms.json`` (``{"transform": 3x4, "scale": s}``) maps those poses to the
+  model's world (``R' = T_R R``, ``t' = s (T_R t + T_t)``): needed for depth still in the
+  model's units (``depth_units="model"``) and for camera paths drawn in nerfstudio's viewer
+  (:mod:`roguenerf.paths`), so it is kept in the scene folder.
+* **gsplat**: a folder ``DIR/rgb/NAME.png`` + ``DIR/depth/NAME.<ext>`` (or nerfstudio's
+  split layout) written from ``rasterization(..., render_mode="RGB+ED")`` (z) or ``"ED"``
+  (ray distance in newer gsplat). Pixels that no splat covers come out as 0 or as the map's
+  maximum: both are made unknown (``background="max"``), never a real depth.
+
+Depth files may be ``.npy``, ``.npy.gz``, ``.npz``, 16-bit PNG (times ``depth_scale``) or
+32-bit float TIFF (Pillow, already a dependency; EXR is refused: no reader is a dependency),
+see :func:`roguenerf.imageio.read_depth`. The output is a scene folder (photos and renders
+copied byte for byte, depth converted to float32 z in pose units), written one view at a
+time (bounded memory), ``transforms.json`` last.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from roguenerf.errors import InputError, SceneFormatError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+DEPTH_SUFFIXES = (".npy.gz", ".npy", ".npz", ".png", ".tif", ".tiff", ".exr")
+RGB_FOLDERS = ("rgb", "renders", "render")
+DEPTH_FOLDERS = ("raw-depth", "depth", "depths", "raw-expected_depth", "expected_depth")
+SPLIT_FOLDERS = {"train": "train", "test": "test", "val": "test", "eval": "test"}
+TOOLS = ("nerfstudio", "gsplat")
+DATAPARSER_FILE = "dataparser_transforms.json"
+"""Name of nerfstudio's dataparser file, next to the checkpoint and in our scene folder."""
+
+
+@dataclass(frozen=True)
+class DataparserTransform:
+    """nerfstudio's dataparser transform: dataset poses -> the model's world.
+
+    ``model_from_dataset`` applies ``R' = T_R R``, ``t' = s (T_R t + T_t)`` to a camera-to-world
+    pose; :meth:`to_dataset` is its inverse. Both conventions (OpenGL / OpenCV) pass unchanged,
+    since the axis flip multiplies on the right.
+    """
+
+    transform: Tensor
+    """``(3, 4)`` float64: rotation ``T_R`` (orthonormal) and translation ``T_t``."""
+    scale: float
+
+    @classmethod
+    def read(cls, path: str | Path) -> DataparserTransform:
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise SceneFormatError(path, "missing file") from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise SceneFormatError(path, f"cannot read ({exc})") from None
+        if not isinstance(data, dict) or "transform" not in data or "scale" not in data:
+            raise SceneFormatError(path, 'expected {"transform": 3x4 matrix, "scale": number}')
+        try:
+            transform = torch.tensor(data["transform"], dtype=torch.float64)
+            scale = float(data["scale"])
+        except (TypeError, ValueError):
+            raise SceneFormatError(path, "transform must be a 3x4 array of numbers, scale a number") from None
+        if transform.shape == (4, 4):
+            transform = transform[:3]
+        if transform.shape != (3, 4) or not torch.isfinite(transform).all():
+            raise SceneFormatError(path, f"transform: expected a finite 3x4 matrix, got shape {tuple(transform.shape)}")
+        if not (math.isfinite(scale) and scale > 0):
+            raise SceneFormatError(path, f"scale: expected a finite number > 0, got {scale}")
+        R = transform[:, :3]
+        if (R.T @ R - torch.eye(3, dtype=torch.float64)).abs().max() > 1e-4:
+            raise SceneFormatError(path, "transform: its 3x3 part is not a rotation (nerfstudio's orientation "
+                                         "methods only rotate; a scaling transform is not supported)")
+        return cls(transform=transform, scale=scale)
+
+    def to_dataset(self, world_from_cam: Tensor) -> Tensor:
+        """``(..., 4, 4)`` camera-to-world in the model's world -> the dataset's (float64)."""
+        pose = world_from_cam.to(torch.float64)
+        R_T, t_T = self.transform[:, :3], self.transform[:, 3]
+        out = pose.clone()
+        out[..., :3, :3] = R_T.T @ pose[..., :3, :3]
+        out[..., :3, 3] = (pose[..., :3, 3] / self.scale - t_T) @ R_T
+        return out
+
+    def to_model(self, world_from_cam: Tensor) -> Tensor:
+        """Inverse of :meth:`to_dataset`."""
+        pose = world_from_cam.to(torch.float64)
+        R_T, t_T = self.transform[:, :3], self.transform[:, 3]
+        out = pose.clone()
+        out[..., :3, :3] = R_T @ pose[..., :3, :3]
+        out[..., :3, 3] = self.scale * (pose[..., :3, 3] @ R_T.T + t_T)
+        return out
+
+    def to_json(self) -> dict:
+        return {"transform": self.transform.tolist(), "scale": self.scale}
+
+
+def _file_key(path: Path) -> tuple[str, str]:
+    """``(stem, suffix)`` with the double suffix ``.npy.gz`` kept whole."""
+    name = path.name
+    lower = name.lower()
+    for suffix in DEPTH_SUFFIXES + IMAGE_SUFFIXES:
+        if lower.endswith(suffix):
+            return name[: -len(suffix)], suffix
+    return path.stem, path.suffix.lower()
+
+
+def _index(folder: Path, suffixes: tuple[str, ...]) -> dict[str, Path]:
+    """Files of ``folder`` (recursively) by stem; a stem found twice is ambiguous and dropped."""
+    found: dict[str, Path] = {}
+    twice: set[str] = set()
+    for path in sorted(folder.rglob("*")):
+        if not path.is_file() or path.name.startswith("."):
+            continue
+        stem, suffix = _file_key(path)
+        if suffix not in suffixes:
+            continue
+        if stem in found:
+            twice.add(stem)
+        found[stem] = path
+    for stem in twice:
+        del found[stem]
+    return found
+
+
+def _pick(folder: Path, names: tuple[str, ...]) -> Path | None:
+    for name in names:
+        if (folder / name).is_dir():
+            return folder / name
+    return None
+
+
+def find_render_files(renders: str | Path) -> dict[str, tuple[Path, Path, str | None]]:
+    """Map view name -> ``(rgb file, depth file, split or None)`` found under ``renders``.
+
+    Layouts: nerfstudio's ``<split>/rgb/`` + ``<split>/raw-depth/`` (split from the folder,
+    ``val`` counts as test), or flat ``rgb/`` + ``depth/`` (split from the dataset).
+    """
+    renders = Path(renders)
+    if not renders.is_dir():
+        raise InputError(f"renders folder {renders} does not exist or is not a folder")
+    groups: list[tuple[Path, str | None]] = []
+    for name, split in SPLIT_FOLDERS.items():
+        if (renders / name).is_dir():
+            groups.append((renders / name, split))
+    if not groups:
+        groups = [(renders, None)]
+    out: dict[str, tuple[Path, Path, str | None]] = {}
+    for folder, split in groups:
+        rgb_dir, depth_dir = _pick(folder, RGB_FOLDERS), _pick(folder, DEPTH_FOLDERS)
+        if rgb_dir is None or depth_dir is None:
+            raise InputError(
+                f"{folder}: expected a render folder ({' / '.join(RGB_FOLDERS)}) and a depth folder "
+                f"({' / '.join(DEPTH_FOLDERS)}), e.g. from `ns-render dataset --rendered-output-names "
+                "rgb raw-depth`")
+        rgbs, depths = _index(rgb_dir, IMAGE_SUFFIXES), _index(depth_dir, DEPTH_SUFFIXES)
+        for stem, rgb in rgbs.items():
+            if stem in depths:
+                out.setdefault(stem, (rgb, depths[stem], split))
+    return out
+
+
+def background_to_unknown(depth: Tensor, background: str) -> Tensor:
+    """Make the no-surface pixels of a rendered depth unknown (0).
+
+    ``"zero"``: only 0 (and what :func:`~roguenerf.geometry.depth.known_depth_mask` already
+    refuses). ``"max"``: also every pixel holding the map's maximum value when at least two do
+    (gsplat, saturated 16-bit PNG: no splat -> the largest value; a real surface is not flat at
+    the bit-exact maximum).
+    """
+    if background not in ("zero", "max"):
+        raise InputError(f"background: expected 'zero' or 'max', got {background!r}")
+    if background == "max":
+        finite = torch.isfinite(depth)
+        if bool(finite.any()):
+            top = depth[finite].max()
+            at_top = depth == top
+            if int(at_top.sum()) >= 2:
+                depth = torch.where(at_top, torch.zeros_like(depth), depth)
+    return depth
+
+
+def _photo_for_size(frame, dataset_root: Path, width: int, height: int) -> Path:
+    """The photo of ``frame`` at the render's size: the listed file, or nerfstudio's downscaled
+    copy in ``images_<f>/`` (what ``--downscale-factor`` reads)."""
+    from roguenerf.imageio import read_image_size
+
+    path = frame.image_path
+    w, h = read_image_size(path)
+    if (w, h) == (width, height):
+        return path
+    factor = w / width
+    rel = path.relative_to(dataset_root) if path.is_relative_to(dataset_root) else Path(path.name)
+    if rel.parts and factor > 1 and abs(factor - round(factor)) < 1e-6:
+        candidate = dataset_root / f"{rel.parts[0]}_{round(factor)}" / Path(*rel.parts[1:])
+        if candidate.is_file() and read_image_size(candidate) == (width, height):
+            return candidate
+    raise SceneFormatError(path, f"photo is {w}x{h} but its render is {width}x{height}, and no downscaled "
+                                 f"copy (e.g. {rel.parts[0] if rel.parts else 'images'}_2/) of that size exists")
+
+
+def import_renders(
+    dataset: str | Path,
+    renders: str | Path,
+    output: str | Path,
+    *,
+    tool: str = "nerfstudio",
+    depth_type: str | None = None,
+    depth_scale: float = 1.0,
+    depth_units: str = "dataset",
+    dataparser_transforms: str | Path | None = None,
+    background: str | None = None,
+    progress=None,
+):
+    """Write a scene folder from a dataset (``transforms.json`` + photos) and a tool's renders.
+
+    Args:
+        dataset: the nerfstudio dataset (folder or its ``transforms.json``); its poses are the
+            scene's poses, its photos the scene's photos.
+        renders: the tool's output (see :func:`find_render_files`).
+        output: the scene folder to write (created; files of the same name are replaced).
+        tool: ``"nerfstudio"`` or ``"gsplat"``; picks the defaults below.
+        depth_type: ``"ray"`` (nerfacto, gsplat ``ED``) or ``"z"`` (splatfacto, gsplat
+            ``RGB+ED``); default ray for nerfstudio, z for gsplat.
+        depth_scale: multiplies stored depth first (e.g. 0.001 for millimetre PNGs).
+        depth_units: ``"dataset"`` (ns-render: already divided by the dataparser scale) or
+            ``"model"`` (still in the model's world: divided by the scale here; needs the
+            dataparser transforms).
+        dataparser_transforms: the trained model's ``dataparser_transforms.json``; copied into
+            the scene folder for camera paths drawn in nerfstudio's viewer.
+        background: ``"zero"`` or ``"max"`` (see :func:`background_to_unknown`); default max for
+            gsplat, zero for nerfstudio.
+        progress: ``callback(done, total)`` per view.
+    Returns:
+        The written scene, loaded (:func:`~roguenerf.data.readers.load_scene`).
+    """
+    from roguenerf.data.readers import load_scene
+    from roguenerf.geometry.cameras import opencv_to_opengl, ray_to_z_depth, scale_intrinsics
+    from roguenerf.imageio import atomic_write, encode_npy, read_depth, read_image_size
+
+    if tool not in TOOLS:
+        raise InputError(f"tool: expected one of {', '.join(TOOLS)}, got {tool!r}")
+    depth_type = depth_type or ("ray" if tool == "nerfstudio" else "z")
+    if depth_type not in ("z", "ray"):
+        raise InputError(f"depth_type: expected 'z' or 'ray', got {depth_type!r}")
+    background = background or ("max" if tool == "gsplat" else "zero")
+    if depth_units not in ("dataset", "model"):
+        raise InputError(f"depth_units: expected 'dataset' or 'model', got {depth_units!r}")
+    if not (isinstance(depth_scale, (int, float)) and math.isfinite(depth_scale) and depth_scale > 0):
+        raise InputError(f"depth_scale: expected a finite number > 0, got {depth_scale!r}")
+    parser = DataparserTransform.read(dataparser_transforms) if dataparser_transforms is not None else None
+    if depth_units == "model":
+        if parser is None:
+            raise InputError("depth_units='model' needs the model's dataparser_transforms.json (its scale)")
+        depth_scale = depth_scale / parser.scale
+
+    dataset = Path(dataset)
+    if not dataset.exists():
+        raise InputError(f"dataset {dataset} does not exist")
+    source = load_scene(dataset, check_files=False)
+    if source.meta.get("format") != "nerfstudio":
+        raise InputError(f"{dataset}: expected a nerfstudio dataset (transforms.json with the photos' poses), "
+                         f"got a {source.meta.get('format')} scene")
+    found = find_render_files(renders)
+    frames = [f for f in source.frames if f.name in found]
+    if not frames:
+        some = ", ".join(sorted(found)[:3]) or "none"
+        raise InputError(f"no render of {renders} matches a view of {dataset} by name "
+                         f"(views: {', '.join(f.name for f in source.frames[:3])}, ...; renders: {some})")
+    output = Path(output)
+    for sub in ("images", "renders", "depths"):
+        (output / sub).mkdir(parents=True, exist_ok=True)
+    dataset_root = source.root
+    out_frames = []
+    for n, frame in enumerate(frames):
+        rgb_path, depth_path, split = found[frame.name]
+        width, height = read_image_size(rgb_path)
+        K = scale_intrinsics(frame.K, width / frame.width, height / frame.height)
+        photo = _photo_for_size(frame, dataset_root, width, height)
+        depth = read_depth(depth_path, scale=float(depth_scale)).double()
+        if tuple(depth.shape[1:]) != (height, width):
+            raise SceneFormatError(depth_path, f"depth is {depth.shape[2]}x{depth.shape[1]}, its render "
+                                               f"{rgb_path.name} is {width}x{height}")
+        depth = background_to_unknown(depth, background)
+        if depth_type == "ray":
+            depth = ray_to_z_depth(depth, K)
+        photo_out = output / "images" / f"{frame.name}{photo.suffix.lower()}"
+        render_out = output / "renders" / f"{frame.name}{_file_key(rgb_path)[1]}"
+        shutil.copyfile(photo, photo_out)
+        shutil.copyfile(rgb_path, render_out)
+        atomic_write(output / "depths" / f"{frame.name}.npy", encode_npy(depth[0].float().numpy()))
+        gl = opencv_to_opengl(frame.world_from_cam)
+        out_frames.append({
+            "file_path": str(photo_out.relative_to(output)),
+            "render_path": str(render_out.relative_to(output)),
+            "depth_path": f"depths/{frame.name}.npy",
+            "split": split or frame.split,
+            "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
+            "w": width, "h": height,
+            "transform_matrix": gl.tolist(),
+        })
+        if progress is not None:
+            progress(n + 1, len(frames))
+    if parser is not None:
+        atomic_write(output / DATAPARSER_FILE, json.dumps(parser.to_json(), indent=2).encode())
+    doc = {
+        "camera_model": "OPENCV",
+        "source": {"tool": tool, "dataset": str(dataset), "renders": str(renders), "depth_type": depth_type,
+                   "background": background, "skipped_views": len(source.frames) - len(frames)},
+        "frames": out_frames,
+    }
+    atomic_write(output / "transforms.json", json.dumps(doc, indent=1).encode())
+    return load_scene(output)
+
+
+def write_depth_like(path: str | Path, depth: np.ndarray, *, kind: str, scale: float = 1.0) -> Path:
+    """Write ``depth`` ``(H, W)`` the way a tool would (for tests and examples): ``kind`` is
+    ``"npy.gz"`` (nerfstudio: ``(H, W, 1)`` float32, gzip), ``"npy"``, ``"npz"``, ``"png16"``
+    (``round(depth / scale)`` as 16-bit) or ``"tiff"`` (32-bit float)."""
+    import gzip
+    import io
+
+    from PIL import Image
+
+    path = Path(path)
+    depth = np.asarray(depth, dtype=np.float32)
+    if kind == "npy.gz":
+        buf = io.BytesIO()
+        np.save(buf, depth[..., None])
+        path.write_bytes(gzip.compress(buf.getvalue()))
+    elif kind == "npy":
+        np.save(path, depth)
+    elif kind == "npz":
+        np.savez_compressed(path, depth=depth)
+    elif kind == "png16":
+        values = np.clip(np.round(depth / scale), 0, 65535).astype(np.uint16)
+        Image.fromarray(values).save(path)
+    elif kind == "tiff":
+        Image.fromarray(depth).save(path)
+    else:
+        raise InputError(f"kind: expected npy.gz, npy, npz, png16 or tiff, got {kind!r}")
+    return path

@@ -1,0 +1,505 @@
+"""Camera paths: enhance every frame of a rendered path, write an MP4, measure flicker.
+
+Legend: T frames, (H, W) render size.
+
+A path is a list of cameras (:class:`CameraPath`, from nerfstudio's ``camera_path.json`` or a
+transforms-style list) plus, in a folder, each frame's render and depth. :func:`enhance_path`
+enhances the frames one by one with one :class:`~roguenerf.inference.SceneEnhancer` (each
+training photo's features are computed once for the whole path), writes each enhanced frame
+atomically as it is done (an interrupted run resumes after the last written frame), then
+encodes ``enhanced.mp4`` and ``side_by_side.mp4`` (render | enhanced) frame by frame.
+
+**Flicker** (:func:`pair_flicker`): for consecutive frames t, t+1, frame t is reprojected into
+t+1 with t+1's depth, t's depth (visibility) and both poses (:func:`~roguenerf.geometry.reproject`,
+with its validity mask); the figure is the mean absolute RGB difference over the valid pixels.
+The same mask is used for the renders, the enhanced frames and, where both frames coincide with
+views that have photos, the photos. Memory is bounded: two frames are held at a time.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from roguenerf.errors import InputError, PathCancelled
+
+FRAME_FOLDER = "frames"
+STATE_FILE = "path_state.json"
+FLICKER_FILE = "flicker.json"
+VIDEO_FILE = "enhanced.mp4"
+SIDE_BY_SIDE_FILE = "side_by_side.mp4"
+CAMERA_FILES = ("camera_path.json", "cameras.json", "transforms.json")
+"""Where :func:`find_camera_file` looks for a path's cameras in an uploaded folder (first found)."""
+POSE_MATCH_TOL = 1e-5
+"""A path camera "is" a scene view (and has its photo) when rotation and position agree to this
+(position relative to the scene's extent)."""
+
+
+@dataclass
+class CameraPath:
+    world_from_cam: Tensor
+    """``(T, 4, 4)`` float64 OpenCV camera-to-world, in the scene's pose units."""
+    K: Tensor
+    """``(T, 3, 3)`` float64, pixel-centre convention."""
+    width: int
+    height: int
+    fps: float = 24.0
+    source: str = "transforms"
+    """``"nerfstudio"`` (camera_path.json) or ``"transforms"``."""
+
+    def __len__(self) -> int:
+        return int(self.world_from_cam.shape[0])
+
+
+def _fail(path: Path, message: str):
+    return InputError(f"{path}: {message}")
+
+
+def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
+    """Read nerfstudio's ``camera_path.json`` or a transforms-style list of cameras.
+
+    nerfstudio: ``{"render_height", "render_width", "fps", "camera_path": [{"camera_to_world":
+    16 numbers (row-major, OpenGL), "fov": vertical degrees, "aspect"}]}``; focal
+    ``H / 2 / tan(fov / 2)``, principal point at the centre (as ``ns-render camera-path``). Its
+    poses are in the model's world: ``dataparser`` (a
+    :class:`~roguenerf.data.exports.DataparserTransform`) maps them to the dataset's.
+
+    Transforms style: ``{"frames": [...]}`` or a bare list of frames, each with
+    ``transform_matrix`` (OpenGL 4x4) and ``fl_x, fl_y, cx, cy, w, h`` (per frame or top level);
+    poses already in the scene's units.
+    """
+    from roguenerf.geometry.cameras import check_intrinsics, check_pose, opengl_to_opencv
+
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise _fail(path, "camera path file not found") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise _fail(path, f"cannot read the camera path ({exc})") from None
+    poses, Ks = [], []
+    if isinstance(data, dict) and "camera_path" in data:
+        source = "nerfstudio"
+        cams = data["camera_path"]
+        try:
+            height, width = int(data["render_height"]), int(data["render_width"])
+        except (KeyError, TypeError, ValueError):
+            raise _fail(path, "nerfstudio camera path: missing render_height / render_width") from None
+        if not isinstance(cams, list) or not cams:
+            raise _fail(path, "camera_path: expected a non-empty list of cameras")
+        for n, cam in enumerate(cams):
+            try:
+                c2w = torch.tensor(cam["camera_to_world"], dtype=torch.float64).reshape(4, 4)
+                fov = float(cam["fov"])
+            except (KeyError, TypeError, ValueError, RuntimeError):
+                raise _fail(path, f"camera_path[{n}]: expected camera_to_world (16 numbers) and fov") from None
+            if not 0 < fov < 180:
+                raise _fail(path, f"camera_path[{n}].fov: expected degrees in (0, 180), got {fov}")
+            focal = height / 2 / math.tan(math.radians(fov) / 2)
+            poses.append(c2w)
+            Ks.append(torch.tensor([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1]], dtype=torch.float64))
+        fps = float(data.get("fps", 24.0) or 24.0)
+    else:
+        source = "transforms"
+        frames = data.get("frames") if isinstance(data, dict) else data
+        top = data if isinstance(data, dict) else {}
+        if not isinstance(frames, list) or not frames:
+            raise _fail(path, "expected nerfstudio's camera_path.json or {\"frames\": [...]} with transform_matrix")
+        sizes = set()
+        for n, fr in enumerate(frames):
+            if not isinstance(fr, dict):
+                raise _fail(path, f"frames[{n}]: expected an object")
+            try:
+                c2w = torch.tensor(fr["transform_matrix"], dtype=torch.float64)
+                if c2w.shape == (3, 4):
+                    c2w = torch.cat([c2w, torch.tensor([[0, 0, 0, 1]], dtype=torch.float64)])
+                get = {k: fr.get(k, top.get(k)) for k in ("fl_x", "fl_y", "cx", "cy", "w", "h")}
+                if get["fl_y"] is None:
+                    get["fl_y"] = get["fl_x"]
+                fx, fy, cx, cy = (float(get[k]) for k in ("fl_x", "fl_y", "cx", "cy"))
+                sizes.add((int(get["w"]), int(get["h"])))
+            except (KeyError, TypeError, ValueError, RuntimeError):
+                raise _fail(path, f"frames[{n}]: expected transform_matrix (4x4) and fl_x, fl_y, cx, cy, w, h") from None
+            poses.append(c2w)
+            Ks.append(torch.tensor([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=torch.float64))
+        if len(sizes) != 1:
+            raise _fail(path, f"all frames of a path must have one size, got {sorted(sizes)}")
+        width, height = sizes.pop()
+        fps = float(top.get("fps", 24.0) or 24.0)
+    if width < 1 or height < 1:
+        raise _fail(path, f"render size must be positive, got {width}x{height}")
+    gl = torch.stack(poses)
+    if gl.shape[1:] != (4, 4):
+        raise _fail(path, f"poses: expected 4x4 matrices, got {tuple(gl.shape[1:])}")
+    try:
+        world_from_cam = check_pose(opengl_to_opencv(gl), f"{path.name} poses")
+        K = check_intrinsics(torch.stack(Ks), f"{path.name} intrinsics")
+    except InputError as exc:
+        raise _fail(path, str(exc)) from None
+    if dataparser is not None:
+        world_from_cam = dataparser.to_dataset(world_from_cam)
+    if not (math.isfinite(fps) and 0 < fps <= 240):
+        raise _fail(path, f"fps: expected a number in (0, 240], got {fps}")
+    return CameraPath(world_from_cam=world_from_cam, K=K, width=width, height=height, fps=fps, source=source)
+
+
+def find_camera_file(folder: str | Path) -> Path:
+    """The camera path file of an uploaded path folder (one of :data:`CAMERA_FILES`)."""
+    folder = Path(folder)
+    for name in CAMERA_FILES:
+        if (folder / name).is_file():
+            return folder / name
+    raise InputError(f"no camera path found: expected one of {', '.join(CAMERA_FILES)} at the top level, "
+                     "beside rgb/ and depth/")
+
+
+def _natural_key(name: str):
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
+
+
+def find_path_frames(folder: str | Path, count: int | None = None) -> list[tuple[Path, Path]]:
+    """``(render, depth)`` file pairs of a path's frames, in natural order of their names.
+
+    Layouts: ``rgb/`` + ``depth/`` (or ``raw-depth/``, as the export readers accept), or one
+    folder with ``NAME.png`` + ``NAME.npy`` (any depth format of :func:`~roguenerf.imageio.read_depth`).
+    """
+    from roguenerf.data.exports import DEPTH_FOLDERS, DEPTH_SUFFIXES, IMAGE_SUFFIXES, RGB_FOLDERS, _index, _pick
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"frames folder {folder} does not exist or is not a folder")
+    rgb_dir, depth_dir = _pick(folder, RGB_FOLDERS), _pick(folder, DEPTH_FOLDERS)
+    if rgb_dir is None or depth_dir is None:
+        rgb_dir = depth_dir = folder
+    rgbs = _index(rgb_dir, IMAGE_SUFFIXES)
+    depth_suffixes = tuple(s for s in DEPTH_SUFFIXES if s != ".png") if rgb_dir == depth_dir else DEPTH_SUFFIXES
+    depths = _index(depth_dir, depth_suffixes)
+    names = sorted(set(rgbs) & set(depths), key=_natural_key)
+    missing = sorted(set(rgbs) ^ set(depths), key=_natural_key)
+    if missing:
+        raise InputError(f"{folder}: frames without both a render and a depth: {', '.join(missing[:5])}"
+                         + (" ..." if len(missing) > 5 else ""))
+    if not names:
+        raise InputError(f"{folder}: no frames found (expected rgb/ + depth/, or NAME.png + NAME.npy pairs)")
+    if count is not None and len(names) != count:
+        raise InputError(f"{folder}: {len(names)} frames, but the camera path has {count} cameras")
+    return [(rgbs[n], depths[n]) for n in names]
+
+
+@dataclass
+class PairFlicker:
+    render: float
+    enhanced: float
+    photo: float | None
+    valid_fraction: float
+
+
+def pair_flicker(images_t: list[Tensor | None], images_t1: list[Tensor | None], depth_t: Tensor, depth_t1: Tensor,
+                 K_t: Tensor, K_t1: Tensor, pose_t: Tensor, pose_t1: Tensor) -> tuple[list[float | None], float]:
+    """Mean absolute error of each image of frame t reprojected into frame t+1, on valid pixels.
+
+    Args:
+        images_t, images_t1: lists of ``(3, H, W)`` images (or None, skipped) of the two frames,
+            paired by position (e.g. [render, enhanced, photo]).
+        depth_t, depth_t1: ``(1, H, W)`` z-depth of the two frames.
+        K_t, K_t1: ``(3, 3)``; pose_t, pose_t1: ``(4, 4)`` OpenCV camera-to-world.
+    Returns:
+        ``(errors, valid_fraction)``; an error is None when its images are missing or no pixel is valid.
+    """
+    from roguenerf.geometry import reproject
+
+    present = [i for i, (a, b) in enumerate(zip(images_t, images_t1)) if a is not None and b is not None]
+    out: list[float | None] = [None] * len(images_t)
+    if not present:
+        return out, 0.0
+    src = torch.cat([images_t[i] for i in present])[None].float()
+    with torch.inference_mode():
+        rp = reproject(src, depth_t[None].float(), depth_t1[None].float(), K_t.float(), K_t1.float(),
+                       pose_t.double(), pose_t1.double())
+    valid = rp.valid[0, 0] > 0
+    fraction = float(valid.float().mean())
+    if not bool(valid.any()):
+        return out, fraction
+    for k, i in enumerate(present):
+        diff = (rp.features[0, 3 * k:3 * k + 3] - images_t1[i].float()).abs().mean(0)
+        out[i] = float(diff[valid].mean())
+    return out, fraction
+
+
+def _quantise(image: Tensor) -> Tensor:
+    """What an 8-bit PNG of ``image`` reads back as (flicker is measured on what was written)."""
+    return (image.clamp(0, 1) * 255).round() / 255
+
+
+def _match_views(scene, camera_path: CameraPath) -> list[int | None]:
+    """Scene index of the view each path camera coincides with (same pose and intrinsics), or None."""
+    poses = scene.poses()
+    Ks = scene.intrinsics()
+    extent = float((poses[:, :3, 3] - poses[:, :3, 3].mean(0)).norm(dim=-1).max()) or 1.0
+    out: list[int | None] = []
+    for pose, K in zip(camera_path.world_from_cam, camera_path.K):
+        dt = (poses[:, :3, 3] - pose[:3, 3]).norm(dim=-1) / extent
+        dr = (poses[:, :3, :3] - pose[:3, :3]).abs().amax(dim=(-2, -1))
+        dk = (Ks - K).abs().amax(dim=(-2, -1))
+        ok = (dt < POSE_MATCH_TOL) & (dr < POSE_MATCH_TOL) & (dk < 1e-3)
+        hits = [i for i in ok.nonzero().flatten().tolist()
+                if (scene.frames[i].width, scene.frames[i].height) == (camera_path.width, camera_path.height)
+                and scene.frames[i].image_path is not None]
+        out.append(hits[0] if hits else None)
+    return out
+
+
+@dataclass
+class PathResult:
+    output: Path
+    frames: int
+    enhanced_now: int
+    """Frames enhanced by this call (the rest were already there: resumed)."""
+    seconds: float
+    video: Path | None
+    side_by_side: Path | None
+    flicker: dict = field(default_factory=dict)
+    """What :data:`FLICKER_FILE` holds: per-pair and mean flicker, per-frame PSNR where photos exist."""
+    cached_views: int = 0
+
+
+def _fingerprint(camera_path: CameraPath, pairs: list[tuple[Path, Path]], checkpoint_id: str, options: dict) -> str:
+    h = hashlib.sha256()
+    h.update(camera_path.world_from_cam.numpy().tobytes())
+    h.update(camera_path.K.numpy().tobytes())
+    for rgb, depth in pairs:
+        for p in (rgb, depth):
+            st = p.stat()
+            h.update(f"{p.name}:{st.st_size}".encode())
+    h.update(checkpoint_id.encode())
+    h.update(json.dumps(options, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def enhance_path(
+    scene,
+    enhancer,
+    camera_path: CameraPath,
+    frames: str | Path,
+    output: str | Path,
+    *,
+    depth_type: str = "z",
+    depth_scale: float = 1.0,
+    background: str = "zero",
+    video: bool = True,
+    quality: int = 20,
+    fps: float | None = None,
+    checkpoint_id: str = "",
+    progress=None,
+    should_stop=None,
+) -> PathResult:
+    """Enhance every frame of a camera path; write frames, MP4s and the flicker report.
+
+    Args:
+        scene: the registered :class:`~roguenerf.data.scene.Scene` (its training photos are the
+            neighbours; a path camera that coincides with one of its views gets that view's photo
+            for the PSNR gain and photo flicker, and never uses it as a neighbour).
+        enhancer: a :class:`~roguenerf.inference.SceneEnhancer` of ``scene`` (its feature cache
+            serves the whole path).
+        camera_path: the cameras, in the scene's pose units (:func:`read_camera_path`).
+        frames: folder of the frames' renders and depths (:func:`find_path_frames`).
+        output: folder for ``frames/NNNNN.png``, the MP4s, :data:`FLICKER_FILE` and the resume
+            state. A folder holding another path's frames is refused.
+        depth_type, depth_scale, background: how the frames' depth files are stored (see
+            :func:`roguenerf.data.exports.import_renders`).
+        video: write ``enhanced.mp4`` and ``side_by_side.mp4`` (needs PyAV).
+        quality: x264 CRF, 0..51 (lower is better).
+        fps: frame rate; default the camera path's.
+        checkpoint_id: anything naming the model's weights (part of the resume fingerprint).
+        progress: ``callback(done, total)`` per frame.
+        should_stop: ``() -> bool`` polled between frames; True raises
+            :class:`~roguenerf.errors.PathCancelled` (frames written so far are kept).
+    """
+    from roguenerf.data.exports import background_to_unknown
+    from roguenerf.geometry.cameras import ray_to_z_depth
+    from roguenerf.imageio import atomic_write, read_depth, read_image, write_png
+    from roguenerf.metrics import psnr
+    from roguenerf.video import Mp4Writer, check_quality, require_av
+
+    start = time.perf_counter()
+    if depth_type not in ("z", "ray"):
+        raise InputError(f"depth_type: expected 'z' or 'ray', got {depth_type!r}")
+    if not (isinstance(depth_scale, (int, float)) and math.isfinite(depth_scale) and depth_scale > 0):
+        raise InputError(f"depth_scale: expected a finite number > 0, got {depth_scale!r}")
+    check_quality(quality)
+    if video:
+        require_av()
+    fps = camera_path.fps if fps is None else fps
+    pairs = find_path_frames(frames, len(camera_path))
+    output = Path(output)
+    frame_dir = output / FRAME_FOLDER
+    frame_dir.mkdir(parents=True, exist_ok=True)
+    options = {"depth_type": depth_type, "depth_scale": depth_scale, "background": background,
+               "neighbours": enhancer.num_neighbours}
+    fingerprint = _fingerprint(camera_path, pairs, checkpoint_id, options)
+    state_path = output / STATE_FILE
+    if state_path.is_file():
+        try:
+            previous = json.loads(state_path.read_text()).get("fingerprint")
+        except (OSError, json.JSONDecodeError):
+            previous = None
+        if previous != fingerprint:
+            raise InputError(f"{output} holds the frames of another path, model or setting; "
+                             "choose another output folder or delete it")
+    else:
+        atomic_write(state_path, json.dumps({"fingerprint": fingerprint, "frames": len(pairs)}).encode())
+    matches = _match_views(scene, camera_path)
+    total = len(pairs)
+
+    def load_frame(t: int) -> tuple[Tensor, Tensor]:
+        rgb_path, depth_path = pairs[t]
+        render = read_image(rgb_path)
+        if render.shape[1:] != (camera_path.height, camera_path.width):
+            raise InputError(f"{rgb_path}: render is {render.shape[2]}x{render.shape[1]}, the camera path says "
+                             f"{camera_path.width}x{camera_path.height}")
+        depth = read_depth(depth_path, scale=float(depth_scale))
+        if depth.shape[1:] != render.shape[1:]:
+            raise InputError(f"{depth_path}: depth is {depth.shape[2]}x{depth.shape[1]}, its render "
+                             f"{render.shape[2]}x{render.shape[1]}")
+        depth = background_to_unknown(depth, background)
+        if depth_type == "ray":
+            depth = ray_to_z_depth(depth.double(), camera_path.K[t]).float()
+        return render, depth
+
+    per_pair, per_frame = [], []
+    prev = None
+    done_now = 0
+    for t in range(total):
+        if should_stop is not None and should_stop():
+            raise PathCancelled(t)
+        render, depth = load_frame(t)
+        out_png = frame_dir / f"{t:05d}.png"
+        if out_png.is_file():
+            enhanced = read_image(out_png)
+        else:
+            match = matches[t]
+            exclude = match if match is not None and scene.frames[match].split == "train" else None
+            result = enhancer.enhance(render, depth, camera_path.K[t], camera_path.world_from_cam[t], exclude=exclude)
+            write_png(out_png, result.image)
+            enhanced = _quantise(result.image)
+            done_now += 1
+        photo = scene.photo(matches[t]) if matches[t] is not None else None
+        row = {"frame": t, "view": scene.frames[matches[t]].name if matches[t] is not None else None}
+        if photo is not None:
+            row["render_psnr"] = float(psnr(render[None], photo[None])[0])
+            row["enhanced_psnr"] = float(psnr(enhanced[None], photo[None])[0])
+            row["gain_db"] = row["enhanced_psnr"] - row["render_psnr"]
+        per_frame.append(row)
+        current = (render, enhanced, photo, depth, camera_path.K[t], camera_path.world_from_cam[t])
+        if prev is not None:
+            errors, fraction = pair_flicker(list(prev[:3]), list(current[:3]), prev[3], depth, prev[4], current[4],
+                                            prev[5], current[5])
+            per_pair.append({"from": t - 1, "to": t, "render": errors[0], "enhanced": errors[1],
+                             "photo": errors[2], "valid_fraction": fraction})
+        prev = current
+        if progress is not None:
+            progress(t + 1, total)
+    report = summarise_flicker(per_pair, per_frame)
+    report["frames"] = total
+    atomic_write(output / FLICKER_FILE, json.dumps(_finite(report), indent=1).encode())
+
+    video_path = sbs_path = None
+    if video:
+        video_path, sbs_path = output / VIDEO_FILE, output / SIDE_BY_SIDE_FILE
+        with Mp4Writer(video_path, fps=fps, crf=quality) as enhanced_video, \
+                Mp4Writer(sbs_path, fps=fps, crf=quality) as side_video:
+            for t in range(total):
+                enhanced = read_image(frame_dir / f"{t:05d}.png")
+                render = read_image(pairs[t][0])
+                enhanced_video.write(enhanced)
+                side_video.write(torch.cat([render, enhanced], dim=2))
+    return PathResult(output=output, frames=total, enhanced_now=done_now, seconds=time.perf_counter() - start,
+                      video=video_path, side_by_side=sbs_path, flicker=report, cached_views=enhancer.cached_views())
+
+
+def summarise_flicker(per_pair: list[dict], per_frame: list[dict]) -> dict:
+    """Means over the pairs (and the frames with photos) of :func:`enhance_path`'s rows."""
+    def mean(values):
+        values = [v for v in values if v is not None and math.isfinite(v)]
+        return sum(values) / len(values) if values else None
+
+    render = mean(p["render"] for p in per_pair)
+    enhanced = mean(p["enhanced"] for p in per_pair)
+    with_photo = [f for f in per_frame if "gain_db" in f]
+    return {
+        "flicker": {"render": render, "enhanced": enhanced, "photo": mean(p["photo"] for p in per_pair),
+                    "ratio": (enhanced / render) if render and enhanced is not None else None,
+                    "pairs": len(per_pair), "pairs_with_photos": sum(p["photo"] is not None for p in per_pair)},
+        "psnr": {"frames_with_photos": len(with_photo),
+                 "render": mean(f["render_psnr"] for f in with_photo),
+                 "enhanced": mean(f["enhanced_psnr"] for f in with_photo),
+                 "mean_gain_db": mean(f["gain_db"] for f in with_photo)},
+        "per_pair": per_pair,
+        "per_frame": per_frame,
+    }
+
+
+def _finite(obj):
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def smooth_path(key_poses: Tensor, steps: int, *, closed: bool = False) -> Tensor:
+    """A smooth camera path through ``key_poses`` ``(M, 4, 4)`` (camera-to-world): ``steps``
+    frames per segment, positions on a Catmull-Rom spline, rotations by quaternion slerp. Frame
+    ``k * steps`` is key pose ``k`` exactly (those frames have the key views' photos).
+
+    Returns ``(T, 4, 4)`` float64, ``T = (M - 1) * steps + 1`` (``M * steps`` when ``closed``).
+    """
+    from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_matrix_to_quaternion
+
+    if steps < 1:
+        raise InputError(f"steps: expected >= 1, got {steps}")
+    key = key_poses.to(torch.float64)
+    m = key.shape[0]
+    if m < 2:
+        raise InputError(f"key_poses: expected at least 2 poses, got {m}")
+    quats = rotation_matrix_to_quaternion(key[:, :3, :3].contiguous())  # (M, 4) w, x, y, z
+    for i in range(1, m):  # same hemisphere as the previous key: the short way round
+        if float((quats[i] * quats[i - 1]).sum()) < 0:
+            quats[i] = -quats[i]
+    positions = key[:, :3, 3]
+    segments = m if closed else m - 1
+    out = []
+    for s in range(segments):
+        a, b = s, (s + 1) % m
+        p0 = positions[(a - 1) % m] if (closed or a > 0) else positions[a]
+        p3 = positions[(b + 1) % m] if (closed or b < m - 1) else positions[b]
+        qa, qb = quats[a], quats[b] if float((quats[a] * quats[b]).sum()) >= 0 else -quats[b]
+        for k in range(steps):
+            u = k / steps
+            p = 0.5 * ((2 * positions[a]) + (-p0 + positions[b]) * u
+                       + (2 * p0 - 5 * positions[a] + 4 * positions[b] - p3) * u * u
+                       + (-p0 + 3 * positions[a] - 3 * positions[b] + p3) * u ** 3)
+            dot = float((qa * qb).sum())
+            if dot > 0.9995:
+                q = qa + u * (qb - qa)
+            else:
+                theta = math.acos(max(-1.0, min(1.0, dot)))
+                q = (math.sin((1 - u) * theta) * qa + math.sin(u * theta) * qb) / math.sin(theta)
+            q = q / q.norm()
+            pose = torch.eye(4, dtype=torch.float64)
+            pose[:3, :3] = quaternion_to_rotation_matrix(q[None])[0] if k else key[a, :3, :3]
+            pose[:3, 3] = p if k else positions[a]
+            out.append(pose)
+    if not closed:
+        out.append(key[-1].clone())
+    return torch.stack(out)

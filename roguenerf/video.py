@@ -1,0 +1,112 @@
+"""H.264 MP4 writing through PyAV (the ``video`` extra: ``pip install 'roguenerf[video]'``).
+
+PyAV's wheels carry their own FFmpeg with libx264, so nothing else is installed. Frames are
+encoded as they arrive (bounded memory for any path length); odd sizes are padded by one
+edge pixel, since 4:2:0 chroma needs even sides.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from roguenerf.errors import InputError
+
+DEFAULT_CRF = 20
+"""x264 constant rate factor: 0 is lossless, 18-23 visually good, 51 worst."""
+
+
+def require_av():
+    try:
+        import av
+    except ImportError:
+        raise InputError("writing MP4 needs PyAV: pip install 'roguenerf[video]' (or pass --no-video)") from None
+    return av
+
+
+def check_quality(crf: int) -> int:
+    if isinstance(crf, bool) or not isinstance(crf, int) or not 0 <= crf <= 51:
+        raise InputError(f"quality (x264 CRF): expected an integer 0..51 (lower is better), got {crf!r}")
+    return crf
+
+
+def _as_uint8(frame: Tensor | np.ndarray) -> np.ndarray:
+    """``(3, H, W)`` float [0, 1] tensor or ``(H, W, 3)`` uint8 array -> ``(H, W, 3)`` uint8."""
+    if isinstance(frame, Tensor):
+        frame = (frame.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+    if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
+        raise InputError(f"video frame: expected (3, H, W) float or (H, W, 3) uint8, got {frame.dtype} {frame.shape}")
+    h, w = frame.shape[:2]
+    if h % 2 or w % 2:
+        frame = np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+    return np.ascontiguousarray(frame)
+
+
+class Mp4Writer:
+    """``with Mp4Writer(path, fps=24, crf=20) as video: video.write(frame)``; atomic: the file
+    appears under its name only when closed without an error."""
+
+    def __init__(self, path: str | os.PathLike, *, fps: float = 24.0, crf: int = DEFAULT_CRF):
+        self.av = require_av()
+        if not (isinstance(fps, (int, float)) and 0 < fps <= 240):
+            raise InputError(f"fps: expected a number in (0, 240], got {fps!r}")
+        self.path = Path(path)
+        self.tmp = self.path.with_name(f".{self.path.name}.partial.mp4")
+        self.fps = fps
+        self.crf = check_quality(crf)
+        self.container = None
+        self.stream = None
+        self.frames = 0
+
+    def __enter__(self) -> Mp4Writer:
+        return self
+
+    def write(self, frame: Tensor | np.ndarray) -> None:
+        from fractions import Fraction
+
+        image = _as_uint8(frame)
+        if self.container is None:
+            self.container = self.av.open(str(self.tmp), mode="w", format="mp4")
+            rate = Fraction(self.fps).limit_denominator(1001)
+            self.stream = self.container.add_stream("libx264", rate=rate)
+            self.stream.width, self.stream.height = image.shape[1], image.shape[0]
+            self.stream.pix_fmt = "yuv420p"
+            self.stream.options = {"crf": str(self.crf), "preset": "medium"}
+        elif (image.shape[1], image.shape[0]) != (self.stream.width, self.stream.height):
+            raise InputError(f"video frame {self.frames}: size {image.shape[1]}x{image.shape[0]} differs "
+                             f"from the first frame's {self.stream.width}x{self.stream.height}")
+        video_frame = self.av.VideoFrame.from_ndarray(image, format="rgb24")
+        for packet in self.stream.encode(video_frame):
+            self.container.mux(packet)
+        self.frames += 1
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if self.container is None:
+            return
+        try:
+            if exc_type is None:
+                for packet in self.stream.encode():
+                    self.container.mux(packet)
+        finally:
+            self.container.close()
+        if exc_type is None:
+            os.replace(self.tmp, self.path)
+        else:
+            self.tmp.unlink(missing_ok=True)
+
+
+def read_video_info(path: str | os.PathLike) -> dict:
+    """Decode a video back: ``{"frames", "width", "height", "codec"}`` (tests, benches)."""
+    av = require_av()
+    with av.open(str(path)) as container:
+        stream = container.streams.video[0]
+        frames = 0
+        for frame in container.decode(stream):
+            frames += 1
+            width, height = frame.width, frame.height
+        return {"frames": frames, "width": width if frames else 0, "height": height if frames else 0,
+                "codec": stream.codec_context.name}

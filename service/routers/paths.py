@@ -1,0 +1,96 @@
+"""Camera paths: upload a zip of frames + camera path, get a job; the MP4 comes from GET /jobs/{id}/result."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, File, Form, Response, UploadFile
+
+from roguenerf.errors import RoGUENeRFError
+from service.errors import ApiError, error_responses, library_error
+from service.limits import queue_full
+from service.routers.scenes import scene_or_404
+from service.schemas import JobPublic
+from service.state import ServicesDep
+from service.storage import ZipLimits, discard, extract_scene_zip, place
+from workers.jobs import ActiveJobExists, QueueFull
+from workers.queue import QueueUnavailable
+
+log = logging.getLogger("roguenerf.service")
+router = APIRouter(prefix="/scenes", tags=["paths"])
+
+def validate_path_upload(services, scene_id: str, root: Path, *, max_pixels: int) -> int:
+    """Check an extracted path upload with the library; returns its frame count (ApiError otherwise)."""
+    from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
+    from roguenerf.imageio import read_image_size
+    from roguenerf.paths import find_camera_file, find_path_frames, read_camera_path
+
+    try:
+        camera_file = find_camera_file(root)
+        parser_file = services.layout.scene_files(scene_id) / DATAPARSER_FILE
+        parser = DataparserTransform.read(parser_file) if parser_file.is_file() else None
+        camera_path = read_camera_path(camera_file, dataparser=parser)
+        if camera_path.width * camera_path.height > max_pixels:
+            raise ApiError(413, "image_too_large", f"camera path renders {camera_path.width}x{camera_path.height}, "
+                                                   f"more than the allowed {max_pixels} pixels")
+        pairs = find_path_frames(root, len(camera_path))
+        for rgb, _depth in pairs:
+            size = read_image_size(rgb, max_pixels=max_pixels)
+            if size != (camera_path.width, camera_path.height):
+                raise ApiError(422, "invalid_path", f"{rgb.relative_to(root)}: render is {size[0]}x{size[1]}, the "
+                                                    f"camera path says {camera_path.width}x{camera_path.height}")
+    except RoGUENeRFError as exc:
+        raise library_error(exc, root=root) from None
+    return len(pairs)
+
+
+@router.post("/{scene_id}/paths", status_code=202, response_model=JobPublic,
+             summary="Enhance a camera path (zip of frames + camera path); returns a job",
+             responses=error_responses(400, 404, 409, 413, 422, 503))
+def create_path_job(
+    scene_id: str,
+    services: ServicesDep,
+    response: Response,
+    archive: Annotated[UploadFile, File(description=(
+        "zip: camera_path.json (nerfstudio) or transforms.json, plus rgb/NAME.png and depth/NAME.npy[.gz] "
+        "per frame (or NAME.png + NAME.npy side by side)"))],
+    depth_type: Annotated[Literal["z", "ray"], Form(description="z, or ray (distance along the ray)")] = "z",
+    depth_scale: Annotated[float, Form(gt=0, lt=1e9, description="multiplies the stored depth")] = 1.0,
+    background: Annotated[Literal["zero", "max"], Form(description="what no-surface pixels hold")] = "zero",
+    quality: Annotated[int, Form(ge=0, le=51, description="x264 CRF (lower is better)")] = 20,
+) -> JobPublic:
+    settings, layout = services.settings, services.layout
+    row = scene_or_404(services, scene_id)
+    tmp = layout.temp_dir()
+    try:
+        root = extract_scene_zip(archive.file, tmp / "input",
+                                 ZipLimits(settings.max_scene_files, settings.max_scene_bytes))
+        frames = validate_path_upload(services, scene_id, root, max_pixels=settings.max_upload_pixels)
+        request = {"kind": "path", "frames": frames, "depth_type": depth_type, "depth_scale": depth_scale,
+                   "background": background, "quality": quality}
+        try:
+            job, _ = services.store.create_job(scene_id, request, base_version=row["active_version"],
+                                               max_queued=settings.max_queued_jobs)
+        except QueueFull as exc:
+            raise queue_full(exc) from None
+        except ActiveJobExists as exc:
+            raise ApiError(409, "job_active", f"scene {scene_id} already has an active job ({exc.job_id}); "
+                                              "wait for it or cancel it") from None
+        try:
+            job_dir = layout.job_dir(job["id"])
+            job_dir.mkdir(parents=True, exist_ok=True)
+            place(root, job_dir / "input")
+            services.queue.enqueue(job["id"])
+        except BaseException as exc:
+            services.store.delete_job(job["id"])
+            layout.remove_tree(layout.job_dir(job["id"]))
+            if isinstance(exc, QueueUnavailable):
+                raise ApiError(503, "queue_unavailable", str(exc), headers={"Retry-After": "5"}) from None
+            raise
+    finally:
+        discard(tmp)
+    log.info("path job %s queued for scene %s: %d frames", job["id"], scene_id, frames)
+    response.headers["Location"] = f"/jobs/{job['id']}"
+    return JobPublic.from_row(job)

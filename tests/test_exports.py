@@ -1,0 +1,205 @@
+"""nerfstudio and gsplat exports, in their exact file formats, load to the z-depth of our folder."""
+
+from __future__ import annotations
+
+import gzip
+import io
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from roguenerf.data.exports import DataparserTransform, import_renders, write_depth_like
+from roguenerf.data.toy import make_toy_scene
+from roguenerf.errors import InputError, SceneFormatError
+from roguenerf.geometry import opencv_to_opengl, reproject
+from roguenerf.imageio import ImageTooLargeError, read_depth
+
+H, W = 24, 32
+SCALE = 0.37
+
+
+def _rotation(axis, angle):
+    axis = torch.tensor(axis, dtype=torch.float64)
+    axis = axis / axis.norm()
+    x, y, z = axis.tolist()
+    Kx = torch.tensor([[0, -z, y], [z, 0, -x], [-y, x, 0]], dtype=torch.float64)
+    return torch.eye(3, dtype=torch.float64) + math.sin(angle) * Kx + (1 - math.cos(angle)) * Kx @ Kx
+
+
+PARSER = DataparserTransform(
+    transform=torch.cat([_rotation((0.3, -1.0, 0.5), 0.7), torch.tensor([[0.4], [-1.2], [2.0]], dtype=torch.float64)], 1),
+    scale=SCALE)
+
+
+def _ray_norm(K):
+    u = torch.arange(W, dtype=torch.float64) + 0.5
+    v = torch.arange(H, dtype=torch.float64) + 0.5
+    x = (u[None, :] - K[0, 2]) / K[0, 0]
+    y = (v[:, None] - K[1, 2]) / K[1, 1]
+    return torch.sqrt(x * x + y * y + 1)
+
+
+@pytest.fixture(scope="module")
+def ours(tmp_path_factory):
+    return make_toy_scene(tmp_path_factory.mktemp("ours") / "scene", seed=5, n_train=4, n_test=1,
+                          height=H, width=W, kind="orbit")
+
+
+def _nerfstudio_dataset(root, scene):
+    """A nerfstudio dataset (transforms.json, images/) of the toy scene's photos and poses."""
+    (root / "images").mkdir(parents=True)
+    frames = []
+    for f in scene.frames:
+        shutil.copyfile(f.image_path, root / "images" / f"{f.name}.png")
+        frames.append({"file_path": f"images/{f.name}.png",
+                       "transform_matrix": opencv_to_opengl(f.world_from_cam).tolist()})
+    K = scene.frames[0].K
+    doc = {"camera_model": "OPENCV", "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]),
+           "cy": float(K[1, 2]), "w": W, "h": H, "frames": frames,
+           "train_filenames": [f"images/{f.name}.png" for f in scene.frames if f.split == "train"],
+           "test_filenames": [f"images/{f.name}.png" for f in scene.frames if f.split == "test"]}
+    (root / "transforms.json").write_text(json.dumps(doc))
+    (root / "dataparser_transforms.json").write_text(json.dumps(
+        {"transform": PARSER.transform.tolist(), "scale": SCALE}))
+
+
+def _ns_render(out, scene, *, depth_type="ray", layout="nerfstudio", kind="npy.gz", background=None):
+    """What `ns-render dataset --rendered-output-names rgb raw-depth` (or a gsplat script) writes."""
+    for f in scene.frames:
+        split = f.split if layout == "nerfstudio" else None
+        base = out / split if split else out
+        rgb_dir = base / "rgb"
+        depth_dir = base / ("raw-depth" if layout == "nerfstudio" else "depth")
+        rgb_dir.mkdir(parents=True, exist_ok=True)
+        depth_dir.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(f.render_path, rgb_dir / f"{f.name}.png")
+        z = scene.depth(f.name)[0].double()
+        depth = z * _ray_norm(f.K) if depth_type == "ray" else z
+        # Rendered in the model's world (times the scale, float32), divided back by ns-render.
+        depth = ((depth * SCALE).float() / SCALE).numpy()
+        if background is not None:
+            depth = depth.copy()
+            depth[:3, :5] = background
+        suffix = {"npy.gz": ".npy.gz", "npy": ".npy", "npz": ".npz", "png16": ".png", "tiff": ".tiff"}[kind]
+        write_depth_like(depth_dir / f"{f.name}{suffix}", depth, kind=kind, scale=1e-3)
+
+
+def test_nerfstudio_export_gives_the_folder_z_depth(ours, tmp_path):
+    _nerfstudio_dataset(tmp_path / "ds", ours)
+    _ns_render(tmp_path / "renders", ours)
+    raw = read_depth(tmp_path / "renders" / "train" / "raw-depth" / f"{ours.frames[0].name}.npy.gz")
+    assert raw.shape == (1, H, W)
+    with gzip.open(tmp_path / "renders" / "train" / "raw-depth" / f"{ours.frames[0].name}.npy.gz") as fh:
+        assert np.load(fh).shape == (H, W, 1)  # the exact nerfstudio layout
+    scene = import_renders(tmp_path / "ds", tmp_path / "renders", tmp_path / "out",
+                           dataparser_transforms=tmp_path / "ds" / "dataparser_transforms.json")
+    assert [f.name for f in scene.frames] == [f.name for f in ours.frames]
+    assert [f.split for f in scene.frames] == [f.split for f in ours.frames]
+    for f in ours.frames:
+        torch.testing.assert_close(scene.depth(f.name), ours.depth(f.name), rtol=2e-6, atol=1e-6)
+        torch.testing.assert_close(scene.poses([scene.index(f.name)])[0], f.world_from_cam, rtol=0, atol=1e-12)
+        torch.testing.assert_close(scene.photo(f.name), ours.photo(f.name))
+        torch.testing.assert_close(scene.render(f.name), ours.render(f.name))
+    kept = DataparserTransform.read(tmp_path / "out" / "dataparser_transforms.json")
+    assert kept.scale == SCALE and torch.equal(kept.transform, PARSER.transform)
+    # Verified by reprojection: photo 0 seen from view 1 through the imported depth matches photo 1.
+    a, b = 0, 1
+    rp = reproject(scene.photo(a)[None], scene.depth(a)[None], scene.depth(b)[None], scene.frames[a].K,
+                   scene.frames[b].K, scene.frames[a].world_from_cam, scene.frames[b].world_from_cam)
+    valid = rp.valid[0, 0] > 0
+    assert valid.float().mean() > 0.3
+    err = (rp.features[0] - scene.photo(b)).abs().mean(0)[valid].mean()
+    assert err < 0.05
+
+
+def test_model_units_depth_and_wrong_inputs(ours, tmp_path):
+    _nerfstudio_dataset(tmp_path / "ds", ours)
+    _ns_render(tmp_path / "renders", ours)
+    # Depth left in the model's world (older exports): times the scale; depth_units="model" undoes it.
+    for path in (tmp_path / "renders").rglob("*.npy.gz"):
+        depth = read_depth(path)[0].numpy() * SCALE
+        write_depth_like(path, depth, kind="npy.gz")
+    scene = import_renders(tmp_path / "ds", tmp_path / "renders", tmp_path / "out", depth_units="model",
+                           dataparser_transforms=tmp_path / "ds" / "dataparser_transforms.json")
+    torch.testing.assert_close(scene.depth(0), ours.depth(0), rtol=1e-5, atol=1e-6)
+    with pytest.raises(InputError, match="dataparser"):
+        import_renders(tmp_path / "ds", tmp_path / "renders", tmp_path / "o2", depth_units="model")
+    with pytest.raises(InputError, match="render folder"):
+        import_renders(tmp_path / "ds", tmp_path / "ds", tmp_path / "o3")
+
+
+@pytest.mark.parametrize("kind,tol", [("npy", 1e-5), ("npz", 1e-5), ("tiff", 1e-5), ("npy.gz", 1e-5),
+                                      ("png16", 6e-4)])
+@pytest.mark.parametrize("depth_type", ["z", "ray"])
+def test_gsplat_export_formats_give_the_folder_z_depth(ours, tmp_path, kind, tol, depth_type):
+    if kind == "png16" and depth_type == "ray":
+        pytest.skip("one PNG case is enough")
+    _nerfstudio_dataset(tmp_path / "ds", ours)
+    no_splat = 65535 * 1e-3 if kind == "png16" else 1e4  # the map's maximum where no splat is
+    _ns_render(tmp_path / "renders", ours, depth_type=depth_type, layout="flat", kind=kind, background=no_splat)
+    scene = import_renders(tmp_path / "ds", tmp_path / "renders", tmp_path / "out", tool="gsplat",
+                           depth_type=depth_type, depth_scale=1e-3 if kind == "png16" else 1.0)
+    for f in ours.frames:
+        got, want = scene.depth(f.name), ours.depth(f.name)
+        assert (got[0, :3, :5] == 0).all(), "no-splat pixels must be unknown"
+        keep = torch.ones_like(want, dtype=torch.bool)
+        keep[0, :3, :5] = False
+        torch.testing.assert_close(got[keep], want[keep], rtol=tol, atol=tol)
+    assert [f.split for f in scene.frames] == [f.split for f in ours.frames]
+
+
+def test_dataparser_transform_round_trip(ours):
+    poses = ours.poses()
+    model = PARSER.to_model(poses)
+    assert not torch.allclose(model, poses)
+    torch.testing.assert_close(PARSER.to_dataset(model), poses, rtol=0, atol=1e-12)
+    # Distances scale by the dataparser's scale, rotations stay rotations.
+    d0 = (poses[0, :3, 3] - poses[1, :3, 3]).norm()
+    d1 = (model[0, :3, 3] - model[1, :3, 3]).norm()
+    assert abs(d1 / d0 - SCALE) < 1e-12
+
+
+def test_read_depth_formats_and_refusals(tmp_path):
+    depth = np.random.default_rng(0).uniform(1, 5, (H, W)).astype(np.float32)
+    for kind, suffix in (("npy.gz", ".npy.gz"), ("npz", ".npz"), ("tiff", ".tif")):
+        path = write_depth_like(tmp_path / f"d{suffix}", depth, kind=kind)
+        np.testing.assert_array_equal(read_depth(path)[0].numpy(), depth)
+    # A gzip bomb: a tiny file that would inflate past the size limit is refused early.
+    buf = io.BytesIO()
+    np.save(buf, np.zeros((1000, 1000), np.float64))
+    bomb = gzip.compress(buf.getvalue())
+    with pytest.raises(ImageTooLargeError):
+        read_depth(bomb, max_pixels=10_000)
+    with pytest.raises(InputError, match="OpenEXR"):
+        read_depth(b"\x76\x2f\x31\x01" + b"\x00" * 20)
+    with pytest.raises(InputError, match="corrupt gzip|truncated gzip"):
+        read_depth(gzip.compress(buf.getvalue())[:100])
+    with pytest.raises(SceneFormatError, match="rotation"):
+        bad = tmp_path / "dp.json"
+        bad.write_text(json.dumps({"transform": [[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0]], "scale": 1}))
+        DataparserTransform.read(bad)
+
+
+def test_import_cli(ours, tmp_path):
+    from typer.testing import CliRunner
+
+    from roguenerf.cli import app
+
+    _nerfstudio_dataset(tmp_path / "ds", ours)
+    _ns_render(tmp_path / "renders", ours)
+    runner = CliRunner()
+    r = runner.invoke(app, ["import-nerfstudio", str(tmp_path / "ds"), "--renders", str(tmp_path / "renders"),
+                            "--output", str(tmp_path / "out"), "--dataparser-transforms",
+                            str(tmp_path / "ds" / "dataparser_transforms.json")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "out" / "dataparser_transforms.json").is_file()
+    bad = runner.invoke(app, ["import-gsplat", str(tmp_path / "nope"), "--renders", str(tmp_path / "renders"),
+                              "--output", str(tmp_path / "o2")])
+    assert bad.exit_code == 2 and "does not exist" in bad.output and "Traceback" not in bad.output
+    bad = runner.invoke(app, ["import-nerfstudio", str(tmp_path / "ds"), "--renders", str(tmp_path / "renders"),
+                              "--output", str(tmp_path / "o3"), "--depth-type", "zz"])
+    assert bad.exit_code == 2 and "--depth-type" in bad.output
