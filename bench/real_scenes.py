@@ -65,7 +65,8 @@ def summarise(report: dict) -> dict:
             "worst_view": report["views"][worst]["name"], "worst_view_gain_db": round(gains[worst], 4)}
 
 
-def run(args) -> list[dict]:
+def run(args, save=None) -> list[dict]:
+    """The rows; ``save(rows)`` is called after each one (a long run loses nothing on a crash)."""
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
     from roguenerf.training import TrainConfig, evaluate, finetune
@@ -83,6 +84,8 @@ def run(args) -> list[dict]:
                    "train_seconds": round(seconds, 1), **summarise(report), **extra}
             print(", ".join(f"{k}={v}" for k, v in row.items() if k not in base), flush=True)
             rows.append(row)
+            if save is not None:
+                save(rows)
 
         for kind, ckpt in (("zero-shot old", args.old_checkpoint), ("zero-shot new", new)):
             if ckpt is None:
@@ -130,7 +133,7 @@ def main(argv=None) -> int:
     from roguenerf import runtime
 
     print(f"runtime: {runtime.configure()}", flush=True)
-    write_outputs(args.output, run(args), plot, quick=args.quick)
+    run(args, save=lambda rows: write_outputs(args.output, rows, plot, quick=args.quick))
     return 0
 
 
