@@ -21,6 +21,7 @@ from workers.queue import QueueUnavailable
 log = logging.getLogger("roguenerf.service")
 router = APIRouter(prefix="/scenes", tags=["paths"])
 
+
 def validate_path_upload(services, scene_id: str, root: Path, *, max_pixels: int) -> int:
     """Check an extracted path upload with the library; returns its frame count (ApiError otherwise)."""
     from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
