@@ -18,6 +18,14 @@
 # 3. ship: copy to $DEST (roguenerf/weights/default.safetensors) with its JSON sidecar.
 # 4. evaluate: bench/real_scenes.py on the held-out scenes' $EVAL_PRESET fits (default: the last preset) (zero-shot old and new, 1/3/10-minute
 #    fine-tunes) when STAGE=all or STAGE=evaluate.
+#
+# The shipped roguenerf/weights/default.safetensors (2026-11-24) was made by, in this order:
+#   git show a4ce751:roguenerf/weights/default.safetensors > /tmp/lego_toy.safetensors  # the previous default
+#   STAGE=pairs scripts/pretrain_real.sh              # blur + coarse fits (gold_cape/coarse was cut short)
+#   STAGE=pretrain START=/tmp/lego_toy.safetensors MINUTES=30 \
+#     FITS=cup/blur,cup/coarse,dtu_scan24/blur,dtu_scan24/coarse,milk/blur,milk/coarse,drink_box/blur,drink_box/coarse,beer/blur,beer/coarse,ethiopian_head/blur,ethiopian_head/coarse,gold_cape/blur \
+#     scripts/pretrain_real.sh                        # + lego's training views (EXTRA): 4845 steps in 30 min
+# (STEPS=4845 instead of MINUTES=30 repeats the same number of steps on a faster or slower machine.)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 SHARED=${ROGUENERF_SHARED_DATA:-../shared/data}
