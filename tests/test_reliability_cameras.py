@@ -74,7 +74,7 @@ def test_pickled_depth_is_refused_and_never_unpickled(s, tmp_path):
     ("3d", np.ones((2, 48, 64), np.float32)),
     ("flat", np.ones((48 * 64,), np.float32)),
     ("4d", np.ones((1, 1, 48, 64), np.float32)),
-    ("hwc", np.ones((48, 64, 1), np.float32)),
+    ("hwc2", np.ones((48, 64, 2), np.float32)),
     ("scalar", np.float32(1.0)),
 ])
 def test_wrong_depth_dtype_or_shape_is_422(s, name, array):
@@ -82,6 +82,15 @@ def test_wrong_depth_dtype_or_shape_is_422(s, name, array):
     message = assert_error(_send(s, depth=npy(np.asarray(array))), 422)
     assert message.startswith("depth"), message
     assert s.stored() == before
+
+
+def test_depth_with_a_trailing_channel_is_read_as_nerfstudio_writes_it(s):
+    """(H, W, 1), the shape of nerfstudio's raw-depth, is the same depth as (H, W)."""
+    plain = np.load(io.BytesIO(s.view()["depth"]))
+    assert plain.ndim == 2
+    a, b = _send(s, depth=npy(plain)), _send(s, depth=npy(plain[..., None]))
+    assert a.status_code == 200 and b.status_code == 200, (a.text, b.text)
+    assert a.content == b.content
 
 
 def test_depth_not_npy_or_png_is_422(s):
