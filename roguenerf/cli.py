@@ -338,7 +338,9 @@ def evaluate(
         with _progress_bar(f"evaluating {split} views", "view") as progress:
             report = run_evaluate(scene, model, split=split, num_neighbours=neighbours, progress=progress)
     if as_json:
-        typer.echo(json.dumps(_finite(report)))
+        from roguenerf.imageio import finite_for_json
+
+        typer.echo(json.dumps(finite_for_json(report)))
         return
     typer.echo(f"{'view':<24} {'render PSNR':>12} {'SSIM':>7} {'enhanced PSNR':>14} {'SSIM':>7}")
     for v in report["views"]:
@@ -538,17 +540,6 @@ def serve(
             _fail(f"the service cannot start: {missing} is not installed "
                   "(install the extras: pip install 'roguenerf[service]')", 1)
         run(host=host, port=port, data_dir=data_dir)
-
-
-def _finite(obj):
-    """JSON has no inf/NaN (PSNR of identical images is inf): write them as null."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_finite(v) for v in obj]
-    return obj
 
 
 def main() -> None:

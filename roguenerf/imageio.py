@@ -15,6 +15,7 @@ are in one place:
 from __future__ import annotations
 
 import io
+import math
 import os
 import secrets
 import stat
@@ -401,6 +402,18 @@ def _read_png_depth(stream: BinaryIO, name: str, max_pixels: int) -> np.ndarray:
         )
     _load_pixels(img, name)
     return np.asarray(img).astype(np.float32)
+
+
+def finite_for_json(obj):
+    """JSON has no inf/NaN (PSNR of identical images is inf): floats that are not finite become
+    None, through dicts and lists."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite_for_json(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [finite_for_json(v) for v in obj]
+    return obj
 
 
 def atomic_write(path: str | os.PathLike, data: bytes, *, make_parents: bool = False) -> Path:

@@ -325,7 +325,7 @@ def enhance_path(
     """
     from roguenerf.data.exports import background_to_unknown
     from roguenerf.geometry.cameras import ray_to_z_depth
-    from roguenerf.imageio import atomic_write, read_depth, read_image, write_png
+    from roguenerf.imageio import atomic_write, finite_for_json, read_depth, read_image, write_png
     from roguenerf.metrics import psnr
     from roguenerf.video import Mp4Writer, check_quality, require_av
 
@@ -409,7 +409,7 @@ def enhance_path(
             progress(t + 1, total)
     report = summarise_flicker(per_pair, per_frame)
     report["frames"] = total
-    atomic_write(output / FLICKER_FILE, json.dumps(_finite(report), indent=1).encode())
+    atomic_write(output / FLICKER_FILE, json.dumps(finite_for_json(report), indent=1).encode())
 
     video_path = sbs_path = None
     if video:
@@ -445,16 +445,6 @@ def summarise_flicker(per_pair: list[dict], per_frame: list[dict]) -> dict:
         "per_pair": per_pair,
         "per_frame": per_frame,
     }
-
-
-def _finite(obj):
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_finite(v) for v in obj]
-    return obj
 
 
 def smooth_path(key_poses: Tensor, steps: int, *, closed: bool = False) -> Tensor:

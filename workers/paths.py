@@ -15,10 +15,9 @@ import zipfile
 from pathlib import Path
 
 from workers.layout import public_message
+from workers.tasks import cancel_poller
 
 log = logging.getLogger("roguenerf.worker")
-
-SHOULD_STOP_POLL_S = 0.5
 
 
 def zip_frames(frame_dir: Path, destination: Path) -> None:
@@ -49,19 +48,7 @@ def run_path_job(ctx, job: dict, lease: str, beat) -> str:
     scene_row = store.get_scene(scene_id)
     if scene_row is None:
         return fail("scene_deleted", f"scene {scene_id} no longer exists")
-    last_poll, stop_cached = [0.0], [False]
-
-    def should_stop() -> bool:
-        if ctx.draining.is_set() or beat.lost.is_set():
-            return True
-        now = time.monotonic()
-        if now - last_poll[0] >= SHOULD_STOP_POLL_S:
-            last_poll[0] = now
-            try:
-                stop_cached[0] = store.should_stop(job_id, lease)
-            except Exception:
-                log.exception("path job %s: could not read its cancel flag", job_id)
-        return stop_cached[0]
+    should_stop = cancel_poller(ctx, beat, store, job_id, lease)
 
     started = time.monotonic()
     first_done: list = []

@@ -115,6 +115,26 @@ class _Heartbeat(threading.Thread):
                 log.exception("heartbeat of job %s failed", self.job_id)
 
 
+def cancel_poller(ctx, beat, store: JobStore, job_id: str, lease: str) -> Callable[[], bool]:
+    """``should_stop`` for a running job: True when the worker drains, the lease is lost, or the
+    job's cancel flag is set (read from the store at most every SHOULD_STOP_POLL_S)."""
+    last_poll, stop_cached = [0.0], [False]
+
+    def should_stop() -> bool:
+        if ctx.draining.is_set() or beat.lost.is_set():
+            return True
+        now = time.monotonic()
+        if now - last_poll[0] >= SHOULD_STOP_POLL_S:
+            last_poll[0] = now
+            try:
+                stop_cached[0] = store.should_stop(job_id, lease)
+            except Exception:
+                log.exception("job %s: could not read its cancel flag", job_id)
+        return stop_cached[0]
+
+    return should_stop
+
+
 def run_job(ctx: WorkerContext, job_id: str) -> str:
     """Claim and run one job; returns what happened (for logs and tests)."""
     lease = uuid.uuid4().hex
@@ -160,20 +180,7 @@ def _train(ctx: WorkerContext, job: dict, lease: str, beat: _Heartbeat) -> str:
     if scene_row is None:
         return fail("scene_deleted", f"scene {scene_id} no longer exists")
 
-    last_poll = [0.0]
-    stop_cached = [False]
-
-    def should_stop() -> bool:
-        if ctx.draining.is_set() or beat.lost.is_set():
-            return True
-        now = time.monotonic()
-        if now - last_poll[0] >= SHOULD_STOP_POLL_S:
-            last_poll[0] = now
-            try:
-                stop_cached[0] = store.should_stop(job_id, lease)
-            except Exception:
-                log.exception("job %s: could not read its cancel flag", job_id)
-        return stop_cached[0]
+    should_stop = cancel_poller(ctx, beat, store, job_id, lease)
 
     def progress(p) -> None:
         try:
