@@ -11,6 +11,11 @@ the held-out scenes are never pre-trained on, and only their training views are 
 each with its mean gain, SSIM, the worst view's gain, steps and seconds. Writes CSV + a plot of
 gain against fine-tuning minutes (date, machine, commit on every row and in the plot's title).
 
+``--plans default,whole`` fine-tunes each scene once per plan, in this one sitting (issue 12's
+gain per minute: ``default`` is the shipped CPU plan, ``whole`` the same plan with every
+neighbour photo encoded whole each step, the training step before crop windows; ``n5`` and
+``crop96`` are the alternatives weighed for the CPU defaults). Same data, seed and start.
+
     .venv/bin/python bench/real_scenes.py ~/.cache/roguenerf/pairs/dtu_scan37/fine \\
         ~/.cache/roguenerf/pairs/mary_rose/fine --old-checkpoint old.safetensors
     .venv/bin/python bench/real_scenes.py SCENE --quick      # seconds-long budgets (proves it runs)
@@ -28,6 +33,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.common import RESULTS, stamp, write_outputs  # noqa: E402
 
 
+PLANS = {
+    "default": {},
+    "whole": {"neighbour_encoding": "whole"},
+    "n5": {"num_neighbours": 5},
+    "crop96": {"crop": 96},
+}
+"""Fine-tuning plans as TrainConfig overrides of the shipped CPU plan (``--plans``)."""
+
+
 def _floats(text: str) -> list[float]:
     return [float(x) for x in text.split(",") if x.strip()]
 
@@ -39,9 +53,14 @@ def parse_args(argv=None):
     p.add_argument("--old-checkpoint", type=Path, default=None, help="the checkpoint to compare zero-shot against")
     p.add_argument("--minutes", type=_floats, default=[1, 3, 10], help="comma-separated fine-tuning budgets")
     p.add_argument("--max-views", type=int, default=None)
+    p.add_argument("--plans", type=lambda t: [x for x in t.split(",") if x], default=["default"],
+                   help=f"comma-separated fine-tuning plans: {', '.join(PLANS)}")
     p.add_argument("--quick", action="store_true", help="tiny budgets, 2 views")
     p.add_argument("--output", type=Path, default=RESULTS / "real_scenes")
     args = p.parse_args(argv)
+    unknown = [x for x in args.plans if x not in PLANS]
+    if unknown:
+        p.error(f"--plans: unknown {', '.join(unknown)} (known: {', '.join(PLANS)})")
     if args.quick:
         args.minutes = [0.02, 0.05]
         args.max_views = args.max_views or 2
@@ -92,13 +111,17 @@ def run(args, save=None) -> list[dict]:
                 continue
             model, _ = load_checkpoint(ckpt)
             record(kind, 0.0, 0, 0.0, evaluate(scene, model, max_views=args.max_views), checkpoint=str(ckpt))
-        run_dir = work / label.replace("/", "_")
-        for minutes in sorted(args.minutes):
-            result = finetune(scene, run_dir, checkpoint=new, config=TrainConfig(minutes=minutes, evaluate=False))
-            model, _ = load_checkpoint(result.checkpoint)
-            record("finetune", minutes, result.steps, result.seconds, evaluate(scene, model, max_views=args.max_views),
-                   checkpoint=str(new), plan=f"{result.config['variant']} crop {result.config['crop_used']} "
-                                              f"batch {result.config['batch']} n{result.config['num_neighbours']}")
+        for plan_name in args.plans:
+            run_dir = work / f"{label.replace('/', '_')}_{plan_name}"
+            for minutes in sorted(args.minutes):
+                config = TrainConfig(minutes=minutes, evaluate=False, **PLANS[plan_name])
+                result = finetune(scene, run_dir, checkpoint=new, config=config)
+                model, _ = load_checkpoint(result.checkpoint)
+                c = result.config
+                record("finetune", minutes, result.steps, result.seconds,
+                       evaluate(scene, model, max_views=args.max_views), checkpoint=str(new), plan_name=plan_name,
+                       plan=f"{c['variant']} crop {c['crop_used']} batch {c['batch']} n{c['num_neighbours']} "
+                            f"{c['neighbour_encoding']}")
     return rows
 
 
@@ -109,9 +132,19 @@ def plot(rows: list[dict], path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.5, 4))
+    styles = ["o-", "s--", "^:", "d-."]
     for scene in dict.fromkeys(r["scene"] for r in rows):
-        mine = [r for r in rows if r["scene"] == scene and r["kind"] in ("zero-shot new", "finetune")]
-        line, = ax.plot([r["minutes"] for r in mine], [r["gain_db"] for r in mine], "o-", label=scene)
+        zero = [r for r in rows if r["scene"] == scene and r["kind"] == "zero-shot new"]
+        plans = list(dict.fromkeys(r.get("plan_name", "default") for r in rows
+                                   if r["scene"] == scene and r["kind"] == "finetune")) or ["default"]
+        color = None
+        for k, name in enumerate(plans):
+            mine = zero + [r for r in rows if r["scene"] == scene and r["kind"] == "finetune"
+                           and r.get("plan_name", "default") == name]
+            label = scene if len(plans) == 1 else f"{scene}, plan {name}"
+            line, = ax.plot([r["minutes"] for r in mine], [r["gain_db"] for r in mine], styles[k % len(styles)],
+                            label=label, color=color)
+            color = line.get_color()
         old = [r for r in rows if r["scene"] == scene and r["kind"] == "zero-shot old"]
         if old:
             ax.scatter([0], [old[0]["gain_db"]], marker="x", color=line.get_color(), label=f"{scene}: old checkpoint")

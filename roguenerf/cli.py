@@ -9,6 +9,7 @@ Progress and logs go to stderr, so ``evaluate --json`` prints exactly one JSON o
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
 import math
@@ -189,6 +190,12 @@ def pretrain(
     seed: SeedOpt = 0,
     neighbours: NeighboursOpt = None,
     lr: LrOpt = None,
+    held_out_from: Annotated[list[Path] | None, typer.Option(
+        "--held-out-from", help="Also train on this scene folder's held-out views (repeatable; added to the "
+        "scenes if missing): renders of views its radiance field never saw, with training-view neighbours. "
+        "Never for a scene you evaluate on.")] = None,
+    held_out_share: Annotated[float, typer.Option(
+        "--held-out-share", help="Chance that a target of a --held-out-from scene is a held-out view.")] = 0.5,
 ) -> None:
     """Pre-train across scene folders and/or generated toy scenes."""
     from roguenerf.training import pretrain as run_pretrain
@@ -200,13 +207,22 @@ def pretrain(
         config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
                                vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, lr=lr,
                                evaluate=False)
-        scenes = [_load_scene(d) for d in scene_dirs or []]
+        config = dataclasses.replace(config, held_out_share=held_out_share).validate()
+        dirs = list(scene_dirs or [])
+        resolved = [d.resolve() for d in dirs]
+        held = []
+        for d in held_out_from or []:
+            if d.resolve() not in resolved:
+                dirs.append(d)
+                resolved.append(d.resolve())
+            held.append(resolved.index(d.resolve()))
+        scenes = [_load_scene(d) for d in dirs]
         scenes += make_toy_scenes(output / "toy", toy, seed=seed)
         if not scenes:
             raise InputError("no scenes to pre-train on: give SCENE_DIR arguments and/or --toy N")
         if checkpoint is not None and not checkpoint.is_file():
             raise InputError(f"checkpoint {checkpoint} does not exist")
-        result = run_pretrain(scenes, output, checkpoint=checkpoint, config=config)
+        result = run_pretrain(scenes, output, checkpoint=checkpoint, config=config, held_out_scenes=held)
         _report_training(result)
         typer.echo(str(result.checkpoint))
 

@@ -45,6 +45,7 @@ STAGE=${STAGE:-all}
 PY=${PY:-.venv/bin/python}
 MANIFEST=${MANIFEST:-docs/pairs/manifest.csv}
 BUDGET_SCALE=${BUDGET_SCALE:-1}
+HELD_OUT_SHARE=${HELD_OUT_SHARE:-0.5}
 
 if [ "$STAGE" = all ] || [ "$STAGE" = pairs ]; then
   # One preset over every scene, then the next: a cut-short run leaves whole passes behind.
@@ -90,12 +91,19 @@ if [ "$STAGE" = all ] || [ "$STAGE" = pretrain ]; then
     echo "no finished fits under $CACHE outside the held-out scenes ($HOLDOUT): run STAGE=pairs first" >&2
     exit 2
   fi
+  n_fits=${#scenes[@]}
   if [ -n "$EXTRA" ]; then IFS=, read -r -a extra_scenes <<< "$EXTRA"; scenes+=("${extra_scenes[@]}"); fi
   echo "pre-training on ${#scenes[@]} scene folders: ${scenes[*]}" >&2
   start=()
   if [ -n "$START" ]; then start=(--checkpoint "$START"); fi
   extra=()
   if [ -n "${VGG_WEIGHTS:-}" ]; then extra+=(--vgg-weights "$VGG_WEIGHTS"); fi
+  # The fits' held-out views are targets too (their renders are novel views, with the artefacts
+  # a user's novel views have); $EXTRA scenes (lego: evaluated on its test views) never are.
+  if [ "$HELD_OUT_SHARE" != 0 ]; then
+    for fit in "${scenes[@]:0:$n_fits}"; do extra+=(--held-out-from "$fit"); done
+    extra+=(--held-out-share "$HELD_OUT_SHARE")
+  fi
   if [ -n "${STEPS:-}" ]; then budget=(--steps "$STEPS"); else budget=(--minutes "$MINUTES"); fi
   "$PY" -m roguenerf.cli pretrain "${scenes[@]}" "${start[@]}" "${budget[@]}" --variant "$VARIANT" \
     --crop "$CROP" --lr "$LR" --output "$OUT" "${extra[@]}"

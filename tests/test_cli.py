@@ -138,6 +138,22 @@ def test_pretrain_with_toy_scenes(scene_dir, tmp_path):
     assert (out / "toy" / "toy_000" / "transforms.json").is_file()
 
 
+def test_pretrain_held_out_from_adds_the_scene_and_its_held_out_views(scene_dir, tmp_path):
+    out = tmp_path / "pt"
+    result = _run("pretrain", "--toy", "1", "--held-out-from", scene_dir, "--held-out-share", "0.3",
+                  "--steps", "1", "--output", out, *FAST)
+    assert result.exit_code == 0, result.output
+    assert "held-out views 30%" in result.stderr
+    _, meta = load_checkpoint(out / "model.safetensors")
+    assert len(meta["training"]["scenes"]) == 2 and meta["training"]["plan"]["held_out_share"] == 0.3
+    # a scene without held-out views is refused before training, with the reason
+    from roguenerf.data.toy import make_toy_scene
+
+    make_toy_scene(tmp_path / "bare", seed=3, n_train=3, n_test=0, height=20, width=24)
+    bare = _run("pretrain", "--held-out-from", tmp_path / "bare", "--steps", "1", "--output", tmp_path / "x", *FAST)
+    assert bare.exit_code == 2 and "no held-out views" in bare.stderr and "Traceback" not in bare.output
+
+
 @pytest.mark.parametrize("args, message", [
     (["--steps", "1", "--minutes", "1"], "either --minutes or --steps"),
     (["--steps", "1", "--without", "uformer"], "--without"),

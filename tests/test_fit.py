@@ -180,7 +180,8 @@ def test_make_pairs_cli_runs_and_the_library_never_imports_the_fitter(tmp_path):
 
 def test_pretraining_pipeline_smoke(tmp_path):
     """scripts/pretrain_real.sh end to end on two toy photo sets, one held out: pairs (tiny
-    budgets), a manifest, a 2-step pre-training that never sees the held-out scene, the shipped
+    budgets), a manifest, a 2-step pre-training that never sees the held-out scene (and trains
+    on the other's held-out views too), the shipped
     copy, and the held-out evaluation bench."""
     data = tmp_path / "real"
     write_photo_set(data / "alpha", views=9, seed=1)
@@ -189,7 +190,8 @@ def test_pretraining_pipeline_smoke(tmp_path):
     env = {**__import__("os").environ, "DATA": str(data), "CACHE": str(tmp_path / "cache"), "PRESETS": "blur,coarse",
            "HOLDOUT": "beta", "EXTRA": "", "BUDGET_SCALE": "0.01", "STEPS": "2", "OUT": str(tmp_path / "run"),
            "DEST": str(tmp_path / "weights" / "default.safetensors"), "MANIFEST": str(tmp_path / "docs" / "manifest.csv"),
-           "PY": sys.executable, "EVAL_ARGS": f"--quick --output {tmp_path / 'bench' / 'real'}"}
+           "PY": sys.executable,
+           "EVAL_ARGS": f"--quick --plans default,whole --output {tmp_path / 'bench' / 'real'}"}
     proc = subprocess.run(["bash", str(repo / "scripts" / "pretrain_real.sh")], env=env, capture_output=True,
                           text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -201,10 +203,17 @@ def test_pretraining_pipeline_smoke(tmp_path):
     # Pre-training saw both looks of alpha only, never the held-out beta.
     cache = tmp_path / "cache"
     assert f"pre-training on 2 scene folders: {cache / 'alpha' / 'blur'} {cache / 'alpha' / 'coarse'}" in proc.stderr
+    assert "held-out views 50% of their scenes' targets" in proc.stderr  # the fits' novel views are targets too
     assert (tmp_path / "weights" / "default.safetensors").is_file()
-    rows = (tmp_path / "bench" / "real_quick.csv").read_text().splitlines()
-    assert len(rows) == 1 + 1 + 2  # header, zero-shot new, two fine-tuning budgets
-    assert all("beta" in r for r in rows[1:])
+    import csv
+
+    with (tmp_path / "bench" / "real_quick.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [(r["kind"], r["plan_name"]) for r in rows] == [  # zero-shot new, two budgets per plan
+        ("zero-shot new", ""), ("finetune", "default"), ("finetune", "default"), ("finetune", "whole"),
+        ("finetune", "whole")]
+    assert all(r["scene"] == "beta/coarse" for r in rows)
+    assert [r["plan"].split()[-1] for r in rows[1:]] == ["window", "window", "whole", "whole"]
     # Naming the fits exactly: a held-out scene or an unfinished fit is refused before any training.
     for fits, message in (("alpha/coarse,beta/coarse", "beta is a held-out scene"),
                           ("alpha/fine", "is not a finished fit")):

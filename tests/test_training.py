@@ -79,6 +79,68 @@ def test_pretrain_over_scenes_of_different_sizes(scene, other_scene, tmp_path):
     assert meta["training"]["kind"] == "pretrain" and len(meta["training"]["scenes"]) == 2
 
 
+def test_held_out_targets_take_training_view_neighbours(scene):
+    from roguenerf.geometry import select_neighbours
+
+    data = SceneData(scene, 2, held_out=True)
+    train, test = scene.indices("train"), scene.indices("test")
+    assert len(data) == len(train) == 5 and data.held_out == list(test) and data.photos.shape[0] == 7
+    assert torch.equal(data.photos[5], scene.photo(test[0])) and torch.equal(data.renders[6], scene.render(test[1]))
+    train_poses = scene.poses(train).double()
+    for k, view in enumerate(test):
+        expected = select_neighbours(scene.poses([view])[0].double(), train_poses, 2)
+        assert torch.equal(data.neighbours[5 + k], expected)
+        assert int(data.neighbours[5 + k].max()) < 5  # a held-out view never serves as a neighbour
+    assert torch.equal(data.neighbours[:5], SceneData(scene, 2).neighbours)
+
+
+@pytest.mark.parametrize("share", [0.0, 0.25, 1.0])
+def test_draw_targets_takes_held_out_views_at_the_share(scene, share):
+    data = SceneData(scene, 2, held_out=True)
+    drawn = data.draw_targets(4000, torch.Generator().manual_seed(0), share)
+    held = drawn >= 5
+    assert drawn.min() >= 0 and drawn.max() < 7
+    assert float(held.float().mean()) == pytest.approx(share, abs=0.03)
+    if 0 < share:
+        assert set(drawn[held].tolist()) == {5, 6}
+    # without held-out views the share changes nothing, not even the random stream
+    plain = SceneData(scene, 2)
+    g1, g2 = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
+    assert torch.equal(plain.draw_targets(50, g1, share), torch.randint(0, 5, (50,), generator=g2))
+
+
+def test_pretrain_trains_on_held_out_views_of_the_scenes_named(scene, other_scene, tmp_path, monkeypatch):
+    import roguenerf.training.loop as loop
+
+    seen = []
+    original = loop.prepare_batch
+
+    def spy(data, targets, *args, **kwargs):
+        seen.append((data.scene.root, targets.tolist()))
+        return original(data, targets, *args, **kwargs)
+
+    monkeypatch.setattr(loop, "prepare_batch", spy)
+    config = TrainConfig(steps=6, held_out_share=1.0, **FAST)
+    result = pretrain([other_scene, scene], tmp_path, config=config, held_out_scenes=[1])
+    assert result.config["held_out_share"] == 1.0 and "held-out views 100%" in loop.describe_plan(result.config)
+    by_scene = {root: [t for r, ts in seen if r == root for t in ts] for root, _ in seen}
+    assert set(by_scene) == {scene.root, other_scene.root}  # both scenes were drawn in 6+ batches
+    assert all(t >= 5 for t in by_scene[scene.root])  # share 1: held-out views only
+    assert all(t < 4 for t in by_scene[other_scene.root])  # not named: training views only
+    assert pretrain([scene], tmp_path / "plain", config=TrainConfig(steps=1, **FAST)).config["held_out_share"] == 0.0
+
+
+@pytest.mark.parametrize("held, message", [([2], "positions in 0..1"), ([0], "no held-out views")])
+def test_pretrain_refuses_bad_held_out_scenes(scene, other_scene, tmp_path, held, message):
+    with pytest.raises(InputError, match=message):
+        pretrain([other_scene, scene], tmp_path, config=TrainConfig(steps=1, **FAST), held_out_scenes=held)
+
+
+def test_held_out_share_must_be_a_probability():
+    with pytest.raises(InputError, match="held_out_share"):
+        TrainConfig(held_out_share=1.5).validate()
+
+
 def test_resume_continues_from_the_saved_step(scene, tmp_path):
     config = TrainConfig(steps=4, **FAST)
     reference = finetune(scene, tmp_path / "straight", config=config)

@@ -56,6 +56,9 @@ class TrainConfig:
     """Fine-tuning only: evaluate the scene's test views before and after (TrainResult.before/after)."""
     progress_bar: bool = True
     """Show a tqdm bar on stderr (loss, steps/s, ETA)."""
+    held_out_share: float = 0.5
+    """Pre-training only: the chance that a target of a scene given in ``held_out_scenes`` is one
+    of its held-out views (:func:`~roguenerf.training.loop.pretrain`); no effect otherwise."""
     neighbour_encoding: str = "window"
     """"window": conv_H encodes only the window of each neighbour photo that a target crop can
     see; "whole": every neighbour photo whole (the former path, kept for comparison). Same
@@ -72,6 +75,8 @@ class TrainConfig:
             raise InputError(f"batch: expected >= 1, got {self.batch}")
         if not float(self.lr) > 0:
             raise InputError(f"lr: expected > 0, got {self.lr}")
+        if not 0.0 <= float(self.held_out_share) <= 1.0:
+            raise InputError(f"held_out_share: expected a probability in [0, 1], got {self.held_out_share}")
         if self.num_neighbours is not None and int(self.num_neighbours) < 0:
             raise InputError(f"num_neighbours: expected >= 0, got {self.num_neighbours}")
         if self.neighbour_encoding not in NEIGHBOUR_ENCODINGS:
@@ -181,6 +186,7 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
         "without": list(config.without),
         "seed": int(config.seed),
         "neighbour_encoding": config.neighbour_encoding,
+        "held_out_share": float(config.held_out_share),
         "threads": torch.get_num_threads(),
     }
 
@@ -190,6 +196,8 @@ def describe_plan(plan: dict) -> str:
     if plan["steps"] is not None and plan["minutes"] is not None:
         budget = f"{plan['steps']} steps or {plan['minutes']:g} min"
     without = f", without {'+'.join(plan['without'])}" if plan["without"] else ""
+    if plan.get("held_out_share"):
+        without += f", held-out views {plan['held_out_share']:.0%} of their scenes' targets"
     return (f"plan: {plan['device']} ({plan['threads']} threads), variant {plan['variant']}, "
             f"crop {plan['crop_used']}, batch {plan['batch']}, {plan['num_neighbours']} neighbours, "
             f"lr {plan['lr']:g}, budget {budget}{without}, "

@@ -51,37 +51,58 @@ SWITCHES = {"neighbours": "use_neighbours", "alignment": "use_alignment",
 
 
 class SceneData:
-    """One scene's training views in memory, with each view's neighbour list computed once.
+    """One scene's target views in memory, with each view's neighbour list computed once.
+
+    The targets are the training views, then (``held_out=True``, pre-training only) the held-out
+    views: renders of views the radiance field never saw, the artefacts a user's novel views
+    have. Neighbours are always training views, as they are for a novel view at inference.
 
     photos, renders: ``(M, 3, H, W)``; depths ``(M, 1, H, W)``; K ``(M, 3, 3)``;
-    poses ``(M, 4, 4)`` float64; neighbours ``(M, N)`` int64 positions into these tensors.
+    poses ``(M, 4, 4)`` float64; neighbours ``(M, N)`` int64 positions into these tensors
+    (always below ``len(train)``). M = ``len(train) + len(held_out)``.
     """
 
-    def __init__(self, scene, num_neighbours: int):
+    def __init__(self, scene, num_neighbours: int, *, held_out: bool = False):
         from roguenerf.geometry import select_neighbours
 
         self.scene = scene
         self.train = list(scene.indices("train"))
         if not self.train:
             raise InputError(f"scene {scene.root}: expected training views, found none")
-        sizes = {(scene.frames[i].height, scene.frames[i].width) for i in self.train}
+        self.held_out = list(scene.indices("test")) if held_out else []
+        views = self.train + self.held_out
+        sizes = {(scene.frames[i].height, scene.frames[i].width) for i in views}
         if len(sizes) != 1:
-            raise InputError(f"scene {scene.root}: training needs one image size for all training views, "
-                             f"got {sorted(sizes)}")
+            raise InputError(f"scene {scene.root}: training needs one image size for all "
+                             f"{'views' if self.held_out else 'training views'}, got {sorted(sizes)}")
         self.height, self.width = next(iter(sizes))
-        self.photos = torch.stack([scene.photo(i) for i in self.train])
-        self.renders = torch.stack([scene.render(i) for i in self.train])
-        self.depths = torch.stack([scene.depth(i) for i in self.train])
-        self.K = scene.intrinsics(self.train).to(torch.float32)
+        self.photos = torch.stack([scene.photo(i) for i in views])
+        self.renders = torch.stack([scene.render(i) for i in views])
+        self.depths = torch.stack([scene.depth(i) for i in views])
+        self.K = scene.intrinsics(views).to(torch.float32)
         # float64, as the scene holds them: relative poses are formed from these in float64
         # (reprojection, camera attention, neighbour ranking) and only then cast to float32.
-        self.poses = scene.poses(self.train).to(torch.float64)
-        n = min(num_neighbours, len(self.train) - 1)
-        lists = [select_neighbours(self.poses[m], self.poses, n, exclude=m) for m in range(len(self.train))]
-        self.neighbours = torch.stack(lists) if n > 0 else torch.zeros(len(self.train), 0, dtype=torch.int64)
+        self.poses = scene.poses(views).to(torch.float64)
+        m = len(self.train)
+        n = min(num_neighbours, m - 1)
+        train_poses = self.poses[:m]
+        lists = [select_neighbours(self.poses[k], train_poses, n, exclude=k if k < m else None)
+                 for k in range(len(views))]
+        self.neighbours = torch.stack(lists) if n > 0 else torch.zeros(len(views), 0, dtype=torch.int64)
 
     def __len__(self) -> int:
         return len(self.train)
+
+    def draw_targets(self, count: int, generator: torch.Generator, held_out_share: float = 0.0) -> Tensor:
+        """``(count,)`` target positions: training views uniformly, or with probability
+        ``held_out_share`` each, a held-out view (when this scene has them)."""
+        m = len(self.train)
+        train = torch.randint(0, m, (count,), generator=generator)
+        if not self.held_out or held_out_share <= 0:
+            return train
+        pick = torch.rand(count, generator=generator) < held_out_share
+        held = m + torch.randint(0, len(self.held_out), (count,), generator=generator)
+        return torch.where(pick, held, train)
 
 
 def _crop_batch(data: SceneData, targets: Tensor, crop: int, generator: torch.Generator):
@@ -235,7 +256,7 @@ def _budget_done(step: int, elapsed: float, plan: dict) -> bool:
 
 def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: TrainConfig,
          progress: Callable[[TrainProgress], None] | None, should_stop: Callable[[], bool] | None,
-         resume: bool) -> TrainResult:
+         resume: bool, held_out_scenes: Sequence[int] = ()) -> TrainResult:
     from roguenerf.checkpoint import save_checkpoint
 
     config = config.validate()
@@ -256,6 +277,7 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
                              model_config=model.config)
         for key in ("variant", "crop", "crop_used", "batch", "lr", "num_neighbours", "without", "seed"):
             plan[key] = stored[key]
+        plan["held_out_share"] = stored.get("held_out_share", 0.0)
         transfer, before = info.get("transfer"), info.get("before")
         log.info("resuming %s from step %d in %s", kind, saved["step"], output_dir)
     else:
@@ -271,6 +293,8 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
         torch.manual_seed(plan["seed"])  # fresh weights depend on the seed alone
         model, transfer = _initial_model(checkpoint, config, plan["variant"])
         plan["variant"] = model.config.variant
+        if not held_out_scenes:
+            plan["held_out_share"] = 0.0
         before = None
     device = torch.device(plan["device"])
     if model.config.num_neighbours != plan["num_neighbours"] and plan["num_neighbours"] > 0:
@@ -287,7 +311,9 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
         log.info("torch uses %d threads on %d available cores (roguenerf.runtime.configure() sets one per core)",
                  torch.get_num_threads(), available_cpus())
 
-    datasets = [SceneData(s, plan["num_neighbours"] if model.config.use_neighbours else 0) for s in scenes]
+    held = set(held_out_scenes)
+    datasets = [SceneData(s, plan["num_neighbours"] if model.config.use_neighbours else 0, held_out=k in held)
+                for k, s in enumerate(scenes)]
     if kind == "finetune" and config.evaluate and saved is None and datasets[0].scene.indices("test"):
         _evaluating(progress, 0, plan)
         before = _summary(evaluate(datasets[0].scene, model))
@@ -311,7 +337,7 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
         # Runs in the prefetch thread, which owns ``generator`` from the first batch on.
         index = int(torch.multinomial(weights, 1, generator=generator))
         d = datasets[index]
-        targets = torch.randint(0, len(d), (plan["batch"],), generator=generator)
+        targets = d.draw_targets(plan["batch"], generator, plan["held_out_share"])
         origins = sample_crops(d, plan["batch"], plan["crop"], generator)
         batch = prepare_batch(d, targets, origins, plan["crop"], encoding=encoding, margin=margin,
                               use_neighbours=model.config.use_neighbours)
@@ -456,14 +482,24 @@ def finetune(scene, output_dir, *, checkpoint=None, config: TrainConfig = TrainC
 
 def pretrain(scenes, output_dir, *, checkpoint=None, config: TrainConfig = TrainConfig(),
              progress: Callable[[TrainProgress], None] | None = None,
-             should_stop: Callable[[], bool] | None = None, resume: bool = True) -> TrainResult:
-    """Pre-train across scenes (each batch comes from one scene, scenes weighted by view count).
+             should_stop: Callable[[], bool] | None = None, resume: bool = True,
+             held_out_scenes: Sequence[int] = ()) -> TrainResult:
+    """Pre-train across scenes (each batch comes from one scene, scenes weighted by training-view count).
 
-    Same arguments and errors as :func:`finetune`; ``before``/``after`` are None.
+    ``held_out_scenes``: positions in ``scenes`` whose held-out views also serve as targets, each
+    target with probability ``config.held_out_share`` (their neighbours stay training views).
+    Their renders come from a radiance field that never saw them, so they carry the artefacts of
+    a novel view, which training views (fitted, hence milder) do not. Only for scenes that are
+    never evaluated on. Other arguments and errors as :func:`finetune`; ``before``/``after`` are None.
     """
     scenes = list(scenes)
     if not scenes:
         raise InputError("scenes: expected at least one scene to pre-train on, got none")
+    held = sorted({int(k) for k in held_out_scenes})
+    if held and not 0 <= held[0] <= held[-1] < len(scenes):
+        raise InputError(f"held_out_scenes: expected positions in 0..{len(scenes) - 1}, got {held}")
+    for k in held:
+        if not scenes[k].indices("test"):
+            raise InputError(f"held_out_scenes: scene {scenes[k].root} has no held-out views")
     return _fit(scenes, output_dir, kind="pretrain", checkpoint=checkpoint, config=config,
-                progress=progress, should_stop=should_stop, resume=resume)
-
+                progress=progress, should_stop=should_stop, resume=resume, held_out_scenes=held)
