@@ -13,8 +13,9 @@ gain against fine-tuning minutes (date, machine, commit on every row and in the 
 
 ``--plans default,whole`` fine-tunes each scene once per plan, in this one sitting (issue 12's
 gain per minute: ``default`` is the shipped CPU plan, ``whole`` the same plan with every
-neighbour photo encoded whole each step, the training step before crop windows; ``n5`` and
-``crop96`` are the alternatives weighed for the CPU defaults). Same data, seed and start.
+neighbour photo encoded whole each step, the training step before crop windows; ``n5``,
+``crop96`` and ``lr5e-4`` are the alternatives weighed for the CPU defaults). Same data, seed
+and start.
 
     .venv/bin/python bench/real_scenes.py ~/.cache/roguenerf/pairs/dtu_scan37/fine \\
         ~/.cache/roguenerf/pairs/mary_rose/fine --old-checkpoint old.safetensors
@@ -38,6 +39,7 @@ PLANS = {
     "whole": {"neighbour_encoding": "whole"},
     "n5": {"num_neighbours": 5},
     "crop96": {"crop": 96},
+    "lr5e-4": {"lr": 5e-4},
 }
 """Fine-tuning plans as TrainConfig overrides of the shipped CPU plan (``--plans``)."""
 
@@ -48,19 +50,24 @@ def _floats(text: str) -> list[float]:
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scenes", type=Path, nargs="+", help="scene folders (renders from roguefit)")
+    p.add_argument("scenes", type=Path, nargs="*", help="scene folders (renders from roguefit)")
     p.add_argument("--checkpoint", type=Path, default=None, help="new checkpoint (default: the shipped default)")
     p.add_argument("--old-checkpoint", type=Path, default=None, help="the checkpoint to compare zero-shot against")
     p.add_argument("--minutes", type=_floats, default=[1, 3, 10], help="comma-separated fine-tuning budgets")
     p.add_argument("--max-views", type=int, default=None)
     p.add_argument("--plans", type=lambda t: [x for x in t.split(",") if x], default=["default"],
                    help=f"comma-separated fine-tuning plans: {', '.join(PLANS)}")
+    p.add_argument("--replot", type=Path, nargs="+", default=None, metavar="CSV",
+                   help="measure nothing: merge these CSVs (one sitting, e.g. plans run in turn) into "
+                        "OUTPUT.csv and OUTPUT.png; a scene's repeated zero-shot rows are kept once")
     p.add_argument("--quick", action="store_true", help="tiny budgets, 2 views")
     p.add_argument("--output", type=Path, default=RESULTS / "real_scenes")
     args = p.parse_args(argv)
     unknown = [x for x in args.plans if x not in PLANS]
     if unknown:
         p.error(f"--plans: unknown {', '.join(unknown)} (known: {', '.join(PLANS)})")
+    if not args.scenes and not args.replot:
+        p.error("give scene folders to measure, or --replot CSV...")
     if args.quick:
         args.minutes = [0.02, 0.05]
         args.max_views = args.max_views or 2
@@ -161,8 +168,30 @@ def plot(rows: list[dict], path: Path) -> Path:
     return path
 
 
+def merge(paths: list[Path]) -> list[dict]:
+    """Rows of several real_scenes CSVs, numbers as numbers; a scene's zero-shot rows once."""
+    import csv
+
+    rows, seen = [], set()
+    for path in paths:
+        with Path(path).open(newline="") as fh:
+            for row in csv.DictReader(fh):
+                for key in ("minutes", "gain_db", "worst_view_gain_db", "ssim_gain"):
+                    if row.get(key):
+                        row[key] = float(row[key])
+                if row["kind"].startswith("zero-shot"):
+                    if (row["scene"], row["kind"]) in seen:
+                        continue
+                    seen.add((row["scene"], row["kind"]))
+                rows.append(row)
+    return rows
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
+    if args.replot:
+        write_outputs(args.output, merge(args.replot), plot)
+        return 0
     from roguenerf import runtime
 
     print(f"runtime: {runtime.configure()}", flush=True)

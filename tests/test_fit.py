@@ -188,7 +188,7 @@ def test_pretraining_pipeline_smoke(tmp_path):
     write_photo_set(data / "beta", views=9, seed=2)
     repo = Path(__file__).resolve().parents[1]
     env = {**__import__("os").environ, "DATA": str(data), "CACHE": str(tmp_path / "cache"), "PRESETS": "blur,coarse",
-           "HOLDOUT": "beta", "EXTRA": "", "BUDGET_SCALE": "0.01", "STEPS": "2", "OUT": str(tmp_path / "run"),
+           "HOLDOUT": "beta", "EXTRA": "", "HELD_OUT_SHARE": "0.5", "BUDGET_SCALE": "0.01", "STEPS": "2", "OUT": str(tmp_path / "run"),
            "DEST": str(tmp_path / "weights" / "default.safetensors"), "MANIFEST": str(tmp_path / "docs" / "manifest.csv"),
            "PY": sys.executable,
            "EVAL_ARGS": f"--quick --plans default,whole --output {tmp_path / 'bench' / 'real'}"}
@@ -214,6 +214,13 @@ def test_pretraining_pipeline_smoke(tmp_path):
         ("finetune", "whole")]
     assert all(r["scene"] == "beta/coarse" for r in rows)
     assert [r["plan"].split()[-1] for r in rows[1:]] == ["window", "window", "whole", "whole"]
+    # --replot merges sittings: the same CSV twice keeps the scene's zero-shot row once.
+    quick_csv = tmp_path / "bench" / "real_quick.csv"
+    subprocess.run([sys.executable, str(repo / "bench" / "real_scenes.py"), "--replot", str(quick_csv), str(quick_csv),
+                    "--output", str(tmp_path / "bench" / "merged")], check=True, capture_output=True, timeout=120)
+    with (tmp_path / "bench" / "merged.csv").open() as fh:
+        merged = [r["kind"] for r in csv.DictReader(fh)]
+    assert merged == ["zero-shot new"] + ["finetune"] * 8 and (tmp_path / "bench" / "merged.png").is_file()
     # Naming the fits exactly: a held-out scene or an unfinished fit is refused before any training.
     for fits, message in (("alpha/coarse,beta/coarse", "beta is a held-out scene"),
                           ("alpha/fine", "is not a finished fit")):
