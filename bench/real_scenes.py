@@ -14,8 +14,9 @@ gain against fine-tuning minutes (date, machine, commit on every row and in the 
 ``--plans default,whole`` fine-tunes each scene once per plan, in this one sitting (issue 12's
 gain per minute: ``default`` is the shipped CPU plan, ``whole`` the same plan with every
 neighbour photo encoded whole each step, the training step before crop windows; ``n5``,
-``crop96`` and ``lr5e-4`` are the alternatives weighed for the CPU defaults). Same data, seed
-and start.
+``crop96``, ``lr5e-4`` and ``lr1e-4`` are the alternatives weighed for the CPU defaults;
+``bench/results/real_scenes.csv`` compared ``default`` when its lr was 1e-4 with ``lr5e-4``,
+after which 5e-4 became the default). Same data, seed and start.
 
     .venv/bin/python bench/real_scenes.py ~/.cache/roguenerf/pairs/dtu_scan37/fine \\
         ~/.cache/roguenerf/pairs/mary_rose/fine --old-checkpoint old.safetensors
@@ -40,6 +41,7 @@ PLANS = {
     "n5": {"num_neighbours": 5},
     "crop96": {"crop": 96},
     "lr5e-4": {"lr": 5e-4},
+    "lr1e-4": {"lr": 1e-4},
 }
 """Fine-tuning plans as TrainConfig overrides of the shipped CPU plan (``--plans``)."""
 

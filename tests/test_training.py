@@ -136,6 +136,14 @@ def test_pretrain_refuses_bad_held_out_scenes(scene, other_scene, tmp_path, held
         pretrain([other_scene, scene], tmp_path, config=TrainConfig(steps=1, **FAST), held_out_scenes=held)
 
 
+def test_the_printed_plan_says_why(scene):
+    from roguenerf.training.config import describe_plan
+
+    cpu = describe_plan(plan_training(scene, TrainConfig(), "cpu"))
+    assert "2 neighbours" in cpu and "chosen by measured gain after 1, 3 and 10 min" in cpu
+    assert "the paper's" in describe_plan(plan_training(scene, TrainConfig(), "cuda"))
+
+
 def test_held_out_share_must_be_a_probability():
     with pytest.raises(InputError, match="held_out_share"):
         TrainConfig(held_out_share=1.5).validate()
@@ -319,13 +327,14 @@ def test_plan_for_a_cpu():
 
     plan = plan_training(_Scene(), TrainConfig(), "cpu")
     assert plan["variant"] == "micro" and plan["crop"] == 64 and plan["crop_used"] == 64
-    assert plan["num_neighbours"] == 2 and plan["batch"] == 4 and plan["lr"] == 1e-4
+    assert plan["num_neighbours"] == 2 and plan["batch"] == 4 and plan["lr"] == 5e-4
     assert plan["minutes"] == 10.0 and plan["steps"] is None
     small = plan_training(_Scene(), TrainConfig(crop=512, steps=7, variant="micro", num_neighbours=4), "cpu")
     assert small["crop_used"] == 200 and small["steps"] == 7 and small["minutes"] is None
     assert small["variant"] == "micro" and small["num_neighbours"] == 4
     gpu = plan_training(_Scene(), TrainConfig(), "cuda")
     assert gpu["crop"] == 512 and gpu["variant"] == "T" and gpu["num_neighbours"] == 5 and gpu["minutes"] == 60.0
+    assert gpu["lr"] == 1e-4 and plan_training(_Scene(), TrainConfig(lr=2e-4), "cpu")["lr"] == 2e-4
     json.dumps(plan)
     with pytest.raises(InputError, match="variant"):
         plan_training(_Scene(), TrainConfig(variant="huge"), "cpu")

@@ -293,8 +293,7 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
         torch.manual_seed(plan["seed"])  # fresh weights depend on the seed alone
         model, transfer = _initial_model(checkpoint, config, plan["variant"])
         plan["variant"] = model.config.variant
-        if not held_out_scenes:
-            plan["held_out_share"] = 0.0
+        plan["held_out_share"] = float(config.held_out_share) if held_out_scenes else 0.0
         before = None
     device = torch.device(plan["device"])
     if model.config.num_neighbours != plan["num_neighbours"] and plan["num_neighbours"] > 0:
