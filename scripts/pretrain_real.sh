@@ -7,6 +7,8 @@
 #   SCENES=cup,dtu_scan37 STAGE=pairs ...          # these scenes, in this order
 #   STAGE=pretrain MINUTES=120 scripts/pretrain_real.sh
 #   STAGE=pretrain FITS=cup/coarse,cup/blur ...   # exactly these fits (held-out scenes still refused)
+#   STAGE=pretrain SEED=1 HELD_OUT_SHARE=0.15 ...  # another sampling seed; the fits' held-out views as
+#                                                  # 15 % of their targets (off by default, see below)
 #
 # 1. pairs: `python -m roguefit.batch` fits a blur and a coarse radiance field (PRESETS; fine is a
 #    sharper, ~4x costlier third look) to the TRAINING views
