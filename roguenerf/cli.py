@@ -9,7 +9,6 @@ Progress and logs go to stderr, so ``evaluate --json`` prints exactly one JSON o
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import logging
 import math
@@ -107,7 +106,7 @@ def _load_model(checkpoint: Path | None):
 
 
 def _train_config(*, minutes, steps, without, variant, crop, vgg_weights, seed, neighbours, lr=None,
-                  evaluate=True):
+                  evaluate=True, **extra):
     from roguenerf.training import COMPONENTS, TrainConfig
 
     if minutes is not None and steps is not None:
@@ -124,7 +123,7 @@ def _train_config(*, minutes, steps, without, variant, crop, vgg_weights, seed, 
             raise InputError(f"--without: expected one of {', '.join(COMPONENTS)}, got {w!r}")
     return TrainConfig(steps=steps, minutes=minutes, crop=crop, vgg_weights=vgg_weights, seed=seed,
                        variant=variant, without=without, num_neighbours=neighbours, evaluate=evaluate,
-                       **({} if lr is None else {"lr": lr}))
+                       **({} if lr is None else {"lr": lr}), **extra)
 
 
 def _report_training(result) -> None:
@@ -206,16 +205,18 @@ def pretrain(
             raise InputError(f"--toy: expected >= 0, got {toy}")
         config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
                                vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, lr=lr,
-                               evaluate=False)
-        config = dataclasses.replace(config, held_out_share=held_out_share).validate()
+                               evaluate=False, held_out_share=held_out_share).validate()
         dirs = list(scene_dirs or [])
-        resolved = [d.resolve() for d in dirs]
+        position = {}  # resolved folder -> its first position in dirs
+        for k, d in enumerate(dirs):
+            position.setdefault(d.resolve(), k)
         held = []
         for d in held_out_from or []:
-            if d.resolve() not in resolved:
+            key = d.resolve()
+            if key not in position:
+                position[key] = len(dirs)
                 dirs.append(d)
-                resolved.append(d.resolve())
-            held.append(resolved.index(d.resolve()))
+            held.append(position[key])
         scenes = [_load_scene(d) for d in dirs]
         scenes += make_toy_scenes(output / "toy", toy, seed=seed)
         if not scenes:
