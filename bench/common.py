@@ -59,6 +59,14 @@ def commit() -> str:
         return "unknown"
 
 
+def scene_label(scene_dir: Path) -> str:
+    """A roguefit output (``scene/preset/fit.json``) is labelled ``scene/preset``; any other
+    folder by its name."""
+    scene_dir = Path(scene_dir)
+    parts = scene_dir.resolve().parts
+    return "/".join(parts[-2:]) if (scene_dir / "fit.json").is_file() else scene_dir.name
+
+
 def stamp() -> dict:
     """The columns every benchmark row starts with."""
     return {"date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),

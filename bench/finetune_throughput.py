@@ -86,7 +86,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import roguenerf  # noqa: E402,F401  (first: OpenMP's wait policy is set before torch loads)
 import torch  # noqa: E402
 
-from bench.common import LEGO, stamp, write_csv  # noqa: E402
+from bench.common import LEGO, scene_label, stamp, write_csv  # noqa: E402
 
 
 ENCODINGS = ("whole-loop", "whole", "window")
@@ -326,7 +326,7 @@ def load_scenes(args, tmp: Path) -> dict:
 
     scenes = {}
     for path in args.scene:
-        scenes[Path(path).name] = load_scene(path)
+        scenes[scene_label(path)] = load_scene(path)
     for h, w in args.toy:
         t0 = time.perf_counter()
         label = f"toy-{h}x{w}"

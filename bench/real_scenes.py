@@ -5,8 +5,10 @@ the held-out scenes are never pre-trained on, and only their training views are 
 
 - the renders' PSNR/SSIM on the held-out (test) views;
 - zero-shot: the old and the new default checkpoint, no fine-tuning;
-- after ``finetune --minutes M`` for each M in ``--minutes`` (1, 3, 10), from the new checkpoint:
-  one run that resumes exactly from its saved state, evaluated after each budget;
+- after ``finetune --minutes M`` for each M in ``--minutes`` (1, 3, 10), from the new checkpoint,
+  evaluated after each budget: a fresh run per budget when the plan's learning rate follows a
+  schedule over its budget (the default, cosine: a 1-minute run decays within its minute);
+  with a constant lr, one run that resumes exactly from its saved state (the same steps);
 
 each with its mean gain, SSIM, the worst view's gain, steps and seconds. Writes CSV + a plot of
 gain against fine-tuning minutes (date, machine, commit on every row and in the plot's title).
@@ -14,7 +16,8 @@ gain against fine-tuning minutes (date, machine, commit on every row and in the 
 ``--plans default,whole`` fine-tunes each scene once per plan, in this one sitting (issue 12's
 gain per minute: ``default`` is the shipped CPU plan, ``whole`` the same plan with every
 neighbour photo encoded whole each step, the training step before crop windows; ``n5``,
-``crop96``, ``lr5e-4`` and ``lr1e-4`` are the alternatives weighed for the CPU defaults;
+``crop96``, ``lr5e-4``, ``lr1e-4``, ``constant`` and ``cosine`` (the lr schedule) are the
+alternatives weighed for the CPU defaults;
 ``bench/results/real_scenes.csv`` compared ``default`` when its lr was 1e-4 with ``lr5e-4``,
 after which 5e-4 became the default). Same data, seed and start.
 
@@ -32,7 +35,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import RESULTS, stamp, write_outputs  # noqa: E402
+from bench.common import RESULTS, scene_label, stamp, write_outputs  # noqa: E402
 
 
 PLANS = {
@@ -42,6 +45,8 @@ PLANS = {
     "crop96": {"crop": 96},
     "lr5e-4": {"lr": 5e-4},
     "lr1e-4": {"lr": 1e-4},
+    "constant": {"lr_schedule": "constant"},
+    "cosine": {"lr_schedule": "cosine"},
 }
 """Fine-tuning plans as TrainConfig overrides of the shipped CPU plan (``--plans``)."""
 
@@ -76,12 +81,6 @@ def parse_args(argv=None):
     return args
 
 
-def _label(scene_dir: Path) -> str:
-    # A roguefit output (scene/preset/fit.json) is named scene/preset; any other folder by its name.
-    parts = scene_dir.resolve().parts
-    return "/".join(parts[-2:]) if (scene_dir / "fit.json").is_file() else scene_dir.name
-
-
 def summarise(report: dict) -> dict:
     """Mean render/enhanced PSNR and SSIM, gain, and the worst view's gain."""
     gains = [v["enhanced"]["psnr"] - v["render"]["psnr"] for v in report["views"]]
@@ -97,7 +96,7 @@ def run(args, save=None) -> list[dict]:
     """The rows; ``save(rows)`` is called after each one (a long run loses nothing on a crash)."""
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
-    from roguenerf.training import TrainConfig, evaluate, finetune
+    from roguenerf.training import TrainConfig, evaluate, finetune, plan_training
 
     new = args.checkpoint or default_checkpoint_path()
     base = stamp()
@@ -105,7 +104,7 @@ def run(args, save=None) -> list[dict]:
     work = Path(tempfile.mkdtemp(prefix="real_scenes_"))
     for scene_dir in args.scenes:
         scene = load_scene(scene_dir)
-        label = _label(scene_dir)
+        label = scene_label(scene_dir)
 
         def record(kind: str, minutes: float, steps: int, seconds: float, report: dict, **extra) -> None:
             row = {**base, "scene": label, "kind": kind, "minutes": minutes, "steps": steps,
@@ -121,8 +120,9 @@ def run(args, save=None) -> list[dict]:
             model, _ = load_checkpoint(ckpt)
             record(kind, 0.0, 0, 0.0, evaluate(scene, model, max_views=args.max_views), checkpoint=str(ckpt))
         for plan_name in args.plans:
-            run_dir = work / f"{label.replace('/', '_')}_{plan_name}"
+            scheduled = plan_training(scene, TrainConfig(**PLANS[plan_name]))["lr_schedule"] != "constant"
             for minutes in sorted(args.minutes):
+                run_dir = work / f"{label.replace('/', '_')}_{plan_name}" / (f"{minutes:g}min" if scheduled else "")
                 config = TrainConfig(minutes=minutes, evaluate=False, **PLANS[plan_name])
                 result = finetune(scene, run_dir, checkpoint=new, config=config)
                 model, _ = load_checkpoint(result.checkpoint)
@@ -130,7 +130,7 @@ def run(args, save=None) -> list[dict]:
                 record("finetune", minutes, result.steps, result.seconds,
                        evaluate(scene, model, max_views=args.max_views), checkpoint=str(new), plan_name=plan_name,
                        plan=f"{c['variant']} crop {c['crop_used']} batch {c['batch']} n{c['num_neighbours']} "
-                            f"{c['neighbour_encoding']}")
+                            f"{c['neighbour_encoding']} lr {c['lr']:g} {c['lr_schedule']}")
     return rows
 
 

@@ -41,6 +41,8 @@ VggOpt = Annotated[Path | None, typer.Option(
     "--vgg-weights", help="Local torchvision VGG-19 weights for the perceptual loss (else L1 alone).")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed.")]
 LrOpt = Annotated[float | None, typer.Option("--lr", help="Adam learning rate (default: 5e-4 on a CPU, chosen by measured gain per minute; 1e-4 on a GPU, the paper's).")]
+LrScheduleOpt = Annotated[str | None, typer.Option(
+    "--lr-schedule", help="cosine (the lr falls to 0 over the budget; the default) or constant.")]
 NeighboursOpt = Annotated[int | None, typer.Option("--neighbours", help="Neighbours per view (default: model's).")]
 
 
@@ -106,7 +108,7 @@ def _load_model(checkpoint: Path | None):
 
 
 def _train_config(*, minutes, steps, without, variant, crop, vgg_weights, seed, neighbours, lr=None,
-                  evaluate=True, **extra):
+                  lr_schedule=None, evaluate=True, **extra):
     from roguenerf.training import COMPONENTS, TrainConfig
 
     if minutes is not None and steps is not None:
@@ -123,7 +125,7 @@ def _train_config(*, minutes, steps, without, variant, crop, vgg_weights, seed, 
             raise InputError(f"--without: expected one of {', '.join(COMPONENTS)}, got {w!r}")
     return TrainConfig(steps=steps, minutes=minutes, crop=crop, vgg_weights=vgg_weights, seed=seed,
                        variant=variant, without=without, num_neighbours=neighbours, evaluate=evaluate,
-                       **({} if lr is None else {"lr": lr}), **extra)
+                       lr_schedule=lr_schedule, **({} if lr is None else {"lr": lr}), **extra).validate()
 
 
 def _report_training(result) -> None:
@@ -155,6 +157,7 @@ def finetune(
     seed: SeedOpt = 0,
     neighbours: NeighboursOpt = None,
     lr: LrOpt = None,
+    lr_schedule: LrScheduleOpt = None,
     no_eval: Annotated[bool, typer.Option("--no-eval", help="Skip the before/after test evaluation.")] = False,
 ) -> None:
     """Fine-tune the enhancer on one scene's training views; resumes from OUTPUT when interrupted."""
@@ -166,7 +169,7 @@ def finetune(
             raise InputError("give either --checkpoint or --scratch, not both")
         config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
                                vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, lr=lr,
-                               evaluate=not no_eval)
+                               lr_schedule=lr_schedule, evaluate=not no_eval)
         scene = _load_scene(scene_dir)
         start = None if scratch else _checkpoint_path(checkpoint)
         result = run_finetune(scene, output, checkpoint=start, config=config)
@@ -189,6 +192,7 @@ def pretrain(
     seed: SeedOpt = 0,
     neighbours: NeighboursOpt = None,
     lr: LrOpt = None,
+    lr_schedule: LrScheduleOpt = None,
     held_out_from: Annotated[list[Path] | None, typer.Option(
         "--held-out-from", help="Also train on this scene folder's held-out views (repeatable; added to the "
         "scenes if missing): renders of views its radiance field never saw, with training-view neighbours. "
@@ -205,7 +209,7 @@ def pretrain(
             raise InputError(f"--toy: expected >= 0, got {toy}")
         config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
                                vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, lr=lr,
-                               evaluate=False, held_out_share=held_out_share).validate()
+                               lr_schedule=lr_schedule, evaluate=False, held_out_share=held_out_share)
         dirs = list(scene_dirs or [])
         position = {}  # resolved folder -> its first position in dirs
         for k, d in enumerate(dirs):

@@ -40,6 +40,9 @@ MINUTES=${MINUTES:-90}
 VARIANT=${VARIANT:-micro}
 CROP=${CROP:-64}
 LR=${LR:-5e-4}
+# constant: the shipped checkpoint was pre-trained at a constant lr (before the cosine schedule,
+# now the library's default, existed); LR_SCHEDULE=cosine decays it to 0 over the budget.
+LR_SCHEDULE=${LR_SCHEDULE:-constant}
 START=${START-roguenerf/weights/default.safetensors}
 OUT=${OUT:-runs/pretrain_real}
 DEST=${DEST:-roguenerf/weights/default.safetensors}
@@ -111,7 +114,7 @@ if [ "$STAGE" = all ] || [ "$STAGE" = pretrain ]; then
   fi
   if [ -n "${STEPS:-}" ]; then budget=(--steps "$STEPS"); else budget=(--minutes "$MINUTES"); fi
   "$PY" -m roguenerf.cli pretrain "${scenes[@]}" "${start[@]}" "${budget[@]}" --variant "$VARIANT" \
-    --crop "$CROP" --lr "$LR" --seed "$SEED" --output "$OUT" "${extra[@]}"
+    --crop "$CROP" --lr "$LR" --lr-schedule "$LR_SCHEDULE" --seed "$SEED" --output "$OUT" "${extra[@]}"
   mkdir -p "$(dirname "$DEST")"
   cp "$OUT/model.safetensors" "$DEST"
   if [ -f "$OUT/model.json" ]; then cp "$OUT/model.json" "${DEST%.safetensors}.json"; fi

@@ -113,6 +113,11 @@ def test_finetune_from_scratch_then_resume_to_more_steps(scene_dir, tmp_path):
     _, meta = load_checkpoint(out / "model.safetensors")
     assert meta["training"]["steps"] == 2
     assert "plan: cpu" in result.stderr and "L1 loss alone" in result.stderr
+    assert "cosine to 0" in result.stderr  # the default schedule, printed with the plan
+    constant = _run("finetune", scene_dir, "--scratch", "--steps", "1", "--output", tmp_path / "c", "--no-eval",
+                    "--lr-schedule", "constant", *FAST)
+    assert constant.exit_code == 0 and "cosine to 0" not in constant.stderr
+    assert load_checkpoint(tmp_path / "c" / "model.safetensors")[1]["training"]["plan"]["lr_schedule"] == "constant"
     more = _run("finetune", scene_dir, "--scratch", "--steps", "3", "--output", out, "--no-eval", *FAST)
     assert more.exit_code == 0, more.output
     assert "resuming finetune from step 2" in more.stderr
@@ -158,6 +163,7 @@ def test_pretrain_held_out_from_adds_the_scene_and_its_held_out_views(scene_dir,
     (["--steps", "1", "--minutes", "1"], "either --minutes or --steps"),
     (["--steps", "1", "--without", "uformer"], "--without"),
     (["--steps", "1", "--variant", "huge"], "variant"),
+    (["--steps", "1", "--lr-schedule", "step"], "lr_schedule"),
 ])
 def test_finetune_bad_flags_exit_2(scene_dir, tmp_path, args, message):
     result = _run("finetune", scene_dir, "--scratch", "--output", tmp_path / "x", *args)

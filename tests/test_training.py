@@ -175,6 +175,45 @@ def test_resume_continues_from_the_saved_step(scene, tmp_path):
         torch.testing.assert_close(x, y, atol=1e-6, rtol=1e-5, msg=name)
 
 
+def test_cosine_schedule_values():
+    from roguenerf.training.config import budget_fraction, lr_factor
+
+    assert lr_factor("cosine", 0.0) == 1.0 and lr_factor("cosine", 1.0) == pytest.approx(0.0, abs=1e-12)
+    assert lr_factor("cosine", 0.5) == pytest.approx(0.5) and lr_factor("cosine", 0.25) == pytest.approx(0.8535534)
+    assert lr_factor("cosine", 2.0) == pytest.approx(0.0, abs=1e-12)  # past the budget: stays at 0
+    assert lr_factor("constant", 0.7) == 1.0
+    assert budget_fraction({"steps": 8, "minutes": None}, 2, 999.0) == 0.25
+    assert budget_fraction({"steps": None, "minutes": 2.0}, 50, 30.0) == 0.25
+    assert budget_fraction({"steps": 10, "minutes": 1.0}, 2, 45.0) == 0.75  # the budget that runs out first
+    with pytest.raises(InputError, match="lr_schedule"):
+        TrainConfig(lr_schedule="step").validate()
+
+
+def test_the_lr_follows_the_schedule_and_resumes_in_place(scene, tmp_path):
+    config = TrainConfig(steps=4, lr=1e-3, lr_schedule="cosine", **FAST)
+    seen = []
+    finetune(scene, tmp_path / "straight", config=config, progress=seen.append)
+    # step k (0-based) runs at lr * 0.5 (1 + cos(pi k / 4))
+    assert [p.lr for p in seen] == pytest.approx([1e-3, 0.8535534e-3, 0.5e-3, 0.1464466e-3])
+    calls = {"n": 0}
+
+    def stop_after_two():
+        calls["n"] += 1
+        return calls["n"] > 2
+
+    with pytest.raises(TrainingCancelled):
+        finetune(scene, tmp_path / "run", config=config, should_stop=stop_after_two)
+    resumed = []
+    # resumed with another schedule asked for: the saved run keeps its own
+    finetune(scene, tmp_path / "run", config=TrainConfig(steps=4, lr=1e-3, lr_schedule="constant", **FAST),
+             progress=resumed.append)
+    assert [p.lr for p in resumed] == pytest.approx([p.lr for p in seen[2:]])
+    constant = []
+    finetune(scene, tmp_path / "constant", config=TrainConfig(steps=2, lr=1e-3, lr_schedule="constant", **FAST),
+             progress=constant.append)
+    assert [p.lr for p in constant] == [1e-3, 1e-3]
+
+
 def test_resume_false_starts_over(scene, tmp_path):
     finetune(scene, tmp_path, config=TrainConfig(steps=2, **FAST))
     seen = []
@@ -328,6 +367,7 @@ def test_plan_for_a_cpu():
     plan = plan_training(_Scene(), TrainConfig(), "cpu")
     assert plan["variant"] == "micro" and plan["crop"] == 64 and plan["crop_used"] == 64
     assert plan["num_neighbours"] == 2 and plan["batch"] == 4 and plan["lr"] == 5e-4
+    assert plan["lr_schedule"] == "cosine"
     assert plan["minutes"] == 10.0 and plan["steps"] is None
     small = plan_training(_Scene(), TrainConfig(crop=512, steps=7, variant="micro", num_neighbours=4), "cpu")
     assert small["crop_used"] == 200 and small["steps"] == 7 and small["minutes"] is None

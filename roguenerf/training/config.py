@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,10 +29,17 @@ CPU_LR = 5e-4
 10 minutes was higher on both unseen real scenes (+0.04, +0.02 dB) and on lego (+0.10 dB); after
 1 and 3 minutes it was higher on lego and mixed on the real scenes (README, Results)."""
 GPU_LR = 1e-4
+LR_SCHEDULES = ("cosine", "constant")
+"""How the learning rate moves over a run's budget (TrainConfig.lr_schedule, :func:`lr_factor`)."""
+LR_SCHEDULE = "cosine"
+"""The plan's schedule on any device. In one sitting, 1600 steps from the shipped checkpoint,
+cosine against constant (lr 5e-4): dtu_scan37 +0.77 against +0.64 dB, mary_rose +1.48
+against +1.04, lego +1.45 against +1.51 (README, Results). Single runs on scenes where a run's
+gain varies by ~0.3 dB from run to run; a constant lr also ends wherever its last steps left it."""
 GPU_MINUTES = 60.0
 """The paper fine-tunes for one hour per scene on GPUs."""
 CPU_PLAN_WHY = ("CPU defaults chosen by measured gain after 1, 3 and 10 min on unseen real scenes and lego, "
-                "bench/results/real_scenes.csv")
+                "bench/results/real_scenes.csv; the lr decays to 0 by the end of the budget")
 GPU_PLAN_WHY = "GPU defaults: the paper's 512 px crops, the checkpoint's neighbours, 60 min"
 
 
@@ -68,6 +76,10 @@ class TrainConfig:
     held_out_share: float = 0.5
     """Pre-training only: the chance that a target of a scene given in ``held_out_scenes`` is one
     of its held-out views (:func:`~roguenerf.training.loop.pretrain`); no effect otherwise."""
+    lr_schedule: str | None = None
+    """"cosine": the lr falls from ``lr`` to 0 along a half cosine over the budget (steps, or
+    minutes of training time; the one that runs out first); "constant": ``lr`` throughout.
+    None: the plan's (LR_SCHEDULE). A resumed run keeps its schedule and position in it."""
     neighbour_encoding: str = "window"
     """"window": conv_H encodes only the window of each neighbour photo that a target crop can
     see; "whole": every neighbour photo whole (the former path, kept for comparison). Same
@@ -88,6 +100,8 @@ class TrainConfig:
             raise InputError(f"held_out_share: expected a probability in [0, 1], got {self.held_out_share}")
         if self.num_neighbours is not None and int(self.num_neighbours) < 0:
             raise InputError(f"num_neighbours: expected >= 0, got {self.num_neighbours}")
+        if self.lr_schedule is not None and self.lr_schedule not in LR_SCHEDULES:
+            raise InputError(f"lr_schedule: expected one of {', '.join(LR_SCHEDULES)}, got {self.lr_schedule!r}")
         if self.neighbour_encoding not in NEIGHBOUR_ENCODINGS:
             raise InputError(f"neighbour_encoding: expected one of {', '.join(NEIGHBOUR_ENCODINGS)}, "
                              f"got {self.neighbour_encoding!r}")
@@ -107,6 +121,8 @@ class TrainProgress:
     steps_per_s: float
     eta_s: float | None
     elapsed_s: float
+    lr: float | None = None
+    """The learning rate of the step just taken (None while evaluating)."""
     phase: str = "training"
     """"training" (after each step) or "evaluating" (measuring the held-out views before the
     first step or after the last; no steps meanwhile, ``eta_s`` None)."""
@@ -146,7 +162,8 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
         device: where training runs (default: CUDA when available).
         model_config: the starting model's EnhancerConfig when fine-tuning a checkpoint.
     Returns:
-        A JSON-able dict: ``device, variant, crop, batch, lr, num_neighbours, steps, minutes``.
+        A JSON-able dict: ``device, variant, crop, batch, lr, lr_schedule, num_neighbours, steps,
+        minutes``.
     """
     from roguenerf.models import VARIANTS
 
@@ -189,6 +206,7 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
         "crop_used": min(crop, height, width),
         "batch": int(config.batch),
         "lr": float(config.lr) if config.lr is not None else (GPU_LR if on_gpu else CPU_LR),
+        "lr_schedule": config.lr_schedule or LR_SCHEDULE,
         "num_neighbours": n,
         "steps": None if steps is None else int(steps),
         "minutes": None if minutes is None else float(minutes),
@@ -209,6 +227,29 @@ def describe_plan(plan: dict) -> str:
         without += f", held-out views {plan['held_out_share']:.0%} of their scenes' targets"
     return (f"plan: {plan['device']} ({plan['threads']} threads), variant {plan['variant']}, "
             f"crop {plan['crop_used']}, batch {plan['batch']}, {plan['num_neighbours']} neighbours, "
-            f"lr {plan['lr']:g}, budget {budget}{without}, "
+            f"lr {plan['lr']:g}{' cosine to 0' if plan.get('lr_schedule') == 'cosine' else ''}, "
+            f"budget {budget}{without}, "
             f"neighbour photos encoded {'per crop window' if plan.get('neighbour_encoding') == 'window' else 'whole'}"
             + (f" ({plan['why']})" if plan.get("why") else ""))
+
+
+def budget_fraction(plan: dict, step: int, elapsed_s: float) -> float:
+    """How much of the plan's budget ``step`` steps and ``elapsed_s`` seconds of training have
+    used, in [0, 1]: of a step budget, a time budget, or both (the larger share: the one that
+    runs out first)."""
+    shares = []
+    if plan.get("steps"):
+        shares.append(step / plan["steps"])
+    if plan.get("minutes"):
+        shares.append(elapsed_s / (plan["minutes"] * 60.0))
+    return min(max(shares, default=0.0), 1.0)
+
+
+def lr_factor(schedule: str, fraction: float) -> float:
+    """The multiplier of the plan's lr at ``fraction`` (0..1) of the budget: "cosine"
+    ``0.5 (1 + cos(pi f))``, 1 at the start and 0 at the end; "constant" 1."""
+    if schedule == "constant":
+        return 1.0
+    if schedule == "cosine":
+        return 0.5 * (1.0 + math.cos(math.pi * min(max(fraction, 0.0), 1.0)))
+    raise InputError(f"lr_schedule: expected one of {', '.join(LR_SCHEDULES)}, got {schedule!r}")

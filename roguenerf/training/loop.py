@@ -36,7 +36,15 @@ from roguenerf.training.batches import (
     sample_crops,
 )
 from roguenerf.training.evaluate import evaluate
-from roguenerf.training.config import TrainConfig, TrainProgress, TrainResult, describe_plan, plan_training
+from roguenerf.training.config import (
+    TrainConfig,
+    TrainProgress,
+    TrainResult,
+    budget_fraction,
+    describe_plan,
+    lr_factor,
+    plan_training,
+)
 from roguenerf.training.losses import build_loss
 from roguenerf.training.state import load_state, save_state
 
@@ -153,6 +161,16 @@ def make_optimizer(model, lr: float) -> torch.optim.Optimizer:
         return torch.optim.Adam(params, lr=lr, fused=True)
     except (RuntimeError, ValueError):  # a device or dtype without the fused kernel
         return torch.optim.Adam(params, lr=lr)
+
+
+def set_lr(optimizer: torch.optim.Optimizer, plan: dict, step: int, elapsed_s: float) -> float:
+    """Set the learning rate of the step about to be taken, the plan's ``lr`` times
+    :func:`~roguenerf.training.config.lr_factor` of its schedule at the share of the budget used
+    so far; returns it."""
+    lr = plan["lr"] * lr_factor(plan.get("lr_schedule", "constant"), budget_fraction(plan, step, elapsed_s))
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    return lr
 
 
 def optimise(model, batch: StepBatch, device: torch.device, loss_fn, optimizer: torch.optim.Optimizer, *,
@@ -277,6 +295,7 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
                              model_config=model.config)
         for key in ("variant", "crop", "crop_used", "batch", "lr", "num_neighbours", "without", "seed"):
             plan[key] = stored[key]
+        plan["lr_schedule"] = stored.get("lr_schedule", "constant")  # runs saved before schedules
         plan["held_out_share"] = stored.get("held_out_share", 0.0)
         transfer, before = info.get("transfer"), info.get("before")
         log.info("resuming %s from step %d in %s", kind, saved["step"], output_dir)
@@ -394,6 +413,7 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
             if batches is None:
                 batches = Prefetcher(make_batch, depth=PREFETCH)
             batch = next(batches)
+            lr = set_lr(optimizer, plan, step, elapsed_before + time.perf_counter() - start)
             loss_value = optimise(model, batch, device, loss_fn, optimizer, step=step, checkpoint=str(model_path))
             sampler_state = batch.sampler_state
             step += 1
@@ -413,13 +433,14 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
             if bar is not None:
                 if by_time:
                     bar.update(min(elapsed, bar.total) - bar.n)
-                    bar.set_postfix(step=step, loss=f"{loss_value:.4f}", steps_per_s=f"{rate:.2f}")
+                    bar.set_postfix(step=step, loss=f"{loss_value:.4f}", lr=f"{lr:.2g}", steps_per_s=f"{rate:.2f}")
                 else:
                     bar.update(1)
-                    bar.set_postfix(loss=f"{loss_value:.4f}", eta=f"{eta:.0f}s" if eta is not None else "?")
+                    bar.set_postfix(loss=f"{loss_value:.4f}", lr=f"{lr:.2g}",
+                                    eta=f"{eta:.0f}s" if eta is not None else "?")
             if progress is not None:
                 progress(TrainProgress(step=step, total_steps=total_est, fraction=min(fraction, 1.0),
-                                       loss=loss_value, steps_per_s=rate, eta_s=eta, elapsed_s=elapsed))
+                                       loss=loss_value, steps_per_s=rate, eta_s=eta, elapsed_s=elapsed, lr=lr))
             if now - last_save >= config.checkpoint_every_s:
                 save(step, elapsed, loss_value)
                 last_save = time.perf_counter()
