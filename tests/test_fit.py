@@ -213,7 +213,9 @@ def test_pretraining_pipeline_smoke(tmp_path):
         ("zero-shot new", ""), ("finetune", "default"), ("finetune", "default"), ("finetune", "whole"),
         ("finetune", "whole")]
     assert all(r["scene"] == "beta/coarse" for r in rows)
-    assert [r["plan"].split()[-1] for r in rows[1:]] == ["window", "window", "whole", "whole"]
+    plans = [r["plan"].split() for r in rows[1:]]  # "micro crop C batch B nN ENCODING lr LR SCHEDULE"
+    assert [p[6] for p in plans] == ["window", "window", "whole", "whole"]
+    assert all(p[-1] == "cosine" for p in plans)  # the default schedule: each budget a fresh run
     # --replot merges sittings: the same CSV twice keeps the scene's zero-shot row once.
     quick_csv = tmp_path / "bench" / "real_quick.csv"
     subprocess.run([sys.executable, str(repo / "bench" / "real_scenes.py"), "--replot", str(quick_csv), str(quick_csv),
