@@ -125,7 +125,7 @@ def _train_config(*, minutes, steps, without, variant, crop, vgg_weights, seed, 
             raise InputError(f"--without: expected one of {', '.join(COMPONENTS)}, got {w!r}")
     return TrainConfig(steps=steps, minutes=minutes, crop=crop, vgg_weights=vgg_weights, seed=seed,
                        variant=variant, without=without, num_neighbours=neighbours, evaluate=evaluate,
-                       lr_schedule=lr_schedule, **({} if lr is None else {"lr": lr}), **extra).validate()
+                       lr=lr, lr_schedule=lr_schedule, **extra).validate()
 
 
 def _report_training(result) -> None:

@@ -78,7 +78,7 @@ def train_options(train_config_cls, settings, request: dict) -> dict:
     # evaluate / progress_bar are library extras beyond the written contract; pass them only
     # while TrainConfig has them.
     known = {f.name for f in dataclasses.fields(train_config_cls)}
-    return {k: v for k, v in wanted.items() if k in known and not (k == "lr" and v is None)}
+    return {k: v for k, v in wanted.items() if k in known}
 
 
 def _jsonable(value):

@@ -167,7 +167,7 @@ def set_lr(optimizer: torch.optim.Optimizer, plan: dict, step: int, elapsed_s: f
     """Set the learning rate of the step about to be taken, the plan's ``lr`` times
     :func:`~roguenerf.training.config.lr_factor` of its schedule at the share of the budget used
     so far; returns it."""
-    lr = plan["lr"] * lr_factor(plan.get("lr_schedule", "constant"), budget_fraction(plan, step, elapsed_s))
+    lr = plan["lr"] * lr_factor(plan["lr_schedule"], budget_fraction(plan, step, elapsed_s))
     for group in optimizer.param_groups:
         group["lr"] = lr
     return lr
