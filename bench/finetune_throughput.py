@@ -89,10 +89,12 @@ import torch  # noqa: E402
 from bench.common import LEGO, scene_label, stamp, write_csv  # noqa: E402
 
 
-ENCODINGS = ("whole-loop", "whole", "window")
+ENCODINGS = ("whole-loop", "whole", "window", "frozen")
 """Bench labels: ``whole`` and ``window`` are ``TrainConfig.neighbour_encoding``; ``whole-loop``
 is the training step before issue 12: whole photos, and the enhancer's plain per-neighbour
-fusion (``reference_mode()``, which in training switches off only the batched neighbour fusion)."""
+fusion (``reference_mode()``, which in training switches off only the batched neighbour fusion);
+``frozen`` is ``window`` with ``TrainConfig.freeze_neighbour_encoder``: conv_H fixed, the training
+photos encoded once before timing (not counted), windows cut from those features."""
 
 
 def _ints(text: str) -> list[int]:
@@ -182,7 +184,13 @@ def measure(variant: str, data, crop: int, batch: int, neighbours: int, encoding
     from roguenerf.fastpath import reference_mode
 
     loop = encoding == "whole-loop"
-    margin, enc = neighbour_margin(model), batch_encoding(model, "whole" if loop else encoding)
+    frozen = encoding == "frozen"
+    margin = neighbour_margin(model)
+    enc = batch_encoding(model, "whole" if loop else "window" if frozen else encoding)
+    data.features = None
+    if frozen and model.conv_H is not None:  # as finetune does with freeze_neighbour_encoder
+        model.conv_H.requires_grad_(False)
+        data.cache_features(model, device)
 
     def make():  # as finetune's batch thread draws them
         targets = torch.randint(0, len(data), (batch,), generator=generator)
@@ -200,7 +208,7 @@ def measure(variant: str, data, crop: int, batch: int, neighbours: int, encoding
             optimise(model, b, device, loss_fn, optimizer, step=i)
         dt = time.perf_counter() - t0
         photos = b.neighbour_photos if isinstance(b.neighbour_photos, list) else [b.neighbour_photos]
-        encoded.append(sum(p.shape[0] * p.shape[-2] * p.shape[-1] for p in photos if p is not None))
+        encoded.append(sum(p.shape[0] * p.shape[-2] * p.shape[-1] for p in photos if p is not None))  # 0 if cached
         windowed.append(b.encoding == "window")
         return dt
 
@@ -214,6 +222,7 @@ def measure(variant: str, data, crop: int, batch: int, neighbours: int, encoding
         times: list[float] = []
         while len(times) < args.steps and (not times or sum(times) < args.max_seconds):
             times.append(step(pre, warm + len(times)))
+    data.features = None
     crop_used = min(crop, data.height, data.width)
     sec = statistics.median(times)
     return {"variant": variant, "crop": crop, "batch": batch, "neighbours": neighbours, "encoding": encoding,
@@ -293,12 +302,16 @@ def summary(rows: list[dict], reference: str | None) -> dict:
                 if (r["variant"], r["neighbours"], r["crop"], r["batch"]) == point}
         entry = {"variant": point[0], "neighbours": point[1], "crop": point[2], "batch": point[3],
                  "steps_per_s": {f"{sc}/{enc}": v for (sc, enc), v in mine.items()}, "window_over_whole": {},
-                 "window_over_whole_loop": {}, f"over_{reference}": {}}
+                 "window_over_whole_loop": {}, "frozen_over_window": {}, "frozen_over_whole_loop": {},
+                 f"over_{reference}": {}}
         for sc in sizes:
             if (sc, "window") in mine and (sc, "whole") in mine:
                 entry["window_over_whole"][sc] = round(mine[(sc, "window")] / mine[(sc, "whole")], 3)
             if (sc, "window") in mine and (sc, "whole-loop") in mine:
                 entry["window_over_whole_loop"][sc] = round(mine[(sc, "window")] / mine[(sc, "whole-loop")], 3)
+            for base in ("window", "whole-loop"):
+                if (sc, "frozen") in mine and (sc, base) in mine:
+                    entry[f"frozen_over_{base.replace('-', '_')}"][sc] = round(mine[(sc, "frozen")] / mine[(sc, base)], 3)
             for enc in ENCODINGS:
                 if (sc, enc) in mine and (reference, enc) in mine:
                     entry[f"over_{reference}"][f"{sc}/{enc}"] = round(mine[(sc, enc)] / mine[(reference, enc)], 3)
@@ -414,7 +427,8 @@ def main(argv=None) -> int:
     for entry in result["points"]:
         print(f"{entry['variant']} crop {entry['crop']} batch {entry['batch']} {entry['neighbours']} neighbours: "
               f"window/whole {entry['window_over_whole']}; window/whole-loop (the step before issue 12) "
-              f"{entry['window_over_whole_loop']}; over {result['reference']} "
+              f"{entry['window_over_whole_loop']}; frozen/window {entry['frozen_over_window']}; "
+              f"frozen/whole-loop {entry['frozen_over_whole_loop']}; over {result['reference']} "
               f"{entry['over_' + result['reference']]}")
     print(f"\nwrote {args.output}, {json_path} and {png}")
     return 0

@@ -44,6 +44,10 @@ LrOpt = Annotated[float | None, typer.Option("--lr", help="Adam learning rate (d
 LrScheduleOpt = Annotated[str | None, typer.Option(
     "--lr-schedule", help="cosine (the lr falls to 0 over the budget; the default) or constant.")]
 NeighboursOpt = Annotated[int | None, typer.Option("--neighbours", help="Neighbours per view (default: model's).")]
+FreezeOpt = Annotated[bool | None, typer.Option(
+    "--freeze-neighbour-encoder/--train-neighbour-encoder",
+    help="Keep conv_H (the neighbour-photo encoder) fixed and encode the training photos once, so each "
+         "step skips it; default: the plan's.")]
 
 
 def _fail(message: str, code: int) -> None:
@@ -158,6 +162,7 @@ def finetune(
     neighbours: NeighboursOpt = None,
     lr: LrOpt = None,
     lr_schedule: LrScheduleOpt = None,
+    freeze_neighbour_encoder: FreezeOpt = None,
     no_eval: Annotated[bool, typer.Option("--no-eval", help="Skip the before/after test evaluation.")] = False,
 ) -> None:
     """Fine-tune the enhancer on one scene's training views; resumes from OUTPUT when interrupted."""
@@ -169,7 +174,8 @@ def finetune(
             raise InputError("give either --checkpoint or --scratch, not both")
         config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
                                vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, lr=lr,
-                               lr_schedule=lr_schedule, evaluate=not no_eval)
+                               lr_schedule=lr_schedule, evaluate=not no_eval,
+                               freeze_neighbour_encoder=freeze_neighbour_encoder)
         scene = _load_scene(scene_dir)
         start = None if scratch else _checkpoint_path(checkpoint)
         result = run_finetune(scene, output, checkpoint=start, config=config)

@@ -50,6 +50,14 @@ def in_reference_mode() -> bool:
     return getattr(_state, "reference", False)
 
 
+def layout_enabled(x: Tensor) -> bool:
+    """Channels-last layouts apply, with or without gradient: not in reference mode, float32 on
+    the CPU. oneDNN's convolutions with 3-32 channels run forward + backward 15-40 % faster on
+    channels-last inputs than on NCHW ones (``bench/results/training_layout.json``); the values
+    are the same to float32 rounding."""
+    return not in_reference_mode() and x.device.type == "cpu" and x.dtype == torch.float32
+
+
 def fast_enabled(x: Tensor) -> bool:
     """Fast paths apply: not in reference mode, no gradient recorded, float32 on the CPU."""
     return (not in_reference_mode() and not torch.is_grad_enabled() and x.device.type == "cpu"

@@ -118,6 +118,13 @@ def test_finetune_from_scratch_then_resume_to_more_steps(scene_dir, tmp_path):
                     "--lr-schedule", "constant", *FAST)
     assert constant.exit_code == 0 and "cosine to 0" not in constant.stderr
     assert load_checkpoint(tmp_path / "c" / "model.safetensors")[1]["training"]["plan"]["lr_schedule"] == "constant"
+    for flag, frozen in (("--freeze-neighbour-encoder", True), ("--train-neighbour-encoder", False)):
+        run = _run("finetune", scene_dir, "--scratch", "--steps", "1", "--output", tmp_path / flag, "--no-eval",
+                   flag, *FAST)
+        assert run.exit_code == 0, run.output
+        assert ("conv_H frozen" in run.stderr) is frozen
+        assert load_checkpoint(tmp_path / flag / "model.safetensors")[1]["training"]["plan"][
+            "freeze_neighbour_encoder"] is frozen
     more = _run("finetune", scene_dir, "--scratch", "--steps", "3", "--output", out, "--no-eval", *FAST)
     assert more.exit_code == 0, more.output
     assert "resuming finetune from step 2" in more.stderr

@@ -204,6 +204,7 @@ def test_pretraining_pipeline_smoke(tmp_path):
     cache = tmp_path / "cache"
     assert f"pre-training on 2 scene folders: {cache / 'alpha' / 'blur'} {cache / 'alpha' / 'coarse'}" in proc.stderr
     assert "held-out views 50% of their scenes' targets" in proc.stderr  # the fits' novel views are targets too
+    assert "cosine to 0" in proc.stderr  # the script's schedule, the shipped checkpoint's
     assert (tmp_path / "weights" / "default.safetensors").is_file()
     import csv
 

@@ -23,6 +23,7 @@ from roguenerf.training import (
     plan_training,
     pretrain,
 )
+from roguenerf.training.config import FREEZE_NEIGHBOUR_ENCODER
 from roguenerf.training.loop import SceneData, _crop_batch
 from roguenerf.training.losses import VGG19Features, EnhancerLoss, _vgg19_layers, build_loss
 from roguenerf.training.state import load_state
@@ -368,6 +369,10 @@ def test_plan_for_a_cpu():
     assert plan["variant"] == "micro" and plan["crop"] == 64 and plan["crop_used"] == 64
     assert plan["num_neighbours"] == 2 and plan["batch"] == 4 and plan["lr"] == 5e-4
     assert plan["lr_schedule"] == "cosine"
+    assert plan["freeze_neighbour_encoder"] is FREEZE_NEIGHBOUR_ENCODER
+    assert plan_training(_Scene(), TrainConfig(), "cpu", kind="pretrain")["freeze_neighbour_encoder"] is False
+    assert plan_training(_Scene(), TrainConfig(freeze_neighbour_encoder=True), "cpu",
+                         kind="pretrain")["freeze_neighbour_encoder"] is True
     assert plan["minutes"] == 10.0 and plan["steps"] is None
     small = plan_training(_Scene(), TrainConfig(crop=512, steps=7, variant="micro", num_neighbours=4), "cpu")
     assert small["crop_used"] == 200 and small["steps"] == 7 and small["minutes"] is None

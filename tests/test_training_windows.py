@@ -237,3 +237,65 @@ def test_finetune_on_windows_matches_whole_photos(tmp_path, monkeypatch):
     assert {e for e, _ in made} == {"window", "whole"} and {t for _, t in made} == {"roguenerf-batches"}
     with pytest.raises(InputError, match="neighbour_encoding"):
         TrainConfig(neighbour_encoding="tiles").validate()
+
+
+def test_cached_features_step_equals_the_frozen_encoder_step(scene):
+    """conv_H frozen: windows cut from features encoded once, whole (``SceneData.features``, no
+    receptive margin), give the loss and every gradient of the step that encodes whole photos
+    with the frozen conv_H; conv_H gets no gradient in either."""
+    model = _model()
+    model.conv_H.requires_grad_(False)
+    data = _data(scene)
+    data.cache_features(model, torch.device("cpu"))
+    assert data.features.shape == (len(data.train), model.config.features, H, W)
+    cached = prepare_batch(data, TARGETS, ORIGINS, CROP, encoding="window", margin=receptive_radius(model.conv_H))
+    assert cached.encoding == "window" and cached.neighbour_photos is None
+    assert all(f.shape[1] == model.config.features for f in cached.neighbour_features)
+    data.features = None
+    _, whole = _batches(data, model)
+    assert whole.neighbour_photos is not None and whole.neighbour_features is None
+    # No receptive margin around cached features: windows are smaller than photo windows.
+    photo_window = prepare_batch(data, TARGETS, ORIGINS, CROP, encoding="window", margin=receptive_radius(model.conv_H))
+    assert bool((cached.windows[..., 2:].prod(-1).sum() < photo_window.windows[..., 2:].prod(-1).sum()))
+
+    model.zero_grad(set_to_none=True)
+    args, photo = model_inputs(model, cached, torch.device("cpu"))
+    loss_c = (model(*args) - photo).abs().mean()
+    loss_c.backward()
+    grads_c = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+    model.zero_grad(set_to_none=True)
+    args, photo = model_inputs(model, whole, torch.device("cpu"))
+    loss_o = (model(*args) - photo).abs().mean()
+    loss_o.backward()
+    grads_o = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+    torch.testing.assert_close(loss_c.detach(), loss_o.detach(), rtol=1e-12, atol=0)
+    assert set(grads_c) == set(grads_o) and not any(n.startswith("conv_H") for n in grads_o)
+    assert any(n.startswith("flow") for n in grads_o) and any(n.startswith("pixel_attention") for n in grads_o)
+    for name, g in grads_o.items():
+        scale = float(g.abs().max())
+        torch.testing.assert_close(grads_c[name], g, rtol=1e-9, atol=1e-12 * max(scale, 1e-30), msg=name)
+
+
+def test_finetune_with_a_frozen_encoder_keeps_conv_H(tmp_path):
+    """The plan says so, conv_H's weights come out as they went in, the rest trains, and the
+    encoder is trainable again afterwards (the caller's model is not left frozen)."""
+    from roguenerf.checkpoint import load_checkpoint, save_checkpoint
+
+    scene = make_toy_scene(tmp_path / "scene", seed=4, n_train=6, n_test=0, height=60, width=80, kind="orbit")
+    torch.manual_seed(0)
+    start = build_enhancer("micro", num_neighbours=3)
+    save_checkpoint(tmp_path / "start.safetensors", start)
+    common = dict(steps=3, crop=16, batch=2, evaluate=False, progress_bar=False, checkpoint_every_s=1e9)
+    result = finetune(scene, tmp_path / "frozen", checkpoint=tmp_path / "start.safetensors",
+                      config=TrainConfig(freeze_neighbour_encoder=True, **common))
+    assert result.config["freeze_neighbour_encoder"] is True
+    trained, _ = load_checkpoint(result.checkpoint)
+    before, after = start.state_dict(), trained.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before if k.startswith("conv_H"))
+    assert any(not torch.equal(before[k], after[k]) for k in before if k.startswith("conv_I"))
+    # Trained conv_H by default (the plan's FREEZE_NEIGHBOUR_ENCODER) or when asked.
+    result = finetune(scene, tmp_path / "trained", checkpoint=tmp_path / "start.safetensors",
+                      config=TrainConfig(freeze_neighbour_encoder=False, **common))
+    assert result.config["freeze_neighbour_encoder"] is False
+    trained, _ = load_checkpoint(result.checkpoint)
+    assert any(not torch.equal(before[k], trained.state_dict()[k]) for k in before if k.startswith("conv_H"))

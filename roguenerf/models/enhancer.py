@@ -207,6 +207,8 @@ class Enhancer(nn.Module):
                     pooled = torch.zeros_like(feats)
                 if fastops.fast_enabled(feats):
                     merged = conv_act(self.conv_merge, cat_channels_last([feats, pooled]))
+                elif fastops.layout_enabled(feats):  # training: channels-last convolutions are faster
+                    merged = self.conv_merge(cat_channels_last([feats, pooled]))
                 else:
                     merged = self.conv_merge(torch.cat([feats, pooled], dim=1))
         with stage("uformer"):
@@ -312,12 +314,15 @@ class Enhancer(nn.Module):
             with stage("attention"):
                 nb_rel = (buf[:, f:].view(n, b, 1, h, w) / scale_b).clamp(0, MAX_RELATIVE_DEPTH)
                 term = self.pixel_attention.target_term(feats, target_depth)
+                parts = [aligned, nb_rel.view(n * b, 1, h, w)]
                 psi_pix = self.pixel_attention.from_target_term(
-                    torch.cat([aligned, nb_rel.view(n * b, 1, h, w)], dim=1), term)
+                    cat_channels_last(parts) if fastops.layout_enabled(feats) else torch.cat(parts, dim=1), term)
                 psi_cam = self.camera_attention(camera_inputs.transpose(0, 1).reshape(n * b, -1))
                 aligned = psi_cam[:, :, None, None] * psi_pix * aligned
         with stage("fusion"):
-            per = aligned.view(n, b, f, h, w)
+            # unbind, not per[j]: one backward node that stacks the N gradients, where N
+            # selects would each fill a zero tensor of all N * B neighbours and add them up.
+            per = aligned.view(n, b, f, h, w).unbind(0)
             pooled = per[0]
             for j in range(1, n):
                 pooled = torch.maximum(pooled, per[j])

@@ -24,10 +24,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from roguenerf.fastpath import fast_enabled, in_reference_mode, reference_mode
+from roguenerf.fastpath import fast_enabled, in_reference_mode, layout_enabled, reference_mode
 
-__all__ = ["conv2d", "channels_last", "fast_enabled", "in_reference_mode", "linear", "mkldnn_fused_available",
-           "reference_mode"]
+__all__ = ["conv2d", "channels_last", "fast_enabled", "in_reference_mode", "layout_enabled", "linear",
+           "mkldnn_fused_available", "reference_mode"]
 
 @functools.lru_cache(maxsize=1)
 def mkldnn_fused_available() -> bool:

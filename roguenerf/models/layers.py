@@ -90,7 +90,10 @@ def conv_act(block: nn.Sequential, x: Tensor) -> Tensor:
 
 def cat_channels_last(tensors: list[Tensor]) -> Tensor:
     """``torch.cat(tensors, dim=1)`` written straight into a channels-last tensor (one copy;
-    ``torch.cat`` alone returns NCHW when a one-channel input is among channels-last ones)."""
+    ``torch.cat`` alone returns NCHW when a one-channel input is among channels-last ones).
+    With gradient (``out=`` has no autograd formula): the concatenation, then one layout copy."""
+    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+        return torch.cat(tensors, dim=1).contiguous(memory_format=torch.channels_last)
     b, _, h, w = tensors[0].shape
     out = torch.empty(b, sum(t.shape[1] for t in tensors), h, w, dtype=tensors[0].dtype,
                       device=tensors[0].device, memory_format=torch.channels_last)
@@ -132,7 +135,7 @@ class PixelAttention(nn.Module):
         f = target.shape[1]
         weight = torch.cat([conv.weight[:, f:2 * f], conv.weight[:, 2 * f + 1:]], dim=1)
         x = [target, target_depth]
-        x = cat_channels_last(x) if fastops.fast_enabled(target) else torch.cat(x, dim=1)
+        x = cat_channels_last(x) if fastops.layout_enabled(target) else torch.cat(x, dim=1)
         return F.conv2d(x, weight, conv.bias, padding=conv.padding)
 
     def from_target_term(self, neighbour_and_depth: Tensor, term: Tensor) -> Tensor:

@@ -38,6 +38,11 @@ Why the window gives the whole photo's values:
   crop's edges, never reading the neighbour photo again. The neighbour's size reaches no other
   part of the model (the camera attention sees poses only).
 
+With conv_H frozen (``TrainConfig.freeze_neighbour_encoder``) the training views' features are
+encoded once, whole (``SceneData.features``), and the batch gathers windows of those features
+instead of photos: no receptive margin is needed then (the features already are the whole
+photo's), only the taps' box and :data:`WINDOW_SLACK`.
+
 Windows share one size per neighbour slot (each target's neighbours ordered by window area
 first; the enhancer max-pools over neighbours, so their order does not matter), so conv_H
 runs N times on ``(B, 3, h_j, w_j)`` batches. When the windows would be more pixels than the
@@ -81,6 +86,9 @@ class StepBatch:
     size per slot), ``neighbour_depth`` N tensors ``(B, 1, h_j, w_j)``, ``windows``
     ``(B, N, 4)`` int64 (y0, x0, h, w) of each window in its photo.
 
+    With cached conv_H features (``data.features``), ``neighbour_features`` takes the place of
+    ``neighbour_photos`` (same layouts with F channels) and ``neighbour_photos`` is None.
+
     Both: ``neighbours`` ``(B, N)`` positions of the neighbour photos in slot order,
     ``neighbour_K`` ``(B, N, 3, 3)`` (window offset applied), ``neighbour_pose`` ``(B, N, 4, 4)``.
     """
@@ -95,6 +103,7 @@ class StepBatch:
     pose: Tensor
     neighbours: Tensor | None = None
     neighbour_photos: Tensor | list[Tensor] | None = None
+    neighbour_features: Tensor | list[Tensor] | None = None
     neighbour_slot: Tensor | None = None
     neighbour_depth: Tensor | list[Tensor] | None = None
     neighbour_K: Tensor | None = None
@@ -225,9 +234,14 @@ def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding
         data: a :class:`~roguenerf.training.loop.SceneData`.
         targets: ``(B,)`` int64 positions in ``data``; origins ``(B, 2)`` from :func:`sample_crops`.
         encoding: ``"window"`` or ``"whole"`` (module docstring).
-        margin: conv_H's receptive radius (``receptive_radius(model.conv_H)``); window encoding only.
+        margin: conv_H's receptive radius (``receptive_radius(model.conv_H)``); window encoding
+            only; ignored (0) when ``data.features`` holds cached conv_H features, which the
+            batch then cuts instead of photos.
         use_neighbours: False gives a batch without neighbours.
     """
+    cached = getattr(data, "features", None)
+    if cached is not None:
+        margin = 0
     if encoding not in NEIGHBOUR_ENCODINGS:
         raise InputError(f"encoding: expected one of {', '.join(NEIGHBOUR_ENCODINGS)}, got {encoding!r}")
     render, depth, photo, K = crop_targets(data, targets, origins, crop)
@@ -245,19 +259,27 @@ def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding
         if b * int((sizes[:, 0] * sizes[:, 1]).sum()) < len(used) * data.height * data.width:
             lists = torch.gather(lists, 1, order)
             photos, depths = [], []
+            images = data.photos if cached is None else cached
             for j, (h, w) in enumerate(sizes.tolist()):  # one conv_H batch per slot (N, not B x N)
                 y0, x0 = corner[:, j, 0], corner[:, j, 1]
-                photos.append(_gather_windows(data.photos, lists[:, j], y0, x0, h, w))
+                photos.append(_gather_windows(images, lists[:, j], y0, x0, h, w))
                 depths.append(_gather_windows(data.depths, lists[:, j], y0, x0, h, w))
             nb_K = data.K[lists].clone()
             nb_K[..., 0, 2] -= corner[..., 1].to(nb_K.dtype)
             nb_K[..., 1, 2] -= corner[..., 0].to(nb_K.dtype)
-            batch.neighbour_photos, batch.neighbour_depth, batch.neighbour_K = photos, depths, nb_K
+            if cached is None:
+                batch.neighbour_photos = photos
+            else:
+                batch.neighbour_features = photos
+            batch.neighbour_depth, batch.neighbour_K = depths, nb_K
             batch.neighbour_pose = data.poses[lists]
             batch.windows = torch.cat([corner, sizes.expand(b, n, 2)], dim=-1)
             batch.neighbours, batch.encoding = lists, "window"
             return batch
-    batch.neighbour_photos = data.photos[used]
+    if cached is None:
+        batch.neighbour_photos = data.photos[used]
+    else:
+        batch.neighbour_features = cached[used]
     batch.neighbour_slot = slot
     batch.neighbour_depth = data.depths[lists]
     batch.neighbour_K = data.K[lists]
@@ -267,18 +289,23 @@ def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding
 
 
 def model_inputs(model, batch: StepBatch, device: torch.device):
-    """``(args, photo)``: ``model(*args)`` is the enhanced crop ``(B, 3, c, c)``; conv_H runs here (with grad)."""
+    """``(args, photo)``: ``model(*args)`` is the enhanced crop ``(B, 3, c, c)``; conv_H runs here
+    (with grad, unless conv_H is frozen), or not at all when the batch carries cached features."""
     from roguenerf.models import NeighbourBatch
 
     nb = None
     K, pose = batch.neighbour_K, batch.neighbour_pose
+    cached = batch.neighbour_features is not None
     if batch.encoding == "window":  # one conv_H batch per neighbour slot; sources of per-slot sizes
-        sources = [model.neighbour_source(model.encode_neighbours(p.to(device)), d.to(device))
-                   for p, d in zip(batch.neighbour_photos, batch.neighbour_depth)]
+        windows = batch.neighbour_features if cached else batch.neighbour_photos
+        sources = [model.neighbour_source(p.to(device) if cached else model.encode_neighbours(p.to(device)),
+                                          d.to(device))
+                   for p, d in zip(windows, batch.neighbour_depth)]
         nb = NeighbourBatch(features=None, depth=None, K=K.to(device), world_from_cam=pose.to(device),
                             sources=sources)
     elif batch.encoding == "whole":
-        features = model.encode_neighbours(batch.neighbour_photos.to(device))
+        features = (batch.neighbour_features.to(device) if cached
+                    else model.encode_neighbours(batch.neighbour_photos.to(device)))
         nb = NeighbourBatch(features=features[batch.neighbour_slot.to(device)],
                             depth=batch.neighbour_depth.to(device), K=K.to(device), world_from_cam=pose.to(device))
     args = (batch.render.to(device), batch.depth.to(device), batch.K.to(device), batch.pose.to(device), nb)

@@ -36,6 +36,10 @@ LR_SCHEDULE = "cosine"
 cosine against constant (lr 5e-4): dtu_scan37 +0.77 against +0.64 dB, mary_rose +1.48
 against +1.04, lego +1.45 against +1.51 (README, Results). Single runs on scenes where a run's
 gain varies by ~0.3 dB from run to run; a constant lr also ends wherever its last steps left it."""
+FREEZE_NEIGHBOUR_ENCODER = False
+"""Fine-tuning's default for :attr:`TrainConfig.freeze_neighbour_encoder`."""
+FEATURE_CACHE_BYTES = 2 * 1024**3
+"""Largest cache of frozen neighbour features (float32, training views x F x H x W) kept in memory."""
 GPU_MINUTES = 60.0
 """The paper fine-tunes for one hour per scene on GPUs."""
 CPU_PLAN_WHY = ("CPU defaults chosen by measured gain after 1, 3 and 10 min on unseen real scenes and lego, "
@@ -80,6 +84,12 @@ class TrainConfig:
     """"cosine": the lr falls from ``lr`` to 0 along a half cosine over the budget (steps, or
     minutes of training time; the one that runs out first); "constant": ``lr`` throughout.
     None: the plan's (LR_SCHEDULE). A resumed run keeps its schedule and position in it."""
+    freeze_neighbour_encoder: bool | None = None
+    """True: conv_H (the neighbour-photo encoder) keeps its starting weights, so every training
+    view's features are encoded once before the first step (when they fit in
+    ``FEATURE_CACHE_BYTES``; otherwise each step encodes its windows without gradient) and steps
+    skip conv_H's forward and backward. False: conv_H is trained with the rest. None: the plan's
+    (FREEZE_NEIGHBOUR_ENCODER for fine-tuning; pre-training always trains it)."""
     neighbour_encoding: str = "window"
     """"window": conv_H encodes only the window of each neighbour photo that a target crop can
     see; "whole": every neighbour photo whole (the former path, kept for comparison). Same
@@ -153,7 +163,7 @@ def _frame_sizes(scenes) -> tuple[int, int]:
 
 
 def plan_training(scene, config: TrainConfig, device: str | torch.device | None = None, *,
-                  model_config=None) -> dict:
+                  model_config=None, kind: str = "finetune") -> dict:
     """Choose variant, crop, batch, neighbours and budget for the scene(s) and the machine.
 
     Args:
@@ -161,9 +171,10 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
         config: the caller's wishes; its non-None fields always win.
         device: where training runs (default: CUDA when available).
         model_config: the starting model's EnhancerConfig when fine-tuning a checkpoint.
+        kind: "finetune" or "pretrain" (pre-training never freezes conv_H unless asked to).
     Returns:
         A JSON-able dict: ``device, variant, crop, batch, lr, lr_schedule, num_neighbours, steps,
-        minutes``.
+        minutes, freeze_neighbour_encoder``, ...
     """
     from roguenerf.models import VARIANTS
 
@@ -196,6 +207,9 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
         n = model_n if on_gpu else min(model_n, CPU_NEIGHBOURS)
     if "neighbours" in config.without:
         n = 0
+    freeze = config.freeze_neighbour_encoder
+    if freeze is None:
+        freeze = FREEZE_NEIGHBOUR_ENCODER if kind == "finetune" else False
     steps, minutes = config.steps, config.minutes
     if steps is None and minutes is None:
         minutes = GPU_MINUTES if on_gpu else CPU_MINUTES
@@ -213,6 +227,7 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
         "without": list(config.without),
         "seed": int(config.seed),
         "neighbour_encoding": config.neighbour_encoding,
+        "freeze_neighbour_encoder": bool(freeze),
         "why": GPU_PLAN_WHY if on_gpu else CPU_PLAN_WHY,
         "threads": torch.get_num_threads(),
     }
@@ -228,8 +243,10 @@ def describe_plan(plan: dict) -> str:
     return (f"plan: {plan['device']} ({plan['threads']} threads), variant {plan['variant']}, "
             f"crop {plan['crop_used']}, batch {plan['batch']}, {plan['num_neighbours']} neighbours, "
             f"lr {plan['lr']:g}{' cosine to 0' if plan.get('lr_schedule') == 'cosine' else ''}, "
-            f"budget {budget}{without}, "
-            f"neighbour photos encoded {'per crop window' if plan.get('neighbour_encoding') == 'window' else 'whole'}"
+            f"budget {budget}{without}"
+            + (", conv_H frozen (neighbour features encoded once)" if plan.get("freeze_neighbour_encoder")
+               else f", neighbour photos encoded "
+                    f"{'per crop window' if plan.get('neighbour_encoding') == 'window' else 'whole'}")
             + (f" ({plan['why']})" if plan.get("why") else ""))
 
 

@@ -8,8 +8,10 @@ the crop offset) is enhanced with its precomputed nearest training views as neig
 itself), and the result is compared with the same crop of its photo. conv_H is trained, so neighbour
 features are recomputed every step, by default only on the window of each neighbour photo
 that the target crop can see (``TrainConfig.neighbour_encoding``; see
-:mod:`roguenerf.training.batches`, which also proves the equality with whole photos). Batches
-are drawn and cut in a background thread while the model trains.
+:mod:`roguenerf.training.batches`, which also proves the equality with whole photos). With
+``TrainConfig.freeze_neighbour_encoder`` conv_H keeps its weights and the training photos are
+encoded once before the first step. Batches are drawn and cut in a background thread while the
+model trains.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from roguenerf.training.batches import (
 )
 from roguenerf.training.evaluate import evaluate
 from roguenerf.training.config import (
+    FEATURE_CACHE_BYTES,
     TrainConfig,
     TrainProgress,
     TrainResult,
@@ -97,6 +100,21 @@ class SceneData:
         lists = [select_neighbours(self.poses[k], train_poses, n, exclude=k if k < m else None)
                  for k in range(len(views))]
         self.neighbours = torch.stack(lists) if n > 0 else torch.zeros(len(views), 0, dtype=torch.int64)
+        self.features: Tensor | None = None
+        """``(len(train), F, H, W)`` conv_H features of the training photos when conv_H is frozen
+        (:meth:`cache_features`); batches then cut windows of these instead of photos."""
+
+    def feature_bytes(self, model) -> int:
+        """Memory :meth:`cache_features` would take for ``model`` (float32)."""
+        return len(self.train) * model.config.features * self.height * self.width * 4
+
+    def cache_features(self, model, device: torch.device) -> None:
+        """Encode every training photo once with ``model``'s (frozen) conv_H, whole, on ``device``;
+        kept on the CPU, where batches are cut."""
+        with torch.no_grad():
+            self.features = torch.cat([
+                model.encode_neighbours(self.photos[k:k + 1].to(device)).to("cpu").contiguous()
+                for k in range(len(self.train))])
 
     def __len__(self) -> int:
         return len(self.train)
@@ -292,10 +310,11 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
         model.load_state_dict(saved["model"])
         stored = info["plan"]
         plan = plan_training(scenes, config, stored["device"] if config.device is None else None,
-                             model_config=model.config)
+                             model_config=model.config, kind=kind)
         for key in ("variant", "crop", "crop_used", "batch", "lr", "num_neighbours", "without", "seed"):
             plan[key] = stored[key]
         plan["lr_schedule"] = stored.get("lr_schedule", "constant")  # runs saved before schedules
+        plan["freeze_neighbour_encoder"] = stored.get("freeze_neighbour_encoder", False)
         plan["held_out_share"] = stored.get("held_out_share", 0.0)
         transfer, before = info.get("transfer"), info.get("before")
         log.info("resuming %s from step %d in %s", kind, saved["step"], output_dir)
@@ -308,7 +327,7 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
 
             checkpoint, _ = load_checkpoint(checkpoint)
             start_config = checkpoint.config
-        plan = plan_training(scenes, config, model_config=start_config)
+        plan = plan_training(scenes, config, model_config=start_config, kind=kind)
         torch.manual_seed(plan["seed"])  # fresh weights depend on the seed alone
         model, transfer = _initial_model(checkpoint, config, plan["variant"])
         plan["variant"] = model.config.variant
@@ -335,6 +354,18 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
     if kind == "finetune" and config.evaluate and saved is None and datasets[0].scene.indices("test"):
         _evaluating(progress, 0, plan)
         before = _summary(evaluate(datasets[0].scene, model))
+    frozen = bool(plan["freeze_neighbour_encoder"]) and model.conv_H is not None
+    if frozen:
+        # Fixed weights: every step would encode the same photos to the same features.
+        model.conv_H.requires_grad_(False)
+        need = sum(d.feature_bytes(model) for d in datasets)
+        if need <= FEATURE_CACHE_BYTES:
+            model.eval()
+            for d in datasets:
+                d.cache_features(model, device)
+        else:
+            log.info("conv_H frozen; its features would take %.1f GB (> %.1f GB): each step encodes "
+                     "its windows without gradient instead", need / 1e9, FEATURE_CACHE_BYTES / 1e9)
 
     optimizer = make_optimizer(model, plan["lr"])
     generator = torch.Generator().manual_seed(plan["seed"])
@@ -348,7 +379,7 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
         torch.manual_seed(plan["seed"])
 
     weights = torch.tensor([float(len(d)) for d in datasets])
-    margin = neighbour_margin(model)
+    margin = neighbour_margin(model)  # prepare_batch needs none for cached features
     encoding = batch_encoding(model, plan["neighbour_encoding"])
 
     def make_batch() -> StepBatch:
@@ -450,6 +481,8 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
         if bar is not None:
             bar.close()
         model.eval()
+        if frozen:
+            model.conv_H.requires_grad_(True)
 
     elapsed = elapsed_before + time.perf_counter() - start
     save(step, elapsed, loss_value)
