@@ -16,7 +16,8 @@ gain against fine-tuning minutes (date, machine, commit on every row and in the 
 ``--plans default,whole`` fine-tunes each scene once per plan, in this one sitting (issue 12's
 gain per minute: ``default`` is the shipped CPU plan, ``whole`` the same plan with every
 neighbour photo encoded whole each step, the training step before crop windows; ``n5``,
-``crop96``, ``lr5e-4``, ``lr1e-4``, ``constant`` and ``cosine`` (the lr schedule) are the
+``crop96``, ``lr5e-4``, ``lr1e-4``, ``constant`` and ``cosine`` (the lr schedule), ``frozen``
+and ``trained`` (conv_H fixed with its features encoded once, or trained) are the
 alternatives weighed for the CPU defaults;
 ``bench/results/real_scenes.csv`` compared ``default`` when its lr was 1e-4 with ``lr5e-4``,
 after which 5e-4 became the default). Same data, seed and start.
@@ -47,6 +48,8 @@ PLANS = {
     "lr1e-4": {"lr": 1e-4},
     "constant": {"lr_schedule": "constant"},
     "cosine": {"lr_schedule": "cosine"},
+    "frozen": {"freeze_neighbour_encoder": True},
+    "trained": {"freeze_neighbour_encoder": False},
 }
 """Fine-tuning plans as TrainConfig overrides of the shipped CPU plan (``--plans``)."""
 
@@ -130,7 +133,8 @@ def run(args, save=None) -> list[dict]:
                 record("finetune", minutes, result.steps, result.seconds,
                        evaluate(scene, model, max_views=args.max_views), checkpoint=str(new), plan_name=plan_name,
                        plan=f"{c['variant']} crop {c['crop_used']} batch {c['batch']} n{c['num_neighbours']} "
-                            f"{c['neighbour_encoding']} lr {c['lr']:g} {c['lr_schedule']}")
+                            f"{c['neighbour_encoding']}{'+frozen' if c.get('freeze_neighbour_encoder') else ''} "
+                            f"lr {c['lr']:g} {c['lr_schedule']}")
     return rows
 
 

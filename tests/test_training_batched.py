@@ -106,3 +106,37 @@ def test_batched_fusion_is_not_vacuous(data):
     finally:
         Enhancer._camera_inputs = staticmethod(original)
     assert float((out_wrong - out_b).abs().max()) > 1e-6
+
+
+def test_float32_training_runs_channels_last_and_equals_the_reference(data):
+    """float32 on the CPU (what training runs in): the pixel attention's and the merge's
+    convolutions get channels-last inputs outside reference mode (NCHW inside it), and the
+    output and every gradient equal the reference to float32 rounding."""
+    model = _model().float()
+    d32 = SceneData.__new__(SceneData)
+    d32.__dict__.update({k: (v.float() if torch.is_tensor(v) and v.is_floating_point() and k != "poses" else v)
+                         for k, v in data.__dict__.items()})
+    batch = prepare_batch(d32, TARGETS, ORIGINS, CROP, encoding="window", margin=receptive_radius(model.conv_H))
+    layouts = {}
+
+    def record(name):
+        def hook(module, inputs):
+            x = inputs[0]
+            layouts.setdefault(name, []).append(x.is_contiguous(memory_format=torch.channels_last)
+                                                and not x.is_contiguous())
+        return hook
+
+    handles = [model.conv_merge[0].register_forward_pre_hook(record("merge")),
+               model.pixel_attention.net[2].register_forward_pre_hook(record("attention_out"))]
+    out_f, loss_f, grads_f, rgrad_f, _ = _run(model, batch, reference=False)
+    fast_layouts, layouts = layouts, {}
+    out_r, loss_r, grads_r, rgrad_r, _ = _run(model, batch, reference=True)
+    for h in handles:
+        h.remove()
+    assert fast_layouts == {"merge": [True], "attention_out": [True]}
+    assert layouts == {"merge": [False], "attention_out": [False] * 4}
+    torch.testing.assert_close(out_f, out_r, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(loss_f, loss_r, rtol=1e-5, atol=0)
+    for name, g in grads_r.items():
+        scale = max(float(g.abs().max()), 1e-30)
+        torch.testing.assert_close(grads_f[name], g, rtol=1e-3, atol=1e-4 * scale, msg=name)
