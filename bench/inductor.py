@@ -141,15 +141,15 @@ def plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     done = [r for r in rows if "seconds" in r]
-    fig, ax = plt.subplots(figsize=(7, 3.5))
+    fig, ax = plt.subplots(figsize=(9, 3.8))
     ax.barh([r["config"] for r in done], [r["seconds"] for r in done])
     for i, r in enumerate(done):
         ax.text(r["seconds"], i, f" {r['seconds']:.3f} s ({r['speedup_vs_eager_fast']:.2f}x)", va="center")
     ax.invert_yaxis()
     ax.set_xlabel("seconds per enhancement (median)")
     r0 = rows[0]
-    ax.set_title(f"{r0['variant']} {r0['height']}x{r0['width']}, 5 neighbours | {r0['machine'][:40]} | "
-                 f"{r0['commit']} | {r0['date'][:10]}", fontsize=7)
+    ax.set_title(f"{r0['variant']} {r0['height']}x{r0['width']}, 5 neighbours, inference\n"
+                 f"{r0['machine']} | {r0['commit']} | {r0['date'][:10]}", fontsize=7)
     ax.set_xlim(0, max(r["seconds"] for r in done) * 1.5)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
