@@ -32,6 +32,7 @@ import shutil
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -78,11 +79,13 @@ def measure(variant: str, h: int, w: int, repeats: int) -> list[dict]:
     rows = []
     with torch.inference_mode():
         inputs = make_inputs(model, h, w)
-        configs: list[tuple[str, callable]] = [("eager fast", lambda: model(*inputs))]
+        # Each config returns _time's (median seconds, first call's seconds, output).
+        configs: list[tuple[str, Callable[[], tuple[float, float, torch.Tensor]]]] = [
+            ("eager fast", lambda: _time(lambda: model(*inputs), repeats))]
 
         def reference():
             with reference_mode():
-                return model(*inputs)
+                return _time(lambda: model(*inputs), repeats)
         configs.append(("eager reference", reference))
         compiler = shutil.which("g++") or shutil.which("c++")
         for freezing in (False, True):
@@ -112,7 +115,7 @@ def measure(variant: str, h: int, w: int, repeats: int) -> list[dict]:
                 rows.append(dict(row, skipped="no C++ compiler (g++) on PATH"))
                 continue
             try:
-                seconds, first, out = fn() if name.startswith("compiled") else _time(fn, repeats)
+                seconds, first, out = fn()
             except Exception as exc:  # a lowering failure is a result here, not a crash
                 rows.append(dict(row, skipped=f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"))
                 continue
