@@ -138,7 +138,8 @@ def _report_training(result) -> None:
     transfer = result.config.get("transfer")
     if transfer:
         typer.echo(f"weights from the checkpoint: {transfer['loaded']} tensors loaded; dropped: "
-                   f"{', '.join(transfer['dropped']) or 'nothing'}; fresh: {', '.join(transfer['fresh']) or 'nothing'}",
+                   f"{', '.join(transfer['dropped']) or 'nothing'}; fresh: {', '.join(transfer['fresh']) or 'nothing'}"
+                   f"; widened (new inputs at zero weight): {', '.join(transfer.get('widened', [])) or 'nothing'}",
                    err=True)
     if result.before and result.after:
         b, a = result.before, result.after
@@ -205,6 +206,10 @@ def pretrain(
         "Never for a scene you evaluate on.")] = None,
     held_out_share: Annotated[float, typer.Option(
         "--held-out-share", help="Chance that a target of a --held-out-from scene is a held-out view.")] = 0.5,
+    pool_spread: Annotated[bool | None, typer.Option(
+        "--pool-spread/--no-pool-spread", help="Give the merge the neighbours' spread (max - min) next to their "
+        "max-pool (not in the paper); from a checkpoint without it, the new inputs start at zero weight. "
+        "Default: the checkpoint's.")] = None,
 ) -> None:
     """Pre-train across scene folders and/or generated toy scenes."""
     from roguenerf.training import pretrain as run_pretrain
@@ -215,7 +220,8 @@ def pretrain(
             raise InputError(f"--toy: expected >= 0, got {toy}")
         config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
                                vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, lr=lr,
-                               lr_schedule=lr_schedule, evaluate=False, held_out_share=held_out_share)
+                               lr_schedule=lr_schedule, evaluate=False, held_out_share=held_out_share,
+                               pool_spread=pool_spread)
         dirs = list(scene_dirs or [])
         position = {}  # resolved folder -> its first position in dirs
         for k, d in enumerate(dirs):

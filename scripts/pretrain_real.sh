@@ -7,6 +7,7 @@
 #   SCENES=cup,dtu_scan37 STAGE=pairs ...          # these scenes, in this order
 #   STAGE=pretrain MINUTES=120 scripts/pretrain_real.sh
 #   STAGE=pretrain FITS=cup/coarse,cup/blur ...   # exactly these fits (held-out scenes still refused)
+#   STAGE=pretrain POOL_SPREAD=1 ...               # with the neighbours' spread at the merge
 #   STAGE=pretrain SEED=1 HELD_OUT_SHARE=0.15 ...  # another sampling seed; the fits' held-out views as
 #                                                  # 15 % of their targets (off by default, see below)
 #
@@ -106,6 +107,14 @@ if [ "$STAGE" = all ] || [ "$STAGE" = pretrain ]; then
   if [ -n "$START" ]; then start=(--checkpoint "$START"); fi
   extra=()
   if [ -n "${VGG_WEIGHTS:-}" ]; then extra+=(--vgg-weights "$VGG_WEIGHTS"); fi
+  # POOL_SPREAD=1: the merge also sees the neighbours' spread (max - min); from a START without
+  # it, the new inputs start at zero weight. 0: without; empty: as START has it.
+  case "${POOL_SPREAD:-}" in
+    1) extra+=(--pool-spread) ;;
+    0) extra+=(--no-pool-spread) ;;
+    "") ;;
+    *) echo "POOL_SPREAD: expected 1, 0 or empty, got '$POOL_SPREAD'" >&2; exit 2 ;;
+  esac
   # HELD_OUT_SHARE > 0: the fits' held-out views are targets too (renders of novel views, with
   # the artefacts a user's novel views have); $EXTRA scenes (lego: evaluated on its test views)
   # never are. Off by default: 800 steps with share 0.5 or 0.15 gave a lower zero-shot mean gain

@@ -3,6 +3,7 @@ gradients, ablation switches, scale invariance, import hygiene."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -249,6 +250,29 @@ def test_each_ablation_switch_changes_the_computation(switch, gone):
     r, d, K, P, nb = make_views(full, n=2)
     with torch.no_grad():
         assert not torch.allclose(full(r, d, K, P, nb), ablated(r, d, K, P, nb), atol=1e-5)
+
+
+def test_pool_spread_starts_as_the_model_it_widens_and_sees_disagreement():
+    """A pool_spread model made from one without (conv_merge's new inputs at zero weight) computes
+    the same; once those weights move, two neighbours that disagree change the output, while one
+    neighbour (max - min of one map is 0) or none leave it as it was."""
+    from roguenerf.training.loop import transfer_weights
+
+    plain = randomise(small())
+    spread = build_enhancer(dataclasses.replace(plain.config, pool_spread=True))
+    report = transfer_weights(plain, spread)
+    assert report["widened"] == ["conv_merge"] and report["fresh"] == [] and report["dropped"] == []
+    f = plain.config.features
+    weight = spread.conv_merge[0].weight
+    assert weight.shape[1] == 3 * f and not weight[:, 2 * f:].any()
+    r, d, K, P, nb = make_views(plain, n=2)
+    one = NeighbourBatch(nb.features[:, :1], nb.depth[:, :1], nb.K[:, :1], nb.world_from_cam[:, :1])
+    with torch.no_grad():
+        torch.testing.assert_close(spread(r, d, K, P, nb), plain(r, d, K, P, nb), rtol=0, atol=1e-6)
+        weight[:, 2 * f:].normal_(0.0, 0.5, generator=torch.Generator().manual_seed(3))
+        assert (spread(r, d, K, P, nb) - plain(r, d, K, P, nb)).abs().max() > 1e-3
+        torch.testing.assert_close(spread(r, d, K, P, one), plain(r, d, K, P, one), rtol=0, atol=1e-6)
+        torch.testing.assert_close(spread(r, d, K, P, None), plain(r, d, K, P, None), rtol=0, atol=1e-6)
 
 
 def test_without_neighbours_the_neighbours_are_ignored():

@@ -353,6 +353,26 @@ def test_ablation_from_a_full_checkpoint_transfers_matching_weights(scene, tmp_p
     assert partial.config["transfer"]["fresh"] == []
 
 
+def test_pool_spread_from_a_checkpoint_without_it_widens_the_merge(scene, tmp_path):
+    torch.manual_seed(0)
+    plain = build_enhancer("micro")
+    save_checkpoint(tmp_path / "plain.safetensors", plain)
+    result = finetune(scene, tmp_path / "spread", checkpoint=tmp_path / "plain.safetensors",
+                      config=TrainConfig(steps=1, pool_spread=True, **FAST))
+    transfer = result.config["transfer"]
+    assert transfer["widened"] == ["conv_merge"] and transfer["fresh"] == [] and transfer["dropped"] == []
+    model, _ = load_checkpoint(result.checkpoint)
+    assert model.config.pool_spread is True
+    f = model.config.features
+    # one Adam step at lr 1e-4 moves the new inputs' weights off zero by at most ~1e-4
+    new_inputs = model.conv_merge[0].weight.detach()[:, 2 * f:]
+    assert new_inputs.shape[1] == f and float(new_inputs.abs().max()) < 2e-4
+    # a fine-tune of that checkpoint keeps its config (no transfer)
+    again = finetune(scene, tmp_path / "again", checkpoint=result.checkpoint, config=TrainConfig(steps=1, **FAST))
+    assert again.config.get("transfer") is None
+    assert load_checkpoint(again.checkpoint)[0].config.pool_spread is True
+
+
 def test_unknown_component_is_an_input_error(scene, tmp_path):
     with pytest.raises(InputError, match="without"):
         finetune(scene, tmp_path, config=TrainConfig(steps=1, without=("uformer",), **{**FAST}))

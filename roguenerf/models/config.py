@@ -107,6 +107,11 @@ class EnhancerConfig:
     use_uformer: bool = True
     """Off: a single 3x3 conv maps the merged features to RGB. Not a paper ablation: a conv-only,
     translation-equivariant model for tiling tests and the cheapest possible enhancer."""
+    pool_spread: bool = False
+    """Not in the paper. On: conv_merge also sees the spread of the weighted neighbour features,
+    ``max_i H^a_i - min_i H^a_i``, next to their max-pool. Where neighbours reproject different
+    content onto the same pixel (wrong depth), the max-pool alone keeps both copies' strongest
+    responses (a ghost); the spread tells the merge that they disagree. Zero with one neighbour."""
 
     def __post_init__(self) -> None:
         if isinstance(self.uformer, dict):

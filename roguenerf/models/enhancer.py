@@ -10,6 +10,9 @@ features cached per scene):
     H_pool = max_i H^a_i                                     0 without neighbours
     out = I_k + Uformer(conv_merge([I^f, H_pool]))           global residual
 
+With ``pool_spread`` (not in the paper), conv_merge also sees ``H_spread = max_i H^a_i -
+min_i H^a_i``: how much the weighted neighbours disagree at each pixel (0 with one neighbour).
+
 Scale invariance (a deviation from the paper, which feeds raw depths and absolute camera
 positions): scenes come in arbitrary units, so the depths fed to the attention are divided by
 the target's median known depth ``s`` (known: :mod:`roguenerf.geometry.depth`, so ``s`` lies in
@@ -142,13 +145,21 @@ class Enhancer(nn.Module):
         self.pixel_attention = (PixelAttention(features=f, hidden=cfg.attention_hidden)
                                 if nb and cfg.use_attention else None)
         self.camera_attention = CameraAttention(hidden=cfg.attention_hidden) if nb and cfg.use_attention else None
-        self.conv_merge = he_init(nn.Sequential(nn.Conv2d((2 if nb else 1) * f, f, 3, padding=1), act()))
+        self.conv_merge = he_init(nn.Sequential(nn.Conv2d(self.pooled_maps * f + f, f, 3, padding=1), act()))
         if cfg.use_uformer:
             self.uformer = Uformer(cfg.uformer, in_channels=f, out_channels=3)
             self.to_rgb = None
         else:
             self.uformer = None
             self.to_rgb = zero_init(nn.Conv2d(f, 3, 3, padding=1))
+
+    @property
+    def pooled_maps(self) -> int:
+        """Neighbour maps (F channels each) that conv_merge sees after I^f: 0 without a neighbour
+        branch, 1 (H_pool), 2 with ``pool_spread`` (H_pool, H_spread); new ones come last."""
+        if not self.config.use_neighbours:
+            return 0
+        return 2 if self.config.pool_spread else 1
 
     @property
     def tile_alignment(self) -> int:
@@ -204,20 +215,22 @@ class Enhancer(nn.Module):
                 pooled = self._fuse(feats, depth, K, world_from_cam, neighbours, depth_scale)
             with stage("merge"):
                 if pooled is None:
-                    pooled = torch.zeros_like(feats)
+                    pooled = [torch.zeros_like(feats)] * self.pooled_maps
+                parts = [feats, *pooled]
                 if fastops.fast_enabled(feats):
-                    merged = conv_act(self.conv_merge, cat_channels_last([feats, pooled]))
+                    merged = conv_act(self.conv_merge, cat_channels_last(parts))
                 elif fastops.layout_enabled(feats):  # training: channels-last convolutions are faster
-                    merged = self.conv_merge(cat_channels_last([feats, pooled]))
+                    merged = self.conv_merge(cat_channels_last(parts))
                 else:
-                    merged = self.conv_merge(torch.cat([feats, pooled], dim=1))
+                    merged = self.conv_merge(torch.cat(parts, dim=1))
         with stage("uformer"):
             residual = self.uformer(merged) if self.uformer is not None else self.to_rgb(merged)
         return render + residual
 
     def _fuse(self, feats: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,
-              nbrs: NeighbourBatch, depth_scale: Tensor | None) -> Tensor:
-        """Align, refine, weigh and max-pool the neighbours: ``(B, F, H, W)``."""
+              nbrs: NeighbourBatch, depth_scale: Tensor | None) -> list[Tensor]:
+        """Align, refine, weigh and max-pool the neighbours: ``[H_pool]``, or with ``pool_spread``
+        ``[H_pool, H_spread]``, each ``(B, F, H, W)``."""
         b, f, h, w = feats.shape
         n = len(nbrs)
         if nbrs.sources is not None:
@@ -260,7 +273,8 @@ class Enhancer(nn.Module):
                                    target_low, attention_term)
         if torch.is_grad_enabled() and not fastops.in_reference_mode():
             return self._fuse_batched(feats, depth, K, world_from_cam, nbrs, scale_b, target_depth, camera_inputs)
-        pooled = None
+        pooled = low = None
+        spread = self.config.pool_spread
         for j in range(n):
             src, src_depth = nbrs.feature_map(j), nbrs.depth_map(j)
             source = nbrs.sources[j] if nbrs.sources is not None else None
@@ -280,7 +294,10 @@ class Enhancer(nn.Module):
                     aligned = psi_cam * psi_pix * aligned
             with stage("fusion"):
                 pooled = aligned if pooled is None else torch.maximum(pooled, aligned)
-        return pooled
+                if spread:
+                    low = aligned if low is None else torch.minimum(low, aligned)
+        with stage("fusion"):
+            return [pooled, pooled - low] if spread else [pooled]
 
     def _fuse_batched(self, feats: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,
                       nbrs: NeighbourBatch, scale_b: Tensor, target_depth: Tensor,
@@ -323,10 +340,12 @@ class Enhancer(nn.Module):
             # unbind, not per[j]: one backward node that stacks the N gradients, where N
             # selects would each fill a zero tensor of all N * B neighbours and add them up.
             per = aligned.view(n, b, f, h, w).unbind(0)
-            pooled = per[0]
+            pooled = low = per[0]
             for j in range(1, n):
                 pooled = torch.maximum(pooled, per[j])
-        return pooled
+                if self.config.pool_spread:
+                    low = torch.minimum(low, per[j])
+            return [pooled, pooled - low] if self.config.pool_spread else [pooled]
 
     def _fuse_fast(self, feats: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,
                    nbrs: NeighbourBatch, scale_b: Tensor, camera_inputs: Tensor | None,
@@ -347,7 +366,8 @@ class Enhancer(nn.Module):
         if self.flow is not None:
             with stage("flow"):
                 flows = self.flow.batched(packed, target_low, h, w)
-        pooled = None
+        pooled = low = None
+        spread = self.config.pool_spread
         for j in range(n):
             buf = packed[j]
             packed[j] = None  # release each buffer as soon as it is used
@@ -363,8 +383,14 @@ class Enhancer(nn.Module):
                     # aligned first: the product keeps its channels-last layout (same values).
                     aligned = aligned * (psi_cam * psi_pix)
             with stage("fusion"):
+                if spread:  # a copy: the max-pool below writes into the first neighbour's map
+                    low = aligned.clone() if low is None else torch.minimum(low, aligned, out=low)
                 pooled = aligned if pooled is None else torch.maximum(pooled, aligned, out=pooled)
-        return pooled
+        if spread:
+            with stage("fusion"):
+                low = torch.sub(pooled, low, out=low)  # H_spread, written over the running min
+            return [pooled, low]
+        return [pooled]
 
     def _align(self, src: Tensor, src_depth: Tensor, depth: Tensor, src_K: Tensor, K: Tensor,
                world_from_src: Tensor, world_from_cam: Tensor, size: tuple[int, int],

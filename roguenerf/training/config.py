@@ -93,6 +93,10 @@ class TrainConfig:
     ``FEATURE_CACHE_BYTES``; otherwise each step encodes its windows without gradient) and steps
     skip conv_H's forward and backward. False: conv_H is trained with the rest. None: the plan's
     (FREEZE_NEIGHBOUR_ENCODER for fine-tuning; pre-training always trains it)."""
+    pool_spread: bool | None = None
+    """Build the model with (True) or without (False) :attr:`EnhancerConfig.pool_spread`; from a
+    checkpoint without it, conv_merge's new inputs start at zero weight (the same function).
+    None: the checkpoint's, or the variant's."""
     neighbour_encoding: str = "window"
     """"window": conv_H encodes only the window of each neighbour photo that a target crop can
     see; "whole": every neighbour photo whole (the former path, kept for comparison). Same

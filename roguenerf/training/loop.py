@@ -238,13 +238,27 @@ def _apply_without(config, without: Sequence[str]):
 def transfer_weights(source: torch.nn.Module, target: torch.nn.Module) -> dict:
     """Copy every parameter/buffer of ``source`` whose name and shape match into ``target``.
 
-    Returns ``{"loaded": count, "dropped": [...], "fresh": [...]}``: top-level sub-modules of
-    the source that the target lacks (or whose shapes differ), and target sub-modules that
-    keep their initial weights.
+    A weight that differs only by taking more inputs (dim 1, e.g. conv_merge of a model with
+    ``pool_spread`` from one without) gets the source's weights for the leading inputs and zeros
+    for the rest: inputs are only ever appended, so the model computes what the source did
+    until training moves the new weights.
+
+    Returns ``{"loaded": count, "dropped": [...], "fresh": [...], "widened": [...]}``: top-level
+    sub-modules of the source that the target lacks (or whose shapes differ), target sub-modules
+    that keep their initial weights, and those whose inputs were widened.
     """
     src = source.state_dict()
     dst = target.state_dict()
     matched = {k: v for k, v in src.items() if k in dst and dst[k].shape == v.shape}
+    widened = []
+    for k, v in src.items():
+        d = dst.get(k)
+        if (k not in matched and d is not None and v.ndim == d.ndim >= 2 and v.shape[0] == d.shape[0]
+                and v.shape[2:] == d.shape[2:] and v.shape[1] < d.shape[1]):
+            w = torch.zeros_like(d)
+            w[:, : v.shape[1]] = v
+            matched[k] = w
+            widened.append(k)
     target.load_state_dict({**dst, **matched})
 
     def groups(keys):
@@ -252,7 +266,8 @@ def transfer_weights(source: torch.nn.Module, target: torch.nn.Module) -> dict:
 
     return {"loaded": len(matched),
             "dropped": groups(k for k in src if k not in matched),
-            "fresh": groups(k for k in dst if k not in matched)}
+            "fresh": groups(k for k in dst if k not in matched),
+            "widened": groups(widened)}
 
 
 def _initial_model(checkpoint, config: TrainConfig, plan_variant: str | None):
@@ -260,6 +275,8 @@ def _initial_model(checkpoint, config: TrainConfig, plan_variant: str | None):
     from roguenerf.models import build_enhancer, make_config
 
     overrides = {SWITCHES[w]: False for w in config.without}
+    if config.pool_spread is not None:
+        overrides["pool_spread"] = bool(config.pool_spread)
     if checkpoint is None:
         return build_enhancer(make_config(plan_variant or "nano", **overrides)), None
     if isinstance(checkpoint, (str, Path)):
@@ -273,14 +290,17 @@ def _initial_model(checkpoint, config: TrainConfig, plan_variant: str | None):
         wanted = make_config(config.variant, **overrides)
     else:
         wanted = _apply_without(wanted, config.without)
+    if config.pool_spread is not None:
+        wanted = dataclasses.replace(wanted, pool_spread=bool(config.pool_spread))
     if wanted == source.config:
         model = build_enhancer(wanted)
         model.load_state_dict(source.state_dict())
         return model, None
     model = build_enhancer(wanted)
     report = transfer_weights(source, model)
-    log.info("started from a checkpoint with a different config: loaded %d tensors; dropped %s; fresh %s",
-             report["loaded"], report["dropped"] or "nothing", report["fresh"] or "nothing")
+    log.info("started from a checkpoint with a different config: loaded %d tensors; dropped %s; fresh %s; "
+             "widened %s", report["loaded"], report["dropped"] or "nothing", report["fresh"] or "nothing",
+             report["widened"] or "nothing")
     return model, report
 
 
