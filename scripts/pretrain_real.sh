@@ -22,13 +22,19 @@
 # 4. evaluate: bench/real_scenes.py on the held-out scenes' $EVAL_PRESET fits (default: the last preset) (zero-shot old and new, 1/3/10-minute
 #    fine-tunes) when STAGE=all or STAGE=evaluate.
 #
-# The shipped roguenerf/weights/default.safetensors (2026-11-24, the second one that day) was made by,
+# The shipped roguenerf/weights/default.safetensors (2026-11-24, the third one that day) was made by,
 # in this order:
 #   git show a4ce751:roguenerf/weights/default.safetensors > /tmp/lego_toy.safetensors  # the lego + toy default
 #   STAGE=pairs scripts/pretrain_real.sh              # blur + coarse fits (gold_cape/coarse was cut short)
-#   STAGE=pretrain START=/tmp/lego_toy.safetensors STEPS=4845 LR_SCHEDULE=cosine \
-#     FITS=cup/blur,cup/coarse,dtu_scan24/blur,dtu_scan24/coarse,milk/blur,milk/coarse,drink_box/blur,drink_box/coarse,beer/blur,beer/coarse,ethiopian_head/blur,ethiopian_head/coarse,gold_cape/blur \
+#   FITS=cup/blur,cup/coarse,dtu_scan24/blur,dtu_scan24/coarse,milk/blur,milk/coarse,drink_box/blur,drink_box/coarse,beer/blur,beer/coarse,ethiopian_head/blur,ethiopian_head/coarse,gold_cape/blur
+#   STAGE=pretrain START=/tmp/lego_toy.safetensors STEPS=4845 LR_SCHEDULE=cosine FITS=$FITS \
+#     OUT=runs/pretrain_cosine DEST=/tmp/cosine.safetensors \
 #     scripts/pretrain_real.sh                        # + lego's training views (EXTRA): 27 min on 2 cores
+#   STAGE=pretrain START=/tmp/cosine.safetensors STEPS=4845 LR=2.5e-4 SEED=1 POOL_SPREAD=1 FITS=$FITS OUT=runs/pretrain_spread \
+#     scripts/pretrain_real.sh                        # the neighbours' spread at the merge: 30 min
+# (/tmp/cosine.safetensors is also `git show bc20039:roguenerf/weights/default.safetensors`.)
+# The second stage without POOL_SPREAD=1 is its control: on the fits' held-out views the spread
+# gains more on all 13 (mean +1.33 against +1.28 dB), README "Neighbour spread at the merge".
 # The one before it (commit fc5a08e) was the same with LR_SCHEDULE=constant MINUTES=30 (4845 steps):
 # on the fits' held-out views (never targets in pre-training) the cosine one gains more on all 13
 # (mean +1.25 against +1.03 dB), README "Pre-training with the cosine schedule".

@@ -275,6 +275,19 @@ def test_pool_spread_starts_as_the_model_it_widens_and_sees_disagreement():
         torch.testing.assert_close(spread(r, d, K, P, None), plain(r, d, K, P, None), rtol=0, atol=1e-6)
 
 
+def test_only_the_merge_is_widened_between_configs():
+    """A larger variant's extra input channels are not appended features: its layers start fresh
+    (the zero-initialised output projection keeps the untrained model the identity)."""
+    from roguenerf.training.loop import transfer_weights
+
+    small_model, larger = randomise(small("micro")), build_enhancer("nano")
+    src, dst = small_model.uformer.output_proj.weight, larger.uformer.output_proj.weight
+    assert src.shape[0] == dst.shape[0] and src.shape[1] < dst.shape[1]  # the shapes a generic rule would widen
+    report = transfer_weights(small_model, larger)
+    assert report["widened"] == [] and "uformer" in report["fresh"]
+    assert not larger.uformer.output_proj.weight.any()
+
+
 def test_without_neighbours_the_neighbours_are_ignored():
     model = randomise(small(use_neighbours=False))
     r, d, K, P, nb = make_views(model, n=2)

@@ -235,13 +235,19 @@ def _apply_without(config, without: Sequence[str]):
     return dataclasses.replace(config, **{SWITCHES[w]: False for w in without})
 
 
+WIDENABLE = ("conv_merge.0.weight",)
+"""Weights whose extra inputs are appended features (:func:`transfer_weights`)."""
+
+
 def transfer_weights(source: torch.nn.Module, target: torch.nn.Module) -> dict:
     """Copy every parameter/buffer of ``source`` whose name and shape match into ``target``.
 
-    A weight that differs only by taking more inputs (dim 1, e.g. conv_merge of a model with
-    ``pool_spread`` from one without) gets the source's weights for the leading inputs and zeros
-    for the rest: inputs are only ever appended, so the model computes what the source did
-    until training moves the new weights.
+    conv_merge, whose inputs are only ever appended (``[I^f]``, ``[I^f, H_pool]``, ``[I^f,
+    H_pool, H_spread]``: :attr:`~roguenerf.models.enhancer.Enhancer.pooled_maps`), is widened
+    when the target takes more of them: the source's weights for the leading inputs, zeros for
+    the new ones, so the model computes what the source did until training moves them. No
+    other weight is widened (another layer's extra inputs are not appended features: a larger
+    variant's channels mean something else).
 
     Returns ``{"loaded": count, "dropped": [...], "fresh": [...], "widened": [...]}``: top-level
     sub-modules of the source that the target lacks (or whose shapes differ), target sub-modules
@@ -251,10 +257,10 @@ def transfer_weights(source: torch.nn.Module, target: torch.nn.Module) -> dict:
     dst = target.state_dict()
     matched = {k: v for k, v in src.items() if k in dst and dst[k].shape == v.shape}
     widened = []
-    for k, v in src.items():
-        d = dst.get(k)
-        if (k not in matched and d is not None and v.ndim == d.ndim >= 2 and v.shape[0] == d.shape[0]
-                and v.shape[2:] == d.shape[2:] and v.shape[1] < d.shape[1]):
+    for k in WIDENABLE:
+        v, d = src.get(k), dst.get(k)
+        if (k not in matched and v is not None and d is not None and v.ndim == d.ndim
+                and v.shape[0] == d.shape[0] and v.shape[2:] == d.shape[2:] and v.shape[1] < d.shape[1]):
             w = torch.zeros_like(d)
             w[:, : v.shape[1]] = v
             matched[k] = w
