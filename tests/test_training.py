@@ -364,9 +364,9 @@ def test_pool_spread_from_a_checkpoint_without_it_widens_the_merge(scene, tmp_pa
     model, _ = load_checkpoint(result.checkpoint)
     assert model.config.pool_spread is True
     f = model.config.features
-    # one Adam step at lr 1e-4 moves the new inputs' weights off zero by at most ~1e-4
+    # the new inputs start at zero weight, and one Adam step moves a weight by at most ~lr
     new_inputs = model.conv_merge[0].weight.detach()[:, 2 * f:]
-    assert new_inputs.shape[1] == f and float(new_inputs.abs().max()) < 2e-4
+    assert new_inputs.shape[1] == f and float(new_inputs.abs().max()) <= 1.5 * result.config["lr"]
     # a fine-tune of that checkpoint keeps its config (no transfer)
     again = finetune(scene, tmp_path / "again", checkpoint=result.checkpoint, config=TrainConfig(steps=1, **FAST))
     assert again.config.get("transfer") is None
