@@ -231,10 +231,6 @@ def train_step(model, data: SceneData, targets: Tensor, crop: int, generator: to
     return optimise(model, batch, device, loss_fn, optimizer, step=step, checkpoint=checkpoint)
 
 
-def _apply_without(config, without: Sequence[str]):
-    return dataclasses.replace(config, **{SWITCHES[w]: False for w in without})
-
-
 WIDENABLE = ("conv_merge.0.weight",)
 """Weights whose extra inputs are appended features (:func:`transfer_weights`)."""
 
@@ -280,6 +276,7 @@ def _initial_model(checkpoint, config: TrainConfig, plan_variant: str | None):
     """Starting model and a transfer report: a checkpoint (path or Enhancer) or a fresh one."""
     from roguenerf.models import build_enhancer, make_config
 
+    # What the run asks of the model, over the variant's or the checkpoint's config.
     overrides = {SWITCHES[w]: False for w in config.without}
     if config.pool_spread is not None:
         overrides["pool_spread"] = bool(config.pool_spread)
@@ -295,9 +292,7 @@ def _initial_model(checkpoint, config: TrainConfig, plan_variant: str | None):
     if config.variant is not None and config.variant != wanted.variant:
         wanted = make_config(config.variant, **overrides)
     else:
-        wanted = _apply_without(wanted, config.without)
-    if config.pool_spread is not None:
-        wanted = dataclasses.replace(wanted, pool_spread=bool(config.pool_spread))
+        wanted = dataclasses.replace(wanted, **overrides)
     if wanted == source.config:
         model = build_enhancer(wanted)
         model.load_state_dict(source.state_dict())
