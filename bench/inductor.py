@@ -17,11 +17,16 @@ it on ``bench/stages.py``'s inputs (5 neighbours with cached sampling sources,
                        checks its inputs)
   ... + freezing       the same with ``torch._inductor.config.freezing`` (weights as constants,
                        prepacked for oneDNN: Inductor's advice for CPU inference)
+  onnxruntime uformer  the fast path with the Uformer exported to ONNX (its plain path, opset 18)
+                       and run by ONNX Runtime's CPU provider with all graph optimisations
+                       (LayerNorm / GELU / attention fusions), torch's thread count; skipped
+                       unless ``onnxruntime`` and ``onnx`` are installed (not project dependencies)
 
 Columns: median seconds of ``--repeats`` runs after the first call, the first call's seconds
 (the compile), the speed-up over ``eager fast`` and the max |difference| from its output.
 Writes the CSV (date, machine, commit on every row), a JSON next to it and a PNG bar plot.
 Needs a C++ compiler (``g++``) for the compiled rows; without one they are skipped with the reason.
+``--configs`` picks rows by name (the compiled ones take minutes each); ``eager fast`` always runs.
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ import contextlib
 import shutil
 import statistics
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -58,6 +64,33 @@ class _InReferenceMode(torch.nn.Module):
             return self.module(*args, **kwargs)
 
 
+class _OnnxRuntime(torch.nn.Module):
+    """Runs an exported module's ONNX graph with ONNX Runtime (CPU, float32, fixed input shape)."""
+
+    def __init__(self, session):
+        super().__init__()
+        self.session = session
+
+    def forward(self, x):
+        y = self.session.run(None, {"x": x.contiguous().numpy()})[0]
+        return torch.from_numpy(y)
+
+
+def _onnxruntime_session(module, example: torch.Tensor, directory: str):
+    """ONNX Runtime session of ``module`` (its plain path) for inputs shaped like ``example``."""
+    import onnxruntime
+
+    path = str(Path(directory) / "module.onnx")
+    with torch.inference_mode(False), torch.no_grad(), reference_mode():
+        torch.onnx.export(module, (torch.zeros(example.shape),), path, opset_version=18,
+                          input_names=["x"], output_names=["y"], dynamo=False)
+    options = onnxruntime.SessionOptions()
+    options.intra_op_num_threads = torch.get_num_threads()
+    options.inter_op_num_threads = 1
+    options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
+    return onnxruntime.InferenceSession(path, options, providers=["CPUExecutionProvider"])
+
+
 def _time(fn, repeats: int) -> tuple[float, float, torch.Tensor]:
     t = time.perf_counter()
     out = fn()
@@ -70,7 +103,7 @@ def _time(fn, repeats: int) -> tuple[float, float, torch.Tensor]:
     return statistics.median(times), first, out
 
 
-def measure(variant: str, h: int, w: int, repeats: int) -> list[dict]:
+def measure(variant: str, h: int, w: int, repeats: int, only: set[str] | None = None) -> list[dict]:
     runtime.configure()
     torch.manual_seed(0)
     model = build_enhancer(variant).eval()
@@ -108,11 +141,27 @@ def measure(variant: str, h: int, w: int, repeats: int) -> list[dict]:
             configs.append((f"compiled uformer{suffix}", compiled_uformer))
             configs.append((f"compiled whole{suffix}", compiled_whole))
 
+        def onnxruntime_uformer():
+            f = model.config.features
+            with tempfile.TemporaryDirectory() as tmp:
+                session = _onnxruntime_session(uformer, torch.zeros(1, f, h, w), tmp)
+            model.uformer = _OnnxRuntime(session)
+            try:
+                return _time(lambda: model(*inputs), repeats)
+            finally:
+                model.uformer = uformer
+        configs.append(("onnxruntime uformer", onnxruntime_uformer))
+
         base = None
         for name, fn in configs:
+            if only is not None and name != "eager fast" and name not in only:
+                continue
             row = dict(**stamp(), variant=variant, height=h, width=w, neighbours=5, config=name)
             if name.startswith("compiled") and compiler is None:
                 rows.append(dict(row, skipped="no C++ compiler (g++) on PATH"))
+                continue
+            if name.startswith("onnxruntime") and not _importable("onnxruntime", "onnx"):
+                rows.append(dict(row, skipped="onnxruntime and onnx are not installed"))
                 continue
             try:
                 seconds, first, out = fn()
@@ -126,6 +175,11 @@ def measure(variant: str, h: int, w: int, repeats: int) -> list[dict]:
                              max_abs_diff=float((out - base[1]).abs().max())))
             print({k: v for k, v in rows[-1].items() if k not in ("date", "machine")}, flush=True)
     return rows
+
+
+def _importable(*names: str) -> bool:
+    import importlib.util
+    return all(importlib.util.find_spec(n) is not None for n in names)
 
 
 @contextlib.contextmanager
@@ -165,9 +219,12 @@ def main(argv=None) -> None:
     p.add_argument("--size", default="378x504", help="HxW")
     p.add_argument("--repeats", type=int, default=7)
     p.add_argument("--output", type=Path, default=RESULTS / "inductor.csv")
+    p.add_argument("--configs", default=None,
+                   help="comma-separated row names to run besides 'eager fast' (default: all)")
     args = p.parse_args(argv)
     h, w = (int(v) for v in args.size.split("x"))
-    rows = measure(args.variant, h, w, args.repeats)
+    only = None if args.configs is None else {c.strip() for c in args.configs.split(",") if c.strip()}
+    rows = measure(args.variant, h, w, args.repeats, only)
     write_csv(args.output, rows)
     write_json(args.output.with_suffix(".json"), rows)
     plot(rows, args.output.with_suffix(".png"))
