@@ -210,10 +210,6 @@ def pretrain(
         "--pool-spread/--no-pool-spread", help="Give the merge the neighbours' spread (max - min) next to their "
         "max-pool (not in the paper); from a checkpoint without it, the new inputs start at zero weight. "
         "Default: the checkpoint's.")] = None,
-    pool_first: Annotated[bool | None, typer.Option(
-        "--pool-first/--no-pool-first", help="Give the merge the first (nearest) neighbour's weighted map alone, "
-        "after the pooled maps (not in the paper); from a checkpoint without it, the new inputs start at zero "
-        "weight. Default: the checkpoint's.")] = None,
 ) -> None:
     """Pre-train across scene folders and/or generated toy scenes."""
     from roguenerf.training import pretrain as run_pretrain
@@ -225,7 +221,7 @@ def pretrain(
         config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
                                vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, lr=lr,
                                lr_schedule=lr_schedule, evaluate=False, held_out_share=held_out_share,
-                               pool_spread=pool_spread, pool_first=pool_first)
+                               pool_spread=pool_spread)
         dirs = list(scene_dirs or [])
         position = {}  # resolved folder -> its first position in dirs
         for k, d in enumerate(dirs):

@@ -121,13 +121,6 @@ if [ "$STAGE" = all ] || [ "$STAGE" = pretrain ]; then
     "") ;;
     *) echo "POOL_SPREAD: expected 1, 0 or empty, got '$POOL_SPREAD'" >&2; exit 2 ;;
   esac
-  # POOL_FIRST=1: the merge also sees the first (nearest) neighbour's map alone; as POOL_SPREAD.
-  case "${POOL_FIRST:-}" in
-    1) extra+=(--pool-first) ;;
-    0) extra+=(--no-pool-first) ;;
-    "") ;;
-    *) echo "POOL_FIRST: expected 1, 0 or empty, got '$POOL_FIRST'" >&2; exit 2 ;;
-  esac
   # HELD_OUT_SHARE > 0: the fits' held-out views are targets too (renders of novel views, with
   # the artefacts a user's novel views have); $EXTRA scenes (lego: evaluated on its test views)
   # never are. Off by default: 800 steps with share 0.5 or 0.15 gave a lower zero-shot mean gain

@@ -275,35 +275,6 @@ def test_pool_spread_starts_as_the_model_it_widens_and_sees_disagreement():
         torch.testing.assert_close(spread(r, d, K, P, None), plain(r, d, K, P, None), rtol=0, atol=1e-6)
 
 
-def test_pool_first_starts_as_the_model_it_widens_and_sees_the_first_neighbour():
-    """A pool_first model made from a pool_spread one computes the same at first; once the new
-    weights move, the output depends on which neighbour comes first (the pooled maps do not),
-    and one neighbour gives the same as that neighbour's map read once more by the merge."""
-    from roguenerf.training.loop import transfer_weights
-
-    spread = randomise(small(pool_spread=True))
-    first = build_enhancer(dataclasses.replace(spread.config, pool_first=True))
-    report = transfer_weights(spread, first)
-    assert report["widened"] == ["conv_merge"] and report["fresh"] == [] and report["dropped"] == []
-    f = spread.config.features
-    weight = first.conv_merge[0].weight
-    assert weight.shape[1] == 4 * f and not weight[:, 3 * f:].any()
-    r, d, K, P, nb = make_views(spread, n=2)
-    swapped = NeighbourBatch(nb.features.flip(1), nb.depth.flip(1), nb.K.flip(1), nb.world_from_cam.flip(1))
-    with torch.no_grad():
-        torch.testing.assert_close(first(r, d, K, P, nb), spread(r, d, K, P, nb), rtol=0, atol=1e-6)
-        # the pooled maps do not depend on the order of the neighbours
-        torch.testing.assert_close(spread(r, d, K, P, swapped), spread(r, d, K, P, nb), rtol=0, atol=1e-6)
-        weight[:, 3 * f:].normal_(0.0, 0.5, generator=torch.Generator().manual_seed(3))
-        assert (first(r, d, K, P, swapped) - first(r, d, K, P, nb)).abs().max() > 1e-3
-        # one neighbour: H^a_1 = H_pool, so moving the first map's weights onto the pool's is the same model
-        one = NeighbourBatch(nb.features[:, :1], nb.depth[:, :1], nb.K[:, :1], nb.world_from_cam[:, :1])
-        folded = build_enhancer(spread.config)
-        folded.load_state_dict(spread.state_dict())
-        folded.conv_merge[0].weight[:, f:2 * f] += weight[:, 3 * f:]
-        torch.testing.assert_close(first(r, d, K, P, one), folded(r, d, K, P, one), rtol=0, atol=1e-5)
-
-
 def test_only_the_merge_is_widened_between_configs():
     """A larger variant's extra input channels are not appended features: its layers start fresh
     (the zero-initialised output projection keeps the untrained model the identity)."""

@@ -371,13 +371,6 @@ def test_pool_spread_from_a_checkpoint_without_it_widens_the_merge(scene, tmp_pa
     again = finetune(scene, tmp_path / "again", checkpoint=result.checkpoint, config=TrainConfig(steps=1, **FAST))
     assert again.config.get("transfer") is None
     assert load_checkpoint(again.checkpoint)[0].config.pool_spread is True
-    # pool_first on top of it widens the merge once more (the first neighbour's map, last)
-    firsts = finetune(scene, tmp_path / "first", checkpoint=again.checkpoint,
-                      config=TrainConfig(steps=1, pool_first=True, **FAST))
-    assert firsts.config["transfer"]["widened"] == ["conv_merge"]
-    model, _ = load_checkpoint(firsts.checkpoint)
-    assert model.config.pool_spread is True and model.config.pool_first is True
-    assert model.conv_merge[0].weight.shape[1] == 4 * f
 
 
 def test_unknown_component_is_an_input_error(scene, tmp_path):

@@ -61,8 +61,7 @@ def _run(model, batch, reference: bool):
 
 
 @pytest.mark.parametrize("encoding", ["window", "whole"])
-@pytest.mark.parametrize("switches", [{}, {"use_refinement": False}, {"use_attention": False}, {"pool_spread": True},
-                                      {"pool_spread": True, "pool_first": True}])
+@pytest.mark.parametrize("switches", [{}, {"use_refinement": False}, {"use_attention": False}, {"pool_spread": True}])
 def test_batched_training_fusion_equals_per_neighbour_loop(data, encoding, switches, monkeypatch):
     model = _model(**switches)
     batch = prepare_batch(data, TARGETS, ORIGINS, CROP, encoding=encoding, margin=receptive_radius(model.conv_H))

@@ -112,12 +112,6 @@ class EnhancerConfig:
     ``max_i H^a_i - min_i H^a_i``, next to their max-pool. Where neighbours reproject different
     content onto the same pixel (wrong depth), the max-pool alone keeps both copies' strongest
     responses (a ghost); the spread tells the merge that they disagree. Zero with one neighbour."""
-    pool_first: bool = False
-    """Not in the paper. On: conv_merge also sees ``H^a_1``, the weighted features of the first
-    neighbour (the nearest by the selection rule) alone, after the pooled maps. The max-pool of
-    two neighbours that disagree mixes them; one neighbour's map is coherent, and a neighbour
-    from almost the target's viewpoint is often better used alone than pooled. Equal to
-    ``H_pool`` with one neighbour."""
 
     def __post_init__(self) -> None:
         if isinstance(self.uformer, dict):

@@ -12,8 +12,6 @@ features cached per scene):
 
 With ``pool_spread`` (not in the paper), conv_merge also sees ``H_spread = max_i H^a_i -
 min_i H^a_i``: how much the weighted neighbours disagree at each pixel (0 with one neighbour).
-With ``pool_first`` (not in the paper), it also sees ``H^a_1``, the first (nearest-ranked)
-neighbour's weighted map alone, after the pooled maps.
 
 Scale invariance (a deviation from the paper, which feeds raw depths and absolute camera
 positions): scenes come in arbitrary units, so the depths fed to the attention are divided by
@@ -158,11 +156,10 @@ class Enhancer(nn.Module):
     @property
     def pooled_maps(self) -> int:
         """Neighbour maps (F channels each) that conv_merge sees after I^f: 0 without a neighbour
-        branch, else H_pool, then H_spread with ``pool_spread``, then H^a_1 with ``pool_first``
-        (new ones come last)."""
+        branch, 1 (H_pool), 2 with ``pool_spread`` (H_pool, H_spread); new ones come last."""
         if not self.config.use_neighbours:
             return 0
-        return 1 + int(self.config.pool_spread) + int(self.config.pool_first)
+        return 2 if self.config.pool_spread else 1
 
     @property
     def tile_alignment(self) -> int:
@@ -232,8 +229,8 @@ class Enhancer(nn.Module):
 
     def _fuse(self, feats: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,
               nbrs: NeighbourBatch, depth_scale: Tensor | None) -> list[Tensor]:
-        """Align, refine, weigh and max-pool the neighbours: ``[H_pool]``, then ``H_spread`` with
-        ``pool_spread`` and ``H^a_1`` with ``pool_first`` (:attr:`pooled_maps`), each ``(B, F, H, W)``."""
+        """Align, refine, weigh and max-pool the neighbours: ``[H_pool]``, or with ``pool_spread``
+        ``[H_pool, H_spread]``, each ``(B, F, H, W)``."""
         b, f, h, w = feats.shape
         n = len(nbrs)
         if nbrs.sources is not None:
@@ -276,7 +273,7 @@ class Enhancer(nn.Module):
                                    target_low, attention_term)
         if torch.is_grad_enabled() and not fastops.in_reference_mode():
             return self._fuse_batched(feats, depth, K, world_from_cam, nbrs, scale_b, target_depth, camera_inputs)
-        pooled = low = first = None
+        pooled = low = None
         spread = self.config.pool_spread
         for j in range(n):
             src, src_depth = nbrs.feature_map(j), nbrs.depth_map(j)
@@ -296,21 +293,11 @@ class Enhancer(nn.Module):
                     psi_cam = self.camera_attention(camera_inputs[:, j])[:, :, None, None]
                     aligned = psi_cam * psi_pix * aligned
             with stage("fusion"):
-                first = aligned if first is None else first
                 pooled = aligned if pooled is None else torch.maximum(pooled, aligned)
                 if spread:
                     low = aligned if low is None else torch.minimum(low, aligned)
         with stage("fusion"):
-            return self._pooled_maps(pooled, pooled - low if spread else None, first)
-
-    def _pooled_maps(self, pooled: Tensor, spread: Tensor | None, first: Tensor) -> list[Tensor]:
-        """The maps conv_merge sees after I^f, in :attr:`pooled_maps` order."""
-        maps = [pooled]
-        if self.config.pool_spread:
-            maps.append(spread)
-        if self.config.pool_first:
-            maps.append(first)
-        return maps
+            return [pooled, pooled - low] if spread else [pooled]
 
     def _fuse_batched(self, feats: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,
                       nbrs: NeighbourBatch, scale_b: Tensor, target_depth: Tensor,
@@ -358,7 +345,7 @@ class Enhancer(nn.Module):
                 pooled = torch.maximum(pooled, per[j])
                 if self.config.pool_spread:
                     low = torch.minimum(low, per[j])
-            return self._pooled_maps(pooled, pooled - low if self.config.pool_spread else None, per[0])
+            return [pooled, pooled - low] if self.config.pool_spread else [pooled]
 
     def _fuse_fast(self, feats: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,
                    nbrs: NeighbourBatch, scale_b: Tensor, camera_inputs: Tensor | None,
@@ -379,7 +366,7 @@ class Enhancer(nn.Module):
         if self.flow is not None:
             with stage("flow"):
                 flows = self.flow.batched(packed, target_low, h, w)
-        pooled = low = first = None
+        pooled = low = None
         spread = self.config.pool_spread
         for j in range(n):
             buf = packed[j]
@@ -396,16 +383,14 @@ class Enhancer(nn.Module):
                     # aligned first: the product keeps its channels-last layout (same values).
                     aligned = aligned * (psi_cam * psi_pix)
             with stage("fusion"):
-                # Copies: the max-pool below writes into the first neighbour's map.
-                if spread:
+                if spread:  # a copy: the max-pool below writes into the first neighbour's map
                     low = aligned.clone() if low is None else torch.minimum(low, aligned, out=low)
-                if first is None and self.config.pool_first:
-                    first = aligned.clone() if n > 1 else aligned
                 pooled = aligned if pooled is None else torch.maximum(pooled, aligned, out=pooled)
         if spread:
             with stage("fusion"):
                 low = torch.sub(pooled, low, out=low)  # H_spread, written over the running min
-        return self._pooled_maps(pooled, low, first)
+            return [pooled, low]
+        return [pooled]
 
     def _align(self, src: Tensor, src_depth: Tensor, depth: Tensor, src_K: Tensor, K: Tensor,
                world_from_src: Tensor, world_from_cam: Tensor, size: tuple[int, int],

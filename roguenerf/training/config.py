@@ -97,8 +97,6 @@ class TrainConfig:
     """Build the model with (True) or without (False) :attr:`EnhancerConfig.pool_spread`; from a
     checkpoint without it, conv_merge's new inputs start at zero weight (the same function).
     None: the checkpoint's, or the variant's."""
-    pool_first: bool | None = None
-    """The same for :attr:`EnhancerConfig.pool_first` (the first neighbour's map at the merge)."""
     neighbour_encoding: str = "window"
     """"window": conv_H encodes only the window of each neighbour photo that a target crop can
     see; "whole": every neighbour photo whole (the former path, kept for comparison). Same

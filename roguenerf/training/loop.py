@@ -239,8 +239,7 @@ def transfer_weights(source: torch.nn.Module, target: torch.nn.Module) -> dict:
     """Copy every parameter/buffer of ``source`` whose name and shape match into ``target``.
 
     conv_merge, whose inputs are only ever appended (``[I^f]``, ``[I^f, H_pool]``, ``[I^f,
-    H_pool, H_spread]``, ``[I^f, H_pool, H_spread, H^a_1]``:
-    :attr:`~roguenerf.models.enhancer.Enhancer.pooled_maps`), is widened
+    H_pool, H_spread]``: :attr:`~roguenerf.models.enhancer.Enhancer.pooled_maps`), is widened
     when the target takes more of them: the source's weights for the leading inputs, zeros for
     the new ones, so the model computes what the source did until training moves them. No
     other weight is widened (another layer's extra inputs are not appended features: a larger
@@ -279,9 +278,8 @@ def _initial_model(checkpoint, config: TrainConfig, plan_variant: str | None):
 
     # What the run asks of the model, over the variant's or the checkpoint's config.
     overrides = {SWITCHES[w]: False for w in config.without}
-    for name in ("pool_spread", "pool_first"):
-        if getattr(config, name) is not None:
-            overrides[name] = bool(getattr(config, name))
+    if config.pool_spread is not None:
+        overrides["pool_spread"] = bool(config.pool_spread)
     if checkpoint is None:
         return build_enhancer(make_config(plan_variant or "nano", **overrides)), None
     if isinstance(checkpoint, (str, Path)):
