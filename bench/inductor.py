@@ -52,6 +52,11 @@ from roguenerf.fastpath import reference_mode  # noqa: E402
 from roguenerf.models import build_enhancer  # noqa: E402
 
 
+CONFIGS = ("eager fast", "eager reference", "compiled uformer", "compiled whole", "compiled uformer + freezing",
+           "compiled whole + freezing", "onnxruntime uformer")
+"""Row names, in the order they run (``--configs``)."""
+
+
 class _InReferenceMode(torch.nn.Module):
     """Runs ``module`` (compiled) with the plain operators, which Inductor can lower."""
 
@@ -152,6 +157,7 @@ def measure(variant: str, h: int, w: int, repeats: int, only: set[str] | None = 
                 model.uformer = uformer
         configs.append(("onnxruntime uformer", onnxruntime_uformer))
 
+        assert [name for name, _ in configs] == list(CONFIGS)
         base = None
         for name, fn in configs:
             if only is not None and name != "eager fast" and name not in only:
@@ -224,6 +230,9 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     h, w = (int(v) for v in args.size.split("x"))
     only = None if args.configs is None else {c.strip() for c in args.configs.split(",") if c.strip()}
+    unknown = sorted((only or set()) - set(CONFIGS))
+    if unknown:
+        p.error(f"--configs: unknown {', '.join(map(repr, unknown))}; expected some of {', '.join(CONFIGS)}")
     rows = measure(args.variant, h, w, args.repeats, only)
     write_csv(args.output, rows)
     write_json(args.output.with_suffix(".json"), rows)
