@@ -35,26 +35,35 @@ import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 
 from bench.common import RESULTS, scene_label, stamp, write_outputs  # noqa: E402
+from roguenerf.metrics import psnr  # noqa: E402
 
 RULES = ("pair", "pair_agreement", "best_single", "oracle")
 
 
-def _psnr(image: torch.Tensor, photo: torch.Tensor) -> float:
-    return float(-10 * torch.log10(((image - photo) ** 2).mean().clamp_min(1e-12)))
+class _Target:
+    """One view's render, depth, photo, camera and render PSNR, read once."""
+
+    def __init__(self, scene, k: int):
+        frame = scene.frames[k]
+        self.render, self.depth, self.photo = scene.render(k), scene.depth(k), scene.photo(k)
+        self.K, self.pose = frame.K.to(torch.float32), frame.world_from_cam.to(torch.float64)
+        self.render_psnr = float(psnr(self.render, self.photo))
+
+    def gain(self, image: torch.Tensor) -> float:
+        return float(psnr(image, self.photo)) - self.render_psnr
 
 
-def _agreement(scene, enhancer, k: int, position: int) -> float:
+def _agreement(scene, enhancer, target: _Target, position: int) -> float:
     """Mean |block mean of the reprojected neighbour photo - block mean of the render| (8x8
     blocks, valid pixels only): low where the neighbour's photo, warped by the rendered depth,
     looks like the render. Needs no photo of the target."""
     from roguenerf.geometry import reproject
 
     i = enhancer.train[position]
-    frame = scene.frames[k]
-    render, depth = scene.render(k), scene.depth(k)
+    render = target.render
     with torch.inference_mode():
-        rp = reproject(scene.photo(i)[None], scene.depth(i)[None], depth[None], enhancer.train_K[position],
-                       frame.K.to(torch.float32), enhancer.train_poses[position], frame.world_from_cam.to(torch.float64))
+        rp = reproject(scene.photo(i)[None], scene.depth(i)[None], target.depth[None], enhancer.train_K[position],
+                       target.K, enhancer.train_poses[position], target.pose)
         valid = rp.valid[0]
         diff = (F.avg_pool2d((rp.features[0] * valid)[None], 8) - F.avg_pool2d((render * valid)[None], 8)).abs().mean(1)
         covered = F.avg_pool2d(valid[None], 8) > 0
@@ -74,24 +83,21 @@ def measure(scene_dir: Path, checkpoint: Path | None, candidates: int) -> list[d
     label = scene_label(scene_dir)
     rows = []
 
-    def gain(k: int, positions: list[int]) -> float:
-        frame = scene.frames[k]
-        render, depth, photo = scene.render(k), scene.depth(k), scene.photo(k)
+    def gain(target: _Target, positions: list[int]) -> float:
         batch = NeighbourBatch(None, None, enhancer.train_K[positions][None], enhancer.train_poses[positions][None],
                                sources=enhancer._cached_sources(positions))
         with torch.inference_mode():
-            out = model(render[None], depth[None], frame.K.to(torch.float32)[None],
-                        frame.world_from_cam.to(torch.float64)[None], batch)[0].clamp(0, 1)
-        return _psnr(out, photo) - _psnr(render, photo)
+            out = model(target.render[None], target.depth[None], target.K[None], target.pose[None], batch)[0]
+        return target.gain(out.clamp(0, 1))
 
     for k in scene.indices("test"):
-        frame = scene.frames[k]
-        ranked = select_neighbours(frame.world_from_cam.to(torch.float64), enhancer.train_poses, candidates).tolist()
-        singles = [gain(k, [p]) for p in ranked]
-        agree = [_agreement(scene, enhancer, k, p) for p in ranked]
+        frame, target = scene.frames[k], _Target(scene, k)
+        ranked = select_neighbours(target.pose, enhancer.train_poses, candidates).tolist()
+        singles = [gain(target, [p]) for p in ranked]
+        agree = [_agreement(scene, enhancer, target, p) for p in ranked]
         by_agreement = sorted(range(len(ranked)), key=lambda j: agree[j])[:2]
-        pair = gain(k, ranked[:2])
-        pair_agreement = pair if sorted(by_agreement) == [0, 1] else gain(k, [ranked[j] for j in by_agreement])
+        pair = gain(target, ranked[:2])
+        pair_agreement = pair if sorted(by_agreement) == [0, 1] else gain(target, [ranked[j] for j in by_agreement])
         names = [scene.frames[enhancer.train[p]].name for p in ranked]
         base = dict(**stamp(), scene=label, view=frame.name, candidates=" ".join(names),
                     single_gains=" ".join(f"{g:+.3f}" for g in singles),
@@ -106,11 +112,11 @@ def measure(scene_dir: Path, checkpoint: Path | None, candidates: int) -> list[d
 
     train = scene.indices("train")
     loo = train[:: max(1, len(train) // 12)][:12]
+    targets = {i: _Target(scene, i) for i in scene.indices("test") + loo}
     for n in (1, 2, 3):
         per_n = SceneEnhancer(scene, model, num_neighbours=n)
         for split, views in (("test", scene.indices("test")), ("train_leave_one_out", loo)):
-            gains = [_psnr(per_n.enhance_view(i).image, scene.photo(i)) - _psnr(scene.render(i), scene.photo(i))
-                     for i in views]
+            gains = [targets[i].gain(per_n.enhance_view(i).image) for i in views]
             rows.append(dict(**stamp(), scene=label, kind="count", rule=f"n={n}", split=split, views=len(views),
                              gain_db=round(sum(gains) / len(gains), 4), worst_gain_db=round(min(gains), 4)))
             print(label, f"n={n}", split, round(sum(gains) / len(gains), 3), round(min(gains), 3), flush=True)
