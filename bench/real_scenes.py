@@ -88,14 +88,16 @@ def parse_args(argv=None):
 
 
 def summarise(report: dict) -> dict:
-    """Mean render/enhanced PSNR and SSIM, gain, and the worst view's gain."""
+    """Mean render/enhanced PSNR and SSIM, gain, the worst view's gain, and every view's gain
+    (``view_gains_db``: ``name:gain`` pairs joined by spaces, in the report's order)."""
     gains = [v["enhanced"]["psnr"] - v["render"]["psnr"] for v in report["views"]]
     worst = min(range(len(gains)), key=gains.__getitem__)
     r, e = report["render"], report["enhanced"]
     return {"views": len(gains), "render_psnr": round(r["psnr"], 4), "enhanced_psnr": round(e["psnr"], 4),
             "gain_db": round(e["psnr"] - r["psnr"], 4), "render_ssim": round(r["ssim"], 5),
             "enhanced_ssim": round(e["ssim"], 5), "ssim_gain": round(e["ssim"] - r["ssim"], 5),
-            "worst_view": report["views"][worst]["name"], "worst_view_gain_db": round(gains[worst], 4)}
+            "worst_view": report["views"][worst]["name"], "worst_view_gain_db": round(gains[worst], 4),
+            "view_gains_db": " ".join(f"{v['name']}:{g:+.3f}" for v, g in zip(report["views"], gains))}
 
 
 def run(args, save=None) -> list[dict]:

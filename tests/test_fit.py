@@ -217,6 +217,10 @@ def test_pretraining_pipeline_smoke(tmp_path):
     plans = [r["plan"].split() for r in rows[1:]]  # "micro crop C batch B nN ENCODING lr LR SCHEDULE"
     assert [p[6] for p in plans] == ["window", "window", "whole", "whole"]
     assert all(p[-1] == "cosine" for p in plans)  # the default schedule: each budget a fresh run
+    for r in rows:  # every view's gain is listed, and the worst view is the lowest of them
+        gains = {name: float(g) for name, g in (pair.split(":") for pair in r["view_gains_db"].split())}
+        assert len(gains) == int(r["views"]) and min(gains, key=gains.get) == r["worst_view"]
+        assert abs(gains[r["worst_view"]] - float(r["worst_view_gain_db"])) < 6e-4
     # --replot merges sittings: the same CSV twice keeps the scene's zero-shot row once.
     quick_csv = tmp_path / "bench" / "real_quick.csv"
     subprocess.run([sys.executable, str(repo / "bench" / "real_scenes.py"), "--replot", str(quick_csv), str(quick_csv),
