@@ -7,8 +7,8 @@ For each scene folder (a ``transforms.json`` inside) and each preset it runs
 :func:`roguefit.make_pairs` into ``CACHE/SCENE/PRESET`` (outside the repository: the renders are
 too large to commit). A finished fit is skipped, an interrupted one resumes, so the same command
 can be run again until everything is done. The manifest lists every finished fit (scene, fit,
-minutes, steps, render PSNR/SSIM on training and held-out views); ``--examples`` writes one
-render | photo image of a held-out view per scene.
+minutes, steps, render PSNR/SSIM on training and held-out views), keeping the rows of fits made
+in another cache; ``--examples`` writes one render | photo image of a held-out view per scene.
 """
 
 from __future__ import annotations
@@ -53,9 +53,18 @@ def manifest_rows(cache: Path) -> list[dict]:
 
 
 def write_manifest(cache: Path, path: Path) -> list[dict]:
+    """(Re)write the manifest at ``path``: every finished fit in ``cache``, plus the rows of an
+    existing manifest whose (scene, fit) is not in this cache (fits made in another cache or
+    session stay listed; a fit in the cache replaces its old row). Sorted by scene, then fit."""
     from roguenerf.imageio import atomic_write
 
     rows = manifest_rows(cache)
+    if path.is_file():
+        fresh = {(r["scene"], r["fit"]) for r in rows}
+        with path.open(newline="") as fh:
+            kept = [r for r in csv.DictReader(fh) if (r.get("scene"), r.get("fit")) not in fresh]
+        rows = sorted(rows + [{k: r.get(k, "") for k in MANIFEST_FIELDS} for r in kept],
+                      key=lambda r: (r["scene"], r["fit"]))
     path.parent.mkdir(parents=True, exist_ok=True)
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=MANIFEST_FIELDS, lineterminator="\n")
@@ -95,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenes", default="", help="comma-separated scene names, fitted in this order (default: all, sorted)")
     parser.add_argument("--budget-scale", type=float, default=1.0,
                         help="multiply every preset's budget (steps or minutes); a smoke test uses 0.01")
-    parser.add_argument("--manifest", type=Path, help="CSV manifest to (re)write after every fit")
+    parser.add_argument("--manifest", type=Path, help="CSV manifest to (re)write after every fit (rows of fits not in --cache are kept)")
     parser.add_argument("--examples", type=Path, help="folder for one render|photo example per scene")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s %(message)s")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -176,6 +177,37 @@ def test_make_pairs_cli_runs_and_the_library_never_imports_the_fitter(tmp_path):
             "print(sorted(m for m in sys.modules if m.startswith('roguefit')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_manifest_keeps_the_rows_of_fits_made_in_another_cache(tmp_path):
+    """``--manifest`` rewrites the rows of the fits in the cache and keeps the others: a session
+    whose cache holds one new fit must not drop the project's other rows."""
+    from roguefit.batch import write_manifest
+    from roguefit.fit import FIT_FILE
+
+    def fit(scene: str, preset: str, psnr: float) -> None:
+        folder = tmp_path / "cache" / scene / preset
+        folder.mkdir(parents=True)
+        (folder / FIT_FILE).write_text(json.dumps({
+            "config": {"resolution": 96, "features": 0, "minutes": None}, "steps": 500, "fit_seconds": 1.0,
+            "render_seconds": 2.0, "train": {"views": 8, "psnr": psnr, "ssim": 0.5},
+            "test": {"views": 1, "psnr": psnr - 1, "ssim": 0.4}}))
+
+    manifest = tmp_path / "manifest.csv"
+    fit("beta", "blur", 20.0)
+    fit("alpha", "coarse", 21.0)
+    write_manifest(tmp_path / "cache", manifest)
+    # Another session: a new cache with alpha/fine and a re-made alpha/coarse.
+    shutil.rmtree(tmp_path / "cache")
+    fit("alpha", "coarse", 25.0)
+    fit("alpha", "fine", 23.0)
+    write_manifest(tmp_path / "cache", manifest)
+    lines = manifest.read_text().splitlines()
+    rows = [line.split(",") for line in lines[1:]]
+    assert [(r[0], r[1], r[10]) for r in rows] == [  # sorted; the re-made fit's row replaced
+        ("alpha", "coarse", "25.0"), ("alpha", "fine", "23.0"), ("beta", "blur", "20.0")]
+    write_manifest(tmp_path / "cache", manifest)
+    assert manifest.read_text().splitlines() == lines  # rewriting changes nothing
 
 
 def test_pretraining_pipeline_smoke(tmp_path):
