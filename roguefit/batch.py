@@ -62,7 +62,8 @@ def write_manifest(cache: Path, path: Path) -> list[dict]:
     if path.is_file():
         fresh = {(r["scene"], r["fit"]) for r in rows}
         with path.open(newline="") as fh:
-            kept = [r for r in csv.DictReader(fh) if (r.get("scene"), r.get("fit")) not in fresh]
+            kept = [r for r in csv.DictReader(fh)  # rows without a scene and fit are not fits
+                    if r.get("scene") and r.get("fit") and (r["scene"], r["fit"]) not in fresh]
         rows = sorted(rows + [{k: r.get(k, "") for k in MANIFEST_FIELDS} for r in kept],
                       key=lambda r: (r["scene"], r["fit"]))
     path.parent.mkdir(parents=True, exist_ok=True)
