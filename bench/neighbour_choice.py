@@ -82,6 +82,10 @@ def measure(scene_dir: Path, checkpoint: Path | None, candidates: int) -> list[d
     enhancer = SceneEnhancer(scene, model, num_neighbours=2)
     label = scene_label(scene_dir)
     rows = []
+    run_stamp = stamp()  # once per scene: machine() and commit() (two git calls) per row would repeat
+    train = scene.indices("train")
+    loo = train[:: max(1, len(train) // 12)][:12]
+    targets = {i: _Target(scene, i) for i in scene.indices("test") + loo}  # each view read once
 
     def gain(target: _Target, positions: list[int]) -> float:
         batch = NeighbourBatch(None, None, enhancer.train_K[positions][None], enhancer.train_poses[positions][None],
@@ -91,7 +95,7 @@ def measure(scene_dir: Path, checkpoint: Path | None, candidates: int) -> list[d
         return target.gain(out.clamp(0, 1))
 
     for k in scene.indices("test"):
-        frame, target = scene.frames[k], _Target(scene, k)
+        frame, target = scene.frames[k], targets[k]
         ranked = select_neighbours(target.pose, enhancer.train_poses, candidates).tolist()
         singles = [gain(target, [p]) for p in ranked]
         agree = [_agreement(scene, enhancer, target, p) for p in ranked]
@@ -99,7 +103,7 @@ def measure(scene_dir: Path, checkpoint: Path | None, candidates: int) -> list[d
         pair = gain(target, ranked[:2])
         pair_agreement = pair if sorted(by_agreement) == [0, 1] else gain(target, [ranked[j] for j in by_agreement])
         names = [scene.frames[enhancer.train[p]].name for p in ranked]
-        base = dict(**stamp(), scene=label, view=frame.name, candidates=" ".join(names),
+        base = dict(**run_stamp, scene=label, view=frame.name, candidates=" ".join(names),
                     single_gains=" ".join(f"{g:+.3f}" for g in singles),
                     agreement=" ".join(f"{a:.4f}" for a in agree))
         chosen = {"pair": (pair, names[:2]), "pair_agreement": (pair_agreement, [names[j] for j in by_agreement]),
@@ -110,14 +114,11 @@ def measure(scene_dir: Path, checkpoint: Path | None, candidates: int) -> list[d
             rows.append(dict(base, kind="view", rule=rule, neighbours=" ".join(used), gain_db=round(g, 4)))
         print(label, frame.name, {r: round(chosen[r][0], 3) for r in RULES}, flush=True)
 
-    train = scene.indices("train")
-    loo = train[:: max(1, len(train) // 12)][:12]
-    targets = {i: _Target(scene, i) for i in scene.indices("test") + loo}
     for n in (1, 2, 3):
         per_n = SceneEnhancer(scene, model, num_neighbours=n)
         for split, views in (("test", scene.indices("test")), ("train_leave_one_out", loo)):
             gains = [targets[i].gain(per_n.enhance_view(i).image) for i in views]
-            rows.append(dict(**stamp(), scene=label, kind="count", rule=f"n={n}", split=split, views=len(views),
+            rows.append(dict(**run_stamp, scene=label, kind="count", rule=f"n={n}", split=split, views=len(views),
                              gain_db=round(sum(gains) / len(gains), 4), worst_gain_db=round(min(gains), 4)))
             print(label, f"n={n}", split, round(sum(gains) / len(gains), 3), round(min(gains), 3), flush=True)
     return rows
