@@ -143,7 +143,57 @@ def run(args, save=None) -> list[dict]:
     return rows
 
 
+def zero_shot_summary(rows: list[dict]) -> list[dict]:
+    """Per scene, in order of first appearance: the zero-shot gain and worst view's gain of the new
+    checkpoint and (None when not measured) of the old one, dB."""
+    out: dict[str, dict] = {}
+    for r in rows:
+        if r["kind"] in ("zero-shot new", "zero-shot old"):
+            side = r["kind"].split()[-1]
+            entry = out.setdefault(r["scene"], {"scene": r["scene"], "new": None, "new_worst": None,
+                                                "old": None, "old_worst": None})
+            entry[side], entry[f"{side}_worst"] = float(r["gain_db"]), float(r["worst_view_gain_db"])
+    return [e for e in out.values() if e["new"] is not None]
+
+
+def plot_zero_shot(rows: list[dict], path: Path) -> Path:
+    """Zero-shot rows only (``--minutes ""``): one row of bars per scene, the old checkpoint's and
+    the new one's mean gain, each bar's worst view as a black tick."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    summary = zero_shot_summary(rows)
+    fig, ax = plt.subplots(figsize=(6.5, 1.3 + 0.34 * max(1, len(summary))))
+    y = list(range(len(summary)))[::-1]
+    half = 0.38
+    for label, key, offset, colour in (("old checkpoint", "old", half / 2, "0.65"),
+                                       ("new checkpoint", "new", -half / 2, "tab:blue")):
+        pts = [(yy, e[key], e[f"{key}_worst"]) for yy, e in zip(y, summary) if e[key] is not None]
+        if not pts:
+            continue
+        ys = [yy + offset for yy, _, _ in pts]
+        ax.barh(ys, [g for _, g, _ in pts], height=half, color=colour, label=label)
+        ax.scatter([w for _, _, w in pts], ys, marker="|", color="black", s=60, zorder=3)
+    ax.scatter([], [], marker="|", color="black", label="worst view")
+    ax.set_yticks(y, [e["scene"] for e in summary], fontsize=7)
+    ax.axvline(0, color="grey", lw=0.8)
+    ax.set_xlabel("zero-shot PSNR gain over renders, held-out views (dB)")
+    ax.legend(fontsize=7, loc="lower right")
+    if rows:
+        ax.set_title(f"{rows[0]['machine'][:60]} | {rows[0]['commit']} | {rows[0]['date'][:10]}", fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def plot(rows: list[dict], path: Path) -> Path:
+    """Gain against fine-tuning minutes per scene; zero-shot-only rows as bars (``plot_zero_shot``)."""
+    if rows and not any(r["kind"] == "finetune" for r in rows):
+        return plot_zero_shot(rows, path)
     import matplotlib
 
     matplotlib.use("Agg")

@@ -22,8 +22,7 @@
 # 4. evaluate: bench/real_scenes.py on the held-out scenes' $EVAL_PRESET fits (default: the last preset) (zero-shot old and new, 1/3/10-minute
 #    fine-tunes) when STAGE=all or STAGE=evaluate.
 #
-# The shipped roguenerf/weights/default.safetensors (2026-11-24, the fourth one that day) was made by,
-# in this order:
+# The shipped roguenerf/weights/default.safetensors (2026-11-25: three looks) was made by, in this order:
 #   git show a4ce751:roguenerf/weights/default.safetensors > /tmp/lego_toy.safetensors  # the lego + toy default
 #   STAGE=pairs scripts/pretrain_real.sh              # blur + coarse fits (gold_cape/coarse was cut short)
 #   FITS=cup/blur,cup/coarse,dtu_scan24/blur,dtu_scan24/coarse,milk/blur,milk/coarse,drink_box/blur,drink_box/coarse,beer/blur,beer/coarse,ethiopian_head/blur,ethiopian_head/coarse,gold_cape/blur
@@ -34,12 +33,20 @@
 #     scripts/pretrain_real.sh                        # the neighbours' spread at the merge: 30 min
 #   STAGE=pretrain START=/tmp/spread.safetensors STEPS=4845 LR=2.5e-4 SEED=2 FITS=$FITS OUT=runs/pretrain_continue \
 #     scripts/pretrain_real.sh                        # 4845 more steps, the same data: 27 min
+#   PRESETS=fine SCENES=dtu_scan24,ethiopian_head,cup STAGE=pairs scripts/pretrain_real.sh  # 11-15 min each
+#   STAGE=pretrain START=/tmp/continue.safetensors STEPS=4845 LR=2.5e-4 SEED=3 \
+#     FITS=$FITS,dtu_scan24/fine,ethiopian_head/fine,cup/fine OUT=runs/pretrain_looks \
+#     scripts/pretrain_real.sh                        # three looks: 16 min on 2 cores (AVX-512)
+# (/tmp/continue.safetensors is `git show c2474f8:roguenerf/weights/default.safetensors`.)
 # (/tmp/spread.safetensors is `git show fbd18b3:roguenerf/weights/default.safetensors`.)
 # (/tmp/cosine.safetensors is also `git show bc20039:roguenerf/weights/default.safetensors`.)
 # The second stage without POOL_SPREAD=1 is its control: on the fits' held-out views the spread
 # gains more on all 13 (mean +1.33 against +1.28 dB), README "Neighbour spread at the merge".
 # The third stage gains +0.09 dB on them (+1.42 against +1.33, better on 11 of 13); the same
 # stage with a first-neighbour map at the merge did no better (README "More pre-training steps").
+# The fourth adds the sharper `fine` look of three pre-training scenes: on the held-out views of
+# the 13 fits +1.45 against +1.42 dB (higher on 10), of the 3 fine fits +0.05 to +0.08 dB each
+# (README "Pre-training on three looks").
 # The one before it (commit fc5a08e) was the same with LR_SCHEDULE=constant MINUTES=30 (4845 steps):
 # on the fits' held-out views (never targets in pre-training) the cosine one gains more on all 13
 # (mean +1.25 against +1.03 dB), README "Pre-training with the cosine schedule".

@@ -270,6 +270,27 @@ def test_pretraining_pipeline_smoke(tmp_path):
         assert not (tmp_path / "refused").exists()
 
 
+def test_zero_shot_only_results_plot_as_bars_per_scene(tmp_path):
+    """A zero-shot-only run (``--minutes ""``, how checkpoints are chosen on many fits) is summed up
+    per scene, old and new checkpoint side by side, and drawn as bars whose height grows with the
+    scene count, not as one crowded column of points at minute 0."""
+    from bench import real_scenes
+
+    stamp = {"machine": "test machine", "commit": "abc1234", "date": "2026-11-25T00:00:00+00:00", "minutes": 0.0}
+    rows = [{**stamp, "scene": "a/coarse", "kind": "zero-shot old", "gain_db": 0.5, "worst_view_gain_db": -0.2},
+            {**stamp, "scene": "a/coarse", "kind": "zero-shot new", "gain_db": 0.7, "worst_view_gain_db": 0.1},
+            {**stamp, "scene": "b/fine", "kind": "zero-shot new", "gain_db": 0.3, "worst_view_gain_db": -0.4}]
+    assert real_scenes.zero_shot_summary(rows) == [
+        {"scene": "a/coarse", "new": 0.7, "new_worst": 0.1, "old": 0.5, "old_worst": -0.2},
+        {"scene": "b/fine", "new": 0.3, "new_worst": -0.4, "old": None, "old_worst": None}]
+    two = Image.open(real_scenes.plot(rows, tmp_path / "two.png"))
+    more = [{**r, "scene": f"{r['scene']}{k}"} for k in range(6) for r in rows]
+    twelve = Image.open(real_scenes.plot(more, tmp_path / "twelve.png"))
+    assert two.width == twelve.width and twelve.height > 2 * two.height  # bars: one row per scene
+    curve = Image.open(real_scenes.plot(rows + [{**rows[1], "kind": "finetune", "minutes": 1.0}], tmp_path / "c.png"))
+    assert curve.size == (780, 480)  # with a fine-tune: the gain-per-minute curve, as before
+
+
 def test_early_terminating_renderer_equals_the_training_renderer():
     """render_fast (segments, early ray termination) gives render's image, depth and opacity: exactly
     up to rounding without termination, and within the termination threshold with it."""
