@@ -143,6 +143,19 @@ def run(args, save=None) -> list[dict]:
     return rows
 
 
+def _save(fig, ax, rows: list[dict], path: Path) -> Path:
+    """Stamp the plot with the rows' machine, commit and date; write it as PNG; close it."""
+    import matplotlib.pyplot as plt
+
+    if rows:
+        ax.set_title(f"{rows[0]['machine'][:60]} | {rows[0]['commit']} | {rows[0]['date'][:10]}", fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def zero_shot_summary(rows: list[dict]) -> list[dict]:
     """Per scene, in order of first appearance: the zero-shot gain and worst view's gain of the new
     checkpoint and (None when not measured) of the old one, dB."""
@@ -181,13 +194,7 @@ def plot_zero_shot(rows: list[dict], path: Path) -> Path:
     ax.axvline(0, color="grey", lw=0.8)
     ax.set_xlabel("zero-shot PSNR gain over renders, held-out views (dB)")
     ax.legend(fontsize=7, loc="lower right")
-    if rows:
-        ax.set_title(f"{rows[0]['machine'][:60]} | {rows[0]['commit']} | {rows[0]['date'][:10]}", fontsize=7)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, ax, rows, path)
 
 
 def plot(rows: list[dict], path: Path) -> Path:
@@ -220,13 +227,7 @@ def plot(rows: list[dict], path: Path) -> Path:
     ax.set_xlabel("fine-tuning minutes (0 = zero-shot)")
     ax.set_ylabel("PSNR gain over renders, held-out views (dB)")
     ax.legend(fontsize=7)
-    if rows:
-        ax.set_title(f"{rows[0]['machine'][:60]} | {rows[0]['commit']} | {rows[0]['date'][:10]}", fontsize=7)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, ax, rows, path)
 
 
 def merge(paths: list[Path]) -> list[dict]:

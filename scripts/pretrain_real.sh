@@ -146,7 +146,12 @@ if [ "$STAGE" = all ] || [ "$STAGE" = pretrain ]; then
     --crop "$CROP" --lr "$LR" --lr-schedule "$LR_SCHEDULE" --seed "$SEED" --output "$OUT" "${extra[@]}"
   mkdir -p "$(dirname "$DEST")"
   cp "$OUT/model.safetensors" "$DEST"
-  if [ -f "$OUT/model.json" ]; then cp "$OUT/model.json" "${DEST%.safetensors}.json"; fi
+  if [ -f "$OUT/model.json" ]; then
+    # The sidecar names its weights file: DEST's name, not the run's model.safetensors.
+    "$PY" -c 'import json, sys; d = json.load(open(sys.argv[1])); d["weights"] = sys.argv[3]
+open(sys.argv[2], "w").write(json.dumps(d, indent=1, sort_keys=True))' \
+      "$OUT/model.json" "${DEST%.safetensors}.json" "$(basename "$DEST")"
+  fi
   echo "default checkpoint: $DEST" >&2
 fi
 

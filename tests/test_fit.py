@@ -238,6 +238,8 @@ def test_pretraining_pipeline_smoke(tmp_path):
     assert "held-out views 50% of their scenes' targets" in proc.stderr  # the fits' novel views are targets too
     assert "cosine to 0" in proc.stderr  # the script's schedule, the shipped checkpoint's
     assert (tmp_path / "weights" / "default.safetensors").is_file()
+    sidecar = json.loads((tmp_path / "weights" / "default.json").read_text())
+    assert sidecar["weights"] == "default.safetensors" and sidecar["meta"]["training"]["kind"] == "pretrain"
     import csv
 
     with (tmp_path / "bench" / "real_quick.csv").open() as fh:
