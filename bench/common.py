@@ -93,6 +93,17 @@ def write_json(path: Path, obj) -> Path:
     return path
 
 
+def save_figure(fig, path: Path) -> Path:
+    """Lay out ``fig``, write it as a 120-dpi PNG at ``path`` (its folder made) and close it."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def write_outputs(output: Path, rows: list[dict], plot, *, quick: bool = False) -> tuple[Path, Path]:
     """``OUTPUT[_quick].csv`` and ``OUTPUT[_quick].png`` (``plot(rows, path)``); prints both paths."""
     stem = output.name + ("_quick" if quick else "")

@@ -86,7 +86,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import roguenerf  # noqa: E402,F401  (first: OpenMP's wait policy is set before torch loads)
 import torch  # noqa: E402
 
-from bench.common import LEGO, scene_label, stamp, write_csv  # noqa: E402
+from bench.common import LEGO, save_figure, scene_label, stamp, write_csv  # noqa: E402
 
 
 ENCODINGS = ("whole-loop", "whole", "window", "frozen")
@@ -270,11 +270,7 @@ def plot(rows: list[dict], path: Path) -> Path:
     r0 = rows[0]
     fig.suptitle(f"fine-tuning throughput on CPU ({r0['threads']} threads) | {r0['date']} | {r0['commit']}\n"
                  f"{r0['machine']}", fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def median_rows(rows: list[dict]) -> list[dict]:

@@ -37,7 +37,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import RESULTS, scene_label, stamp, write_outputs  # noqa: E402
+from bench.common import RESULTS, save_figure, scene_label, stamp, write_outputs  # noqa: E402
 
 
 PLANS = {
@@ -145,15 +145,9 @@ def run(args, save=None) -> list[dict]:
 
 def _save(fig, ax, rows: list[dict], path: Path) -> Path:
     """Stamp the plot with the rows' machine, commit and date; write it as PNG; close it."""
-    import matplotlib.pyplot as plt
-
     if rows:
         ax.set_title(f"{rows[0]['machine'][:60]} | {rows[0]['commit']} | {rows[0]['date'][:10]}", fontsize=7)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def zero_shot_summary(rows: list[dict]) -> list[dict]:

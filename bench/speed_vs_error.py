@@ -22,7 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import LEGO, RESULTS, scene_metrics, stamp, starting_checkpoint, write_outputs  # noqa: E402
+from bench.common import LEGO, RESULTS, save_figure, scene_metrics, stamp, starting_checkpoint, write_outputs  # noqa: E402
 
 
 def _floats(text: str) -> list[float]:
@@ -119,11 +119,7 @@ def plot(rows: list[dict], path: Path) -> Path:
     if rows:
         fig.suptitle(f"{rows[0]['scene']} test views | {rows[0]['machine'][:60]} | {rows[0]['commit']} | "
                      f"{rows[0]['date'][:10]}", fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def main(argv=None) -> int:
