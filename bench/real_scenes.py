@@ -53,6 +53,11 @@ PLANS = {
     "trained": {"freeze_neighbour_encoder": False},
     "seed1": {"seed": 1},
     "seed2": {"seed": 2},
+    "blur1": {"render_blur": 1.0},
+    "blur2": {"render_blur": 2.0},
+    "warp4": {"render_warp": 4.0},
+    "warp8": {"render_warp": 8.0},
+    "warp8blur2": {"render_warp": 8.0, "render_blur": 2.0},
 }
 """Fine-tuning plans as TrainConfig overrides of the shipped CPU plan (``--plans``)."""
 

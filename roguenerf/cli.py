@@ -49,6 +49,10 @@ FreezeOpt = Annotated[bool | None, typer.Option(
     help="Keep conv_H (the neighbour-photo encoder) fixed and encode the training photos once, so each "
          "step skips it; default: the plan's.")]
 
+RenderWarpOpt = Annotated[float | None, typer.Option(
+    "--render-warp", help="Pixels: displace the target render and depth of half the crops along a smooth random "
+                          "shift up to this size, so the training views look like novel views (default: the plan's).")]
+
 
 def _fail(message: str, code: int) -> None:
     typer.echo(f"error: {message}", err=True)
@@ -164,6 +168,7 @@ def finetune(
     lr: LrOpt = None,
     lr_schedule: LrScheduleOpt = None,
     freeze_neighbour_encoder: FreezeOpt = None,
+    render_warp: RenderWarpOpt = None,
     no_eval: Annotated[bool, typer.Option("--no-eval", help="Skip the before/after test evaluation.")] = False,
 ) -> None:
     """Fine-tune the enhancer on one scene's training views; resumes from OUTPUT when interrupted."""
@@ -176,7 +181,7 @@ def finetune(
         config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
                                vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, lr=lr,
                                lr_schedule=lr_schedule, evaluate=not no_eval,
-                               freeze_neighbour_encoder=freeze_neighbour_encoder)
+                               freeze_neighbour_encoder=freeze_neighbour_encoder, render_warp=render_warp)
         scene = _load_scene(scene_dir)
         start = None if scratch else _checkpoint_path(checkpoint)
         result = run_finetune(scene, output, checkpoint=start, config=config)

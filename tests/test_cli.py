@@ -125,6 +125,10 @@ def test_finetune_from_scratch_then_resume_to_more_steps(scene_dir, tmp_path):
         assert ("conv_H frozen" in run.stderr) is frozen
         assert load_checkpoint(tmp_path / flag / "model.safetensors")[1]["training"]["plan"][
             "freeze_neighbour_encoder"] is frozen
+    warped = _run("finetune", scene_dir, "--scratch", "--steps", "1", "--output", tmp_path / "w", "--no-eval",
+                  "--render-warp", "4", *FAST)
+    assert warped.exit_code == 0 and "warped (up to 4 px)" in warped.stderr
+    assert load_checkpoint(tmp_path / "w" / "model.safetensors")[1]["training"]["plan"]["render_warp"] == 4.0
     more = _run("finetune", scene_dir, "--scratch", "--steps", "3", "--output", out, "--no-eval", *FAST)
     assert more.exit_code == 0, more.output
     assert "resuming finetune from step 2" in more.stderr
@@ -171,6 +175,7 @@ def test_pretrain_held_out_from_adds_the_scene_and_its_held_out_views(scene_dir,
     (["--steps", "1", "--without", "uformer"], "--without"),
     (["--steps", "1", "--variant", "huge"], "variant"),
     (["--steps", "1", "--lr-schedule", "step"], "lr_schedule"),
+    (["--steps", "1", "--render-warp", "100"], "render_warp"),
 ])
 def test_finetune_bad_flags_exit_2(scene_dir, tmp_path, args, message):
     result = _run("finetune", scene_dir, "--scratch", "--output", tmp_path / "x", *args)

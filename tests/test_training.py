@@ -145,6 +145,30 @@ def test_the_printed_plan_says_why(scene):
     assert "the paper's" in describe_plan(plan_training(scene, TrainConfig(), "cuda"))
 
 
+@pytest.mark.parametrize("field,value", [("render_warp", -1.0), ("render_warp", 100.0), ("render_blur", -0.5),
+                                         ("render_blur", 50.0)])
+def test_render_augmentation_must_be_in_range(field, value):
+    with pytest.raises(InputError, match=field):
+        TrainConfig(**{field: value}).validate()
+
+
+def test_render_augmentation_is_planned_saved_and_resumed(scene, tmp_path):
+    from roguenerf.training.config import describe_plan
+
+    config = TrainConfig(steps=1, render_warp=3.0, render_blur=1.5, **FAST)
+    plan = plan_training(scene, config, "cpu")
+    assert (plan["render_warp"], plan["render_blur"]) == (3.0, 1.5)
+    assert "warped (up to 3 px)" in describe_plan(plan) and "blurred (sigma up to 1.5 px)" in describe_plan(plan)
+    pre = plan_training(scene, TrainConfig(), "cpu", kind="pretrain")
+    assert (pre["render_warp"], pre["render_blur"]) == (0.0, 0.0)
+    finetune(scene, tmp_path, config=config)
+    # resumed with other wishes: the saved run keeps its own augmentation
+    resumed = finetune(scene, tmp_path, config=TrainConfig(**{**FAST, "steps": 2}))
+    assert resumed.steps == 2
+    saved = load_state(tmp_path / STATE_FILE)["info"]["plan"]
+    assert (saved["render_warp"], saved["render_blur"]) == (3.0, 1.5)
+
+
 def test_held_out_share_must_be_a_probability():
     with pytest.raises(InputError, match="held_out_share"):
         TrainConfig(held_out_share=1.5).validate()

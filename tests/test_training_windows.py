@@ -299,3 +299,57 @@ def test_finetune_with_a_frozen_encoder_keeps_conv_H(tmp_path):
     assert result.config["freeze_neighbour_encoder"] is False
     trained, _ = load_checkpoint(result.checkpoint)
     assert any(not torch.equal(before[k], trained.state_dict()[k]) for k in before if k.startswith("conv_H"))
+
+
+# ----- fine-tuning targets that look like novel views (render_warp, render_blur) -----
+
+def test_displace_reads_each_pixel_at_its_shift():
+    from roguenerf.training.batches import displace
+
+    h, w = 6, 9
+    render = torch.arange(h * w, dtype=torch.float32).reshape(1, 1, h, w).expand(1, 3, h, w).contiguous()
+    depth = torch.rand(1, 1, h, w) + 1.0
+    shift = torch.zeros(1, 2, h, w)
+    shift[:, 0] = 2.0  # two pixels right: content moves left
+    shift[:, 1, 3:] = -1.0  # and the lower half one row up
+    warped, warped_depth = displace(render, depth, shift)
+    torch.testing.assert_close(warped[0, :, :3, :7], render[0, :, :3, 2:])
+    torch.testing.assert_close(warped[0, :, 3:, :7], render[0, :, 2:5, 2:])
+    torch.testing.assert_close(warped[0, :, :3, 7:], render[0, :, :3, 8:].expand(3, 3, 2))  # border repeated
+    torch.testing.assert_close(warped_depth[0, 0, :3, :7], depth[0, 0, :3, 2:])
+    half = torch.full((1, 2, h, w), 0.5)
+    _, between = displace(render, depth, half)  # the depth is never blended across pixels
+    assert set(between.flatten().tolist()) <= set(depth.flatten().tolist())
+
+
+def test_warp_renders_moves_a_share_of_crops_by_at_most_the_shift():
+    from roguenerf.training.batches import warp_renders
+
+    b, c = 64, 32
+    ramp = torch.arange(c, dtype=torch.float32).expand(b, 3, c, c).contiguous()  # value = x
+    depth = ramp[:, :1] + 1.0
+    generator = torch.Generator().manual_seed(0)
+    warped, warped_depth = warp_renders(ramp, depth, 4.0, generator)
+    moved = (warped - ramp).abs().flatten(1).amax(dim=1)
+    assert 16 < int((moved > 0).sum()) < 48  # about half the crops
+    interior = (warped - ramp)[..., 4:-4]  # away from the repeated border the ramp reads off the shift
+    assert float(interior.abs().max()) <= 4.0 + 1e-5
+    assert float(interior.abs().max()) > 2.0
+    torch.testing.assert_close(warped_depth[moved == 0], depth[moved == 0])
+    same, _ = warp_renders(ramp, depth, 4.0, torch.Generator().manual_seed(0))
+    assert torch.equal(same, warped)  # the generator alone decides
+    assert warp_renders(ramp, depth, 0.0, generator)[0] is ramp
+
+
+def test_blur_renders_blurs_a_share_and_keeps_flat_colour():
+    from roguenerf.training.batches import blur_renders
+
+    b, c = 64, 32
+    checks = ((torch.arange(c)[:, None] + torch.arange(c)[None, :]) % 2).float().expand(b, 3, c, c).contiguous()
+    blurred = blur_renders(checks, 2.0, torch.Generator().manual_seed(0))
+    changed = (blurred - checks).abs().flatten(1).amax(dim=1) > 0
+    assert 16 < int(changed.sum()) < 48
+    assert float(blurred[changed].std()) < 0.5 * float(checks[changed].std())
+    torch.testing.assert_close(blurred.mean(dim=(1, 2, 3)), checks.mean(dim=(1, 2, 3)), atol=0.02, rtol=0)
+    flat = torch.full((b, 3, c, c), 0.3)
+    torch.testing.assert_close(blur_renders(flat, 2.0, torch.Generator().manual_seed(1)), flat)

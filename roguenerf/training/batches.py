@@ -51,6 +51,7 @@ distinct whole photos, the batch encodes those instead (same values).
 
 from __future__ import annotations
 
+import math
 import queue
 import threading
 from collections.abc import Callable
@@ -224,6 +225,65 @@ def place_windows(bounds: Tensor, size: tuple[int, int]) -> tuple[Tensor, Tensor
     limit = torch.tensor([hs, ws]) - sizes  # (N, 2): the largest origin that keeps a window inside
     origins = torch.minimum(bounds[..., :2], limit)
     return order, origins, sizes
+
+
+def blur_renders(render: Tensor, max_sigma: float, generator: torch.Generator, share: float = 0.5) -> Tensor:
+    """``render`` ``(B, 3, c, c)`` with a Gaussian blur on each crop with probability ``share``,
+    its sigma drawn uniformly in (0, ``max_sigma``] pixels (kornia, reflected borders); the
+    others unchanged. Draws ``2 B`` numbers from ``generator`` whatever the outcome."""
+    from kornia.filters import gaussian_blur2d
+
+    b = render.shape[0]
+    pick = torch.rand(b, generator=generator) < share
+    sigma = (1.0 - torch.rand(b, generator=generator)) * float(max_sigma)  # in (0, max]
+    if max_sigma <= 0 or not bool(pick.any()):
+        return render
+    radius = min(math.ceil(3.0 * max_sigma), (min(render.shape[-2:]) - 1) // 2)
+    blurred = gaussian_blur2d(render, 2 * radius + 1, sigma[:, None].expand(b, 2).to(render.dtype))
+    return torch.where(pick[:, None, None, None], blurred, render)
+
+
+def displace(render: Tensor, depth: Tensor, shift: Tensor) -> tuple[Tensor, Tensor]:
+    """``render`` ``(B, C, h, w)`` and ``depth`` ``(B, 1, h, w)`` read at each pixel plus ``shift``
+    ``(B, 2, h, w)`` (x then y, pixels): the render bilinearly, the depth at the nearest pixel (no
+    depth between two surfaces), both with the border pixels repeated beyond the edges."""
+    import torch.nn.functional as F
+
+    b, _, h, w = render.shape
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=shift.dtype), torch.arange(w, dtype=shift.dtype), indexing="ij")
+    # grid_sample's normalised coordinates, align_corners=True: -1 and 1 are the edge pixels' centres
+    gx = (xs + shift[:, 0]) * (2.0 / max(w - 1, 1)) - 1.0
+    gy = (ys + shift[:, 1]) * (2.0 / max(h - 1, 1)) - 1.0
+    coords = torch.stack([gx, gy], dim=-1)
+    warped = F.grid_sample(render, coords.to(render.dtype), mode="bilinear", padding_mode="border",
+                           align_corners=True)
+    warped_depth = F.grid_sample(depth, coords.to(depth.dtype), mode="nearest", padding_mode="border",
+                                 align_corners=True)
+    return warped, warped_depth
+
+
+def warp_renders(render: Tensor, depth: Tensor, max_shift: float, generator: torch.Generator,
+                 share: float = 0.5, grid: int = 4) -> tuple[Tensor, Tensor]:
+    """``render`` ``(B, 3, c, c)`` and ``depth`` ``(B, 1, c, c)`` displaced together (:func:`displace`)
+    along a smooth random shift on a random ``share`` of the crops; the others unchanged.
+
+    Each shift component is a ``grid`` x ``grid`` lattice of uniform draws in [-1, 1], upsampled
+    bicubically (clamped to [-1, 1]) and scaled by ``max_shift`` pixels. A field's novel views
+    are wrong at large scales (misplaced structure, floaters) where its training views, the
+    fine-tune's targets, are right; this puts such errors into the targets, with the render and
+    its depth still agreeing as a field's do. Draws ``B (1 + 2 grid^2)`` numbers from
+    ``generator`` whatever the outcome."""
+    import torch.nn.functional as F
+
+    b, _, h, w = render.shape
+    pick = torch.rand(b, generator=generator) < share
+    lattice = torch.rand(b, 2, grid, grid, generator=generator) * 2.0 - 1.0
+    if max_shift <= 0 or not bool(pick.any()):
+        return render, depth
+    shift = F.interpolate(lattice, size=(h, w), mode="bicubic", align_corners=True).clamp(-1.0, 1.0)
+    warped, warped_depth = displace(render, depth, shift * float(max_shift))
+    keep = ~pick[:, None, None, None]
+    return torch.where(keep, render, warped), torch.where(keep, depth, warped_depth)
 
 
 def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding: str = "window",

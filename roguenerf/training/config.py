@@ -43,6 +43,18 @@ faster (5 neighbours), but 10-minute fine-tunes from the shipped checkpoint gain
 (bench/results/frozen_encoder_paired.json, README)."""
 FEATURE_CACHE_BYTES = 2 * 1024**3
 """Largest cache of frozen neighbour features (float32, training views x F x H x W) kept in memory."""
+RENDER_BLUR = 0.0
+"""Fine-tuning's default for :attr:`TrainConfig.render_blur` (0: the renders as they are). A sigma
+up to 2 px lowered the 3-minute gain on both unseen ``fine`` fits (-0.05, -0.04 dB): blurring a
+training render costs it under 1 dB, where a field's novel views are 4-7 dB worse, mostly at
+scales of 16 px and more (README, Results)."""
+MAX_RENDER_BLUR = 8.0
+RENDER_WARP = 0.0
+"""Fine-tuning's default for :attr:`TrainConfig.render_warp` (0: the renders as they are). Off by
+default: in one sitting, 3-minute fine-tunes with 4 px gained more on the four unseen real-scene
+fits (dtu_scan37 coarse +0.12 dB, fine +0.10; mary_rose +0.01, +0.02) but 0.17 dB less on lego,
+whose field renders its novel views about as well as its training views (README, Results)."""
+MAX_RENDER_WARP = 32.0
 GPU_MINUTES = 60.0
 """The paper fine-tunes for one hour per scene on GPUs."""
 CPU_PLAN_WHY = ("CPU defaults chosen by measured gain after 1, 3 and 10 min on unseen real scenes and lego, "
@@ -97,6 +109,17 @@ class TrainConfig:
     """Build the model with (True) or without (False) :attr:`EnhancerConfig.pool_spread`; from a
     checkpoint without it, conv_merge's new inputs start at zero weight (the same function).
     None: the checkpoint's, or the variant's."""
+    render_blur: float | None = None
+    """Fine-tuning: the largest sigma (pixels) of a Gaussian blur put on the target renders of
+    half of the crops, each its own sigma drawn uniformly in (0, render_blur]: training views
+    (the fine-tune's targets) rendered less sharp, as novel views are. Measured not to help
+    (RENDER_BLUR); kept for that comparison (``bench/real_scenes.py --plans blur2``).
+    0: the renders as they are. None: the plan's (RENDER_BLUR); pre-training: 0."""
+    render_warp: float | None = None
+    """Fine-tuning: the largest shift (pixels) of a smooth random displacement put on the
+    target render and depth of half of the crops (:func:`~roguenerf.training.batches.warp_renders`):
+    the large-scale errors a field's novel views have and its training views lack. 0: none.
+    None: the plan's (RENDER_WARP); pre-training: 0."""
     neighbour_encoding: str = "window"
     """"window": conv_H encodes only the window of each neighbour photo that a target crop can
     see; "whole": every neighbour photo whole (the former path, kept for comparison). Same
@@ -115,6 +138,10 @@ class TrainConfig:
             raise InputError(f"lr: expected > 0, got {self.lr}")
         if not 0.0 <= float(self.held_out_share) <= 1.0:
             raise InputError(f"held_out_share: expected a probability in [0, 1], got {self.held_out_share}")
+        if self.render_blur is not None and not 0.0 <= float(self.render_blur) <= MAX_RENDER_BLUR:
+            raise InputError(f"render_blur: expected a sigma in [0, {MAX_RENDER_BLUR:g}] pixels, got {self.render_blur}")
+        if self.render_warp is not None and not 0.0 <= float(self.render_warp) <= MAX_RENDER_WARP:
+            raise InputError(f"render_warp: expected a shift in [0, {MAX_RENDER_WARP:g}] pixels, got {self.render_warp}")
         if self.num_neighbours is not None and int(self.num_neighbours) < 0:
             raise InputError(f"num_neighbours: expected >= 0, got {self.num_neighbours}")
         if self.lr_schedule is not None and self.lr_schedule not in LR_SCHEDULES:
@@ -217,6 +244,12 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
     freeze = config.freeze_neighbour_encoder
     if freeze is None:
         freeze = FREEZE_NEIGHBOUR_ENCODER if kind == "finetune" else False
+    blur = config.render_blur
+    if blur is None:
+        blur = RENDER_BLUR if kind == "finetune" else 0.0
+    warp = config.render_warp
+    if warp is None:
+        warp = RENDER_WARP if kind == "finetune" else 0.0
     steps, minutes = config.steps, config.minutes
     if steps is None and minutes is None:
         minutes = GPU_MINUTES if on_gpu else CPU_MINUTES
@@ -235,6 +268,8 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
         "seed": int(config.seed),
         "neighbour_encoding": config.neighbour_encoding,
         "freeze_neighbour_encoder": bool(freeze),
+        "render_blur": float(blur),
+        "render_warp": float(warp),
         "why": GPU_PLAN_WHY if on_gpu else CPU_PLAN_WHY,
         "threads": torch.get_num_threads(),
     }
@@ -245,6 +280,10 @@ def describe_plan(plan: dict) -> str:
     if plan["steps"] is not None and plan["minutes"] is not None:
         budget = f"{plan['steps']} steps or {plan['minutes']:g} min"
     without = f", without {'+'.join(plan['without'])}" if plan["without"] else ""
+    if plan.get("render_blur"):
+        without += f", half the target renders blurred (sigma up to {plan['render_blur']:g} px)"
+    if plan.get("render_warp"):
+        without += f", half the target renders warped (up to {plan['render_warp']:g} px)"
     if plan.get("held_out_share"):
         without += f", held-out views {plan['held_out_share']:.0%} of their scenes' targets"
     return (f"plan: {plan['device']} ({plan['threads']} threads), variant {plan['variant']}, "

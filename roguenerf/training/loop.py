@@ -32,10 +32,12 @@ from roguenerf.models.layers import receptive_radius
 from roguenerf.training.batches import (
     Prefetcher,
     StepBatch,
+    blur_renders,
     crop_targets,
     model_inputs,
     prepare_batch,
     sample_crops,
+    warp_renders,
 )
 from roguenerf.training.evaluate import evaluate
 from roguenerf.training.config import (
@@ -337,6 +339,8 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
         plan["lr_schedule"] = stored.get("lr_schedule", "constant")  # runs saved before schedules
         plan["freeze_neighbour_encoder"] = stored.get("freeze_neighbour_encoder", False)
         plan["held_out_share"] = stored.get("held_out_share", 0.0)
+        plan["render_blur"] = stored.get("render_blur", 0.0)
+        plan["render_warp"] = stored.get("render_warp", 0.0)
         transfer, before = info.get("transfer"), info.get("before")
         log.info("resuming %s from step %d in %s", kind, saved["step"], output_dir)
     else:
@@ -411,6 +415,10 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
         origins = sample_crops(d, plan["batch"], plan["crop"], generator)
         batch = prepare_batch(d, targets, origins, plan["crop"], encoding=encoding, margin=margin,
                               use_neighbours=model.config.use_neighbours)
+        if plan["render_warp"] > 0:
+            batch.render, batch.depth = warp_renders(batch.render, batch.depth, plan["render_warp"], generator)
+        if plan["render_blur"] > 0:
+            batch.render = blur_renders(batch.render, plan["render_blur"], generator)
         batch.dataset, batch.sampler_state = index, generator.get_state()
         return batch
 
