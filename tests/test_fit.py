@@ -351,3 +351,34 @@ def test_half_size_render_upsamples_to_the_photo_size_and_stays_close(fitted):
     assert dataclasses.replace(SMALL, render_scale=2).identity()["render_scale"] == 2
     with pytest.raises(InputError, match="render_scale"):
         FitConfig(render_scale=0)
+
+
+def test_render_scales_bench_known_answers(tmp_path):
+    """bench/render_scales.py: a render that is the photo plus a constant has the same PSNR at
+    every pooling (a colour error is all large-scale), which an affine colour fit removes; a
+    render that is the photo plus a checkerboard loses its error when pooled by 2."""
+    from bench import render_scales
+
+    g = torch.Generator().manual_seed(0)
+    photo = torch.rand(3, 32, 48, generator=g) * 0.8 + 0.1
+    checks = ((torch.arange(32)[:, None] + torch.arange(48)[None, :]) % 2).float() * 0.1 - 0.05
+
+    class _Scene:
+        def indices(self, split):
+            return [0] if split == "train" else [1]
+
+        def photo(self, i):
+            return photo
+
+        def render(self, i):
+            return photo + 0.05 if i == 0 else photo + checks
+
+    train, test = render_scales.measure(_Scene())
+    assert (train["split"], test["split"], train["views"]) == ("train", "test", 1)
+    for k in render_scales.POOLS:
+        assert train[f"psnr_pool{k}"] == pytest.approx(26.021, abs=1e-3)  # -10 log10(0.05^2)
+    assert train["psnr_affine_colour"] > 60
+    assert test["psnr_pool1"] == pytest.approx(26.021, abs=1e-3) and test["psnr_pool2"] > 60
+    rows = [{"date": "2026-11-25T00:00:00+00:00", "machine": "test machine", "commit": "abc1234", "scene": "toy",
+             **r} for r in (train, test)]
+    assert Image.open(render_scales.plot(rows, tmp_path / "scales.png")).size == (900, 540)
