@@ -353,3 +353,28 @@ def test_blur_renders_blurs_a_share_and_keeps_flat_colour():
     torch.testing.assert_close(blurred.mean(dim=(1, 2, 3)), checks.mean(dim=(1, 2, 3)), atol=0.02, rtol=0)
     flat = torch.full((b, 3, c, c), 0.3)
     torch.testing.assert_close(blur_renders(flat, 2.0, torch.Generator().manual_seed(1)), flat)
+
+
+def test_windows_bound_the_warped_depth(scene):
+    """With render_warp the windows are bounded from the displaced depth (prepare_batch's
+    ``augment`` runs first), so the windowed step still equals the whole-photo step."""
+    from roguenerf.training.batches import warp_renders
+
+    model = _model()
+    data = _data(scene)
+    margin = receptive_radius(model.conv_H)
+
+    def augment(render, depth):
+        return warp_renders(render, depth, 6.0, torch.Generator().manual_seed(3), share=1.0)
+
+    window = prepare_batch(data, TARGETS, ORIGINS, CROP, encoding="window", margin=margin, augment=augment)
+    whole = prepare_batch(data, TARGETS, ORIGINS, CROP, encoding="whole", margin=margin, augment=augment)
+    plain = prepare_batch(data, TARGETS, ORIGINS, CROP, encoding="window", margin=margin)
+    assert not torch.equal(window.depth, plain.depth) and torch.equal(window.depth, whole.depth)
+    assert window.encoding == "window"
+    loss_w, grads_w, _ = _step(model, window)
+    loss_o, grads_o, _ = _step(model, whole)
+    torch.testing.assert_close(loss_w, loss_o, rtol=1e-12, atol=0)
+    for name, g in grads_o.items():
+        torch.testing.assert_close(grads_w[name], g, rtol=1e-9, atol=1e-12 * max(float(g.abs().max()), 1e-30),
+                                   msg=name)

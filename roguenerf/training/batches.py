@@ -287,7 +287,8 @@ def warp_renders(render: Tensor, depth: Tensor, max_shift: float, generator: tor
 
 
 def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding: str = "window",
-                  margin: int = 0, use_neighbours: bool = True) -> StepBatch:
+                  margin: int = 0, use_neighbours: bool = True,
+                  augment: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]] | None = None) -> StepBatch:
     """Everything one step needs but the model: crops, and the neighbour photos or windows to encode.
 
     Args:
@@ -298,6 +299,9 @@ def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding
             only; ignored (0) when ``data.features`` holds cached conv_H features, which the
             batch then cuts instead of photos.
         use_neighbours: False gives a batch without neighbours.
+        augment: ``(render, depth) -> (render, depth)`` applied to the target crops before the
+            neighbour windows are bounded, so the windows hold what the changed depth reads
+            (:func:`warp_renders`, :func:`blur_renders`).
     """
     cached = getattr(data, "features", None)
     if cached is not None:
@@ -305,6 +309,8 @@ def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding
     if encoding not in NEIGHBOUR_ENCODINGS:
         raise InputError(f"encoding: expected one of {', '.join(NEIGHBOUR_ENCODINGS)}, got {encoding!r}")
     render, depth, photo, K = crop_targets(data, targets, origins, crop)
+    if augment is not None:
+        render, depth = augment(render, depth)
     batch = StepBatch(targets=targets, origins=origins, render=render, depth=depth, photo=photo, K=K,
                       pose=data.poses[targets])
     lists = data.neighbours[targets]  # (B, N)

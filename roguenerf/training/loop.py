@@ -407,6 +407,14 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
     margin = neighbour_margin(model)  # prepare_batch needs none for cached features
     encoding = batch_encoding(model, plan["neighbour_encoding"])
 
+    def augment(render: Tensor, depth: Tensor) -> tuple[Tensor, Tensor]:
+        # Fine-tuning targets made to look like novel views (TrainConfig.render_warp, render_blur).
+        if plan["render_warp"] > 0:
+            render, depth = warp_renders(render, depth, plan["render_warp"], generator)
+        if plan["render_blur"] > 0:
+            render = blur_renders(render, plan["render_blur"], generator)
+        return render, depth
+
     def make_batch() -> StepBatch:
         # Runs in the prefetch thread, which owns ``generator`` from the first batch on.
         index = int(torch.multinomial(weights, 1, generator=generator))
@@ -414,11 +422,7 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
         targets = d.draw_targets(plan["batch"], generator, plan["held_out_share"])
         origins = sample_crops(d, plan["batch"], plan["crop"], generator)
         batch = prepare_batch(d, targets, origins, plan["crop"], encoding=encoding, margin=margin,
-                              use_neighbours=model.config.use_neighbours)
-        if plan["render_warp"] > 0:
-            batch.render, batch.depth = warp_renders(batch.render, batch.depth, plan["render_warp"], generator)
-        if plan["render_blur"] > 0:
-            batch.render = blur_renders(batch.render, plan["render_blur"], generator)
+                              use_neighbours=model.config.use_neighbours, augment=augment)
         batch.dataset, batch.sampler_state = index, generator.get_state()
         return batch
 
