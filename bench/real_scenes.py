@@ -19,7 +19,9 @@ neighbour photo encoded whole each step, the training step before crop windows; 
 ``crop96``, ``lr5e-4``, ``lr1e-4``, ``constant`` and ``cosine`` (the lr schedule), ``frozen``
 and ``trained`` (conv_H fixed with its features encoded once, or trained) are the
 alternatives weighed for the CPU defaults; ``seed1`` and ``seed2`` are the default plan with
-another seed (crops, order), for the run-to-run spread of one plan;
+another seed (crops, order), for the run-to-run spread of one plan; ``warp4``/``warp8`` warp
+the target render and depth of half the crops by up to 4/8 px (``render_warp``), ``blur1``/``blur2``
+blur the target render (``render_blur``), ``warp8blur2`` both;
 ``bench/results/real_scenes.csv`` compared ``default`` when its lr was 1e-4 with ``lr5e-4``,
 after which 5e-4 became the default). Same data, seed and start.
 

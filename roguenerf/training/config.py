@@ -46,8 +46,8 @@ FEATURE_CACHE_BYTES = 2 * 1024**3
 RENDER_BLUR = 0.0
 """Fine-tuning's default for :attr:`TrainConfig.render_blur` (0: the renders as they are). A sigma
 up to 2 px lowered the 3-minute gain on both unseen ``fine`` fits (-0.05, -0.04 dB): blurring a
-training render costs it under 1 dB, where a field's novel views are 4-7 dB worse, mostly at
-scales of 16 px and more (README, Results)."""
+training render costs it under 1 dB, where a field's novel views are 3-6 dB worse than its
+training views, and 7-10 dB worse pooled by 16 px (bench/render_scales.py; README, Results)."""
 MAX_RENDER_BLUR = 8.0
 RENDER_WARP = 0.0
 """Fine-tuning's default for :attr:`TrainConfig.render_warp` (0: the renders as they are). Off by
