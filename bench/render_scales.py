@@ -26,17 +26,16 @@ POOLS = (1, 2, 4, 8, 16)
 SIGMAS = (1.0, 2.0)
 
 
-def _psnr(a, b) -> float:
-    import torch
-
-    return float(-10.0 * torch.log10(((a - b) ** 2).mean().clamp_min(1e-12)))
-
-
 def measure(scene) -> list[dict]:
     """One row per split: mean PSNR at each pooling, after each blur and after an affine colour fit."""
     import torch
     import torch.nn.functional as F
     from kornia.filters import gaussian_blur2d
+
+    from roguenerf.metrics import psnr
+
+    def _psnr(a, b) -> float:
+        return float(psnr(a, b))
 
     rows = []
     for split in ("train", "test"):
@@ -54,7 +53,7 @@ def measure(scene) -> list[dict]:
             r, p = render[0].flatten(1), photo[0].flatten(1)  # (3, P)
             design = torch.stack([r, torch.ones_like(r)], dim=-1)  # per channel: a r + b
             fitted = (design @ torch.linalg.lstsq(design, p[..., None]).solution)[..., 0]
-            values["psnr_affine_colour"] = _psnr(fitted, p)
+            values["psnr_affine_colour"] = _psnr(fitted.view_as(render), photo)
             for key, value in values.items():
                 sums[key] = sums.get(key, 0.0) + value
         rows.append({"split": split, "views": len(views),

@@ -244,12 +244,10 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
     freeze = config.freeze_neighbour_encoder
     if freeze is None:
         freeze = FREEZE_NEIGHBOUR_ENCODER if kind == "finetune" else False
-    blur = config.render_blur
-    if blur is None:
-        blur = RENDER_BLUR if kind == "finetune" else 0.0
-    warp = config.render_warp
-    if warp is None:
-        warp = RENDER_WARP if kind == "finetune" else 0.0
+    # Target augmentation: the caller's, else the fine-tuning default; pre-training none.
+    augment = {key: float(wish if wish is not None else (default if kind == "finetune" else 0.0))
+               for key, wish, default in (("render_blur", config.render_blur, RENDER_BLUR),
+                                          ("render_warp", config.render_warp, RENDER_WARP))}
     steps, minutes = config.steps, config.minutes
     if steps is None and minutes is None:
         minutes = GPU_MINUTES if on_gpu else CPU_MINUTES
@@ -268,8 +266,7 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
         "seed": int(config.seed),
         "neighbour_encoding": config.neighbour_encoding,
         "freeze_neighbour_encoder": bool(freeze),
-        "render_blur": float(blur),
-        "render_warp": float(warp),
+        **augment,
         "why": GPU_PLAN_WHY if on_gpu else CPU_PLAN_WHY,
         "threads": torch.get_num_threads(),
     }

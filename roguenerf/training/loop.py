@@ -339,8 +339,8 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
         plan["lr_schedule"] = stored.get("lr_schedule", "constant")  # runs saved before schedules
         plan["freeze_neighbour_encoder"] = stored.get("freeze_neighbour_encoder", False)
         plan["held_out_share"] = stored.get("held_out_share", 0.0)
-        plan["render_blur"] = stored.get("render_blur", 0.0)
-        plan["render_warp"] = stored.get("render_warp", 0.0)
+        for key in ("render_blur", "render_warp"):  # runs saved before target augmentation had none
+            plan[key] = stored.get(key, 0.0)
         transfer, before = info.get("transfer"), info.get("before")
         log.info("resuming %s from step %d in %s", kind, saved["step"], output_dir)
     else:
@@ -422,7 +422,8 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
         targets = d.draw_targets(plan["batch"], generator, plan["held_out_share"])
         origins = sample_crops(d, plan["batch"], plan["crop"], generator)
         batch = prepare_batch(d, targets, origins, plan["crop"], encoding=encoding, margin=margin,
-                              use_neighbours=model.config.use_neighbours, augment=augment)
+                              use_neighbours=model.config.use_neighbours,
+                              augment=augment if plan["render_warp"] or plan["render_blur"] else None)
         batch.dataset, batch.sampler_state = index, generator.get_state()
         return batch
 
