@@ -145,13 +145,10 @@ if [ "$STAGE" = all ] || [ "$STAGE" = pretrain ]; then
   "$PY" -m roguenerf.cli pretrain "${scenes[@]}" "${start[@]}" "${budget[@]}" --variant "$VARIANT" \
     --crop "$CROP" --lr "$LR" --lr-schedule "$LR_SCHEDULE" --seed "$SEED" --output "$OUT" "${extra[@]}"
   mkdir -p "$(dirname "$DEST")"
-  cp "$OUT/model.safetensors" "$DEST"
-  if [ -f "$OUT/model.json" ]; then
-    # The sidecar names its weights file: DEST's name, not the run's model.safetensors.
-    "$PY" -c 'import json, sys; d = json.load(open(sys.argv[1])); d["weights"] = sys.argv[3]
-open(sys.argv[2], "w").write(json.dumps(d, indent=1, sort_keys=True))' \
-      "$OUT/model.json" "${DEST%.safetensors}.json" "$(basename "$DEST")"
-  fi
+  # Saved again by the library, not copied: the weights with a sidecar that names DEST's file.
+  "$PY" -c 'import sys; from roguenerf.checkpoint import load_checkpoint, save_checkpoint
+model, meta = load_checkpoint(sys.argv[1]); save_checkpoint(sys.argv[2], model, meta=meta)' \
+    "$OUT/model.safetensors" "$DEST"
   echo "default checkpoint: $DEST" >&2
 fi
 
