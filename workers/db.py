@@ -15,6 +15,8 @@ Write transactions serialise where the job layer needs it:
 
 from __future__ import annotations
 
+import sqlite3
+import time
 import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -118,9 +120,21 @@ class Database:
             # The driver must not open transactions on its own: we emit BEGIN ourselves.
             dbapi_conn.isolation_level = None
             cur = dbapi_conn.cursor()
-            cur.execute("PRAGMA journal_mode=WAL")
+            cur.execute("PRAGMA busy_timeout=30000")  # first: the pragmas below may wait for a lock
+            # Switching a new database to WAL needs it to itself, and SQLite answers "database is
+            # locked" at once, without the busy timeout, when processes starting together collide
+            # here: retry for as long as the busy timeout would have waited.
+            deadline, pause = time.monotonic() + 30.0, 0.01
+            while True:
+                try:
+                    cur.execute("PRAGMA journal_mode=WAL")
+                    break
+                except sqlite3.OperationalError as exc:
+                    if "locked" not in str(exc) or time.monotonic() > deadline:
+                        raise
+                    time.sleep(pause)
+                    pause = min(pause * 2, 0.25)
             cur.execute("PRAGMA synchronous=NORMAL")
-            cur.execute("PRAGMA busy_timeout=30000")
             cur.close()
 
         @event.listens_for(self.engine, "begin")
