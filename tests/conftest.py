@@ -13,6 +13,21 @@ from hypothesis import settings
 # spinning against each other on 2 cores made runs several times slower, not faster.
 torch.set_num_threads(1)
 
+
+def _resolve_anyio_lazy_imports() -> None:
+    """Import every module anyio loads lazily, here, in the main thread. anyio is a pytest plugin,
+    so pytest rewrites its modules on import; a live server's request thread importing one
+    (starlette's FileResponse -> ``anyio.open_file``) while another thread parses made CPython
+    3.11.7's ``ast.parse`` fail with "AST constructor recursion depth mismatch", and the
+    request was dropped (test_reliability_auth, twice in ~10 full runs)."""
+    import anyio
+
+    for name in getattr(anyio, "__all__", ()):
+        getattr(anyio, name)
+
+
+_resolve_anyio_lazy_imports()
+
 settings.register_profile("ci", deadline=None, max_examples=30, derandomize=True)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
