@@ -57,6 +57,8 @@
 # against +1.398 dB, higher on 11 of 16), and this one has the better worst views (higher on 10
 # of 16, by +0.045 dB on average): a tie on the mean, so the worst views and the wider data
 # decided (README "Every scene's fine look").
+# A sixth stage, measured but not shipped (no 10-minute runs yet): the fifth's command again with
+# START=<the shipped checkpoint> SEED=5; +0.016 dB on the 16 fits (README "Every scene's fine look").
 # The one before it (commit fc5a08e) was the same with LR_SCHEDULE=constant MINUTES=30 (4845 steps):
 # on the fits' held-out views (never targets in pre-training) the cosine one gains more on all 13
 # (mean +1.25 against +1.03 dB), README "Pre-training with the cosine schedule".
