@@ -27,6 +27,9 @@ import sqlalchemy as sa
 from sqlalchemy import event, exc as sa_exc
 from sqlalchemy.engine import make_url
 
+BUSY_TIMEOUT_S = 30.0
+"""How long a SQLite connection waits for another's lock (busy_timeout, and the WAL switch's retries)."""
+
 
 class DatabaseError(RuntimeError):
     """The job database cannot be opened or reached."""
@@ -120,11 +123,11 @@ class Database:
             # The driver must not open transactions on its own: we emit BEGIN ourselves.
             dbapi_conn.isolation_level = None
             cur = dbapi_conn.cursor()
-            cur.execute("PRAGMA busy_timeout=30000")  # first: the pragmas below may wait for a lock
+            cur.execute(f"PRAGMA busy_timeout={int(BUSY_TIMEOUT_S * 1000)}")  # first: the pragmas below may wait
             # Switching a new database to WAL needs it to itself, and SQLite answers "database is
             # locked" at once, without the busy timeout, when processes starting together collide
             # here: retry for as long as the busy timeout would have waited.
-            deadline, pause = time.monotonic() + 30.0, 0.01
+            deadline, pause = time.monotonic() + BUSY_TIMEOUT_S, 0.01
             while True:
                 try:
                     cur.execute("PRAGMA journal_mode=WAL")

@@ -246,19 +246,17 @@ def blur_renders(render: Tensor, max_sigma: float, generator: torch.Generator, s
 def displace(render: Tensor, depth: Tensor, shift: Tensor) -> tuple[Tensor, Tensor]:
     """``render`` ``(B, C, h, w)`` and ``depth`` ``(B, 1, h, w)`` read at each pixel plus ``shift``
     ``(B, 2, h, w)`` (x then y, pixels): the render bilinearly, the depth at the nearest pixel (no
-    depth between two surfaces), both with the border pixels repeated beyond the edges."""
-    import torch.nn.functional as F
+    depth between two surfaces), both with the border pixels repeated beyond the edges (kornia's
+    ``remap`` on pixel coordinates, ``align_corners=True``: 0 and ``w - 1`` are the edge pixels' centres)."""
+    from kornia.geometry.transform import remap
 
-    b, _, h, w = render.shape
+    _, _, h, w = render.shape
     ys, xs = torch.meshgrid(torch.arange(h, dtype=shift.dtype), torch.arange(w, dtype=shift.dtype), indexing="ij")
-    # grid_sample's normalised coordinates, align_corners=True: -1 and 1 are the edge pixels' centres
-    gx = (xs + shift[:, 0]) * (2.0 / max(w - 1, 1)) - 1.0
-    gy = (ys + shift[:, 1]) * (2.0 / max(h - 1, 1)) - 1.0
-    coords = torch.stack([gx, gy], dim=-1)
-    warped = F.grid_sample(render, coords.to(render.dtype), mode="bilinear", padding_mode="border",
-                           align_corners=True)
-    warped_depth = F.grid_sample(depth, coords.to(depth.dtype), mode="nearest", padding_mode="border",
-                                 align_corners=True)
+    map_x, map_y = xs + shift[:, 0], ys + shift[:, 1]
+    warped = remap(render, map_x.to(render.dtype), map_y.to(render.dtype), mode="bilinear",
+                   padding_mode="border", align_corners=True)
+    warped_depth = remap(depth, map_x.to(depth.dtype), map_y.to(depth.dtype), mode="nearest",
+                         padding_mode="border", align_corners=True)
     return warped, warped_depth
 
 
