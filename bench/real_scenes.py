@@ -25,6 +25,9 @@ blur the target render (``render_blur``), ``warp8blur2`` both;
 ``bench/results/real_scenes.csv`` compared ``default`` when its lr was 1e-4 with ``lr5e-4``,
 after which 5e-4 became the default). Same data, seed and start.
 
+``--blends 0.5,0.85`` also evaluates each fine-tune's weights blended with the starting
+checkpoint's (weight-space ensembling, start + a (tuned - start)), with no extra training.
+
     .venv/bin/python bench/real_scenes.py ~/.cache/roguenerf/pairs/dtu_scan37/fine \\
         ~/.cache/roguenerf/pairs/mary_rose/fine --old-checkpoint old.safetensors
     .venv/bin/python bench/real_scenes.py SCENE --quick      # seconds-long budgets (proves it runs)
@@ -80,12 +83,18 @@ def parse_args(argv=None):
     p.add_argument("--replot", type=Path, nargs="+", default=None, metavar="CSV",
                    help="measure nothing: merge these CSVs (one sitting, e.g. plans run in turn) into "
                         "OUTPUT.csv and OUTPUT.png; a scene's repeated zero-shot rows are kept once")
+    p.add_argument("--blends", type=_floats, default=[],
+                   help="after each fine-tune, also evaluate its weights blended with the starting "
+                        "checkpoint's: start + a (tuned - start) for each comma-separated a in [0, 1] "
+                        "(weight-space ensembling; rows with plan_name PLAN+blendA, no extra training)")
     p.add_argument("--quick", action="store_true", help="tiny budgets, 2 views")
     p.add_argument("--output", type=Path, default=RESULTS / "real_scenes")
     args = p.parse_args(argv)
     unknown = [x for x in args.plans if x not in PLANS]
     if unknown:
         p.error(f"--plans: unknown {', '.join(unknown)} (known: {', '.join(PLANS)})")
+    if any(not 0.0 <= a <= 1.0 for a in args.blends):
+        p.error(f"--blends: expected fractions in [0, 1], got {args.blends}")
     if not args.scenes and not args.replot:
         p.error("give scene folders to measure, or --replot CSV...")
     if args.quick:
@@ -142,12 +151,32 @@ def run(args, save=None) -> list[dict]:
                 result = finetune(scene, run_dir, checkpoint=new, config=config)
                 model, _ = load_checkpoint(result.checkpoint)
                 c = result.config
+                plan = (f"{c['variant']} crop {c['crop_used']} batch {c['batch']} n{c['num_neighbours']} "
+                        f"{c['neighbour_encoding']}{'+frozen' if c.get('freeze_neighbour_encoder') else ''} "
+                        f"lr {c['lr']:g} {c['lr_schedule']}")
                 record("finetune", minutes, result.steps, result.seconds,
                        evaluate(scene, model, max_views=args.max_views), checkpoint=str(new), plan_name=plan_name,
-                       plan=f"{c['variant']} crop {c['crop_used']} batch {c['batch']} n{c['num_neighbours']} "
-                            f"{c['neighbour_encoding']}{'+frozen' if c.get('freeze_neighbour_encoder') else ''} "
-                            f"lr {c['lr']:g} {c['lr_schedule']}")
+                       plan=plan)
+                if args.blends:
+                    tuned = {k: v.clone() for k, v in model.state_dict().items()}
+                    start = load_checkpoint(new)[0].state_dict()
+                    for a in args.blends:
+                        model.load_state_dict(blend_state(start, tuned, a))
+                        record("finetune", minutes, result.steps, result.seconds,
+                               evaluate(scene, model, max_views=args.max_views), checkpoint=str(new),
+                               plan_name=f"{plan_name}+blend{a:g}", plan=f"{plan}, blend {a:g}")
     return rows
+
+
+def blend_state(start: dict, tuned: dict, a: float) -> dict:
+    """``start + a (tuned - start)`` for every floating-point tensor of two state dicts of one
+    architecture (a = 0: the start, 1: the fine-tuned weights); other tensors from ``tuned``."""
+    import torch
+
+    if start.keys() != tuned.keys():
+        raise ValueError("blend_state: the two state dicts have different keys")
+    return {k: torch.lerp(start[k].to(v.dtype), v, a) if v.is_floating_point() else v.clone()
+            for k, v in tuned.items()}
 
 
 def _save(fig, ax, rows: list[dict], path: Path) -> Path:

@@ -382,3 +382,35 @@ def test_render_scales_bench_known_answers(tmp_path):
     rows = [{"date": "2026-11-25T00:00:00+00:00", "machine": "test machine", "commit": "abc1234", "scene": "toy",
              **r} for r in (train, test)]
     assert Image.open(render_scales.plot(rows, tmp_path / "scales.png")).size == (900, 540)
+
+
+def test_real_scenes_blends_span_the_start_and_the_fine_tuned_weights(lego_dir, tmp_path):
+    """``bench/real_scenes.py --blends 0,1`` (weight-space ensembling of each fine-tune with its
+    starting checkpoint) reproduces both ends exactly: blend 0 is the zero-shot row, blend 1 the
+    fine-tune's own row; a blend outside [0, 1] is refused before anything runs."""
+    import csv
+
+    from bench.real_scenes import blend_state
+
+    repo = Path(__file__).resolve().parents[1]
+    out = tmp_path / "blends"
+    proc = subprocess.run([sys.executable, str(repo / "bench" / "real_scenes.py"), str(lego_dir), "--minutes", "0.03",
+                           "--max-views", "1", "--blends", "0,1", "--output", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    with out.with_suffix(".csv").open() as fh:
+        rows = {(r["kind"], r["plan_name"]): r for r in csv.DictReader(fh)}
+    assert set(rows) == {("zero-shot new", ""), ("finetune", "default"), ("finetune", "default+blend0"),
+                         ("finetune", "default+blend1")}
+    tuned, start = rows["finetune", "default"], rows["zero-shot new", ""]
+    assert int(tuned["steps"]) > 0 and tuned["enhanced_psnr"] != start["enhanced_psnr"]  # the run changed the model
+    assert rows["finetune", "default+blend1"]["enhanced_psnr"] == tuned["enhanced_psnr"]
+    assert abs(float(rows["finetune", "default+blend0"]["enhanced_psnr"]) - float(start["enhanced_psnr"])) < 1e-4
+    # The blend itself: linear in every float tensor, integer buffers from the fine-tuned side.
+    a = {"w": torch.tensor([0.0, 2.0]), "n": torch.tensor([3])}
+    b = {"w": torch.tensor([4.0, -2.0]), "n": torch.tensor([7])}
+    mid = blend_state(a, b, 0.25)
+    assert torch.equal(mid["w"], torch.tensor([1.0, 1.0])) and torch.equal(mid["n"], torch.tensor([7]))
+    refused = subprocess.run([sys.executable, str(repo / "bench" / "real_scenes.py"), str(lego_dir), "--blends", "1.5",
+                              "--output", str(tmp_path / "refused")], capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2 and "--blends" in refused.stderr and not (tmp_path / "refused.csv").exists()
