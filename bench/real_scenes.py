@@ -126,6 +126,7 @@ def run(args, save=None) -> list[dict]:
     base = stamp()
     rows = []
     work = Path(tempfile.mkdtemp(prefix="real_scenes_"))
+    start = load_checkpoint(new)[0].state_dict() if args.blends else None  # what --blends mixes with
     for scene_dir in args.scenes:
         scene = load_scene(scene_dir)
         label = scene_label(scene_dir)
@@ -159,7 +160,6 @@ def run(args, save=None) -> list[dict]:
                        plan=plan)
                 if args.blends:
                     tuned = {k: v.clone() for k, v in model.state_dict().items()}
-                    start = load_checkpoint(new)[0].state_dict()
                     for a in args.blends:
                         model.load_state_dict(blend_state(start, tuned, a))
                         record("finetune", minutes, result.steps, result.seconds,
