@@ -11,11 +11,14 @@ merge, uformer, other.
 
 Columns per stage:
   seconds            median over ``--repeats`` timed runs of the fast path (after one warm-up)
-  seconds_previous   the fast path before issue 12's inference work (``previous_fast_path()``),
-                     its runs alternating with the present one's
+  seconds_torch_fast the present fast path with its fused C kernels off (``native.disabled()``):
+                     torch operators only, as on a machine without a C compiler
+  seconds_previous   the fast path before issue 12's inference work (``previous_fast_path()``);
+                     the three paths' runs alternate, run by run
   gb_moved           GB the stage's operators read and write (every aten operator's tensor
                      arguments and outputs: the code as written, each operator streaming its
-                     operands; views free)
+                     operands; views free; a fused C kernel of roguenerf.native counts its
+                     operands once; its few FLOPs, elementwise, are not counted)
   floor_s            max(gflop_executed / peak, gb_moved / bandwidth): the stage's roofline floor
                      as written, bandwidth = best copy GB/s of a 256 MiB tensor (read + write)
   seconds_reference  the plain implementation (``reference_mode()``: no fused kernels, NCHW,
@@ -48,7 +51,7 @@ import roguenerf  # noqa: E402,F401  (first: OpenMP's wait policy is set before 
 import torch  # noqa: E402
 
 from bench.common import stamp, write_csv, write_json  # noqa: E402
-from roguenerf import runtime  # noqa: E402
+from roguenerf import native, runtime  # noqa: E402
 from roguenerf.fastpath import previous_fast_path, reference_mode  # noqa: E402
 from roguenerf.models import VARIANTS, NeighbourBatch, Uformer, build_enhancer  # noqa: E402
 from roguenerf.profiling import STAGES, StageProfile  # noqa: E402
@@ -98,6 +101,13 @@ def _stage_bytes(fn) -> dict:
             "_reshape_alias", "narrow", "view_as", "resize_", "set_", "is_nonzero", "_local_scalar_dense"}
     counts: dict[str, float] = {}
 
+    def add(key: str, nbytes: float) -> None:
+        counts[key] = counts.get(key, 0.0) + nbytes
+
+    def native_bytes(_name: str, nbytes: int) -> None:  # a fused C kernel: its operands once
+        active = profiling._active
+        add((active._current if active is not None else None) or "other", nbytes)
+
     class Bytes(TorchDispatchMode):
         def __torch_dispatch__(self, func, types, args=(), kwargs=None):
             out = func(*args, **(kwargs or {}))
@@ -109,12 +119,15 @@ def _stage_bytes(fn) -> dict:
                         seen.add(id(t))
                         total += t.numel() * t.element_size()
                 active = profiling._active
-                key = (active._current if active is not None else None) or "other"
-                counts[key] = counts.get(key, 0.0) + total
+                add((active._current if active is not None else None) or "other", total)
             return out
 
-    with StageProfile() as _, Bytes():
-        fn()
+    native.on_call = native_bytes
+    try:
+        with StageProfile() as _, Bytes():
+            fn()
+    finally:
+        native.on_call = None
     return {k: v / 1e9 for k, v in counts.items()}
 
 
@@ -144,10 +157,10 @@ def make_inputs(model, h: int, w: int, n: int = NEIGHBOURS):
     return render, depth, K[None], poses[:1], nb
 
 
-def _stage_times(fn, repeats: int, other=None) -> tuple[dict, float] | tuple[tuple[dict, float], tuple[dict, float]]:
-    """Median seconds per stage and in total over ``repeats`` runs of ``fn``; with ``other``, the
-    same for it, the two alternating run by run (fair under a varying load)."""
-    fns = [fn] if other is None else [fn, other]
+def _stage_times(fn, repeats: int, *others) -> tuple[dict, float] | list[tuple[dict, float]]:
+    """Median seconds per stage and in total over ``repeats`` runs of ``fn``; with ``others``,
+    the same for each of them, all alternating run by run (fair under a varying load)."""
+    fns = [fn, *others]
     per_stage: list[dict[str, list[float]]] = [{} for _ in fns]
     totals: list[list[float]] = [[] for _ in fns]
     for _ in range(repeats):
@@ -158,7 +171,7 @@ def _stage_times(fn, repeats: int, other=None) -> tuple[dict, float] | tuple[tup
             for row in prof.rows():
                 per_stage[i].setdefault(row["stage"], []).append(row["seconds"])
     out = [({k: statistics.median(v) for k, v in ps.items()}, statistics.median(t)) for ps, t in zip(per_stage, totals)]
-    return out[0] if other is None else (out[0], out[1])
+    return out[0] if not others else out
 
 
 def _stage_flops(fn) -> dict:
@@ -180,8 +193,14 @@ def profile(variant: str, h: int, w: int, repeats: int, reference: bool) -> tupl
             with previous_fast_path():
                 return run()
 
+        def run_torch():
+            with native.disabled():
+                return run()
+
         prev_diff = float((run_previous() - fast_out).abs().max())
-        (seconds, total), (prev_seconds, prev_total) = _stage_times(run, repeats, run_previous)
+        torch_diff = float((run_torch() - fast_out).abs().max())
+        (seconds, total), (torch_seconds, torch_total), (prev_seconds, prev_total) = _stage_times(
+            run, repeats, run_torch, run_previous)
         executed = _stage_flops(run)
         moved = _stage_bytes(run)
     ref_seconds, ref_total, diff = {}, float("nan"), float("nan")
@@ -196,14 +215,15 @@ def profile(variant: str, h: int, w: int, repeats: int, reference: bool) -> tupl
     for stage in names + ["total"]:
         if stage == "total":
             sec, ref, gm, ge = total, ref_total, sum(model_flops.values()), sum(executed.values())
-            prev = prev_total
+            prev, tfast = prev_total, torch_total
         else:
             sec, ref = seconds[stage], ref_seconds.get(stage, float("nan"))
             prev = prev_seconds.get(stage, float("nan"))
+            tfast = torch_seconds.get(stage, float("nan"))
             gm, ge = model_flops.get(stage, 0.0), executed.get(stage, 0.0)
         gb = sum(moved.values()) if stage == "total" else moved.get(stage, 0.0)
         rows.append(dict(variant=variant, height=h, width=w, neighbours=NEIGHBOURS, stage=stage,
-                         seconds=round(sec, 4), seconds_previous=round(prev, 4),
+                         seconds=round(sec, 4), seconds_torch_fast=round(tfast, 4), seconds_previous=round(prev, 4),
                          seconds_reference=round(ref, 4), gflop_model=round(gm, 3),
                          gflop_executed=round(ge, 3), gb_moved=round(gb, 4), max_abs_diff=diff))
     official = Uformer(model.config.uformer, in_channels=3, out_channels=3).eval()
@@ -214,8 +234,12 @@ def profile(variant: str, h: int, w: int, repeats: int, reference: bool) -> tupl
         official(rgb)
         official_s = time.perf_counter() - t
         official_gflop = _stage_flops(lambda: official(rgb))["other"]
+    lib = native.library()
     summary = dict(variant=variant, height=h, width=w, seconds=total, seconds_previous=prev_total,
                    speedup_vs_previous=prev_total / total, max_abs_diff_previous=prev_diff,
+                   native_kernels=lib._name if lib is not None else None,
+                   seconds_torch_fast=torch_total, speedup_vs_torch_fast=torch_total / total,
+                   max_abs_diff_torch_fast=torch_diff,
                    seconds_reference=ref_total,
                    gflop_model=sum(model_flops.values()), gflop_executed=sum(executed.values()),
                    gb_moved=sum(moved.values()),
@@ -289,6 +313,7 @@ def main(argv=None) -> None:
             summaries.append(s)
             print(f"{variant} {w}x{h}: {s['seconds']:.3f} s (previous fast path {s['seconds_previous']:.3f} s: "
                   f"{s['speedup_vs_previous']:.2f}x, max |diff| {s['max_abs_diff_previous']:.1e}; "
+                  f"without the C kernels {s['seconds_torch_fast']:.3f} s: {s['speedup_vs_torch_fast']:.2f}x; "
                   f"plain {s['seconds_reference']:.3f} s), "
                   f"{s['gflop_model']:.1f} GFLOP model / {s['gflop_executed']:.1f} executed, "
                   f"max |fast - plain| {s['max_abs_diff']:.2e}, official Uformer alone "
@@ -331,8 +356,8 @@ def main(argv=None) -> None:
         print(f"{s['variant']} {s['width']}x{s['height']}: efficiency {s['efficiency_model']:.1%} of peak "
               f"(executed FLOPs: {s['efficiency_executed']:.1%}), {s['speedup_vs_plain']:.2f}x the plain path, "
               f"limited by {s['limiting_stage']}", flush=True)
-        print("  stage seconds now / previous fast path: " + ", ".join(
-            f"{r['stage']} {r['seconds']:.4f}/{r['seconds_previous']:.4f}" for r in rows
+        print("  stage seconds now / without the C kernels / previous fast path: " + ", ".join(
+            f"{r['stage']} {r['seconds']:.4f}/{r['seconds_torch_fast']:.4f}/{r['seconds_previous']:.4f}" for r in rows
             if (r["variant"], r["height"], r["width"]) == (s["variant"], s["height"], s["width"])), flush=True)
         print(f"  floor (per stage max(FLOP / {peak:.0f} GFLOP/s, bytes / {bandwidth:.1f} GB/s)): "
               f"{s['floor_s']:.4f} s of {s['seconds']:.4f} s", flush=True)

@@ -48,6 +48,10 @@ def extra_flop_formulas() -> dict:
     from torch.utils import flop_counter
 
     def linear(x, w, *args, out_shape=None, **kwargs):
+        # _linear_pointwise(x, w, b, attr, scalars, algorithm) or its .binary overload
+        # (x, other, w, b, attr): the sum with ``other`` fused; the weight is then the third.
+        if len(args) == 3:
+            w = args[0]
         return 2 * math.prod(x[:-1]) * x[-1] * w[0]
 
     def conv(x, w, *args, out_shape=None, **kwargs):

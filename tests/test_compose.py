@@ -94,6 +94,11 @@ def test_dockerfile_cpu_torch_and_non_root():
     assert "/healthz" in text
     # API and worker containers share the host's cores (as `roguenerf serve` sets it)
     assert re.search(r"^\s+OMP_WAIT_POLICY=PASSIVE$", text, re.M)
+    # The fused C kernels are compiled in the container, for its CPU: a compiler is installed,
+    # and the package ships their source.
+    assert re.search(r"apt-get install [^\n]*\bgcc\b", text)
+    pyproject = (ROOT / "pyproject.toml").read_text()
+    assert re.search(r'^roguenerf = \[.*"native/\*\.c"', pyproject, re.M)
 
 
 def test_dockerignore_keeps_secrets_and_bulk_out():

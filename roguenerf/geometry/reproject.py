@@ -18,6 +18,7 @@ from kornia.geometry.linalg import transform_points
 from kornia.geometry.transform import remap
 from torch import Tensor
 
+from roguenerf import native
 from roguenerf.errors import InputError
 from roguenerf.fastpath import fast_enabled, in_previous_fast_path
 from roguenerf.geometry.cameras import check_intrinsics, check_pose, relative_pose
@@ -146,6 +147,25 @@ def _project(dst_depth: Tensor, src_from_dst: Tensor, src_K: Tensor, dst_K: Tens
     return valid, coords, sample_at, z_proj
 
 
+def _projection_terms(src_from_dst: Tensor, src_K: Tensor, dst_K: Tensor,
+                      size: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor]:
+    """The pinhole chain of :func:`_project_fast`, composed in float64 from float64 ``(B, 4, 4)``
+    and ``(B, 3, 3)`` matrices: float32 per-row ``(B, 3, H)`` and per-column ``(B, 3, W)`` terms
+    and the offset ``(B, 3)``, so that for (x numerator, y numerator, z) at pixel (u, v) with
+    depth z: ``(rows[:, i, v] + cols[:, i, u]) * z + offset[:, i]``."""
+    H, W = size
+    device = src_from_dst.device
+    rot, trans = src_from_dst[:, :3, :3], src_from_dst[:, :3, 3]
+    ray = rot @ torch.linalg.inv(dst_K)  # (B, 3, 3): point in the neighbour camera per unit depth
+    M = torch.cat([src_K[:, :2] @ ray, ray[:, 2:]], dim=1)  # rows: x numerator, y numerator, z
+    c = torch.cat([(src_K[:, :2] @ trans[..., None])[..., 0], trans[:, 2:]], dim=1)  # (B, 3)
+    u = torch.arange(W, device=device, dtype=torch.float64) + 0.5
+    v = torch.arange(H, device=device, dtype=torch.float64) + 0.5
+    cols = (M[:, :, 0, None] * u).to(torch.float32)  # (B, 3, W)
+    rows = (M[:, :, 1, None] * v + M[:, :, 2, None]).to(torch.float32)  # (B, 3, H)
+    return rows, cols, c.to(torch.float32)
+
+
 def _project_fast(dst_depth: Tensor, src_from_dst: Tensor, src_K: Tensor, dst_K: Tensor,
                   src_size: tuple[int, int], eps: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """:func:`_project` in fewer passes over the image (fast path: float32, no gradient).
@@ -156,21 +176,10 @@ def _project_fast(dst_depth: Tensor, src_from_dst: Tensor, src_K: Tensor, dst_K:
     per-row and a per-column term, with no ``(B, H, W, 3)`` intermediates. Same function, to
     float32 rounding of the coordinates (the plain path rounds each factor to float32 instead).
     """
-    H, W = dst_depth.shape[-2:]
     Hs, Ws = src_size
-    device = dst_depth.device
-    dtype = torch.float32
     dst_known, z = _known(dst_depth, eps)
     z = z[:, 0]
-    rot, trans = src_from_dst[:, :3, :3], src_from_dst[:, :3, 3]
-    ray = rot @ torch.linalg.inv(dst_K)  # (B, 3, 3): point in the neighbour camera per unit depth
-    M = torch.cat([src_K[:, :2] @ ray, ray[:, 2:]], dim=1)  # rows: x numerator, y numerator, z
-    c = torch.cat([(src_K[:, :2] @ trans[..., None])[..., 0], trans[:, 2:]], dim=1)  # (B, 3)
-    u = torch.arange(W, device=device, dtype=torch.float64) + 0.5
-    v = torch.arange(H, device=device, dtype=torch.float64) + 0.5
-    cols = (M[:, :, 0, None] * u).to(dtype)  # (B, 3, W)
-    rows = (M[:, :, 1, None] * v + M[:, :, 2, None]).to(dtype)  # (B, 3, H)
-    c = c.to(dtype)
+    rows, cols, c = _projection_terms(src_from_dst, src_K, dst_K, tuple(dst_depth.shape[-2:]))
 
     def along(i: int) -> Tensor:  # z * (M_i . [u, v, 1]) + c_i, (B, H, W)
         return torch.add(rows[:, i, :, None], cols[:, i, None, :]).mul_(z).add_(c[:, i, None, None])
@@ -257,13 +266,6 @@ def reproject(
     src_from_dst64 = relative_pose(world_from_src, world_from_dst).to(device)
     src_from_dst = src_from_dst64.to(dtype)
 
-    if fast_enabled(dst_depth) and dtype == torch.float32 and not in_previous_fast_path():
-        valid, coords, sample_at, z_proj = _project_fast(
-            dst_depth, src_from_dst64,
-            src_K.to(torch.float64), dst_K.to(torch.float64), (Hs, Ws), eps)
-    else:
-        valid, coords, sample_at, z_proj = _project(dst_depth, src_from_dst, src_K, dst_K, (Hs, Ws), eps, dtype)
-
     if source is None:
         source = sampling_source(src_features, src_depth, eps=eps)
     else:
@@ -272,6 +274,21 @@ def reproject(
             raise InputError(f"source: expected shape {want} (sampling_source of the neighbour), "
                              f"got {tuple(source.shape)}")
         source = source.to(dtype)
+    if (src_depth is not None and dtype == torch.float32 and src_features.dtype == torch.float32
+            and native.enabled(dst_depth) and native.enabled(source)):
+        # One fused pass: projection, sampling, visibility and masking (same operations).
+        rows, cols, offset = _projection_terms(src_from_dst64, src_K.to(torch.float64),
+                                               dst_K.to(torch.float64), (H, W))
+        packed, coords = native.reproject(dst_depth, rows, cols, offset, source, eps=eps, max_depth=MAX_DEPTH,
+                                          leniency=leniency)
+        return Reprojection(features=packed[:, :C], valid=packed[:, C + 1:], depth=packed[:, C:C + 1],
+                            coords=coords, packed=packed)
+    if fast_enabled(dst_depth) and dtype == torch.float32 and not in_previous_fast_path():
+        valid, coords, sample_at, z_proj = _project_fast(
+            dst_depth, src_from_dst64,
+            src_K.to(torch.float64), dst_K.to(torch.float64), (Hs, Ws), eps)
+    else:
+        valid, coords, sample_at, z_proj = _project(dst_depth, src_from_dst, src_K, dst_K, (Hs, Ws), eps, dtype)
     # align_corners=True: kornia normalises pixel maps as "centre of pixel 0 at -1"; border
     # padding only matters in the outer half pixel, everything further out is invalid.
     if fast_enabled(source):

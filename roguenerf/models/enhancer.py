@@ -45,12 +45,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from roguenerf import native
 from roguenerf.errors import InputError
 from roguenerf.geometry import euler_angles, reproject, sampling_source
 from roguenerf.geometry.depth import DEPTH_EPS, MAX_DEPTH, known_depth, known_depth_mask, median_known_depth
 from roguenerf.images import check_float_image
 from roguenerf.models.config import _UFORMER_KEYS, EnhancerConfig, make_config
-from roguenerf.models.flow import FLOW_STRIDE, FlowRefiner, flow_warp
+from roguenerf.models.flow import FLOW_STRIDE, FlowRefiner, flow_warp, upsample_flow
 from roguenerf.models import fastops
 from roguenerf.models.layers import (
     CameraAttention,
@@ -363,21 +364,40 @@ class Enhancer(nn.Module):
                                                      K, nbrs.world_from_cam[:, j], world_from_cam, (h, w), source)
                 packed.append(buf if buf is not None else cat_channels_last([aligned, nb_depth]))
         flows = None
+        fused = native.enabled(feats)  # the warp upsamples the flow and normalises the depth too
         if self.flow is not None:
             with stage("flow"):
-                flows = self.flow.batched(packed, target_low, h, w)
+                flows = self.flow.batched(packed, target_low, h, w, upsample=not fused)
         pooled = low = None
         spread = self.config.pool_spread
+        attend = self.pixel_attention is not None
         for j in range(n):
             buf = packed[j]
             packed[j] = None  # release each buffer as soon as it is used
+            normalised = False
             if flows is not None:
                 with stage("flow"):
-                    buf = flow_warp(buf, flows[j])
+                    warped = None
+                    if fused:
+                        warped = native.flow_warp(buf, flows[j], depth_scale=scale_b.flatten() if attend else None,
+                                                  depth_channel=f, depth_max=MAX_RELATIVE_DEPTH)
+                        normalised = warped is not None and attend
+                        if warped is None:  # a non-finite flow: the torch path handles it
+                            warped = flow_warp(buf, upsample_flow(flows[j], h, w))
+                    else:
+                        warped = flow_warp(buf, flows[j])
+                    buf = warped
             aligned = buf[:, :f]
-            if self.pixel_attention is not None:
+            if attend:
                 with stage("attention"):
-                    buf[:, f:f + 1] = (buf[:, f:f + 1] / scale_b).clamp(0, MAX_RELATIVE_DEPTH)
+                    if not normalised:
+                        buf[:, f:f + 1] = (buf[:, f:f + 1] / scale_b).clamp(0, MAX_RELATIVE_DEPTH)
+                    if fused:  # the rest of the attention and the pooling in one pass
+                        pa = self.pixel_attention
+                        pooled, low = native.attend_pool(
+                            pa.neighbour_term(buf), attention_term, pa.net[2], pa.net[1].negative_slope,
+                            self.camera_attention(camera_inputs[:, j]), buf, f, pooled, low, spread=spread)
+                        continue
                     psi_pix = self.pixel_attention.from_target_term(buf, attention_term)
                     psi_cam = self.camera_attention(camera_inputs[:, j])[:, :, None, None]
                     # aligned first: the product keeps its channels-last layout (same values).

@@ -26,7 +26,7 @@ from torch import Tensor, nn
 
 from roguenerf.fastpath import fast_enabled, in_reference_mode, layout_enabled, reference_mode
 
-__all__ = ["conv2d", "channels_last", "fast_enabled", "in_reference_mode", "layout_enabled", "linear",
+__all__ = ["conv2d", "channels_last", "fast_enabled", "in_reference_mode", "layout_enabled", "linear", "linear_add",
            "mkldnn_fused_available", "reference_mode"]
 
 @functools.lru_cache(maxsize=1)
@@ -60,6 +60,17 @@ def linear(x: Tensor, layer: nn.Linear, activation: str = "none") -> Tensor:
         return y.view(*shape[:-1], y.shape[-1])
     y = layer(x)
     return F.gelu(y) if activation == "gelu" else y
+
+
+def linear_add(x: Tensor, layer: nn.Linear, other: Tensor) -> Tensor:
+    """``layer(x) + other`` (``other`` shaped as the result), the sum fused into the linear
+    kernel on the fast path."""
+    if _fused(x) and other.is_contiguous():
+        shape = x.shape
+        y = torch.ops.mkldnn._linear_pointwise.binary(x.reshape(-1, shape[-1]), other.reshape(-1, other.shape[-1]),
+                                                      layer.weight, layer.bias, "add")
+        return y.view(other.shape)
+    return layer(x) + other
 
 
 def conv2d(x: Tensor, conv: nn.Conv2d, activation: str = "none", slope: float = 0.01) -> Tensor:

@@ -19,6 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from roguenerf import native
 from roguenerf.fastpath import fast_enabled
 from roguenerf.geometry.sampling import bilinear_sample
 from roguenerf.models.layers import act, conv_act, he_init, zero_init
@@ -114,25 +115,27 @@ class FlowRefiner(nn.Module):
             tg = tg.repeat(k, 1, 1, 1)
         return self._iterate(nb, tg, height, width)
 
-    def batched(self, neighbours: list[Tensor], target_low: Tensor, height: int, width: int) -> list[Tensor]:
+    def batched(self, neighbours: list[Tensor], target_low: Tensor, height: int, width: int, *,
+                upsample: bool = True) -> list[Tensor]:
         """Flows for several neighbours of one target at once: ``neighbours`` N tensors
         ``(B, F [+ extra], H, W)``, ``target_low`` from :meth:`encode_target` -> N flows
         ``(B, 2, H, W)``. Equal to N calls of :meth:`forward`; the 1/8-resolution network runs
-        on a batch of N * B (larger, faster convolutions)."""
+        on a batch of N * B (larger, faster convolutions). ``upsample=False``: the flows at
+        1/8 resolution ``(B, 2, h, w)``, before :func:`upsample_flow`."""
         n = len(neighbours)
         pooled = torch.cat([self._pool(x) for x in neighbours], dim=0)
         nb = self._encode_low(pooled)
         tg = target_low.repeat(n, 1, 1, 1)
-        return list(self._iterate(nb, tg, height, width).chunk(n, dim=0))
+        return list(self._iterate(nb, tg, height, width, upsample=upsample).chunk(n, dim=0))
 
-    def _iterate(self, nb: Tensor, tg: Tensor, height: int, width: int) -> Tensor:
+    def _iterate(self, nb: Tensor, tg: Tensor, height: int, width: int, *, upsample: bool = True) -> Tensor:
         hidden = torch.tanh(tg)
         flow = tg.new_zeros(tg.shape[0], 2, *tg.shape[-2:])
         for _ in range(self.iters):
             x = conv_act(self.to_input, torch.cat([flow_warp(nb, flow), tg, flow], dim=1))
             hidden = self.gru(hidden, x)
             flow = flow + self.to_delta(hidden)
-        return upsample_flow(flow, height, width)
+        return upsample_flow(flow, height, width) if upsample else flow
 
     def encode_target(self, target: Tensor) -> Tensor:
         """``(B, hidden, h, w)`` 1/8-resolution encoding of the target; pass it to :meth:`forward`
@@ -141,6 +144,8 @@ class FlowRefiner(nn.Module):
 
     def _pool(self, x: Tensor) -> Tensor:
         """``(B, C, H, W)`` -> ``(B, F, h, w)``: edge-padded to a multiple of 8, averaged, first F channels."""
+        if native.enabled(x) and x.dtype == torch.float32:
+            return native.pool8(x, self.encode[0].in_channels)
         ph, pw = -x.shape[-2] % FLOW_STRIDE, -x.shape[-1] % FLOW_STRIDE
         if ph or pw:
             x = F.pad(x, (0, pw, 0, ph), mode="replicate")

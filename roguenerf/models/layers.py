@@ -138,18 +138,23 @@ class PixelAttention(nn.Module):
         x = cat_channels_last(x) if fastops.layout_enabled(target) else torch.cat(x, dim=1)
         return F.conv2d(x, weight, conv.bias, padding=conv.padding)
 
+    def neighbour_term(self, neighbour_and_depth: Tensor) -> Tensor:
+        """``(B, hidden, H, W)``: the first conv's response to [H', D_i] (no bias), from a buffer
+        ``(B, F + 1 + extra, H, W)`` whose channels after D_i are ignored."""
+        conv = self.net[0]
+        f = (conv.weight.shape[1] - 2) // 2
+        extra = neighbour_and_depth.shape[1] - (f + 1)
+        weight = torch.cat([conv.weight[:, :f], conv.weight[:, 2 * f:2 * f + 1],
+                            conv.weight.new_zeros(conv.weight.shape[0], extra, *conv.weight.shape[2:])], dim=1)
+        return F.conv2d(neighbour_and_depth, weight, None, padding=conv.padding)
+
     def from_target_term(self, neighbour_and_depth: Tensor, term: Tensor) -> Tensor:
         """psi_pix from [H', D_i, ...] ``(B, F + 1 + extra, H, W)`` and :meth:`target_term`
         (equal to :meth:`forward`; channels after D_i are ignored, so a buffer holding more
         channels is used without copying). ``neighbour_and_depth`` may also hold k neighbours
         of each of the B targets, ``(k * B, ...)`` neighbour-major: the one target term serves
         them all; returns ``(k * B, 1, H, W)``."""
-        conv = self.net[0]
-        f = (conv.weight.shape[1] - 2) // 2
-        extra = neighbour_and_depth.shape[1] - (f + 1)
-        weight = torch.cat([conv.weight[:, :f], conv.weight[:, 2 * f:2 * f + 1],
-                            conv.weight.new_zeros(conv.weight.shape[0], extra, *conv.weight.shape[2:])], dim=1)
-        hidden = F.conv2d(neighbour_and_depth, weight, None, padding=conv.padding)
+        hidden = self.neighbour_term(neighbour_and_depth)
         k = hidden.shape[0] // term.shape[0]
         if k * term.shape[0] != hidden.shape[0]:
             raise ValueError(f"neighbour batch {hidden.shape[0]} is not a multiple of the target batch {term.shape[0]}")

@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from einops import rearrange
 from torch import Tensor, nn
 
+from roguenerf import native
 from roguenerf.models import fastops
 from roguenerf.models.config import UformerConfig
 from roguenerf.models.layers import conv_act
@@ -137,10 +138,14 @@ class LeFF(nn.Module):
         self.dwconv = nn.Sequential(nn.Conv2d(hidden, hidden, 3, padding=1, groups=hidden), nn.GELU())
         self.linear2 = nn.Linear(hidden, dim)
 
-    def forward(self, x: Tensor) -> Tensor:
+    def forward(self, x: Tensor, residual: Tensor | None = None) -> Tensor:
+        """``residual`` (fast path): returned as ``residual + leff(x)``, the sum fused into the
+        last linear."""
         x = fastops.linear(x, self.linear1[0], "gelu")
         # (B, H, W, C) permuted is a channels-last (B, C, H, W): no copy either way.
         x = fastops.conv2d(x.permute(0, 3, 1, 2), self.dwconv[0], "gelu").permute(0, 2, 3, 1)
+        if residual is not None:
+            return fastops.linear_add(x, self.linear2, residual)
         return fastops.linear(x, self.linear2)
 
 
@@ -189,6 +194,12 @@ class LeWinBlock(nn.Module):
         win = self.win_size
         # As in the official code, a single window needs no shift.
         shift = win // 2 if self.shift and min(h, w) > win else 0
+        if native.enabled(x) and self.modulator is None and not (self.training and self.drop_path.p):
+            # Same function: the norms, roll, window (un)partition and residual in two fused passes.
+            mask = _shift_mask(h, w, win, shift, x.device) if shift else None
+            y = self.attn(native.ln_partition(x, self.norm1, win, shift), mask)
+            x, normed = native.merge_ln(x, y, self.norm2, win, shift)
+            return self.mlp(normed, residual=x)
         y = self.norm1(x)
         mask = None
         if shift:

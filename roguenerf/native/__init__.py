@@ -1,0 +1,289 @@
+"""Fused C kernels for the CPU inference fast path, compiled on first use.
+
+The enhancer's full-resolution geometry (reprojection with its visibility test, the flow's
+1/8 pooling, the flow upsampling and warp) is a chain of cheap elementwise steps over 18-channel
+maps: in torch each step is a pass over memory, and those passes, not arithmetic, were most of
+its time (``bench/stages.py``). ``kernels.c`` does each chain in one pass, with the same float32
+operations as the torch fast path, and the callers (:mod:`roguenerf.geometry.reproject`,
+:mod:`roguenerf.models.flow`, the enhancer) use it only where the torch fast path would run
+(no gradient, float32, CPU; never in ``reference_mode()`` or ``previous_fast_path()``). The
+results agree with the plain implementation to float32 rounding (``tests/test_native.py``).
+
+Nothing is shipped pre-built: the first call compiles ``kernels.c`` with the system C compiler
+(``$CC``, else ``cc``/``gcc``/``clang``; -O3, -march=native, OpenMP where the compiler has it)
+into ``$ROGUENERF_NATIVE_CACHE`` (default ``~/.cache/roguenerf/native``), named by a hash of the
+source, the compiler, the flags and this CPU, written atomically (concurrent processes are
+safe). It takes about a second. Without a compiler, or when the build fails, a warning is
+logged once and the torch fast path runs instead (same results, slower).
+``ROGUENERF_NATIVE=0`` turns the kernels off.
+
+Dimension letters: B batch, (H, W) target size, (Hs, Ws) neighbour size, Cs channels of a
+sampling source or packed buffer (features, depth, mask), F feature channels, (h, w) = 1/8 size.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import logging
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import threading
+from collections.abc import Callable
+from contextlib import contextmanager
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from roguenerf.fastpath import fast_enabled, in_previous_fast_path
+
+log = logging.getLogger(__name__)
+
+SOURCE = Path(__file__).with_name("kernels.c")
+BASE_FLAGS = ["-O3", "-std=gnu11", "-fPIC", "-shared", "-ffp-contract=off", "-fno-math-errno"]
+FLAG_SETS = (["-march=native", "-fopenmp"], ["-fopenmp"], ["-march=native"], [])
+"""Tried in order: a compiler without OpenMP (Apple clang) or without -march=native still
+builds the kernels (single-threaded without OpenMP)."""
+
+_i64, _f32, _int, _p = ctypes.c_int64, ctypes.c_float, ctypes.c_int, ctypes.c_void_p
+_SIGNATURES = {
+    "rg_reproject": (None, [_p, _p, _p, _p, _p, _p, _p, _i64, _i64, _i64, _i64, _i64, _i64,
+                            _f32, _f32, _f32, _int]),
+    "rg_flow_warp": (_i64, [_p, _p, _p, _i64, _i64, _i64, _i64, _i64, _i64, _p, _i64, _f32, _int]),
+    "rg_pool8": (None, [_p, _p, _i64, _i64, _i64, _i64, _i64, _int]),
+    "rg_ln_partition": (None, [_p, _p, _p, _p, _f32, _i64, _i64, _i64, _i64, _i64, _i64, _int]),
+    "rg_merge_ln": (None, [_p, _p, _p, _p, _p, _p, _f32, _i64, _i64, _i64, _i64, _i64, _i64, _int]),
+    "rg_attend_pool": (None, [_p, _p, _p, _f32, _f32, _p, _p, _p, _p, _i64, _i64, _i64, _i64, _i64, _i64,
+                              _int, _int]),
+}
+
+
+def cache_dir() -> Path:
+    env = os.environ.get("ROGUENERF_NATIVE_CACHE")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "roguenerf" / "native"
+
+
+def compiler() -> str | None:
+    """The C compiler to use: ``$CC``, else the first of cc, gcc, clang on PATH (None: none)."""
+    for name in (os.environ.get("CC"), "cc", "gcc", "clang"):
+        if name and shutil.which(name):
+            return shutil.which(name)
+    return None
+
+
+def _cpu_id() -> str:
+    """What -march=native depends on: the CPU's model and feature flags (Linux), else the platform."""
+    try:
+        info = Path("/proc/cpuinfo").read_text()
+        lines = [ln for ln in info.splitlines() if ln.startswith(("model name", "flags", "Features"))]
+        return "\n".join(sorted(set(lines)))
+    except OSError:
+        return platform.processor() + platform.machine()
+
+
+def _build(cc: str) -> Path | None:
+    source = SOURCE.read_bytes()
+    try:
+        version = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        return None
+    errors = []
+    for extra in FLAG_SETS:
+        flags = BASE_FLAGS + extra
+        key = hashlib.sha256(b"\0".join([source, version.encode(), " ".join(flags).encode(),
+                                         _cpu_id().encode()])).hexdigest()[:16]
+        target = cache_dir() / f"kernels-{key}.so"
+        if target.exists():
+            return target
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
+        os.close(fd)
+        try:
+            run = subprocess.run([cc, *flags, str(SOURCE), "-o", tmp, "-lm"], capture_output=True,
+                                 text=True, timeout=300)
+            if run.returncode == 0:
+                os.replace(tmp, target)  # atomic: a concurrent build writes the same bytes
+                return target
+            errors.append(f"{' '.join(extra) or 'plain'}: {run.stderr.strip()[-500:]}")
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+    log.warning("roguenerf.native: %s could not build the kernels:\n%s", cc, "\n".join(errors))
+    return None
+
+
+@functools.lru_cache(maxsize=1)
+def library() -> ctypes.CDLL | None:
+    """The compiled kernels (built on the first call), or None: turned off, no compiler, or the
+    build failed (logged once)."""
+    if os.environ.get("ROGUENERF_NATIVE", "1").strip().lower() in ("0", "false", "no", "off"):
+        return None
+    cc = compiler()
+    if cc is None:
+        log.warning("roguenerf.native: no C compiler found (set CC or install gcc); "
+                    "using the slower torch fast path")
+        return None
+    try:
+        path = _build(cc)
+        if path is None:
+            return None
+        lib = ctypes.CDLL(str(path))
+        for name, (restype, argtypes) in _SIGNATURES.items():
+            fn = getattr(lib, name)
+            fn.restype, fn.argtypes = restype, argtypes
+        return lib
+    except OSError as exc:  # unwritable cache, a library that does not load
+        log.warning("roguenerf.native: kernels unavailable (%s); using the torch fast path", exc)
+        return None
+
+
+_state = threading.local()
+
+on_call: Callable[[str, int], None] | None = None
+"""If set, called after every kernel with its name and the bytes of the tensors it read and
+wrote (``bench/stages.py`` adds them to its per-stage byte counts)."""
+
+
+@contextmanager
+def disabled(off: bool = True):
+    """Inside: the kernels are not used in this thread (the torch fast path runs). Nestable."""
+    previous = getattr(_state, "off", False)
+    _state.off = off
+    try:
+        yield
+    finally:
+        _state.off = previous
+
+
+def enabled(x: Tensor) -> bool:
+    """The kernels apply to ``x``: the torch fast path would run (not reference or previous mode,
+    no gradient, float32 CPU), they are not :func:`disabled`, and they are built."""
+    return (fast_enabled(x) and not in_previous_fast_path() and not getattr(_state, "off", False)
+            and library() is not None)
+
+
+def _account(name: str, *tensors: Tensor | None) -> None:
+    if on_call is not None:
+        on_call(name, sum(t.numel() * t.element_size() for t in tensors if t is not None))
+
+
+def _threads() -> int:
+    return max(1, torch.get_num_threads())
+
+
+def _ptr(x: Tensor) -> int:
+    return x.data_ptr()
+
+
+def _channels_last(x: Tensor) -> Tensor:
+    return x.contiguous(memory_format=torch.channels_last)
+
+
+def reproject(depth: Tensor, rows: Tensor, cols: Tensor, offset: Tensor, source: Tensor, *,
+              eps: float, max_depth: float, leniency: float) -> tuple[Tensor, Tensor]:
+    """One neighbour into B targets: ``depth`` ``(B, 1, H, W)``, the projection's per-row
+    ``(B, 3, H)`` and per-column ``(B, 3, W)`` terms and ``offset`` ``(B, 3)`` (float32, from
+    :func:`roguenerf.geometry.reproject._projection_terms`), ``source`` ``(B, Cs, Hs, Ws)`` ->
+    the packed ``(B, Cs, H, W)`` channels-last buffer [features * valid, depth, valid] and
+    ``coords`` ``(B, H, W, 2)``."""
+    b, cs, hs, ws = source.shape
+    h, w = depth.shape[-2:]
+    depth = depth.contiguous()
+    source = _channels_last(source)
+    rows, cols, offset = rows.contiguous(), cols.contiguous(), offset.contiguous()
+    out = torch.empty(b, cs, h, w, memory_format=torch.channels_last)
+    coords = torch.empty(b, h, w, 2)
+    library().rg_reproject(_ptr(depth), _ptr(rows), _ptr(cols), _ptr(offset), _ptr(source), _ptr(out),
+                           _ptr(coords), b, h, w, hs, ws, cs, eps, max_depth,
+                           float(torch.tensor(1.0 + leniency, dtype=torch.float32)), _threads())
+    _account("reproject", depth, source, out, coords)
+    return out, coords
+
+
+def flow_warp(x: Tensor, flow_low: Tensor, *, depth_scale: Tensor | None = None, depth_channel: int = 0,
+              depth_max: float = 0.0) -> Tensor | None:
+    """``flow_warp(x, upsample_flow(flow_low, H, W))`` in one pass: ``x`` ``(B, Cs, H, W)``,
+    ``flow_low`` ``(B, 2, h, w)`` -> ``(B, Cs, H, W)`` channels-last. With ``depth_scale``
+    ``(B,)``, channel ``depth_channel`` of the result is then ``clamp(v / scale, 0, depth_max)``.
+    None where a sample coordinate is not finite (the caller takes the torch path)."""
+    b, cs, h, w = x.shape
+    x = _channels_last(x)
+    flow_low = flow_low.contiguous()
+    out = torch.empty(b, cs, h, w, memory_format=torch.channels_last)
+    scale = depth_scale.contiguous() if depth_scale is not None else None
+    bad = library().rg_flow_warp(_ptr(x), _ptr(flow_low), _ptr(out), b, h, w, cs, flow_low.shape[-2],
+                                 flow_low.shape[-1], _ptr(scale) if scale is not None else None,
+                                 depth_channel, depth_max, _threads())
+    _account("flow_warp", x, flow_low, out)
+    return None if bad else out
+
+
+def pool8(x: Tensor, channels: int) -> Tensor:
+    """Edge-padded 8 x 8 average pool of the first ``channels`` channels: ``(B, Cs, H, W)`` ->
+    ``(B, channels, ceil(H / 8), ceil(W / 8))`` channels-last."""
+    b, cs, h, w = x.shape
+    x = _channels_last(x)
+    out = torch.empty(b, channels, -(-h // 8), -(-w // 8), memory_format=torch.channels_last)
+    library().rg_pool8(_ptr(x), _ptr(out), b, h, w, cs, channels, _threads())
+    _account("pool8", x[:, :channels], out)
+    return out
+
+
+def attend_pool(hidden: Tensor, term: Tensor, conv: torch.nn.Conv2d, slope: float, camera: Tensor,
+                buf: Tensor, features: int, pooled: Tensor | None, low: Tensor | None, *,
+                spread: bool) -> tuple[Tensor, Tensor | None]:
+    """The pixel attention after its first convolution, the weighting and the pooling, for one
+    neighbour: ``psi = camera * sigmoid(conv(leaky_relu(hidden + term, slope)))``,
+    ``a = buf[:, :features] * psi``, then ``pooled = max(pooled, a)`` and (``spread``)
+    ``low = min(low, a)``, in place; ``pooled`` None starts both at ``a``.
+
+    ``hidden``, ``term`` ``(B, Hd, H, W)``; ``conv`` a 3 x 3 convolution Hd -> 1 (zero padding);
+    ``camera`` ``(B, 1)``; ``buf`` ``(B, Cs, H, W)``. Returns ``(pooled, low)``
+    ``(B, features, H, W)`` channels-last (low None without ``spread``)."""
+    b, hd, h, w = hidden.shape
+    cs = buf.shape[1]
+    hidden, term, buf = _channels_last(hidden), _channels_last(term), _channels_last(buf)
+    weight = conv.weight.detach().reshape(hd, 9).contiguous()
+    camera = camera.detach().reshape(b).contiguous()
+    first = pooled is None
+    if first:
+        pooled = torch.empty(b, features, h, w, memory_format=torch.channels_last)
+        low = torch.empty(b, features, h, w, memory_format=torch.channels_last) if spread else None
+    library().rg_attend_pool(_ptr(hidden), _ptr(term), _ptr(weight), float(conv.bias.detach()[0]), slope,
+                             _ptr(camera), _ptr(buf), _ptr(pooled), _ptr(low) if low is not None else None,
+                             b, h, w, hd, cs, features, int(first), _threads())
+    _account("attend_pool", hidden, term, buf[:, :features], pooled, low, *(() if first else (pooled, low)))
+    return pooled, low
+
+
+def ln_partition(x: Tensor, norm: torch.nn.LayerNorm, win: int, shift: int) -> Tensor:
+    """A LeWin block's attention input: ``x`` ``(B, H, W, C)`` (H, W multiples of ``win``) ->
+    windows of ``roll(norm(x), (-shift, -shift))``, ``(B * H/win * W/win, win * win, C)``."""
+    b, h, w, c = x.shape
+    x = x.contiguous()
+    out = torch.empty(b * (h // win) * (w // win), win * win, c)
+    library().rg_ln_partition(_ptr(x), _ptr(out), _ptr(norm.weight), _ptr(norm.bias), norm.eps,
+                              b, h, w, c, win, shift, _threads())
+    _account("ln_partition", x, out)
+    return out
+
+
+def merge_ln(x: Tensor, tokens: Tensor, norm: torch.nn.LayerNorm, win: int, shift: int) -> tuple[Tensor, Tensor]:
+    """The attention's windows back into the image with the residual, and the next LayerNorm:
+    ``x + roll(merge(tokens), (shift, shift))`` and ``norm`` of it, both ``(B, H, W, C)``."""
+    b, h, w, c = x.shape
+    x, tokens = x.contiguous(), tokens.contiguous()
+    out, normed = torch.empty_like(x), torch.empty_like(x)
+    library().rg_merge_ln(_ptr(x), _ptr(tokens), _ptr(out), _ptr(normed), _ptr(norm.weight), _ptr(norm.bias),
+                          norm.eps, b, h, w, c, win, shift, _threads())
+    _account("merge_ln", x, tokens, out, normed)
+    return out, normed
+

@@ -1,0 +1,344 @@
+/* Fused CPU inference kernels for roguenerf (see roguenerf/native/__init__.py).
+ *
+ * Each kernel does in one pass over the image what the torch fast path does in ten to thirty
+ * elementwise passes, with the same float32 operations in the same order where it matters for
+ * a decision (projection, inside/visibility tests). Layouts: "channels-last" images are
+ * (B, H, W, C) contiguous, i.e. torch's (B, C, H, W) in channels_last memory format.
+ * Compiled with -ffp-contract=off so that a * b + c is two roundings, as in torch's unfused
+ * elementwise operations. Forward only, float32, no gradient.
+ */
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+#define RG_API __attribute__((visibility("default")))
+
+static inline float clampf(float v, float lo, float hi) {
+    /* torch.clamp: NaN stays NaN */
+    return v < lo ? lo : (v > hi ? hi : v);
+}
+
+/* Weighted sum of four source rows of C channels into out (tap order as the torch path). */
+static inline void taps4(float *restrict out, const float *restrict s00, const float *restrict s10,
+                         const float *restrict s01, const float *restrict s11,
+                         float w00, float w10, float w01, float w11, int64_t C) {
+    for (int64_t c = 0; c < C; ++c) {
+        float acc = w00 * s00[c];
+        acc = acc + w10 * s10[c];
+        acc = acc + w01 * s01[c];
+        acc = acc + w11 * s11[c];
+        out[c] = acc;
+    }
+}
+
+/* Reprojection of one neighbour into B targets (roguenerf.geometry.reproject, fast path).
+ *
+ * depth   (B, H, W)       target z-depth
+ * rows    (B, 3, H)       per-row term of x numerator, y numerator, z: M_i1 * (v + .5) + M_i2
+ * cols    (B, 3, W)       per-column term M_i0 * (u + .5)
+ * cvec    (B, 3)          translation term
+ * src     (B, Hs, Ws, Cs) sampling source: C features, known depth, known mask (Cs = C + 2)
+ * out     (B, H, W, Cs)   features * valid, depth D_{i->k} (0 where invalid), valid (0/1)
+ * coords  (B, H, W, 2)    projected (x, y), 0 where not in front
+ * lenient = 1 + leniency (float32, as torch multiplies it)
+ */
+RG_API void rg_reproject(const float *depth, const float *rows, const float *cols, const float *cvec,
+                         const float *src, float *out, float *coords,
+                         int64_t B, int64_t H, int64_t W, int64_t Hs, int64_t Ws, int64_t Cs,
+                         float eps, float max_depth, float lenient, int nthreads) {
+    const int64_t C = Cs - 2;
+    const float xmax = (float)((double)Ws - 0.5), ymax = (float)((double)Hs - 0.5);
+    const float xb = (float)(Ws - 1), yb = (float)(Hs - 1);
+#pragma omp parallel for collapse(2) schedule(static) num_threads(nthreads)
+    for (int64_t b = 0; b < B; ++b) {
+        for (int64_t v = 0; v < H; ++v) {
+            const float *rw = rows + b * 3 * H;
+            const float *cl = cols + b * 3 * W;
+            const float *cv = cvec + b * 3;
+            const float *sb = src + b * Hs * Ws * Cs;
+            const float *drow = depth + (b * H + v) * W;
+            float *orow = out + (b * H + v) * W * Cs;
+            float *crow = coords + (b * H + v) * W * 2;
+            for (int64_t u = 0; u < W; ++u) {
+                float *o = orow + u * Cs;
+                const float d = drow[u];
+                const int known = isfinite(d) && d > eps && d < max_depth;
+                const float z = known ? d : 1.0f;
+                float zp = (rw[2 * H + v] + cl[2 * W + u]) * z + cv[2];
+                float x = (rw[v] + cl[u]) * z + cv[0];
+                float y = (rw[H + v] + cl[W + u]) * z + cv[1];
+                const int front = isfinite(x) && isfinite(y) && isfinite(zp) && zp > eps;
+                if (!front) { zp = 1.0f; x = 0.0f; y = 0.0f; }
+                x = x / zp - 0.5f;
+                y = y / zp - 0.5f;
+                if (!front) { x = 0.0f; y = 0.0f; }
+                crow[2 * u] = x;
+                crow[2 * u + 1] = y;
+                const int inside = x >= -0.5f && x <= xmax && y >= -0.5f && y <= ymax;
+                if (!(known && front && inside)) {
+                    memset(o, 0, (size_t)Cs * sizeof(float));
+                    continue;
+                }
+                /* bilinear, border padding */
+                const float sx = clampf(x, 0.0f, xb), sy = clampf(y, 0.0f, yb);
+                const float x0f = floorf(sx), y0f = floorf(sy);
+                const float wx1 = sx - x0f, wy1 = sy - y0f;
+                const float wx0 = 1.0f - wx1, wy0 = 1.0f - wy1;
+                const int64_t x0 = (int64_t)x0f, y0 = (int64_t)y0f;
+                const int64_t x1 = x0 + 1 < Ws ? x0 + 1 : Ws - 1, y1 = y0 + 1 < Hs ? y0 + 1 : Hs - 1;
+                taps4(o, sb + (y0 * Ws + x0) * Cs, sb + (y0 * Ws + x1) * Cs, sb + (y1 * Ws + x0) * Cs,
+                      sb + (y1 * Ws + x1) * Cs, wx0 * wy0, wx1 * wy0, wx0 * wy1, wx1 * wy1, Cs);
+                /* visibility */
+                const float weight = o[C + 1];
+                const int seen = weight >= 0.5f;
+                const float zi = o[C] / (seen ? weight : 1.0f);
+                const int visible = zp <= lenient * zi;
+                if (seen && visible) {
+                    o[C] = zi;
+                    o[C + 1] = 1.0f;
+                } else {
+                    memset(o, 0, (size_t)Cs * sizeof(float));
+                }
+            }
+        }
+    }
+}
+
+/* Flow warp of one neighbour's buffer (roguenerf.models.flow: upsample_flow + flow_warp).
+ *
+ * src   (B, H, W, Cs)  channels-last buffer to warp (zero padding outside)
+ * flow  (B, 2, h, w)   flow at 1/8 resolution, contiguous; upsampled bilinearly
+ *                      (align_corners=False, scale 1/8) and times 8, as F.interpolate does
+ * out   (B, H, W, Cs)
+ * scale (B,) or NULL   if given, channel dchan of the result becomes clamp(v / scale, 0, dmax)
+ * Returns the number of non-finite sample coordinates (the caller then uses the torch path;
+ * out is not valid).
+ */
+RG_API int64_t rg_flow_warp(const float *src, const float *flow, float *out,
+                            int64_t B, int64_t H, int64_t W, int64_t Cs, int64_t h, int64_t w,
+                            const float *scale, int64_t dchan, float dmax, int nthreads) {
+    int64_t bad = 0;
+#pragma omp parallel for collapse(2) schedule(static) num_threads(nthreads) reduction(+ : bad)
+    for (int64_t b = 0; b < B; ++b) {
+        for (int64_t v = 0; v < H; ++v) {
+            const float *fx = flow + b * 2 * h * w, *fy = fx + h * w;
+            const float *sb = src + b * H * W * Cs;
+            float *orow = out + (b * H + v) * W * Cs;
+            /* source row of the upsampling (area_pixel_compute_source_index, align_corners=False) */
+            float ry = 0.125f * ((float)v + 0.5f) - 0.5f;
+            if (ry < 0.0f) ry = 0.0f;
+            int64_t r0 = (int64_t)ry;
+            if (r0 > h - 1) r0 = h - 1;
+            float ly1 = ry - (float)r0;
+            ly1 = ly1 < 0.0f ? 0.0f : (ly1 > 1.0f ? 1.0f : ly1);
+            const float ly0 = 1.0f - ly1;
+            const int64_t r1 = r0 < h - 1 ? r0 + 1 : r0;
+            for (int64_t u = 0; u < W; ++u) {
+                float *o = orow + u * Cs;
+                float rx = 0.125f * ((float)u + 0.5f) - 0.5f;
+                if (rx < 0.0f) rx = 0.0f;
+                int64_t c0 = (int64_t)rx;
+                if (c0 > w - 1) c0 = w - 1;
+                float lx1 = rx - (float)c0;
+                lx1 = lx1 < 0.0f ? 0.0f : (lx1 > 1.0f ? 1.0f : lx1);
+                const float lx0 = 1.0f - lx1;
+                const int64_t c1 = c0 < w - 1 ? c0 + 1 : c0;
+                const float dx = ly0 * (lx0 * fx[r0 * w + c0] + lx1 * fx[r0 * w + c1])
+                                 + ly1 * (lx0 * fx[r1 * w + c0] + lx1 * fx[r1 * w + c1]);
+                const float dy = ly0 * (lx0 * fy[r0 * w + c0] + lx1 * fy[r0 * w + c1])
+                                 + ly1 * (lx0 * fy[r1 * w + c0] + lx1 * fy[r1 * w + c1]);
+                const float x = (float)u + dx * 8.0f, y = (float)v + dy * 8.0f;
+                if (!isfinite(x) || !isfinite(y)) {
+                    ++bad;
+                    memset(o, 0, (size_t)Cs * sizeof(float));
+                    continue;
+                }
+                /* bilinear, zero padding: a tap outside weighs 0 (per axis) */
+                const float x0f = floorf(x), y0f = floorf(y);
+                float wx1 = x - x0f, wy1 = y - y0f;
+                float wx0 = 1.0f - wx1, wy0 = 1.0f - wy1;
+                const int64_t x0 = (int64_t)x0f, y0 = (int64_t)y0f;
+                if (!(x0 >= 0 && x0 < W)) wx0 = 0.0f;
+                if (!(x0 >= -1 && x0 < W - 1)) wx1 = 0.0f;
+                if (!(y0 >= 0 && y0 < H)) wy0 = 0.0f;
+                if (!(y0 >= -1 && y0 < H - 1)) wy1 = 0.0f;
+                {
+                    const int64_t xa = x0 < 0 ? 0 : (x0 > W - 1 ? W - 1 : x0);
+                    const int64_t xc = x0 + 1 < 0 ? 0 : (x0 + 1 > W - 1 ? W - 1 : x0 + 1);
+                    const int64_t ya = y0 < 0 ? 0 : (y0 > H - 1 ? H - 1 : y0);
+                    const int64_t yc = y0 + 1 < 0 ? 0 : (y0 + 1 > H - 1 ? H - 1 : y0 + 1);
+                    taps4(o, sb + (ya * W + xa) * Cs, sb + (ya * W + xc) * Cs, sb + (yc * W + xa) * Cs,
+                          sb + (yc * W + xc) * Cs, wx0 * wy0, wx1 * wy0, wx0 * wy1, wx1 * wy1, Cs);
+                }
+                if (scale) o[dchan] = clampf(o[dchan] / scale[b], 0.0f, dmax);
+            }
+        }
+    }
+    return bad;
+}
+
+/* Replicate-padded 8x8 average pool of the first F channels (roguenerf.models.flow._pool).
+ *
+ * src (B, H, W, Cs) channels-last; out (B, h, w, F) channels-last with h = ceil(H / 8),
+ * w = ceil(W / 8): pixels beyond the image repeat the last row / column.
+ */
+RG_API void rg_pool8(const float *src, float *out, int64_t B, int64_t H, int64_t W, int64_t Cs,
+                     int64_t F, int nthreads) {
+    const int64_t h = (H + 7) / 8, w = (W + 7) / 8;
+#pragma omp parallel for collapse(2) schedule(static) num_threads(nthreads)
+    for (int64_t b = 0; b < B; ++b) {
+        for (int64_t i = 0; i < h; ++i) {
+            float acc[w * F];
+            memset(acc, 0, sizeof(acc));
+            const float *sb = src + b * H * W * Cs;
+            for (int64_t dy = 0; dy < 8; ++dy) {
+                int64_t y = i * 8 + dy;
+                if (y > H - 1) y = H - 1;
+                const float *row = sb + y * W * Cs;
+                for (int64_t x = 0; x < w * 8; ++x) {
+                    const float *p = row + (x < W ? x : W - 1) * Cs;
+                    float *a = acc + (x / 8) * F;
+                    for (int64_t c = 0; c < F; ++c) a[c] += p[c];
+                }
+            }
+            float *o = out + (b * h + i) * w * F;
+            for (int64_t k = 0; k < w * F; ++k) o[k] = acc[k] / 64.0f;
+        }
+    }
+}
+
+/* Pixel attention's second half, the weighting and the max / min pool, for one neighbour
+ * (roguenerf.models.enhancer, fast path):
+ *   g      = leaky_relu(hidden + term)                      (B, H, W, Hd), computed on the fly
+ *   psi    = sigmoid(conv3x3(g, w2) + b2) * cam[b]          zero padding
+ *   a      = buf[..., :F] * psi
+ *   pooled = a if first else max(pooled, a);  low = a if first else min(low, a)  (NaN propagates)
+ * hidden, term (B, H, W, Hd); w2 (Hd, 3, 3) (conv weight (1, Hd, 3, 3)); buf (B, H, W, Cs);
+ * pooled, low (B, H, W, F) (low may be NULL).
+ */
+RG_API void rg_attend_pool(const float *hidden, const float *term, const float *w2, float b2, float slope,
+                           const float *cam, const float *buf, float *pooled, float *low,
+                           int64_t B, int64_t H, int64_t W, int64_t Hd, int64_t Cs, int64_t F, int first,
+                           int nthreads) {
+#pragma omp parallel for collapse(2) schedule(static) num_threads(nthreads)
+    for (int64_t b = 0; b < B; ++b) {
+        for (int64_t v = 0; v < H; ++v) {
+            float g[3][Hd][W + 2];  /* leaky(hidden + term) of rows v-1..v+1 per channel, zero-padded */
+            float s[W];
+            for (int64_t r = 0; r < 3; ++r) {
+                const int64_t y = v + r - 1;
+                if (y < 0 || y >= H) {
+                    memset(g[r], 0, sizeof(g[r]));
+                    continue;
+                }
+                const float *hr = hidden + (b * H + y) * W * Hd, *tr = term + (b * H + y) * W * Hd;
+                for (int64_t c = 0; c < Hd; ++c) {
+                    g[r][c][0] = 0.0f;
+                    g[r][c][W + 1] = 0.0f;
+                }
+                for (int64_t u = 0; u < W; ++u) {
+                    for (int64_t c = 0; c < Hd; ++c) {
+                        const float t = hr[u * Hd + c] + tr[u * Hd + c];
+                        g[r][c][u + 1] = t > 0.0f ? t : t * slope;
+                    }
+                }
+            }
+            for (int64_t u = 0; u < W; ++u) s[u] = 0.0f;
+            for (int64_t c = 0; c < Hd; ++c) {
+                for (int64_t r = 0; r < 3; ++r) {
+                    for (int64_t dx = 0; dx < 3; ++dx) {
+                        const float wt = w2[c * 9 + r * 3 + dx];
+                        const float *gr = g[r][c] + dx;
+                        for (int64_t u = 0; u < W; ++u) s[u] = s[u] + wt * gr[u];
+                    }
+                }
+            }
+            const float cb = cam[b];
+            for (int64_t u = 0; u < W; ++u) s[u] = cb * (1.0f / (1.0f + expf(-(s[u] + b2))));
+            const float *brow = buf + (b * H + v) * W * Cs;
+            float *prow = pooled + (b * H + v) * W * F;
+            float *lrow = low ? low + (b * H + v) * W * F : 0;
+            for (int64_t u = 0; u < W; ++u) {
+                const float psi = s[u];
+                const float *f = brow + u * Cs;
+                float *p = prow + u * F;
+                if (first) {
+                    for (int64_t c = 0; c < F; ++c) p[c] = f[c] * psi;
+                    if (lrow) memcpy(lrow + u * F, p, (size_t)F * sizeof(float));
+                    continue;
+                }
+                for (int64_t c = 0; c < F; ++c) {
+                    const float a = f[c] * psi;
+                    p[c] = (a > p[c] || isnan(a)) ? a : p[c];
+                }
+                if (lrow) {
+                    float *l = lrow + u * F;
+                    for (int64_t c = 0; c < F; ++c) {
+                        const float a = f[c] * psi;
+                        l[c] = (a < l[c] || isnan(a)) ? a : l[c];
+                    }
+                }
+            }
+        }
+    }
+}
+
+/* LayerNorm of one C-channel token into out (torch.nn.functional.layer_norm, biased variance). */
+static inline void layer_norm_row(const float *restrict x, float *restrict out, const float *w,
+                                  const float *bias, int64_t C, float eps) {
+    float mean = 0.0f;
+    for (int64_t c = 0; c < C; ++c) mean += x[c];
+    mean /= (float)C;
+    float var = 0.0f;
+    for (int64_t c = 0; c < C; ++c) {
+        const float d = x[c] - mean;
+        var += d * d;
+    }
+    var /= (float)C;
+    const float rstd = 1.0f / sqrtf(var + eps);
+    for (int64_t c = 0; c < C; ++c) out[c] = (x[c] - mean) * rstd * w[c] + bias[c];
+}
+
+/* LeWin block's first half, before the attention (roguenerf.models.uformer.LeWinBlock):
+ * tokens = window_partition(roll(layer_norm(x), (-shift, -shift))).
+ * x (B, H, W, C); tokens (B * nh * nw, win * win, C), windows row-major per image. */
+RG_API void rg_ln_partition(const float *x, float *tokens, const float *w, const float *bias, float eps,
+                            int64_t B, int64_t H, int64_t W, int64_t C, int64_t win, int64_t shift,
+                            int nthreads) {
+    const int64_t nw = W / win;
+#pragma omp parallel for collapse(2) schedule(static) num_threads(nthreads)
+    for (int64_t b = 0; b < B; ++b) {
+        for (int64_t i = 0; i < H; ++i) {  /* i, j: position in the rolled image */
+            const int64_t si = (i + shift) % H;
+            for (int64_t j = 0; j < W; ++j) {
+                const int64_t sj = (j + shift) % W;
+                const int64_t n = (i / win) * nw + j / win, l = (i % win) * win + j % win;
+                layer_norm_row(x + ((b * H + si) * W + sj) * C,
+                               tokens + (((b * (H / win) * nw) + n) * win * win + l) * C, w, bias, C, eps);
+            }
+        }
+    }
+}
+
+/* The attention's output back into the image, plus the residual, then the second LayerNorm:
+ * x_out = x + roll(window_merge(tokens), (shift, shift)); normed = layer_norm(x_out).
+ * x, x_out, normed (B, H, W, C) (x_out may be x); tokens (B * nh * nw, win * win, C). */
+RG_API void rg_merge_ln(const float *x, const float *tokens, float *x_out, float *normed, const float *w,
+                        const float *bias, float eps, int64_t B, int64_t H, int64_t W, int64_t C, int64_t win,
+                        int64_t shift, int nthreads) {
+    const int64_t nw = W / win;
+#pragma omp parallel for collapse(2) schedule(static) num_threads(nthreads)
+    for (int64_t b = 0; b < B; ++b) {
+        for (int64_t i = 0; i < H; ++i) {
+            const int64_t ri = (i - shift + H) % H;  /* position in the rolled image */
+            for (int64_t j = 0; j < W; ++j) {
+                const int64_t rj = (j - shift + W) % W;
+                const int64_t n = (ri / win) * nw + rj / win, l = (ri % win) * win + rj % win;
+                const float *t = tokens + (((b * (H / win) * nw) + n) * win * win + l) * C;
+                const int64_t at = ((b * H + i) * W + j) * C;
+                for (int64_t c = 0; c < C; ++c) x_out[at + c] = x[at + c] + t[c];
+                layer_norm_row(x_out + at, normed + at, w, bias, C, eps);
+            }
+        }
+    }
+}

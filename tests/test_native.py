@@ -1,0 +1,248 @@
+"""The fused C kernels (``roguenerf.native``) compute what the torch fast path computes.
+
+Each kernel is compared with the torch code it replaces (``native.disabled()``) on inputs with
+the hard cases that code handles: unknown and non-finite depths, points behind the neighbour
+camera or outside its image, occlusion, half-known neighbour depth, samples beyond the edges,
+NaN in the pooled maps, odd sizes, batches. The whole enhancer is compared with the plain
+implementation (``reference_mode()``). Masks must agree exactly; values to float32 rounding.
+The build is checked too: it happens here (``./dev test`` installs a C compiler), it is
+cached, and without a compiler or with a failing one the library falls back to the torch path
+with a warning, giving the same output.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+
+from roguenerf import native
+from roguenerf.fastpath import reference_mode
+from roguenerf.geometry import reproject, sampling_source
+from roguenerf.models import build_enhancer
+from roguenerf.models.flow import FlowRefiner, flow_warp, upsample_flow
+from roguenerf.models.layers import PixelAttention
+from roguenerf.models.uformer import LeWinBlock
+from tests.test_model import make_views, randomise
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Calls:
+    """Counts the kernels run inside the ``with`` block (proves the native path ran)."""
+
+    def __enter__(self):
+        self.names: list[str] = []
+        native.on_call = lambda name, nbytes: self.names.append(name)
+        return self
+
+    def __exit__(self, *exc):
+        native.on_call = None
+
+
+def test_kernels_are_built_here_and_cached():
+    lib = native.library()
+    assert lib is not None, "a C compiler is part of the test set-up (./dev test installs gcc)"
+    path = Path(lib._name)
+    assert path.parent == native.cache_dir() and path.exists()
+    assert native._build(native.compiler()) == path  # the second build is the cached file
+
+
+def test_reprojection_kernel_equals_the_torch_fast_path_on_hard_cases():
+    g = torch.Generator().manual_seed(3)
+    model = build_enhancer("micro")
+    _, depth, K, P, nb = make_views(model, b=2, n=1, h=37, w=53)
+    depth = depth.clone()
+    depth[0, 0, :4, :6] = 0.0
+    depth[0, 0, 5, 5:9] = torch.tensor([float("nan"), float("inf"), -1.0, 1e-40])
+    depth[1, 0, 7, 7] = 1e11  # beyond MAX_DEPTH: unknown
+    depth[1, 0, 20:, :] = 0.5  # near the camera: projects outside the neighbour or behind it
+    depth[1, 0, 30:, :10] = 40.0  # far behind the neighbour's wall: occluded
+    src_depth = nb.depth[:, 0].clone()
+    src_depth[:, :, 10:14, 20:30] = float("nan")  # unknown neighbour depth: the weight < 0.5 cases
+    src_depth[:, :, 15:17, :] = 0.0
+    feats = torch.randn(nb.features[:, 0].shape, generator=g)
+    poses = nb.world_from_cam[:, 0].clone()
+    poses[1, 2, 3] = 3.0  # the second target's neighbour stands inside the scene: points behind it
+    args = (feats, src_depth, depth, nb.K[:, 0], K, poses, P)
+    with torch.inference_mode():
+        with Calls() as calls:
+            fast = reproject(*args, leniency=0.1)
+        with native.disabled():
+            plain = reproject(*args, leniency=0.1)
+    assert calls.names == ["reproject"]
+    valid = plain.valid.bool()
+    assert 0.2 * valid.numel() < valid.sum() < 0.9 * valid.numel()
+    torch.testing.assert_close(fast.valid, plain.valid, atol=0, rtol=0)
+    torch.testing.assert_close(fast.coords, plain.coords, atol=1e-5, rtol=0)
+    torch.testing.assert_close(fast.features, plain.features, atol=1e-6, rtol=1e-6)
+    torch.testing.assert_close(fast.depth, plain.depth, atol=1e-6, rtol=1e-6)
+    assert fast.packed.is_contiguous(memory_format=torch.channels_last)
+    assert fast.features.data_ptr() == fast.packed.data_ptr()
+    with torch.no_grad(), reference_mode():
+        ref = reproject(*args, leniency=0.1)
+    torch.testing.assert_close(fast.valid, ref.valid, atol=0, rtol=0)
+    torch.testing.assert_close(fast.features, ref.features, atol=1e-4, rtol=0)
+
+
+def test_reprojection_without_neighbour_depth_keeps_the_torch_path():
+    model = build_enhancer("micro")
+    _, depth, K, P, nb = make_views(model, n=1, h=20, w=24)
+    with torch.inference_mode(), Calls() as calls:
+        rp = reproject(nb.features[:, 0], None, depth, nb.K[:, 0], K, nb.world_from_cam[:, 0], P)
+    assert calls.names == [] and rp.packed is None
+
+
+@pytest.mark.parametrize("normalise", [False, True])
+def test_flow_warp_kernel_equals_upsample_and_warp(normalise):
+    g = torch.Generator().manual_seed(4)
+    h, w = 37, 53
+    buf = torch.randn(2, 18, h, w, generator=g).contiguous(memory_format=torch.channels_last)
+    buf[:, 16] = buf[:, 16].abs() * 5
+    low = torch.randn(2, 2, 5, 7, generator=g) * 3  # up to ~ +-70 px at full resolution: samples leave the image
+    scale = torch.tensor([2.0, 0.7])
+    with torch.inference_mode():
+        with native.disabled():
+            want = flow_warp(buf, upsample_flow(low, h, w))
+            if normalise:
+                want[:, 16:17] = (want[:, 16:17] / scale[:, None, None, None]).clamp(0, 10.0)
+        got = native.flow_warp(buf, low, depth_scale=scale if normalise else None, depth_channel=16, depth_max=10.0)
+    assert got.is_contiguous(memory_format=torch.channels_last)
+    assert float((want == 0).all(dim=1).float().mean()) > 0.02  # some samples fall outside
+    # Sample positions up to ~70 px carry float32 rounding of ~4e-6 px (the flow's upsampling
+    # sums in its own order); times the map's gradients (~10 per px) that is ~4e-5.
+    torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-5)
+
+
+def test_flow_warp_kernel_refuses_a_non_finite_flow():
+    buf = torch.rand(1, 18, 16, 16).contiguous(memory_format=torch.channels_last)
+    low = torch.zeros(1, 2, 2, 2)
+    low[0, 0, 1, 1] = float("inf")
+    with torch.inference_mode():
+        assert native.flow_warp(buf, low) is None
+        assert native.flow_warp(buf, torch.zeros(1, 2, 2, 2)) is not None
+
+
+@pytest.mark.parametrize("size", [(16, 24), (13, 21), (1, 9)])
+def test_pool_kernel_equals_padded_average_pool(size):
+    flow = FlowRefiner(features=16, hidden=8, iters=1)
+    x = torch.randn(2, 18, *size).contiguous(memory_format=torch.channels_last)
+    with torch.inference_mode():
+        with Calls() as calls:
+            got = flow._pool(x)
+        with native.disabled():
+            want = flow._pool(x)
+    assert calls.names == ["pool8"]
+    assert got.shape == want.shape == (2, 16, -(-size[0] // 8), -(-size[1] // 8))
+    torch.testing.assert_close(got, want, atol=1e-6, rtol=1e-6)
+
+
+@pytest.mark.parametrize("spread", [False, True])
+def test_attention_and_pooling_kernel_equals_the_torch_composition(spread):
+    g = torch.Generator().manual_seed(5)
+    pa = PixelAttention(features=16, hidden=8)
+    h, w = 19, 23
+    term = torch.randn(2, 8, h, w, generator=g).contiguous(memory_format=torch.channels_last)
+    bufs = [torch.randn(2, 18, h, w, generator=g).contiguous(memory_format=torch.channels_last) for _ in range(3)]
+    bufs[1][0, 3, 4, 5] = float("nan")  # NaN propagates through max and min, as torch.maximum
+    cams = [torch.rand(2, 1, generator=g) for _ in range(3)]
+    with torch.inference_mode():
+        pooled = low = None
+        for buf, cam in zip(bufs, cams):
+            pooled, low = native.attend_pool(pa.neighbour_term(buf), term, pa.net[2], pa.net[1].negative_slope,
+                                             cam, buf, 16, pooled, low, spread=spread)
+        want_p = want_l = None
+        for buf, cam in zip(bufs, cams):
+            a = buf[:, :16] * (cam[:, :, None, None] * pa.from_target_term(buf, term))
+            want_p = a if want_p is None else torch.maximum(want_p, a)
+            want_l = a if want_l is None else torch.minimum(want_l, a)
+    assert torch.isnan(pooled[0, 3, 4, 5]) and (low is None or torch.isnan(low[0, 3, 4, 5]))
+    torch.testing.assert_close(pooled, want_p, atol=1e-6, rtol=1e-5, equal_nan=True)
+    if spread:
+        torch.testing.assert_close(low, want_l, atol=1e-6, rtol=1e-5, equal_nan=True)
+    else:
+        assert low is None
+
+
+@pytest.mark.parametrize("shift", [False, True])
+def test_lewin_block_kernels_equal_the_torch_block(shift):
+    g = torch.Generator().manual_seed(6)
+    block = LeWinBlock(dim=16, heads=2, win_size=4, shift=shift, mlp_ratio=4.0).eval()
+    with torch.no_grad():
+        for p in block.parameters():
+            p.copy_(torch.randn(p.shape, generator=g) * 0.3 + (1.0 if p.ndim == 1 and p is block.norm1.weight else 0.0))
+    x = torch.randn(2, 16, 24, 16, generator=g)
+    with torch.inference_mode():
+        with Calls() as calls:
+            got = block(x)
+        with native.disabled():
+            want = block(x)
+    assert calls.names == ["ln_partition", "merge_ln"]
+    torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+    with torch.no_grad(), reference_mode():
+        ref = block(x)
+    torch.testing.assert_close(got, ref, atol=1e-4, rtol=1e-4)
+
+
+def test_enhancer_with_kernels_equals_the_plain_implementation():
+    model = randomise(build_enhancer("micro", num_neighbours=3).eval())
+    render, depth, K, P, nb = make_views(model, b=2, n=3, h=40, w=56)
+    depth = depth.clone()
+    depth[0, 0, :5, :7] = float("nan")
+    with torch.inference_mode(), Calls() as calls:
+        fast = model(render, depth, K, P, nb)
+    with torch.inference_mode(), native.disabled():
+        torch_fast = model(render, depth, K, P, nb)
+    with torch.no_grad(), reference_mode():
+        ref = model(render, depth, K, P, nb)
+    assert {"reproject", "pool8", "flow_warp", "attend_pool", "ln_partition", "merge_ln"} <= set(calls.names)
+    torch.testing.assert_close(fast, torch_fast, atol=1e-5, rtol=0)
+    torch.testing.assert_close(fast, ref, atol=2e-4, rtol=0)
+
+
+def _run(code: str, env: dict) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=300)
+
+
+@pytest.mark.parametrize("how", ["off", "failing compiler", "no compiler"])
+def test_without_kernels_the_torch_path_gives_the_same_output(how, tmp_path):
+    env = {**os.environ, "ROGUENERF_NATIVE_CACHE": str(tmp_path / "cache")}
+    if how == "off":
+        env["ROGUENERF_NATIVE"] = "0"
+    elif how == "failing compiler":
+        env["CC"] = "false"
+    else:
+        env.pop("CC", None)
+        env["PATH"] = str(tmp_path)  # no cc, gcc or clang on it
+    code = """
+        import logging, sys, torch
+        logging.basicConfig(level=logging.WARNING)
+        sys.path.insert(0, ".")
+        from roguenerf import native
+        from roguenerf.fastpath import reference_mode
+        from roguenerf.models import build_enhancer
+        from tests.test_model import make_views, randomise
+        assert native.library() is None
+        model = randomise(build_enhancer("micro").eval())
+        views = make_views(model, n=2, h=24, w=32)
+        with torch.inference_mode():
+            fast = model(*views)
+        with torch.no_grad(), reference_mode():
+            ref = model(*views)
+        torch.testing.assert_close(fast, ref, atol=2e-4, rtol=0)
+        print("same output")
+    """
+    run = _run(code, env)
+    assert run.returncode == 0, run.stderr
+    assert "same output" in run.stdout
+    if how == "off":
+        assert "roguenerf.native" not in run.stderr  # turned off on purpose: no warning
+    else:
+        assert "roguenerf.native" in run.stderr  # the user is told why it is slower
+    assert not list((tmp_path / "cache").glob("*.so"))
