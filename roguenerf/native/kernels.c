@@ -18,11 +18,50 @@ static inline float clampf(float v, float lo, float hi) {
     return v < lo ? lo : (v > hi ? hi : v);
 }
 
+typedef float v16f __attribute__((vector_size(64)));
+typedef int32_t v16i __attribute__((vector_size(64)));
+
+static inline v16f ld16(const float *p) { v16f v; memcpy(&v, p, sizeof(v)); return v; }
+static inline void st16(float *p, v16f v) { memcpy(p, &v, sizeof(v)); }
+
+static inline v16f sel16(v16i m, v16f a, v16f b) { return (v16f)((m & (v16i)a) | (~m & (v16i)b)); }
+
+/* exp(x), 16 lanes: Cephes' expf (range reduction by ln 2, degree-6 polynomial; about 1 ulp),
+ * x clamped to [-87, 88] (the result stays a normal float). */
+static inline v16f exp16(v16f x) {
+    const v16f zero = {0}, lo = zero - 87.0f, hi = zero + 88.0f;
+    x = sel16(x < lo, lo, x);
+    x = sel16(x > hi, hi, x);
+    const v16f y = x * 1.44269504088896341f + 0.5f;
+    v16f n = __builtin_convertvector(__builtin_convertvector(y, v16i), v16f); /* toward 0 */
+    n = n + __builtin_convertvector(n > y, v16f);                              /* floor: -1 where n > y */
+    v16f r = x - n * 0.693359375f;
+    r = r - n * -2.12194440e-4f;
+    v16f p = r * 1.9875691500e-4f + 1.3981999507e-3f;
+    p = p * r + 8.3334519073e-3f;
+    p = p * r + 4.1665795894e-2f;
+    p = p * r + 1.6666665459e-1f;
+    p = p * r + 5.0000001201e-1f;
+    p = p * (r * r) + r + 1.0f;
+    const v16i bits = (__builtin_convertvector(n, v16i) + 127) << 23;
+    v16f scale;
+    memcpy(&scale, &bits, sizeof(scale));
+    return p * scale;
+}
+
 /* Weighted sum of four source rows of C channels into out (tap order as the torch path). */
 static inline void taps4(float *restrict out, const float *restrict s00, const float *restrict s10,
                          const float *restrict s01, const float *restrict s11,
                          float w00, float w10, float w01, float w11, int64_t C) {
-    for (int64_t c = 0; c < C; ++c) {
+    int64_t c = 0;
+    for (; c + 16 <= C; c += 16) {  /* 16 channels at a time: the same operations per channel */
+        v16f acc = ld16(s00 + c) * w00;
+        acc = acc + ld16(s10 + c) * w10;
+        acc = acc + ld16(s01 + c) * w01;
+        acc = acc + ld16(s11 + c) * w11;
+        st16(out + c, acc);
+    }
+    for (; c < C; ++c) {
         float acc = w00 * s00[c];
         acc = acc + w10 * s10[c];
         acc = acc + w01 * s01[c];
@@ -254,7 +293,12 @@ RG_API void rg_attend_pool(const float *hidden, const float *term, const float *
                 }
             }
             const float cb = cam[b];
-            for (int64_t u = 0; u < W; ++u) s[u] = cb * (1.0f / (1.0f + expf(-(s[u] + b2))));
+            int64_t u0 = 0;
+            for (; u0 + 16 <= W; u0 += 16) {  /* psi = cam * sigmoid(s + b2), 16 pixels at a time */
+                const v16f t = ld16(s + u0) + b2;
+                st16(s + u0, cb * (1.0f / (1.0f + exp16(-t))));
+            }
+            for (; u0 < W; ++u0) s[u0] = cb * (1.0f / (1.0f + expf(-(s[u0] + b2))));
             const float *brow = buf + (b * H + v) * W * Cs;
             float *prow = pooled + (b * H + v) * W * F;
             float *lrow = low ? low + (b * H + v) * W * F : 0;
