@@ -182,11 +182,36 @@ def test_lewin_block_kernels_equal_the_torch_block(shift):
             got = block(x)
         with native.disabled():
             want = block(x)
-    assert calls.names == ["ln_partition", "merge_ln"]
+    assert calls.names == ["ln_partition", "window_attention", "merge_ln"]
     torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
     with torch.no_grad(), reference_mode():
         ref = block(x)
     torch.testing.assert_close(got, ref, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize("dim, heads, shifted", [(8, 1, False), (16, 1, True), (64, 4, True), (40, 5, True)])
+def test_window_attention_kernel_equals_torch_attention(dim, heads, shifted):
+    """Two images of 3 x 4 windows; with the shift mask the last row and column of windows mix
+    regions that must not see each other (mask -100); d = 8, 16 (16-wide vectors), 40/5 = 8."""
+    from roguenerf.models.uformer import WindowAttention, _shift_mask
+
+    g = torch.Generator().manual_seed(8)
+    attn = WindowAttention(dim=dim, heads=heads, win_size=4)
+    with torch.no_grad():
+        attn.relative_position_bias_table.copy_(torch.randn(attn.relative_position_bias_table.shape, generator=g))
+        attn.to_qkv.weight.mul_(5)  # larger logits than at initialisation: a sharper softmax
+    mask = _shift_mask(12, 16, 4, 2, "cpu") if shifted else None
+    x = torch.randn(2 * 12, 16, dim, generator=g)
+    with torch.inference_mode():
+        with Calls() as calls:
+            got = attn(x, mask)
+        with native.disabled():
+            want = attn(x, mask)
+    assert calls.names == ["window_attention"]
+    torch.testing.assert_close(got, want, atol=2e-5, rtol=2e-5)
+    with torch.no_grad(), reference_mode():
+        ref = attn(x, mask)
+    torch.testing.assert_close(got, ref, atol=2e-5, rtol=2e-5)
 
 
 def test_enhancer_with_kernels_equals_the_plain_implementation():
@@ -200,7 +225,8 @@ def test_enhancer_with_kernels_equals_the_plain_implementation():
         torch_fast = model(render, depth, K, P, nb)
     with torch.no_grad(), reference_mode():
         ref = model(render, depth, K, P, nb)
-    assert {"reproject", "pool8", "flow_warp", "attend_pool", "ln_partition", "merge_ln"} <= set(calls.names)
+    assert {"reproject", "pool8", "flow_warp", "attend_pool", "ln_partition", "window_attention",
+            "merge_ln"} <= set(calls.names)
     torch.testing.assert_close(fast, torch_fast, atol=1e-5, rtol=0)
     torch.testing.assert_close(fast, ref, atol=2e-4, rtol=0)
 

@@ -81,6 +81,10 @@ class WindowAttention(nn.Module):
 
     def forward(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
         qkv = fastops.linear(x, self.to_qkv)
+        if (self.fused and native.enabled(x)
+                and native.window_attention_supported(x.shape[1], x.shape[-1] // self.heads)):
+            out = native.window_attention(qkv, self._cached_bias(None)[0], mask, self.heads, self.scale)
+            return fastops.linear(out, self.to_out)
         q, k, v = rearrange(qkv, "b l (three n d) -> three b n l d", three=3, n=self.heads)
         if self.fused and fastops.fast_enabled(x):
             out = self._fast_attention(q, k, v, mask)

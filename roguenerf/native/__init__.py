@@ -58,6 +58,7 @@ _SIGNATURES = {
     "rg_pool8": (None, [_p, _p, _i64, _i64, _i64, _i64, _i64, _int]),
     "rg_ln_partition": (None, [_p, _p, _p, _p, _f32, _i64, _i64, _i64, _i64, _i64, _i64, _int]),
     "rg_merge_ln": (None, [_p, _p, _p, _p, _p, _p, _f32, _i64, _i64, _i64, _i64, _i64, _i64, _int]),
+    "rg_window_attention16": (None, [_p, _p, _p, _p, _i64, _i64, _i64, _i64, _f32, _int]),
     "rg_attend_pool": (None, [_p, _p, _p, _f32, _f32, _p, _p, _p, _p, _i64, _i64, _i64, _i64, _i64, _i64,
                               _int, _int]),
 }
@@ -287,3 +288,24 @@ def merge_ln(x: Tensor, tokens: Tensor, norm: torch.nn.LayerNorm, win: int, shif
     _account("merge_ln", x, tokens, out, normed)
     return out, normed
 
+
+
+def window_attention_supported(tokens: int, head_channels: int) -> bool:
+    """:func:`window_attention` handles 4 x 4 windows with up to 64 channels per head."""
+    return tokens == 16 and head_channels <= 64
+
+
+def window_attention(qkv: Tensor, bias: Tensor, mask: Tensor | None, heads: int, scale: float) -> Tensor:
+    """``softmax(scale * q k^T + bias [+ mask]) v`` per 16-token window and head: ``qkv``
+    ``(WB, 16, 3 C)`` (channels q, k, v, each heads x d), ``bias`` ``(heads, 16, 16)``, ``mask``
+    ``(nW, 16, 16)`` (window ``w`` uses ``mask[w % nW]``) or None -> ``(WB, 16, C)`` (heads x d)."""
+    wb, _, c3 = qkv.shape
+    c = c3 // 3
+    qkv, bias = qkv.contiguous(), bias.contiguous()
+    mask = mask.contiguous() if mask is not None else None
+    out = torch.empty(wb, 16, c)
+    library().rg_window_attention16(_ptr(qkv), _ptr(bias), _ptr(mask) if mask is not None else None, _ptr(out),
+                                    wb, mask.shape[0] if mask is not None else 1, heads, c // heads, scale,
+                                    _threads())
+    _account("window_attention", qkv, out)
+    return out

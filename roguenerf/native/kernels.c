@@ -327,8 +327,9 @@ RG_API void rg_attend_pool(const float *hidden, const float *term, const float *
     }
 }
 
-/* LayerNorm of one C-channel token into out (torch.nn.functional.layer_norm, biased variance). */
-static inline void layer_norm_row(const float *restrict x, float *restrict out, const float *w,
+/* LayerNorm of one C-channel token into out (torch.nn.functional.layer_norm, biased variance).
+ * Always inlined: the callers' constant C (8, 16, 32) gives unrolled, vectorised code. */
+static inline __attribute__((always_inline)) void layer_norm_row(const float *restrict x, float *restrict out, const float *w,
                                   const float *bias, int64_t C, float eps) {
     float mean = 0.0f;
     for (int64_t c = 0; c < C; ++c) mean += x[c];
@@ -343,22 +344,37 @@ static inline void layer_norm_row(const float *restrict x, float *restrict out, 
     for (int64_t c = 0; c < C; ++c) out[c] = (x[c] - mean) * rstd * w[c] + bias[c];
 }
 
+#define LN_ANY(src, dst)                                                             \
+    do {                                                                             \
+        if (C == 8) layer_norm_row(src, dst, w, bias, 8, eps);                       \
+        else if (C == 16) layer_norm_row(src, dst, w, bias, 16, eps);                \
+        else if (C == 32) layer_norm_row(src, dst, w, bias, 32, eps);                \
+        else layer_norm_row(src, dst, w, bias, C, eps);                              \
+    } while (0)
+
 /* LeWin block's first half, before the attention (roguenerf.models.uformer.LeWinBlock):
  * tokens = window_partition(roll(layer_norm(x), (-shift, -shift))).
- * x (B, H, W, C); tokens (B * nh * nw, win * win, C), windows row-major per image. */
+ * x (B, H, W, C); tokens (B * nh * nw, win * win, C), windows row-major per image.
+ * Walks the tokens in order (no divisions): window row by window row. */
 RG_API void rg_ln_partition(const float *x, float *tokens, const float *w, const float *bias, float eps,
                             int64_t B, int64_t H, int64_t W, int64_t C, int64_t win, int64_t shift,
                             int nthreads) {
-    const int64_t nw = W / win;
+    const int64_t nh = H / win, nw = W / win;
 #pragma omp parallel for collapse(2) schedule(static) num_threads(nthreads)
     for (int64_t b = 0; b < B; ++b) {
-        for (int64_t i = 0; i < H; ++i) {  /* i, j: position in the rolled image */
-            const int64_t si = (i + shift) % H;
-            for (int64_t j = 0; j < W; ++j) {
-                const int64_t sj = (j + shift) % W;
-                const int64_t n = (i / win) * nw + j / win, l = (i % win) * win + j % win;
-                layer_norm_row(x + ((b * H + si) * W + sj) * C,
-                               tokens + (((b * (H / win) * nw) + n) * win * win + l) * C, w, bias, C, eps);
+        for (int64_t wi = 0; wi < nh; ++wi) {
+            float *dst = tokens + (b * nh + wi) * nw * win * win * C;
+            for (int64_t wj = 0; wj < nw; ++wj) {
+                for (int64_t a = 0; a < win; ++a) {
+                    int64_t si = wi * win + a + shift;  /* rolled row i comes from row i + shift */
+                    if (si >= H) si -= H;
+                    const float *row = x + (b * H + si) * W * C;
+                    int64_t sj = wj * win + shift;
+                    for (int64_t c = 0; c < win; ++c, ++sj, dst += C) {
+                        if (sj >= W) sj -= W;
+                        LN_ANY(row + sj * C, dst);
+                    }
+                }
             }
         }
     }
@@ -366,23 +382,140 @@ RG_API void rg_ln_partition(const float *x, float *tokens, const float *w, const
 
 /* The attention's output back into the image, plus the residual, then the second LayerNorm:
  * x_out = x + roll(window_merge(tokens), (shift, shift)); normed = layer_norm(x_out).
- * x, x_out, normed (B, H, W, C) (x_out may be x); tokens (B * nh * nw, win * win, C). */
+ * x, x_out, normed (B, H, W, C); tokens (B * nh * nw, win * win, C). */
 RG_API void rg_merge_ln(const float *x, const float *tokens, float *x_out, float *normed, const float *w,
                         const float *bias, float eps, int64_t B, int64_t H, int64_t W, int64_t C, int64_t win,
                         int64_t shift, int nthreads) {
-    const int64_t nw = W / win;
+    const int64_t nh = H / win, nw = W / win;
 #pragma omp parallel for collapse(2) schedule(static) num_threads(nthreads)
     for (int64_t b = 0; b < B; ++b) {
-        for (int64_t i = 0; i < H; ++i) {
-            const int64_t ri = (i - shift + H) % H;  /* position in the rolled image */
-            for (int64_t j = 0; j < W; ++j) {
-                const int64_t rj = (j - shift + W) % W;
-                const int64_t n = (ri / win) * nw + rj / win, l = (ri % win) * win + rj % win;
-                const float *t = tokens + (((b * (H / win) * nw) + n) * win * win + l) * C;
-                const int64_t at = ((b * H + i) * W + j) * C;
-                for (int64_t c = 0; c < C; ++c) x_out[at + c] = x[at + c] + t[c];
-                layer_norm_row(x_out + at, normed + at, w, bias, C, eps);
+        for (int64_t wi = 0; wi < nh; ++wi) {
+            const float *t = tokens + (b * nh + wi) * nw * win * win * C;
+            for (int64_t wj = 0; wj < nw; ++wj) {
+                for (int64_t a = 0; a < win; ++a) {
+                    int64_t i = wi * win + a + shift;  /* rolled row r lands on row r + shift */
+                    if (i >= H) i -= H;
+                    const int64_t rowat = (b * H + i) * W * C;
+                    int64_t j = wj * win + shift;
+                    for (int64_t c = 0; c < win; ++c, ++j, t += C) {
+                        if (j >= W) j -= W;
+                        const int64_t at = rowat + j * C;
+                        for (int64_t k = 0; k < C; ++k) x_out[at + k] = x[at + k] + t[k];
+                        LN_ANY(x_out + at, normed + at);
+                    }
+                }
             }
         }
+    }
+}
+
+/* ---- Window attention -------------------------------------------------------------------
+ * From here on the compiler may contract a * b + c into a fused multiply-add, as oneDNN's and
+ * torch's attention kernels do: these are sums of products whose rounding decides nothing.
+ * Helpers are defined again below so that they are compiled (and inlined) with that option. */
+#if defined(__clang__)
+#pragma clang fp contract(fast)
+#elif defined(__GNUC__)
+#pragma GCC optimize("fp-contract=fast")
+#endif
+
+#define WA_LD16(p) ({ v16f _v; memcpy(&_v, (p), sizeof(_v)); _v; })
+#if defined(__clang__)
+#define WA_SHUF16(v, ...) __builtin_shufflevector(v, v, __VA_ARGS__)
+#else
+#define WA_SHUF16(v, ...) __builtin_shuffle(v, (v16i){__VA_ARGS__})
+#endif
+typedef float v8f __attribute__((vector_size(32)));
+
+/* exp(x) for x <= 0 (a softmax after subtracting the row maximum), 16 lanes, as exp16. */
+static inline v16f wa_exp16(v16f x) {
+    const v16f zero = {0}, lo = zero - 87.0f;
+    const v16i below = x < lo;
+    x = (v16f)((below & (v16i)lo) | (~below & (v16i)x));
+    const v16f y = x * 1.44269504088896341f + 0.5f;
+    v16f n = __builtin_convertvector(__builtin_convertvector(y, v16i), v16f);
+    n = n + __builtin_convertvector(n > y, v16f);
+    v16f r = x - n * 0.693359375f;
+    r = r - n * -2.12194440e-4f;
+    v16f p = r * 1.9875691500e-4f + 1.3981999507e-3f;
+    p = p * r + 8.3334519073e-3f;
+    p = p * r + 4.1665795894e-2f;
+    p = p * r + 1.6666665459e-1f;
+    p = p * r + 5.0000001201e-1f;
+    p = p * (r * r) + r + 1.0f;
+    const v16i bits = (__builtin_convertvector(n, v16i) + 127) << 23;
+    v16f scale;
+    memcpy(&scale, &bits, sizeof(scale));
+    return p * scale;
+}
+
+static inline v16f wa_max(v16f a, v16f b) {
+    const v16i gt = a > b;
+    return (v16f)((gt & (v16i)a) | (~gt & (v16i)b));
+}
+
+/* One 16-token window and one head of d channels:
+ * out_i = softmax_j(scale * q_i . k_j + bias_ij [+ mask_ij]) v_j, rows of q, k, v 3C apart. */
+static inline void wa_window16(const float *restrict t, const float *restrict bn, const float *restrict mw,
+                               float *restrict oh, int64_t C, int64_t d, float scale) {
+    float kt[64 * 16] __attribute__((aligned(64))), e[16] __attribute__((aligned(64)));
+    for (int j = 0; j < 16; ++j)
+        for (int64_t c = 0; c < d; ++c) kt[c * 16 + j] = t[j * 3 * C + C + c];
+    for (int i = 0; i < 16; ++i) {
+        const float *q = t + i * 3 * C;
+        v16f s = WA_LD16(kt) * q[0];
+        for (int64_t c = 1; c < d; ++c) s = s + WA_LD16(kt + c * 16) * q[c];
+        s = s * scale + WA_LD16(bn + i * 16);
+        if (mw) s = s + WA_LD16(mw + i * 16);
+        v16f m = wa_max(s, WA_SHUF16(s, 8, 9, 10, 11, 12, 13, 14, 15, 0, 1, 2, 3, 4, 5, 6, 7));
+        m = wa_max(m, WA_SHUF16(m, 4, 5, 6, 7, 0, 1, 2, 3, 12, 13, 14, 15, 8, 9, 10, 11));
+        m = wa_max(m, WA_SHUF16(m, 2, 3, 0, 1, 6, 7, 4, 5, 10, 11, 8, 9, 14, 15, 12, 13));
+        m = wa_max(m, WA_SHUF16(m, 1, 0, 3, 2, 5, 4, 7, 6, 9, 8, 11, 10, 13, 12, 15, 14));
+        const v16f p = wa_exp16(s - m);
+        v16f sum = p + WA_SHUF16(p, 8, 9, 10, 11, 12, 13, 14, 15, 0, 1, 2, 3, 4, 5, 6, 7);
+        sum = sum + WA_SHUF16(sum, 4, 5, 6, 7, 0, 1, 2, 3, 12, 13, 14, 15, 8, 9, 10, 11);
+        sum = sum + WA_SHUF16(sum, 2, 3, 0, 1, 6, 7, 4, 5, 10, 11, 8, 9, 14, 15, 12, 13);
+        sum = sum + WA_SHUF16(sum, 1, 0, 3, 2, 5, 4, 7, 6, 9, 8, 11, 10, 13, 12, 15, 14);
+        const v16f pn = p / sum;
+        memcpy(e, &pn, sizeof(pn));
+        float *o = oh + i * C;
+        const float *v = t + 2 * C;
+        int64_t c = 0;
+        for (; c + 16 <= d; c += 16) {
+            v16f acc = WA_LD16(v + c) * e[0];
+            for (int j = 1; j < 16; ++j) acc = acc + WA_LD16(v + j * 3 * C + c) * e[j];
+            memcpy(o + c, &acc, sizeof(acc));
+        }
+        for (; c + 8 <= d; c += 8) {
+            v8f acc, x;
+            memcpy(&acc, v + c, sizeof(acc));
+            acc = acc * e[0];
+            for (int j = 1; j < 16; ++j) {
+                memcpy(&x, v + j * 3 * C + c, sizeof(x));
+                acc = acc + x * e[j];
+            }
+            memcpy(o + c, &acc, sizeof(acc));
+        }
+        for (; c < d; ++c) {
+            float acc = v[c] * e[0];
+            for (int j = 1; j < 16; ++j) acc = acc + v[j * 3 * C + c] * e[j];
+            o[c] = acc;
+        }
+    }
+}
+
+/* Window multi-head self-attention with a relative position bias and an optional additive shift
+ * mask, for 4 x 4 windows (roguenerf.models.uformer.WindowAttention, between its two linears):
+ * qkv (WB, 16, 3 * heads * d), channels (three, head, d); bias (heads, 16, 16); mask (nw, 16, 16)
+ * or NULL, window w using mask[w % nw]; out (WB, 16, heads * d). d <= 64. */
+RG_API void rg_window_attention16(const float *qkv, const float *bias, const float *mask, float *out,
+                                  int64_t WB, int64_t nw, int64_t heads, int64_t d, float scale, int nthreads) {
+    const int64_t C = heads * d;
+#pragma omp parallel for schedule(static) num_threads(nthreads)
+    for (int64_t w = 0; w < WB; ++w) {
+        const float *t = qkv + w * 16 * 3 * C;
+        const float *mw = mask ? mask + (w % nw) * 256 : 0;
+        float *o = out + w * 16 * C;
+        for (int64_t n = 0; n < heads; ++n) wa_window16(t + n * d, bias + n * 256, mw, o + n * d, C, d, scale);
     }
 }
