@@ -25,6 +25,14 @@ STAGES = ("encoders", "reprojection", "flow", "attention", "fusion", "merge", "u
 _active: StageProfile | None = None
 
 
+def add_flops(flops: float) -> None:
+    """Count ``flops`` (2 per multiply-add, as torch counts) of work done outside torch's
+    operators (``roguenerf.native``'s kernels) to the active FLOP-counting profile, if any."""
+    prof = _active
+    if prof is not None and prof._counter is not None:
+        prof._kernel_flops += flops
+
+
 @contextmanager
 def stage(name: str):
     """Attribute the time and FLOPs of the enclosed block to ``name`` (when profiling)."""
@@ -88,7 +96,11 @@ class StageProfile:
         self._t0 = self._f0 = 0.0
 
     def _total_flops(self) -> float:
-        return float(self._counter.get_total_flops()) if self._counter is not None else 0.0
+        counted = float(self._counter.get_total_flops()) if self._counter is not None else 0.0
+        return counted + self._kernel_flops
+
+    _kernel_flops = 0.0
+    """FLOPs that code outside torch reported (:func:`add_flops`)."""
 
     def _enter(self, name: str) -> None:
         self._current = name

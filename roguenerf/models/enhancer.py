@@ -392,7 +392,8 @@ class Enhancer(nn.Module):
                 with stage("attention"):
                     if not normalised:
                         buf[:, f:f + 1] = (buf[:, f:f + 1] / scale_b).clamp(0, MAX_RELATIVE_DEPTH)
-                    if fused:  # the rest of the attention and the pooling in one pass
+                    if fused:  # the rest of the attention and the max / min pooling in one pass
+                        # (so the pooling counts to this stage: no "fusion" stage without pool_spread)
                         pa = self.pixel_attention
                         pooled, low = native.attend_pool(
                             pa.neighbour_term(buf), attention_term, pa.net[2], pa.net[1].negative_slope,

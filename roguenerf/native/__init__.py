@@ -40,6 +40,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from roguenerf import profiling
 from roguenerf.fastpath import fast_enabled, in_previous_fast_path
 
 log = logging.getLogger(__name__)
@@ -262,6 +263,7 @@ def attend_pool(hidden: Tensor, term: Tensor, conv: torch.nn.Conv2d, slope: floa
                              _ptr(camera), _ptr(buf), _ptr(pooled), _ptr(low) if low is not None else None,
                              b, h, w, hd, cs, features, int(first), _threads())
     _account("attend_pool", hidden, term, buf[:, :features], pooled, low, *(() if first else (pooled, low)))
+    profiling.add_flops(2 * 9 * hd * b * h * w)  # the Hd -> 1 convolution, as torch would count it
     return pooled, low
 
 
