@@ -22,6 +22,7 @@ from torch import Tensor, nn
 from roguenerf import native
 from roguenerf.fastpath import fast_enabled
 from roguenerf.geometry.sampling import bilinear_sample
+from roguenerf.models import fastops
 from roguenerf.models.layers import act, conv_act, he_init, zero_init
 
 FLOW_STRIDE = 8
@@ -125,7 +126,7 @@ class FlowRefiner(nn.Module):
         n = len(neighbours)
         pooled = torch.cat([self._pool(x) for x in neighbours], dim=0)
         nb = self._encode_low(pooled)
-        tg = target_low.repeat(n, 1, 1, 1)
+        tg = fastops.channels_last(target_low.repeat(n, 1, 1, 1))  # repeat gives NCHW; the convs want NHWC
         return list(self._iterate(nb, tg, height, width, upsample=upsample).chunk(n, dim=0))
 
     def _iterate(self, nb: Tensor, tg: Tensor, height: int, width: int, *, upsample: bool = True) -> Tensor:

@@ -310,4 +310,5 @@ def window_attention(qkv: Tensor, bias: Tensor, mask: Tensor | None, heads: int,
                                     wb, mask.shape[0] if mask is not None else 1, heads, c // heads, scale,
                                     _threads())
     _account("window_attention", qkv, out)
+    profiling.add_flops(4 * wb * 16 * 16 * c)  # q k^T and p v, as torch counts attention
     return out
