@@ -255,25 +255,26 @@ def plot(rows: list[dict], summaries: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     configs = [(s["variant"], s["height"], s["width"]) for s in summaries]
-    fig, (ax_t, ax_e) = plt.subplots(1, 2, figsize=(13, 0.45 * len(configs) * 2 + 2.5))
+    paths = (("seconds_reference", "plain"), ("seconds_previous", "previous fast path"),
+             ("seconds_torch_fast", "fast, no C kernels"), ("seconds", "fast"))
+    fig, (ax_t, ax_e) = plt.subplots(1, 2, figsize=(13, 0.35 * len(configs) * len(paths) + 2.5))
     colors = dict(zip((*STAGES, "other"), plt.cm.tab10.colors))
     labels = []
     for i, (v, h, w) in enumerate(configs):
-        for k, col in enumerate(("seconds_reference", "seconds")):
-            y = 2 * i + k
+        for k, (col, name) in enumerate(paths):
+            y = len(paths) * i + k
             left = 0.0
             for r in rows:
                 if (r["variant"], r["height"], r["width"]) != (v, h, w) or r["stage"] == "total":
                     continue
                 val = r[col] if r[col] == r[col] else 0.0
                 ax_t.barh(y, val, left=left, color=colors[r["stage"]],
-                          label=r["stage"] if i == 0 and k == 1 else None)
+                          label=r["stage"] if i == 0 and k == len(paths) - 1 else None)
                 left += val
-            labels.append(f"{v} {w}x{h} {'plain' if k == 0 else 'fast'}")
+            labels.append(f"{v} {w}x{h} {name}")
     ax_t.set_yticks(range(len(labels)), labels, fontsize=7)
-    ax_t.set_xscale("log")
     ax_t.set_xlabel("seconds per enhancement (5 neighbours), stacked by stage")
-    ax_t.legend(fontsize=7, loc="lower right")
+    ax_t.legend(fontsize=7, loc="upper right")
     effs = [s["efficiency_model"] for s in summaries]
     ax_e.barh(range(len(configs)), effs, color="tab:green")
     ax_e.axvline(0.4, color="k", ls="--", lw=1)
