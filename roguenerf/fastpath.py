@@ -20,35 +20,40 @@ _state = threading.local()
 
 
 @contextmanager
-def reference_mode(enabled: bool = True):
-    """Inside: the plain (slow) implementation everywhere in this thread. Nestable."""
-    previous = getattr(_state, "reference", False)
-    _state.reference = enabled
+def thread_switch(name: str, enabled: bool = True):
+    """Inside: the thread-local switch ``name`` is ``enabled`` (read with :func:`switched`);
+    nestable, restored on exit."""
+    previous = getattr(_state, name, False)
+    setattr(_state, name, enabled)
     try:
         yield
     finally:
-        _state.reference = previous
+        setattr(_state, name, previous)
 
 
-@contextmanager
+def switched(name: str) -> bool:
+    """The thread-local switch ``name`` (False unless a :func:`thread_switch` set it)."""
+    return getattr(_state, name, False)
+
+
+def reference_mode(enabled: bool = True):
+    """Inside: the plain (slow) implementation everywhere in this thread. Nestable."""
+    return thread_switch("reference", enabled)
+
+
 def previous_fast_path(enabled: bool = True):
     """Inside: the fast path as it was before issue 12's inference work (per-tap bilinear
     sampling, the plain projection maths), for ``bench/stages.py`` to time against the present
     one in one run. Same outputs; not for other use."""
-    previous = getattr(_state, "previous", False)
-    _state.previous = enabled
-    try:
-        yield
-    finally:
-        _state.previous = previous
+    return thread_switch("previous", enabled)
 
 
 def in_previous_fast_path() -> bool:
-    return getattr(_state, "previous", False)
+    return switched("previous")
 
 
 def in_reference_mode() -> bool:
-    return getattr(_state, "reference", False)
+    return switched("reference")
 
 
 def layout_enabled(x: Tensor) -> bool:

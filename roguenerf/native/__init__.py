@@ -32,16 +32,14 @@ import platform
 import shutil
 import subprocess
 import tempfile
-import threading
 from collections.abc import Callable
-from contextlib import contextmanager
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
 from roguenerf import profiling
-from roguenerf.fastpath import fast_enabled, in_previous_fast_path
+from roguenerf.fastpath import fast_enabled, in_previous_fast_path, switched, thread_switch
 
 log = logging.getLogger(__name__)
 
@@ -147,28 +145,20 @@ def library() -> ctypes.CDLL | None:
         return None
 
 
-_state = threading.local()
-
 on_call: Callable[[str, int], None] | None = None
 """If set, called after every kernel with its name and the bytes of the tensors it read and
 wrote (``bench/stages.py`` adds them to its per-stage byte counts)."""
 
 
-@contextmanager
 def disabled(off: bool = True):
     """Inside: the kernels are not used in this thread (the torch fast path runs). Nestable."""
-    previous = getattr(_state, "off", False)
-    _state.off = off
-    try:
-        yield
-    finally:
-        _state.off = previous
+    return thread_switch("native_off", off)
 
 
 def enabled(x: Tensor) -> bool:
     """The kernels apply to ``x``: the torch fast path would run (not reference or previous mode,
     no gradient, float32 CPU), they are not :func:`disabled`, and they are built."""
-    return (fast_enabled(x) and not in_previous_fast_path() and not getattr(_state, "off", False)
+    return (fast_enabled(x) and not in_previous_fast_path() and not switched("native_off")
             and library() is not None)
 
 

@@ -27,27 +27,32 @@ static inline void st16(float *p, v16f v) { memcpy(p, &v, sizeof(v)); }
 static inline v16f sel16(v16i m, v16f a, v16f b) { return (v16f)((m & (v16i)a) | (~m & (v16i)b)); }
 
 /* exp(x), 16 lanes: Cephes' expf (range reduction by ln 2, degree-6 polynomial; about 1 ulp),
- * x clamped to [-87, 88] (the result stays a normal float). */
-static inline v16f exp16(v16f x) {
-    const v16f zero = {0}, lo = zero - 87.0f, hi = zero + 88.0f;
-    x = sel16(x < lo, lo, x);
-    x = sel16(x > hi, hi, x);
-    const v16f y = x * 1.44269504088896341f + 0.5f;
-    v16f n = __builtin_convertvector(__builtin_convertvector(y, v16i), v16f); /* toward 0 */
-    n = n + __builtin_convertvector(n > y, v16f);                              /* floor: -1 where n > y */
-    v16f r = x - n * 0.693359375f;
-    r = r - n * -2.12194440e-4f;
-    v16f p = r * 1.9875691500e-4f + 1.3981999507e-3f;
-    p = p * r + 8.3334519073e-3f;
-    p = p * r + 4.1665795894e-2f;
-    p = p * r + 1.6666665459e-1f;
-    p = p * r + 5.0000001201e-1f;
-    p = p * (r * r) + r + 1.0f;
-    const v16i bits = (__builtin_convertvector(n, v16i) + 127) << 23;
-    v16f scale;
-    memcpy(&scale, &bits, sizeof(scale));
-    return p * scale;
-}
+ * x clamped to [-87, 88] (the result stays a normal float). A macro, so that the window
+ * attention below gets its own copy compiled with its floating-point options (GCC does not
+ * inline across different ones). */
+#define DEFINE_EXP16(name)                                                                 \
+    static inline v16f name(v16f x) {                                                      \
+        const v16f zero = {0}, lo = zero - 87.0f, hi = zero + 88.0f;                       \
+        x = sel16(x < lo, lo, x);                                                          \
+        x = sel16(x > hi, hi, x);                                                          \
+        const v16f y = x * 1.44269504088896341f + 0.5f;                                    \
+        v16f n = __builtin_convertvector(__builtin_convertvector(y, v16i), v16f);          \
+        n = n + __builtin_convertvector(n > y, v16f); /* floor: -1 where n > y */          \
+        v16f r = x - n * 0.693359375f;                                                     \
+        r = r - n * -2.12194440e-4f;                                                       \
+        v16f p = r * 1.9875691500e-4f + 1.3981999507e-3f;                                  \
+        p = p * r + 8.3334519073e-3f;                                                      \
+        p = p * r + 4.1665795894e-2f;                                                      \
+        p = p * r + 1.6666665459e-1f;                                                      \
+        p = p * r + 5.0000001201e-1f;                                                      \
+        p = p * (r * r) + r + 1.0f;                                                        \
+        const v16i bits = (__builtin_convertvector(n, v16i) + 127) << 23;                  \
+        v16f scale;                                                                        \
+        memcpy(&scale, &bits, sizeof(scale));                                              \
+        return p * scale;                                                                  \
+    }
+
+DEFINE_EXP16(exp16)
 
 /* Weighted sum of four source rows of C channels into out (tap order as the torch path). */
 static inline void taps4(float *restrict out, const float *restrict s00, const float *restrict s10,
@@ -143,6 +148,22 @@ RG_API void rg_reproject(const float *depth, const float *rows, const float *col
     }
 }
 
+/* Where output index i of an 8x bilinear upsampling (align_corners=False) reads its input of
+ * size n: indices i0, i1 and weights l0, l1 (torch's area_pixel_compute_source_index with
+ * scale 1/8, and its index / lambda guards). */
+static inline void upsample_source(int64_t i, int64_t n, int64_t *i0, int64_t *i1, float *l0, float *l1) {
+    float r = 0.125f * ((float)i + 0.5f) - 0.5f;
+    if (r < 0.0f) r = 0.0f;
+    int64_t k = (int64_t)r;
+    if (k > n - 1) k = n - 1;
+    float lam = r - (float)k;
+    lam = lam < 0.0f ? 0.0f : (lam > 1.0f ? 1.0f : lam);
+    *i0 = k;
+    *i1 = k < n - 1 ? k + 1 : k;
+    *l1 = lam;
+    *l0 = 1.0f - lam;
+}
+
 /* Flow warp of one neighbour's buffer (roguenerf.models.flow: upsample_flow + flow_warp).
  *
  * src   (B, H, W, Cs)  channels-last buffer to warp (zero padding outside)
@@ -163,25 +184,14 @@ RG_API int64_t rg_flow_warp(const float *src, const float *flow, float *out,
             const float *fx = flow + b * 2 * h * w, *fy = fx + h * w;
             const float *sb = src + b * H * W * Cs;
             float *orow = out + (b * H + v) * W * Cs;
-            /* source row of the upsampling (area_pixel_compute_source_index, align_corners=False) */
-            float ry = 0.125f * ((float)v + 0.5f) - 0.5f;
-            if (ry < 0.0f) ry = 0.0f;
-            int64_t r0 = (int64_t)ry;
-            if (r0 > h - 1) r0 = h - 1;
-            float ly1 = ry - (float)r0;
-            ly1 = ly1 < 0.0f ? 0.0f : (ly1 > 1.0f ? 1.0f : ly1);
-            const float ly0 = 1.0f - ly1;
-            const int64_t r1 = r0 < h - 1 ? r0 + 1 : r0;
+            int64_t r0, r1;
+            float ly0, ly1;
+            upsample_source(v, h, &r0, &r1, &ly0, &ly1);
             for (int64_t u = 0; u < W; ++u) {
                 float *o = orow + u * Cs;
-                float rx = 0.125f * ((float)u + 0.5f) - 0.5f;
-                if (rx < 0.0f) rx = 0.0f;
-                int64_t c0 = (int64_t)rx;
-                if (c0 > w - 1) c0 = w - 1;
-                float lx1 = rx - (float)c0;
-                lx1 = lx1 < 0.0f ? 0.0f : (lx1 > 1.0f ? 1.0f : lx1);
-                const float lx0 = 1.0f - lx1;
-                const int64_t c1 = c0 < w - 1 ? c0 + 1 : c0;
+                int64_t c0, c1;
+                float lx0, lx1;
+                upsample_source(u, w, &c0, &c1, &lx0, &lx1);
                 const float dx = ly0 * (lx0 * fx[r0 * w + c0] + lx1 * fx[r0 * w + c1])
                                  + ly1 * (lx0 * fx[r1 * w + c0] + lx1 * fx[r1 * w + c1]);
                 const float dy = ly0 * (lx0 * fy[r0 * w + c0] + lx1 * fy[r0 * w + c1])
@@ -427,27 +437,10 @@ RG_API void rg_merge_ln(const float *x, const float *tokens, float *x_out, float
 #endif
 typedef float v8f __attribute__((vector_size(32)));
 
-/* exp(x) for x <= 0 (a softmax after subtracting the row maximum), 16 lanes, as exp16. */
-static inline v16f wa_exp16(v16f x) {
-    const v16f zero = {0}, lo = zero - 87.0f;
-    const v16i below = x < lo;
-    x = (v16f)((below & (v16i)lo) | (~below & (v16i)x));
-    const v16f y = x * 1.44269504088896341f + 0.5f;
-    v16f n = __builtin_convertvector(__builtin_convertvector(y, v16i), v16f);
-    n = n + __builtin_convertvector(n > y, v16f);
-    v16f r = x - n * 0.693359375f;
-    r = r - n * -2.12194440e-4f;
-    v16f p = r * 1.9875691500e-4f + 1.3981999507e-3f;
-    p = p * r + 8.3334519073e-3f;
-    p = p * r + 4.1665795894e-2f;
-    p = p * r + 1.6666665459e-1f;
-    p = p * r + 5.0000001201e-1f;
-    p = p * (r * r) + r + 1.0f;
-    const v16i bits = (__builtin_convertvector(n, v16i) + 127) << 23;
-    v16f scale;
-    memcpy(&scale, &bits, sizeof(scale));
-    return p * scale;
-}
+static inline v16f wa_sel16(v16i m, v16f a, v16f b) { return (v16f)((m & (v16i)a) | (~m & (v16i)b)); }
+#define sel16 wa_sel16
+DEFINE_EXP16(wa_exp16)
+#undef sel16
 
 static inline v16f wa_max(v16f a, v16f b) {
     const v16i gt = a > b;
