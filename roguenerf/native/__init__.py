@@ -1,13 +1,22 @@
 """Fused C kernels for the CPU inference fast path, compiled on first use.
 
-The enhancer's full-resolution geometry (reprojection with its visibility test, the flow's
-1/8 pooling, the flow upsampling and warp) is a chain of cheap elementwise steps over 18-channel
-maps: in torch each step is a pass over memory, and those passes, not arithmetic, were most of
-its time (``bench/stages.py``). ``kernels.c`` does each chain in one pass, with the same float32
-operations as the torch fast path, and the callers (:mod:`roguenerf.geometry.reproject`,
-:mod:`roguenerf.models.flow`, the enhancer) use it only where the torch fast path would run
-(no gradient, float32, CPU; never in ``reference_mode()`` or ``previous_fast_path()``). The
-results agree with the plain implementation to float32 rounding (``tests/test_native.py``).
+Much of the fast path's time went to chains of cheap steps, each a pass over memory in torch
+(``bench/stages.py``). ``kernels.c`` does each chain in one pass:
+
+* the reprojection: projection, 4-tap sampling, visibility test and masking
+  (:mod:`roguenerf.geometry.reproject`);
+* the flow's 1/8 average pool, and its upsampling + warp + depth normalisation
+  (:mod:`roguenerf.models.flow`, the enhancer);
+* the pixel attention after its first convolution, the weighting and the max / min pooling;
+* the LeWin block's LayerNorm + roll + window partition, its merge + roll + residual +
+  LayerNorm, and the 4 x 4 window attention (:mod:`roguenerf.models.uformer`).
+
+Where a decision depends on rounding (the projection's inside and visibility tests) the
+kernels do the torch fast path's float32 operations in its order, unfused; the attention may
+fuse multiply-adds, as oneDNN does. The callers use a kernel only where the torch fast path
+would run (no gradient, float32, CPU; never in ``reference_mode()``, ``previous_fast_path()``
+or :func:`disabled`). Results agree with the plain implementation to float32 rounding
+(``tests/test_native.py``).
 
 Nothing is shipped pre-built: the first call compiles ``kernels.c`` with the system C compiler
 (``$CC``, else ``cc``/``gcc``/``clang``; -O3, -march=native, OpenMP where the compiler has it)
@@ -93,7 +102,8 @@ def _build(cc: str) -> Path | None:
     source = SOURCE.read_bytes()
     try:
         version = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=30).stdout
-    except (OSError, subprocess.SubprocessError):
+    except (OSError, subprocess.SubprocessError) as exc:
+        log.warning("roguenerf.native: %s does not run (%s); using the torch fast path", cc, exc)
         return None
     errors = []
     for extra in FLAG_SETS:
