@@ -67,7 +67,7 @@ _SIGNATURES = {
     "rg_ln_partition": (None, [_p, _p, _p, _p, _f32, _i64, _i64, _i64, _i64, _i64, _i64, _int]),
     "rg_merge_ln": (None, [_p, _p, _p, _p, _p, _p, _f32, _i64, _i64, _i64, _i64, _i64, _i64, _int]),
     "rg_window_attention16": (None, [_p, _p, _p, _p, _i64, _i64, _i64, _i64, _f32, _int]),
-    "rg_attend_pool": (None, [_p, _p, _p, _f32, _f32, _p, _p, _p, _p, _i64, _i64, _i64, _i64, _i64, _i64,
+    "rg_attend_pool": (_int, [_p, _p, _p, _f32, _f32, _p, _p, _p, _p, _i64, _i64, _i64, _i64, _i64, _i64,
                               _int, _int]),
 }
 
@@ -259,9 +259,10 @@ def attend_pool(hidden: Tensor, term: Tensor, conv: torch.nn.Conv2d, slope: floa
     if first:
         pooled = torch.empty(b, features, h, w, memory_format=torch.channels_last)
         low = torch.empty(b, features, h, w, memory_format=torch.channels_last) if spread else None
-    library().rg_attend_pool(_ptr(hidden), _ptr(term), _ptr(weight), float(conv.bias.detach()[0]), slope,
-                             _ptr(camera), _ptr(buf), _ptr(pooled), _ptr(low) if low is not None else None,
-                             b, h, w, hd, cs, features, int(first), _threads())
+    if library().rg_attend_pool(_ptr(hidden), _ptr(term), _ptr(weight), float(conv.bias.detach()[0]), slope,
+                                _ptr(camera), _ptr(buf), _ptr(pooled), _ptr(low) if low is not None else None,
+                                b, h, w, hd, cs, features, int(first), _threads()):
+        raise MemoryError("roguenerf.native.attend_pool: out of memory for its row buffers")
     _account("attend_pool", hidden, term, buf[:, :features], pooled, low, *(() if first else (pooled, low)))
     profiling.add_flops(2 * 9 * hd * b * h * w)  # the Hd -> 1 convolution, as torch would count it
     return pooled, low

@@ -9,6 +9,7 @@
  */
 #include <math.h>
 #include <stdint.h>
+#include <stdlib.h>
 #include <string.h>
 
 #define RG_API __attribute__((visibility("default")))
@@ -237,8 +238,8 @@ RG_API void rg_pool8(const float *src, float *out, int64_t B, int64_t H, int64_t
 #pragma omp parallel for collapse(2) schedule(static) num_threads(nthreads)
     for (int64_t b = 0; b < B; ++b) {
         for (int64_t i = 0; i < h; ++i) {
-            float acc[w * F];
-            memset(acc, 0, sizeof(acc));
+            float *acc = out + (b * h + i) * w * F;  /* summed in place, then divided */
+            memset(acc, 0, (size_t)(w * F) * sizeof(float));
             const float *sb = src + b * H * W * Cs;
             for (int64_t dy = 0; dy < 8; ++dy) {
                 int64_t y = i * 8 + dy;
@@ -250,8 +251,7 @@ RG_API void rg_pool8(const float *src, float *out, int64_t B, int64_t H, int64_t
                     for (int64_t c = 0; c < F; ++c) a[c] += p[c];
                 }
             }
-            float *o = out + (b * h + i) * w * F;
-            for (int64_t k = 0; k < w * F; ++k) o[k] = acc[k] / 64.0f;
+            for (int64_t k = 0; k < w * F; ++k) acc[k] = acc[k] / 64.0f;
         }
     }
 }
@@ -265,76 +265,88 @@ RG_API void rg_pool8(const float *src, float *out, int64_t B, int64_t H, int64_t
  * hidden, term (B, H, W, Hd); w2 (Hd, 3, 3) (conv weight (1, Hd, 3, 3)); buf (B, H, W, Cs);
  * pooled, low (B, H, W, F) (low may be NULL).
  */
-RG_API void rg_attend_pool(const float *hidden, const float *term, const float *w2, float b2, float slope,
-                           const float *cam, const float *buf, float *pooled, float *low,
-                           int64_t B, int64_t H, int64_t W, int64_t Hd, int64_t Cs, int64_t F, int first,
-                           int nthreads) {
-#pragma omp parallel for collapse(2) schedule(static) num_threads(nthreads)
-    for (int64_t b = 0; b < B; ++b) {
-        for (int64_t v = 0; v < H; ++v) {
-            float g[3][Hd][W + 2];  /* leaky(hidden + term) of rows v-1..v+1 per channel, zero-padded */
-            float s[W];
-            for (int64_t r = 0; r < 3; ++r) {
-                const int64_t y = v + r - 1;
-                if (y < 0 || y >= H) {
-                    memset(g[r], 0, sizeof(g[r]));
-                    continue;
-                }
-                const float *hr = hidden + (b * H + y) * W * Hd, *tr = term + (b * H + y) * W * Hd;
-                for (int64_t c = 0; c < Hd; ++c) {
-                    g[r][c][0] = 0.0f;
-                    g[r][c][W + 1] = 0.0f;
-                }
-                for (int64_t u = 0; u < W; ++u) {
-                    for (int64_t c = 0; c < Hd; ++c) {
-                        const float t = hr[u * Hd + c] + tr[u * Hd + c];
-                        g[r][c][u + 1] = t > 0.0f ? t : t * slope;
-                    }
-                }
-            }
-            for (int64_t u = 0; u < W; ++u) s[u] = 0.0f;
-            for (int64_t c = 0; c < Hd; ++c) {
+RG_API int rg_attend_pool(const float *hidden, const float *term, const float *w2, float b2, float slope,
+                          const float *cam, const float *buf, float *pooled, float *low,
+                          int64_t B, int64_t H, int64_t W, int64_t Hd, int64_t Cs, int64_t F, int first,
+                          int nthreads) {
+    int failed = 0;
+#pragma omp parallel num_threads(nthreads) reduction(| : failed)
+    {
+        /* per thread: leaky(hidden + term) of rows v-1..v+1, channel-major and zero-padded by one
+         * pixel each side, and the row's attention weights (heap: rows may be wide) */
+        const int64_t gw = W + 2;
+        float *g = malloc(((size_t)(3 * Hd * gw) + (size_t)W) * sizeof(float));
+        if (!g) failed = 1;
+        float *s = g ? g + 3 * Hd * gw : 0;
+#pragma omp for collapse(2) schedule(static)
+        for (int64_t b = 0; b < B; ++b) {
+            for (int64_t v = 0; v < H; ++v) {
+                if (!g) continue;
                 for (int64_t r = 0; r < 3; ++r) {
-                    for (int64_t dx = 0; dx < 3; ++dx) {
-                        const float wt = w2[c * 9 + r * 3 + dx];
-                        const float *gr = g[r][c] + dx;
-                        for (int64_t u = 0; u < W; ++u) s[u] = s[u] + wt * gr[u];
+                    float *gr = g + r * Hd * gw;
+                    const int64_t y = v + r - 1;
+                    if (y < 0 || y >= H) {
+                        memset(gr, 0, (size_t)(Hd * gw) * sizeof(float));
+                        continue;
+                    }
+                    const float *hr = hidden + (b * H + y) * W * Hd, *tr = term + (b * H + y) * W * Hd;
+                    for (int64_t c = 0; c < Hd; ++c) {
+                        gr[c * gw] = 0.0f;
+                        gr[c * gw + W + 1] = 0.0f;
+                    }
+                    for (int64_t u = 0; u < W; ++u) {
+                        for (int64_t c = 0; c < Hd; ++c) {
+                            const float t = hr[u * Hd + c] + tr[u * Hd + c];
+                            gr[c * gw + u + 1] = t > 0.0f ? t : t * slope;
+                        }
                     }
                 }
-            }
-            const float cb = cam[b];
-            int64_t u0 = 0;
-            for (; u0 + 16 <= W; u0 += 16) {  /* psi = cam * sigmoid(s + b2), 16 pixels at a time */
-                const v16f t = ld16(s + u0) + b2;
-                st16(s + u0, cb * (1.0f / (1.0f + exp16(-t))));
-            }
-            for (; u0 < W; ++u0) s[u0] = cb * (1.0f / (1.0f + expf(-(s[u0] + b2))));
-            const float *brow = buf + (b * H + v) * W * Cs;
-            float *prow = pooled + (b * H + v) * W * F;
-            float *lrow = low ? low + (b * H + v) * W * F : 0;
-            for (int64_t u = 0; u < W; ++u) {
-                const float psi = s[u];
-                const float *f = brow + u * Cs;
-                float *p = prow + u * F;
-                if (first) {
-                    for (int64_t c = 0; c < F; ++c) p[c] = f[c] * psi;
-                    if (lrow) memcpy(lrow + u * F, p, (size_t)F * sizeof(float));
-                    continue;
+                for (int64_t u = 0; u < W; ++u) s[u] = 0.0f;
+                for (int64_t c = 0; c < Hd; ++c) {
+                    for (int64_t r = 0; r < 3; ++r) {
+                        for (int64_t dx = 0; dx < 3; ++dx) {
+                            const float wt = w2[c * 9 + r * 3 + dx];
+                            const float *gr = g + (r * Hd + c) * gw + dx;
+                            for (int64_t u = 0; u < W; ++u) s[u] = s[u] + wt * gr[u];
+                        }
+                    }
                 }
-                for (int64_t c = 0; c < F; ++c) {
-                    const float a = f[c] * psi;
-                    p[c] = (a > p[c] || isnan(a)) ? a : p[c];
+                const float cb = cam[b];
+                int64_t u0 = 0;
+                for (; u0 + 16 <= W; u0 += 16) {  /* psi = cam * sigmoid(s + b2), 16 pixels at a time */
+                    const v16f t = ld16(s + u0) + b2;
+                    st16(s + u0, cb * (1.0f / (1.0f + exp16(-t))));
                 }
-                if (lrow) {
-                    float *l = lrow + u * F;
+                for (; u0 < W; ++u0) s[u0] = cb * (1.0f / (1.0f + expf(-(s[u0] + b2))));
+                const float *brow = buf + (b * H + v) * W * Cs;
+                float *prow = pooled + (b * H + v) * W * F;
+                float *lrow = low ? low + (b * H + v) * W * F : 0;
+                for (int64_t u = 0; u < W; ++u) {
+                    const float psi = s[u];
+                    const float *f = brow + u * Cs;
+                    float *p = prow + u * F;
+                    if (first) {
+                        for (int64_t c = 0; c < F; ++c) p[c] = f[c] * psi;
+                        if (lrow) memcpy(lrow + u * F, p, (size_t)F * sizeof(float));
+                        continue;
+                    }
                     for (int64_t c = 0; c < F; ++c) {
                         const float a = f[c] * psi;
-                        l[c] = (a < l[c] || isnan(a)) ? a : l[c];
+                        p[c] = (a > p[c] || isnan(a)) ? a : p[c];
+                    }
+                    if (lrow) {
+                        float *l = lrow + u * F;
+                        for (int64_t c = 0; c < F; ++c) {
+                            const float a = f[c] * psi;
+                            l[c] = (a < l[c] || isnan(a)) ? a : l[c];
+                        }
                     }
                 }
             }
         }
+        free(g);
     }
+    return failed ? -1 : 0;
 }
 
 /* LayerNorm of one C-channel token into out (torch.nn.functional.layer_norm, biased variance).
