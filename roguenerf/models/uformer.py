@@ -198,7 +198,8 @@ class LeWinBlock(nn.Module):
         win = self.win_size
         # As in the official code, a single window needs no shift.
         shift = win // 2 if self.shift and min(h, w) > win else 0
-        if native.enabled(x) and self.modulator is None and not (self.training and self.drop_path.p):
+        if (native.enabled(x) and self.modulator is None and not (self.training and self.drop_path.p)
+                and h % win == 0 and w % win == 0):  # (else the torch path below names the error)
             # Same function: the norms, roll, window (un)partition and residual in two fused passes.
             mask = _shift_mask(h, w, win, shift, x.device) if shift else None
             y = self.attn(native.ln_partition(x, self.norm1, win, shift), mask)

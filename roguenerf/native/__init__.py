@@ -304,6 +304,8 @@ def window_attention(qkv: Tensor, bias: Tensor, mask: Tensor | None, heads: int,
     ``(nW, 16, 16)`` (window ``w`` uses ``mask[w % nW]``) or None -> ``(WB, 16, C)`` (heads x d)."""
     wb, _, c3 = qkv.shape
     c = c3 // 3
+    if mask is not None and wb % mask.shape[0]:
+        raise ValueError(f"window_attention: {wb} windows are not a whole number of images of {mask.shape[0]}")
     qkv, bias = qkv.contiguous(), bias.contiguous()
     mask = mask.contiguous() if mask is not None else None
     out = torch.empty(wb, 16, c)
