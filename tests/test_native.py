@@ -23,7 +23,7 @@ import torch
 
 from roguenerf import native
 from roguenerf.fastpath import reference_mode
-from roguenerf.geometry import reproject, sampling_source
+from roguenerf.geometry import reproject
 from roguenerf.models import build_enhancer
 from roguenerf.models.flow import FlowRefiner, flow_warp, upsample_flow
 from roguenerf.models.layers import PixelAttention

@@ -351,8 +351,9 @@ RG_API int rg_attend_pool(const float *hidden, const float *term, const float *w
 
 /* LayerNorm of one C-channel token into out (torch.nn.functional.layer_norm, biased variance).
  * Always inlined: the callers' constant C (8, 16, 32) gives unrolled, vectorised code. */
-static inline __attribute__((always_inline)) void layer_norm_row(const float *restrict x, float *restrict out, const float *w,
-                                  const float *bias, int64_t C, float eps) {
+static inline __attribute__((always_inline)) void layer_norm_row(const float *restrict x, float *restrict out,
+                                                                  const float *w, const float *bias, int64_t C,
+                                                                  float eps) {
     float mean = 0.0f;
     for (int64_t c = 0; c < C; ++c) mean += x[c];
     mean /= (float)C;
