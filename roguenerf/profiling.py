@@ -93,14 +93,12 @@ class StageProfile:
         self.total_seconds = 0.0
         self._current: str | None = None
         self._counter = None
+        self._kernel_flops = 0.0  # FLOPs that code outside torch reported (add_flops)
         self._t0 = self._f0 = 0.0
 
     def _total_flops(self) -> float:
         counted = float(self._counter.get_total_flops()) if self._counter is not None else 0.0
         return counted + self._kernel_flops
-
-    _kernel_flops = 0.0
-    """FLOPs that code outside torch reported (:func:`add_flops`)."""
 
     def _enter(self, name: str) -> None:
         self._current = name

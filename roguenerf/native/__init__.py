@@ -106,10 +106,10 @@ def _build(cc: str) -> Path | None:
         log.warning("roguenerf.native: %s does not run (%s); using the torch fast path", cc, exc)
         return None
     errors = []
+    cpu = _cpu_id().encode()
     for extra in FLAG_SETS:
         flags = BASE_FLAGS + extra
-        key = hashlib.sha256(b"\0".join([source, version.encode(), " ".join(flags).encode(),
-                                         _cpu_id().encode()])).hexdigest()[:16]
+        key = hashlib.sha256(b"\0".join([source, version.encode(), " ".join(flags).encode(), cpu])).hexdigest()[:16]
         target = cache_dir() / f"kernels-{key}.so"
         if target.exists():
             return target
@@ -205,7 +205,7 @@ def reproject(depth: Tensor, rows: Tensor, cols: Tensor, offset: Tensor, source:
     coords = torch.empty(b, h, w, 2)
     library().rg_reproject(_ptr(depth), _ptr(rows), _ptr(cols), _ptr(offset), _ptr(source), _ptr(out),
                            _ptr(coords), b, h, w, hs, ws, cs, eps, max_depth,
-                           float(torch.tensor(1.0 + leniency, dtype=torch.float32)), _threads())
+                           1.0 + leniency, _threads())  # ctypes rounds it to float32, as torch's product does
     _account("reproject", depth, source, out, coords)
     return out, coords
 
