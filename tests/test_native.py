@@ -184,11 +184,76 @@ def test_lewin_block_kernels_equal_the_torch_block(shift):
             got = block(x)
         with native.disabled():
             want = block(x)
-    assert calls.names == ["ln_partition", "window_attention", "merge_ln"]
+    assert calls.names == ["ln_partition", "window_attention", "merge_ln", "leff"]
     torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
     with torch.no_grad(), reference_mode():
         ref = block(x)
     torch.testing.assert_close(got, ref, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize("dim, size, batch, residual", [
+    (8, (13, 23), 2, True),    # 8 channels: the 8-lane output tiles; width not a multiple of the 6-pixel blocks
+    (16, (1, 7), 1, True),     # one row: both neighbour rows are the zero padding
+    (24, (5, 40), 3, False),   # 16 + 8 output channels; no residual
+    (40, (6, 9), 1, True),     # 32 + 8 output channels, hidden 160 = 2 x 2 x 32 + 32 (16-lane) tiles
+])
+def test_leff_kernel_equals_the_torch_feed_forward(dim, size, batch, residual):
+    """The fused LeFF against oneDNN's linear, depthwise conv and GELUs (``native.disabled``) and
+    the plain layers, with inputs from -12 to 12 standard deviations: the GELU's clamped tails
+    (erf = +-1) and its curved middle both occur. The kernel's packed weights follow a change."""
+    from roguenerf.models.uformer import LeFF
+
+    if not native.leff_supported(dim, 4 * dim):
+        pytest.skip(f"{dim} channels take the oneDNN path with {native.vector_width()}-lane vectors")
+    g = torch.Generator().manual_seed(11)
+    leff = LeFF(dim=dim, hidden=4 * dim).eval()
+    with torch.no_grad():
+        for p in leff.parameters():
+            p.copy_(torch.randn(p.shape, generator=g) * 0.5)
+    x = torch.randn(batch, *size, dim, generator=g) * torch.linspace(0.1, 12, dim)
+    res = torch.randn(batch, *size, dim, generator=g) if residual else None
+    for step in range(2):
+        with torch.inference_mode():
+            with Calls() as calls:
+                got = leff(x, residual=res)
+            with native.disabled():
+                want = leff(x, residual=res)
+        assert calls.names == ["leff"]
+        with torch.no_grad(), reference_mode():
+            exact = leff.double()(x.double()) + (res.double() if residual else 0)
+            leff.float()
+        # Sums of up to 4 C products of size ~10: compare errors on the outputs' scale.
+        scale = exact.abs().max().item()
+        err, err_torch = (got - exact).abs().max().item(), (want - exact).abs().max().item()
+        print(f"step {step}: scale {scale:.1f}, error {err:.2e} (torch fast path {err_torch:.2e})")
+        assert err <= max(2 * err_torch, 1e-6 * scale)
+        with torch.no_grad():
+            leff.dwconv[0].weight.mul_(-1.5)  # a fine-tuning step: the second pass must see it
+
+
+def test_leff_gelu_is_the_exact_erf_gelu():
+    """The kernel's GELU alone (identity linears, a centre-tap-only depthwise conv): within 1e-6
+    of float64 GELU over [-40, 40]; exactly 0 far out on the negative side and x on the positive."""
+    from roguenerf.models.uformer import LeFF
+
+    dim = 16
+    leff = LeFF(dim=dim, hidden=4 * dim).eval()
+    if not native.leff_supported(dim, 4 * dim):
+        pytest.skip("16 channels take the oneDNN path here")
+    with torch.no_grad():
+        for p in leff.parameters():
+            p.zero_()
+        leff.linear1[0].weight[:dim] = torch.eye(dim)        # hidden[:dim] = x
+        leff.dwconv[0].weight[:, 0, 1, 1] = 1.0              # centre tap: gelu(gelu(x))
+        leff.linear2.weight[:, :dim] = torch.eye(dim)
+    x = torch.linspace(-40, 40, 16 * 9 * 11 * dim).reshape(1, 16 * 9, 11, dim)
+    x[0, 0, 0, :3] = torch.tensor([-1e30, 1e30, -0.0])
+    with torch.inference_mode():
+        got = leff(x, residual=None)
+    want = torch.nn.functional.gelu(torch.nn.functional.gelu(x.double())).float()
+    assert got[0, 0, 0, :3].tolist() == [0.0, x[0, 0, 0, 1].item(), 0.0]
+    got[0, 0, 0, :3] = want[0, 0, 0, :3]  # (float64 rounds 1e30 differently)
+    torch.testing.assert_close(got, want, atol=1e-6, rtol=1e-6)
 
 
 @pytest.mark.parametrize("dim, heads, shifted", [(8, 1, False), (16, 1, True), (64, 4, True), (40, 5, True)])
@@ -228,7 +293,7 @@ def test_enhancer_with_kernels_equals_the_plain_implementation():
     with torch.no_grad(), reference_mode():
         ref = model(render, depth, K, P, nb)
     assert {"reproject", "pool8", "flow_warp", "attend_pool", "ln_partition", "window_attention",
-            "merge_ln"} <= set(calls.names)
+            "merge_ln", "leff"} <= set(calls.names)
     torch.testing.assert_close(fast, torch_fast, atol=1e-5, rtol=0)
     torch.testing.assert_close(fast, ref, atol=2e-4, rtol=0)
 

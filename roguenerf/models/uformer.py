@@ -144,7 +144,9 @@ class LeFF(nn.Module):
 
     def forward(self, x: Tensor, residual: Tensor | None = None) -> Tensor:
         """``residual`` (fast path): returned as ``residual + leff(x)``, the sum fused into the
-        last linear."""
+        last linear, or the whole block one fused kernel (:func:`roguenerf.native.leff`)."""
+        if native.enabled(x) and native.leff_supported(x.shape[-1], self.linear1[0].out_features):
+            return native.leff(x, residual, self)
         x = fastops.linear(x, self.linear1[0], "gelu")
         # (B, H, W, C) permuted is a channels-last (B, C, H, W): no copy either way.
         x = fastops.conv2d(x.permute(0, 3, 1, 2), self.dwconv[0], "gelu").permute(0, 2, 3, 1)

@@ -9,11 +9,14 @@ Much of the fast path's time went to chains of cheap steps, each a pass over mem
   (:mod:`roguenerf.models.flow`, the enhancer);
 * the pixel attention after its first convolution, the weighting and the max / min pooling;
 * the LeWin block's LayerNorm + roll + window partition, its merge + roll + residual +
-  LayerNorm, and the 4 x 4 window attention (:mod:`roguenerf.models.uformer`).
+  LayerNorm, the 4 x 4 window attention, and its feed-forward (LeFF: linear, GELU, depthwise
+  3 x 3 convolution, GELU, linear, residual) with the hidden maps kept in cache
+  (:mod:`roguenerf.models.uformer`).
 
 Where a decision depends on rounding (the projection's inside and visibility tests) the
-kernels do the torch fast path's float32 operations in its order, unfused; the attention may
-fuse multiply-adds, as oneDNN does. The callers use a kernel only where the torch fast path
+kernels do the torch fast path's float32 operations in its order, unfused; the attention and
+the LeFF may fuse multiply-adds, as oneDNN does, and the LeFF's GELU evaluates erf by a rational
+approximation (error below 1e-7, as oneDNN's own is an approximation). The callers use a kernel only where the torch fast path
 would run (no gradient, float32, CPU; never in ``reference_mode()``, ``previous_fast_path()``
 or :func:`disabled`). Results agree with the plain implementation to float32 rounding
 (``tests/test_native.py``).
@@ -69,6 +72,8 @@ _SIGNATURES = {
     "rg_window_attention16": (None, [_p, _p, _p, _p, _i64, _i64, _i64, _i64, _f32, _int]),
     "rg_attend_pool": (_int, [_p, _p, _p, _f32, _f32, _p, _p, _p, _p, _i64, _i64, _i64, _i64, _i64, _i64,
                               _int, _int]),
+    "rg_vector_width": (_int, []),
+    "rg_leff": (_int, [_p, _p, _p, _p, _p, _p, _p, _p, _p, _i64, _i64, _i64, _i64, _i64, _int]),
 }
 
 
@@ -314,4 +319,64 @@ def window_attention(qkv: Tensor, bias: Tensor, mask: Tensor | None, heads: int,
                                     _threads())
     _account("window_attention", qkv, out)
     profiling.add_flops(4 * wb * 16 * 16 * c)  # q k^T and p v, as torch counts attention
+    return out
+
+
+def vector_width() -> int:
+    """Float lanes per vector the kernels were compiled for: 16 with AVX-512, else 8."""
+    return library().rg_vector_width()
+
+
+def leff_supported(channels: int, hidden: int) -> bool:
+    """:func:`leff` handles ``channels`` a multiple of 8 and ``hidden`` of :func:`vector_width`,
+    and is used where it measured faster than oneDNN (``bench/stages.py``): at every Uformer
+    level with 16-lane vectors, at up to 16 channels with 8-lane ones."""
+    lanes = vector_width()
+    return channels % 8 == 0 and hidden % lanes == 0 and (lanes == 16 or channels <= 16)
+
+
+def _column_tiles(weight_t: Tensor, widths: tuple[int, ...]) -> Tensor:
+    """``(K, N)`` -> its column tiles (greedy widths) one after another, each ``(K, width)``
+    row-major: the layout ``rg_leff`` reads."""
+    n, tiles, start = weight_t.shape[1], [], 0
+    while start < n:
+        width = next(w for w in widths if start + w <= n)
+        tiles.append(weight_t[:, start:start + width].reshape(-1))
+        start += width
+    return torch.cat(tiles).contiguous()
+
+
+def _leff_weights(module: torch.nn.Module) -> tuple[Tensor, ...]:
+    """The LeFF's weights in ``rg_leff``'s layout, cached on the module until a weight changes."""
+    up, dw, down = module.linear1[0], module.dwconv[0], module.linear2
+    params = (up.weight, up.bias, dw.weight, dw.bias, down.weight, down.bias)
+    key = tuple((p._version, p.data_ptr()) for p in params)
+    cached = getattr(module, "_native_weights", None)
+    if cached is None or cached[0] != key:
+        lanes = vector_width()
+        hidden = up.out_features
+        with torch.no_grad():
+            packed = (_column_tiles(up.weight.t(), (2 * lanes, lanes)), up.bias.contiguous(),
+                      dw.weight.reshape(hidden, 9).t().contiguous(), dw.bias.contiguous(),
+                      _column_tiles(down.weight.t(), (2 * lanes, lanes, 8)), down.bias.contiguous())
+        cached = (key, packed)
+        module._native_weights = cached
+    return cached[1]
+
+
+def leff(x: Tensor, residual: Tensor | None, module: torch.nn.Module) -> Tensor:
+    """``residual + module(x)`` for a :class:`roguenerf.models.uformer.LeFF` ``module``
+    (``linear2(gelu(dwconv(gelu(linear1(x)))))``), ``x`` and ``residual`` ``(B, H, W, C)``, in one
+    pass; see :func:`leff_supported` for the shapes it takes."""
+    b, h, w, c = x.shape
+    hidden = module.linear1[0].out_features
+    x = x.contiguous()
+    residual = residual.contiguous() if residual is not None else None
+    w1, b1, wdw, bdw, w2, b2 = _leff_weights(module)
+    out = torch.empty_like(x)
+    if library().rg_leff(_ptr(x), _ptr(residual) if residual is not None else None, _ptr(out), _ptr(w1), _ptr(b1),
+                         _ptr(wdw), _ptr(bdw), _ptr(w2), _ptr(b2), b, h, w, c, hidden, _threads()):
+        raise MemoryError("roguenerf.native.leff: out of memory for its row buffers")
+    _account("leff", x, residual, out)
+    profiling.add_flops(2 * b * h * w * hidden * (2 * c + 9))  # the two linears and the 3 x 3 depthwise conv
     return out

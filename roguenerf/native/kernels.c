@@ -525,3 +525,228 @@ RG_API void rg_window_attention16(const float *qkv, const float *bias, const flo
         for (int64_t n = 0; n < heads; ++n) wa_window16(t + n * d, bias + n * 256, mw, o + n * d, C, d, scale);
     }
 }
+
+/* ---- LeFF -------------------------------------------------------------------------------
+ * The Uformer's locally-enhanced feed-forward with its residual, in one pass over the image:
+ *   out = res + W2 gelu(dwconv3x3(gelu(W1 x + b1)) + bdw) + b2
+ * (roguenerf.models.uformer.LeFF; dwconv depthwise, zero padding). Each thread walks a band of
+ * rows keeping the hidden maps of three rows in a ring (they stay in cache), where oneDNN writes
+ * and reads back two full-resolution maps of 4 C channels. Vectors of VW lanes: 16 where the
+ * compiler targets AVX-512, else 8 (what the CPU runs natively; more lanes only split). */
+#if defined(__AVX512F__)
+#define VW 16
+#else
+#define VW 8
+#endif
+typedef float vec __attribute__((vector_size(VW * 4)));
+typedef int32_t veci __attribute__((vector_size(VW * 4)));
+
+static inline vec lf_sel(veci m, vec a, vec b) { return (vec)((m & (veci)a) | (~m & (veci)b)); }
+
+/* GELU with the exact erf form, x/2 (1 + erf(x / sqrt 2)); erf by the rational approximation of
+ * Eigen and XLA (|error| < 1e-7 on [-4, 4]; erf(+-4) rounds to +-1 in float32, so the argument
+ * is clamped there). NaN propagates. */
+static inline vec lf_gelu(vec x) {
+    const vec zero = {0};
+    vec z = x * 0.70710678118654752f;
+    z = lf_sel(z > 4.0f, zero + 4.0f, z);
+    z = lf_sel(z < -4.0f, zero - 4.0f, z);
+    const vec z2 = z * z;
+    vec p = z2 * -2.72614225801306e-10f + 2.77068142495902e-08f;
+    p = p * z2 + -2.10102402082508e-06f;
+    p = p * z2 + -5.69250639462346e-05f;
+    p = p * z2 + -7.34990630326855e-04f;
+    p = p * z2 + -2.95459980854025e-03f;
+    p = p * z2 + -1.60960333262415e-02f;
+    vec q = z2 * -1.45660718464996e-05f + -2.13374055278905e-04f;
+    q = q * z2 + -1.68282697438203e-03f;
+    q = q * z2 + -7.37332916720468e-03f;
+    q = q * z2 + -1.42647390514189e-02f;
+    return 0.5f * x * (1.0f + (p * z) / q);
+}
+
+/* Weights come packed in column tiles (see roguenerf.native.leff): the tile of a (K, N) matrix
+ * starting at column n0 with width nt holds column n0 + j of row k at n0 * K + k * nt + j, so a
+ * tile's rows are contiguous. Register blocks: NP pixels x NK vectors of L lanes. */
+
+/* dst[p * Hd + k0 + i] = gelu(b1 + x[p] . W1[k0 + i]) for NP pixels and NK * VW hidden channels. */
+#define LF_DEFINE_UP(NP, NK)                                                                          \
+    static inline void lf_up_##NP##_##NK(const float *restrict x, const float *restrict w1, const float *restrict b1, \
+                                         float *restrict dst, int64_t C, int64_t Hd, int64_t k0) {   \
+        vec acc[NP][NK];                                                                              \
+        for (int j = 0; j < NK; ++j) {                                                                \
+            vec b;                                                                                    \
+            memcpy(&b, b1 + k0 + VW * j, sizeof b);                                                   \
+            for (int p = 0; p < NP; ++p) acc[p][j] = b;                                               \
+        }                                                                                             \
+        for (int64_t c = 0; c < C; ++c) {                                                             \
+            vec w[NK];                                                                                \
+            for (int j = 0; j < NK; ++j) memcpy(&w[j], w1 + k0 * C + c * VW * NK + VW * j, sizeof(vec)); \
+            for (int p = 0; p < NP; ++p) {                                                            \
+                const float xv = x[p * C + c];                                                        \
+                for (int j = 0; j < NK; ++j) acc[p][j] += w[j] * xv;                                  \
+            }                                                                                         \
+        }                                                                                             \
+        for (int p = 0; p < NP; ++p)                                                                  \
+            for (int j = 0; j < NK; ++j) {                                                            \
+                const vec g = lf_gelu(acc[p][j]);                                                     \
+                memcpy(dst + p * Hd + k0 + VW * j, &g, sizeof g);                                     \
+            }                                                                                         \
+    }
+LF_DEFINE_UP(6, 2)
+LF_DEFINE_UP(1, 2)
+LF_DEFINE_UP(6, 1)
+LF_DEFINE_UP(1, 1)
+
+/* out[p * C + c0 + i] = b2 + a[p] . W2[c0 + i] (+ res) for NP pixels and NK vectors of type T. */
+#define LF_DEFINE_DOWN(T, L, NP, NK)                                                                  \
+    static inline void lf_down_##L##_##NP##_##NK(const float *restrict a, const float *restrict w2,  \
+                                                 const float *restrict b2, const float *restrict res, \
+                                                 float *restrict out, int64_t C, int64_t Hd, int64_t c0) { \
+        T acc[NP][NK];                                                                                \
+        for (int j = 0; j < NK; ++j) {                                                                \
+            T b;                                                                                      \
+            memcpy(&b, b2 + c0 + L * j, sizeof b);                                                    \
+            for (int p = 0; p < NP; ++p) acc[p][j] = b;                                               \
+        }                                                                                             \
+        for (int64_t k = 0; k < Hd; ++k) {                                                            \
+            T w[NK];                                                                                  \
+            for (int j = 0; j < NK; ++j) memcpy(&w[j], w2 + c0 * Hd + k * L * NK + L * j, sizeof(T)); \
+            for (int p = 0; p < NP; ++p) {                                                            \
+                const float av = a[p * Hd + k];                                                       \
+                for (int j = 0; j < NK; ++j) acc[p][j] += w[j] * av;                                  \
+            }                                                                                         \
+        }                                                                                             \
+        for (int p = 0; p < NP; ++p)                                                                  \
+            for (int j = 0; j < NK; ++j) {                                                            \
+                T r = acc[p][j], q;                                                                   \
+                if (res) {                                                                            \
+                    memcpy(&q, res + p * C + c0 + L * j, sizeof q);                                   \
+                    r = r + q;                                                                        \
+                }                                                                                     \
+                memcpy(out + p * C + c0 + L * j, &r, sizeof r);                                       \
+            }                                                                                         \
+    }
+#if VW == 16
+LF_DEFINE_DOWN(vec, 16, 6, 2)
+LF_DEFINE_DOWN(vec, 16, 1, 2)
+LF_DEFINE_DOWN(vec, 16, 12, 1)
+LF_DEFINE_DOWN(vec, 16, 1, 1)
+#else
+LF_DEFINE_DOWN(v8f, 8, 6, 2)
+LF_DEFINE_DOWN(v8f, 8, 1, 2)
+#endif
+LF_DEFINE_DOWN(v8f, 8, 12, 1)
+LF_DEFINE_DOWN(v8f, 8, 1, 1)
+
+/* One row of W pixels through the first linear + GELU, into dst (W x Hd). Column tiles of 2 VW,
+ * then VW (Hd is a multiple of VW). */
+static void lf_up_row(const float *restrict x, const float *restrict w1, const float *restrict b1,
+                      float *restrict dst, int64_t W, int64_t C, int64_t Hd) {
+    int64_t k0 = 0;
+    for (; k0 + 2 * VW <= Hd; k0 += 2 * VW) {
+        int64_t u = 0;
+        for (; u + 6 <= W; u += 6) lf_up_6_2(x + u * C, w1, b1, dst + u * Hd, C, Hd, k0);
+        for (; u < W; ++u) lf_up_1_2(x + u * C, w1, b1, dst + u * Hd, C, Hd, k0);
+    }
+    for (; k0 < Hd; k0 += VW) {
+        int64_t u = 0;
+        for (; u + 6 <= W; u += 6) lf_up_6_1(x + u * C, w1, b1, dst + u * Hd, C, Hd, k0);
+        for (; u < W; ++u) lf_up_1_1(x + u * C, w1, b1, dst + u * Hd, C, Hd, k0);
+    }
+}
+
+/* a[u] = gelu(bdw + sum over the 3 x 3 taps of wdw * rows), rows[dy] zero-padded by one pixel on
+ * each side; pixels in tiles of 8 so that a tile's inputs stay in L1 across the channel loop. */
+static void lf_dw_row(const float *const rows[3], const float *restrict wdw, const float *restrict bdw,
+                      float *restrict a, int64_t W, int64_t Hd) {
+    for (int64_t u0 = 0; u0 < W; u0 += 8) {
+        const int64_t u1 = u0 + 8 < W ? u0 + 8 : W;
+        for (int64_t k = 0; k < Hd; k += VW) {
+            vec w[9], b;
+            for (int t = 0; t < 9; ++t) memcpy(&w[t], wdw + t * Hd + k, sizeof(vec));
+            memcpy(&b, bdw + k, sizeof b);
+            for (int64_t u = u0; u < u1; ++u) {
+                vec acc = b, s;
+                for (int dy = 0; dy < 3; ++dy)
+                    for (int dx = 0; dx < 3; ++dx) {
+                        memcpy(&s, rows[dy] + (u + dx) * Hd + k, sizeof s);
+                        acc += w[3 * dy + dx] * s;
+                    }
+                acc = lf_gelu(acc);
+                memcpy(a + u * Hd + k, &acc, sizeof acc);
+            }
+        }
+    }
+}
+
+#define LF_DOWN_TILES(L, NP, NK, STEP)                                                               \
+    for (; c0 + (STEP) <= C; c0 += (STEP)) {                                                         \
+        int64_t u = 0;                                                                               \
+        for (; u + NP <= W; u += NP)                                                                 \
+            lf_down_##L##_##NP##_##NK(a + u * Hd, w2, b2, res ? res + u * C : 0, out + u * C, C, Hd, c0); \
+        for (; u < W; ++u) lf_down_##L##_1_##NK(a + u * Hd, w2, b2, res ? res + u * C : 0, out + u * C, C, Hd, c0); \
+    }
+
+/* One row through the second linear (+ residual). Column tiles of 2 VW, VW, then 8. */
+static void lf_down_row(const float *restrict a, const float *restrict w2, const float *restrict b2,
+                        const float *restrict res, float *restrict out, int64_t W, int64_t C, int64_t Hd) {
+    int64_t c0 = 0;
+#if VW == 16
+    LF_DOWN_TILES(16, 6, 2, 32)
+    LF_DOWN_TILES(16, 12, 1, 16)
+#else
+    LF_DOWN_TILES(8, 6, 2, 16)
+#endif
+    LF_DOWN_TILES(8, 12, 1, 8)
+}
+
+RG_API int rg_vector_width(void) { return VW; }
+
+/* x, res, out (B, H, W, C) (res may be NULL); w1 packed (C, Hd) = W1^T in tiles of 2 VW then VW;
+ * b1 (Hd); wdw (9, Hd) tap-major; bdw (Hd); w2 packed (Hd, C) = W2^T in tiles of 2 VW, VW then 8;
+ * b2 (C). C a multiple of 8, Hd of VW. Returns -1 when a row buffer cannot be allocated. */
+RG_API int rg_leff(const float *x, const float *res, float *out, const float *w1, const float *b1,
+                   const float *wdw, const float *bdw, const float *w2, const float *b2,
+                   int64_t B, int64_t H, int64_t W, int64_t C, int64_t Hd, int nthreads) {
+    const int64_t rows = B * H;
+    const int64_t bands = nthreads < rows ? (nthreads > 0 ? nthreads : 1) : rows;
+    const size_t row = (size_t)(W + 2) * (size_t)Hd;
+    int failed = 0;
+#pragma omp parallel for schedule(static, 1) num_threads(nthreads) reduction(| : failed)
+    for (int64_t band = 0; band < bands; ++band) {
+        /* the hidden maps of rows v-1, v, v+1 (zero-padded), then the row after the dwconv */
+        float *ring = malloc((3 * row + (size_t)W * (size_t)Hd) * sizeof(float));
+        if (!ring) {
+            failed = 1;
+            continue;
+        }
+        float *a = ring + 3 * row;
+        const int64_t r0 = band * rows / bands, r1 = (band + 1) * rows / bands;
+        int64_t have[3] = {-2, -2, -2}; /* which image row each ring slot holds (-1: zeros) */
+        for (int64_t rv = r0; rv < r1; ++rv) {
+            const int64_t b = rv / H, v = rv % H;
+            const float *slot[3];
+            for (int dy = 0; dy < 3; ++dy) {
+                const int64_t y = v + dy - 1, key = (y < 0 || y >= H) ? -1 : b * H + y;
+                const int s = (int)((y + 3) % 3);
+                float *buf = ring + s * row;
+                if (have[s] != key) {
+                    if (key < 0) {
+                        memset(buf, 0, row * sizeof(float));
+                    } else {
+                        memset(buf, 0, (size_t)Hd * sizeof(float));
+                        memset(buf + (W + 1) * Hd, 0, (size_t)Hd * sizeof(float));
+                        lf_up_row(x + key * W * C, w1, b1, buf + Hd, W, C, Hd);
+                    }
+                    have[s] = key;
+                }
+                slot[dy] = buf;
+            }
+            lf_dw_row(slot, wdw, bdw, a, W, Hd);
+            lf_down_row(a, w2, b2, res ? res + rv * W * C : 0, out + rv * W * C, W, C, Hd);
+        }
+        free(ring);
+    }
+    return failed ? -1 : 0;
+}
