@@ -191,6 +191,30 @@ def test_lewin_block_kernels_equal_the_torch_block(shift):
     torch.testing.assert_close(got, ref, atol=1e-4, rtol=1e-4)
 
 
+@pytest.mark.parametrize("size, cs, cin, co, bias", [
+    ((19, 37), 18, 17, 8, False),   # the pixel attention's neighbour half: 17 of 18 packed channels
+    ((2, 13), 17, 17, 16, True),    # the target half (with bias); two output blocks
+    ((1, 1), 5, 3, 8, True),        # one pixel: only the centre tap lands inside
+    ((6, 9), 4, 4, 8, False),       # one full 8-pixel block between the edge pixels
+])
+def test_small_conv_kernel_equals_conv2d(size, cs, cin, co, bias):
+    import torch.nn.functional as F
+
+    g = torch.Generator().manual_seed(12)
+    x = torch.randn(2, cs, *size, generator=g).contiguous(memory_format=torch.channels_last)
+    x[0, :, size[0] // 2, size[1] // 2] = float("nan")  # spreads to its 3 x 3 neighbourhood, as in torch
+    weight = torch.randn(co, cin, 3, 3, generator=g)
+    b = torch.randn(co, generator=g) if bias else None
+    with torch.inference_mode():
+        with Calls() as calls:
+            got = native.conv3x3(x, weight, b)
+    want = F.conv2d(x[:, :cin], weight, b, padding=1)
+    assert calls.names == ["conv3x3"] and got.is_contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5, equal_nan=True)
+    with pytest.raises(ValueError, match="does not fit"):
+        native.conv3x3(x, torch.randn(4, cin, 3, 3))
+
+
 @pytest.mark.parametrize("dim, size, batch, residual", [
     (8, (13, 23), 2, True),    # 8 channels: the 8-lane output tiles; width not a multiple of the 6-pixel blocks
     (16, (1, 7), 1, True),     # one row: both neighbour rows are the zero padding
@@ -294,7 +318,7 @@ def test_enhancer_with_kernels_equals_the_plain_implementation():
     with torch.no_grad(), reference_mode():
         ref = model(render, depth, K, P, nb)
     assert {"reproject", "pool8", "flow_warp", "attend_pool", "ln_partition", "window_attention",
-            "merge_ln", "leff"} <= set(calls.names)
+            "merge_ln", "leff", "conv3x3"} <= set(calls.names)
     torch.testing.assert_close(fast, torch_fast, atol=1e-5, rtol=0)
     torch.testing.assert_close(fast, ref, atol=2e-4, rtol=0)
 

@@ -39,8 +39,10 @@ def test_stage_flops_match_the_architecture(fast, kernels):
     camera = n * 2 * (9 * a + a)  # camera attention: 9 -> A -> 1 per neighbour
     if fast:
         # The target's half of the first conv, [I^f, D_k] (F + 1 channels), once; per neighbour
-        # the conv reads the packed buffer [H', D_i, mask] (the mask with zero weights).
-        expected = 2 * px * 9 * ((f + 1) * a + n * ((f + 2) * a + a)) + camera
+        # the conv reads the packed buffer [H', D_i, mask]: oneDNN with a zero weight for the
+        # mask, the C kernel only the F + 1 channels it needs.
+        per_neighbour = f + 1 if kernels else f + 2
+        expected = 2 * px * 9 * ((f + 1) * a + n * (per_neighbour * a + a)) + camera
     else:  # pixel attention: (2F + 2) -> A -> 1 per neighbour
         expected = n * 2 * px * 9 * ((2 * f + 2) * a + a) + camera
     assert rows["attention"]["gflop"] * 1e9 == pytest.approx(expected, rel=1e-9)

@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from roguenerf import native
 from roguenerf.models import fastops
 
 LEAKY_SLOPE = 0.01
@@ -136,6 +137,8 @@ class PixelAttention(nn.Module):
         weight = torch.cat([conv.weight[:, f:2 * f], conv.weight[:, 2 * f + 1:]], dim=1)
         x = [target, target_depth]
         x = cat_channels_last(x) if fastops.layout_enabled(target) else torch.cat(x, dim=1)
+        if native.enabled(x) and native.conv3x3_supported(conv):
+            return native.conv3x3(x, weight, conv.bias)
         return F.conv2d(x, weight, conv.bias, padding=conv.padding)
 
     def neighbour_term(self, neighbour_and_depth: Tensor) -> Tensor:
@@ -143,6 +146,10 @@ class PixelAttention(nn.Module):
         ``(B, F + 1 + extra, H, W)`` whose channels after D_i are ignored."""
         conv = self.net[0]
         f = (conv.weight.shape[1] - 2) // 2
+        if native.enabled(neighbour_and_depth) and native.conv3x3_supported(conv):
+            # reads the first F + 1 channels in place: no zero weights for the rest
+            weight = torch.cat([conv.weight[:, :f], conv.weight[:, 2 * f:2 * f + 1]], dim=1)
+            return native.conv3x3(neighbour_and_depth, weight)
         extra = neighbour_and_depth.shape[1] - (f + 1)
         weight = torch.cat([conv.weight[:, :f], conv.weight[:, 2 * f:2 * f + 1],
                             conv.weight.new_zeros(conv.weight.shape[0], extra, *conv.weight.shape[2:])], dim=1)

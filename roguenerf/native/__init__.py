@@ -7,7 +7,8 @@ Much of the fast path's time went to chains of cheap steps, each a pass over mem
   (:mod:`roguenerf.geometry.reproject`);
 * the flow's 1/8 average pool, and its upsampling + warp + depth normalisation
   (:mod:`roguenerf.models.flow`, the enhancer);
-* the pixel attention after its first convolution, the weighting and the max / min pooling;
+* the pixel attention's first convolution (17 -> 8 channels, reading the packed buffer in
+  place), then the rest of it, the weighting and the max / min pooling;
 * the LeWin block's LayerNorm + roll + window partition, its merge + roll + residual +
   LayerNorm, the 4 x 4 window attention, and its feed-forward (LeFF: linear, GELU, depthwise
   3 x 3 convolution, GELU, linear, residual) with the hidden maps kept in cache
@@ -73,6 +74,7 @@ _SIGNATURES = {
     "rg_attend_pool": (_int, [_p, _p, _p, _f32, _f32, _p, _p, _p, _p, _i64, _i64, _i64, _i64, _i64, _i64,
                               _int, _int]),
     "rg_vector_width": (_int, []),
+    "rg_conv3x3": (None, [_p, _p, _p, _p, _i64, _i64, _i64, _i64, _i64, _i64, _int]),
     "rg_leff": (_int, [_p, _p, _p, _p, _p, _p, _p, _p, _p, _i64, _i64, _i64, _i64, _i64, _int]),
 }
 
@@ -379,4 +381,31 @@ def leff(x: Tensor, residual: Tensor | None, module: torch.nn.Module) -> Tensor:
         raise MemoryError("roguenerf.native.leff: out of memory for its row buffers")
     _account("leff", x, residual, out)
     profiling.add_flops(2 * b * h * w * hidden * (2 * c + 9))  # the two linears and the 3 x 3 depthwise conv
+    return out
+
+
+def conv3x3_supported(conv: torch.nn.Conv2d) -> bool:
+    """:func:`conv3x3` computes ``conv``: 3 x 3, stride 1, zero padding 1, no groups or dilation,
+    output channels a multiple of 8."""
+    return (tuple(conv.kernel_size) == (3, 3) and tuple(conv.stride) == (1, 1) and conv.padding == (1, 1)
+            and tuple(conv.dilation) == (1, 1) and conv.groups == 1 and conv.padding_mode == "zeros"
+            and conv.out_channels % 8 == 0)
+
+
+def conv3x3(x: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
+    """``conv2d(x[:, :Cin], weight, bias, padding=1)`` for ``x`` ``(B, Cs, H, W)`` with
+    ``Cs >= Cin`` and ``weight`` ``(Co, Cin, 3, 3)``, ``Co`` a multiple of 8 -> ``(B, Co, H, W)``
+    channels-last: the channels of ``x`` past ``Cin`` are skipped without a copy."""
+    b, cs, h, w = x.shape
+    co, cin = weight.shape[:2]
+    if co % 8 or cin > cs or tuple(weight.shape[2:]) != (3, 3):
+        raise ValueError(f"conv3x3: weight {tuple(weight.shape)} does not fit input {tuple(x.shape)}")
+    x = _channels_last(x)
+    packed = weight.detach().permute(2, 3, 1, 0).contiguous()  # (3, 3, Cin, Co)
+    bias = bias.detach().contiguous() if bias is not None else None
+    out = torch.empty(b, co, h, w, memory_format=torch.channels_last)
+    library().rg_conv3x3(_ptr(x), _ptr(packed), _ptr(bias) if bias is not None else None, _ptr(out), b, h, w, cs,
+                         cin, co, _threads())
+    _account("conv3x3", x[:, :cin], out)
+    profiling.add_flops(2 * 9 * cin * co * b * h * w)
     return out

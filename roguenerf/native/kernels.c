@@ -750,3 +750,74 @@ RG_API int rg_leff(const float *x, const float *res, float *out, const float *w1
     }
     return failed ? -1 : 0;
 }
+
+/* ---- Small 3 x 3 convolution ------------------------------------------------------------
+ * out = conv3x3(x[..., :Cin], weight), zero padding, no bias: the pixel attention's neighbour
+ * half (PixelAttention.neighbour_term) and its target half, 17 -> 8 channels, where oneDNN
+ * spends twice the FLOP floor. x (B, H, W, Cs) with Cin <= Cs; w (9, Cin, Co) tap-major; bias
+ * (Co) or NULL; out (B, H, W, Co), Co a multiple of 8. Blocks of 8 pixels x 8 output channels
+ * (one 8-lane accumulator per pixel). */
+static inline void c3_block8(const float *restrict x, const float *restrict w, const float *restrict bias,
+                             float *restrict out, int64_t H, int64_t W, int64_t Cs, int64_t Cin, int64_t Co,
+                             int64_t v, int64_t u, int64_t o) {
+    v8f acc[8] = {{0}};
+    if (bias) {
+        v8f b;
+        memcpy(&b, bias + o, sizeof b);
+        for (int p = 0; p < 8; ++p) acc[p] = b;
+    }
+    for (int dy = 0; dy < 3; ++dy) {
+        const int64_t y = v + dy - 1;
+        if (y < 0 || y >= H) continue;
+        for (int dx = 0; dx < 3; ++dx) {
+            const float *xr = x + (y * W + u + dx - 1) * Cs;
+            const float *wt = w + (dy * 3 + dx) * Cin * Co + o;
+            for (int64_t c = 0; c < Cin; ++c) {
+                v8f wv;
+                memcpy(&wv, wt + c * Co, sizeof wv);
+                for (int p = 0; p < 8; ++p) acc[p] += wv * xr[p * Cs + c];
+            }
+        }
+    }
+    for (int p = 0; p < 8; ++p) memcpy(out + (v * W + u + p) * Co + o, &acc[p], sizeof acc[p]);
+}
+
+static inline void c3_pixel(const float *restrict x, const float *restrict w, const float *restrict bias,
+                            float *restrict out, int64_t H, int64_t W, int64_t Cs, int64_t Cin, int64_t Co,
+                            int64_t v, int64_t u, int64_t o) {
+    v8f acc = {0};
+    if (bias) memcpy(&acc, bias + o, sizeof acc);
+    for (int dy = 0; dy < 3; ++dy) {
+        const int64_t y = v + dy - 1;
+        if (y < 0 || y >= H) continue;
+        for (int dx = 0; dx < 3; ++dx) {
+            const int64_t xx = u + dx - 1;
+            if (xx < 0 || xx >= W) continue;
+            const float *xp = x + (y * W + xx) * Cs;
+            const float *wt = w + (dy * 3 + dx) * Cin * Co + o;
+            for (int64_t c = 0; c < Cin; ++c) {
+                v8f wv;
+                memcpy(&wv, wt + c * Co, sizeof wv);
+                acc += wv * xp[c];
+            }
+        }
+    }
+    memcpy(out + (v * W + u) * Co + o, &acc, sizeof acc);
+}
+
+RG_API void rg_conv3x3(const float *x, const float *w, const float *bias, float *out, int64_t B, int64_t H, int64_t W, int64_t Cs,
+                       int64_t Cin, int64_t Co, int nthreads) {
+#pragma omp parallel for collapse(2) schedule(static) num_threads(nthreads)
+    for (int64_t b = 0; b < B; ++b) {
+        for (int64_t v = 0; v < H; ++v) {
+            const float *xb = x + b * H * W * Cs;
+            float *ob = out + b * H * W * Co;
+            for (int64_t o = 0; o < Co; o += 8) {
+                int64_t u = 0;
+                if (W > 0) c3_pixel(xb, w, bias, ob, H, W, Cs, Cin, Co, v, u++, o);  /* left edge */
+                for (; u + 8 <= W - 1; u += 8) c3_block8(xb, w, bias, ob, H, W, Cs, Cin, Co, v, u, o);
+                for (; u < W; ++u) c3_pixel(xb, w, bias, ob, H, W, Cs, Cin, Co, v, u, o);
+            }
+        }
+    }
+}
