@@ -356,3 +356,28 @@ def test_config_module_imports_no_model_code():
     from roguenerf.models.enhancer import build_enhancer
 
     assert exported is build_enhancer
+
+
+@pytest.mark.parametrize("fast", [True, False])
+def test_enhancer_checks_every_neighbour_camera_once_for_all(fast):
+    """The enhancer validates the target's and all neighbours' K and poses up front (reproject
+    then skips its own per-neighbour checks): a bad neighbour is refused by name, and a pose
+    within the orthonormality tolerance gives the same output as the exact one."""
+    model = randomise(build_enhancer("micro").eval())
+    render, depth, K, P, nb = make_views(model, n=3, h=24, w=32)
+    mode = torch.inference_mode() if fast else torch.no_grad()
+    with mode:
+        want = model(render, depth, K, P, nb)
+        reflected = nb.world_from_cam.clone()
+        reflected[0, 2, :3, 0] *= -1
+        with pytest.raises(InputError, match=r"neighbours\.world_from_cam.*det"):
+            model(render, depth, K, P, dataclasses.replace(nb, world_from_cam=reflected))
+        bad_K = nb.K.clone()
+        bad_K[0, 1, 0, 0] = -5.0
+        with pytest.raises(InputError, match=r"neighbours\.K.*fx > 0"):
+            model(render, depth, K, P, dataclasses.replace(nb, K=bad_K))
+        noisy = nb.world_from_cam.double().clone()
+        noisy[..., :3, :3] += 1e-7 * torch.randn(noisy[..., :3, :3].shape, generator=torch.Generator().manual_seed(1),
+                                                 dtype=torch.float64)
+        got = model(render, depth, K, P, dataclasses.replace(nb, world_from_cam=noisy))
+    torch.testing.assert_close(got, want, atol=1e-4, rtol=0)

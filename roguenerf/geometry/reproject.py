@@ -211,6 +211,7 @@ def reproject(
     leniency: float = DEFAULT_LENIENCY,
     eps: float = DEPTH_EPS,
     source: Tensor | None = None,
+    validated: bool = False,
 ) -> Reprojection:
     """Warp ``src`` (neighbour i) features into the ``dst`` (target k) view using target depth.
 
@@ -236,6 +237,9 @@ def reproject(
         world_from_src, world_from_dst: ``(B, 4, 4)`` or ``(4, 4)`` OpenCV camera-to-world.
         source: :func:`sampling_source` of ``src_features`` and ``src_depth`` when the caller
             has it already (it is then not rebuilt; it must match them).
+        validated: the intrinsics and poses have been through
+            :func:`~roguenerf.geometry.cameras.check_intrinsics` / :func:`~roguenerf.geometry.cameras.check_pose`
+            already (the enhancer checks all its neighbours at once): they are not checked again.
     Returns:
         :class:`Reprojection`. Outputs and gradients are finite for any input depth
         (NaN/inf/zero/negative are treated as missing); invalid K or poses raise InputError.
@@ -258,10 +262,14 @@ def reproject(
     dtype = torch.float64 if src_features.dtype == torch.float64 else torch.float32
     device = src_features.device
 
-    src_K = _batched(check_intrinsics(src_K, "src_K"), "src_K", (3, 3), B).to(device, dtype)
-    dst_K = _batched(check_intrinsics(dst_K, "dst_K"), "dst_K", (3, 3), B).to(device, dtype)
-    world_from_src = _batched(check_pose(world_from_src, "world_from_src"), "world_from_src", (4, 4), B)
-    world_from_dst = _batched(check_pose(world_from_dst, "world_from_dst"), "world_from_dst", (4, 4), B)
+    if not validated:
+        src_K, dst_K = check_intrinsics(src_K, "src_K"), check_intrinsics(dst_K, "dst_K")
+        world_from_src = check_pose(world_from_src, "world_from_src")
+        world_from_dst = check_pose(world_from_dst, "world_from_dst")
+    src_K = _batched(src_K, "src_K", (3, 3), B).to(device, dtype)
+    dst_K = _batched(dst_K, "dst_K", (3, 3), B).to(device, dtype)
+    world_from_src = _batched(world_from_src, "world_from_src", (4, 4), B)
+    world_from_dst = _batched(world_from_dst, "world_from_dst", (4, 4), B)
     # float64 here: with both cameras 5e6 units from the origin, float32 would lose the geometry.
     src_from_dst64 = relative_pose(world_from_src, world_from_dst).to(device)
     src_from_dst = src_from_dst64.to(dtype)

@@ -38,6 +38,7 @@ Hs x Ws neighbour size.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -48,6 +49,7 @@ from torch import Tensor, nn
 from roguenerf import native
 from roguenerf.errors import InputError
 from roguenerf.geometry import euler_angles, reproject, sampling_source
+from roguenerf.geometry.cameras import check_intrinsics, check_pose
 from roguenerf.geometry.depth import DEPTH_EPS, MAX_DEPTH, known_depth, known_depth_mask, median_known_depth
 from roguenerf.images import check_float_image
 from roguenerf.models.config import _UFORMER_KEYS, EnhancerConfig, make_config
@@ -245,6 +247,13 @@ class Enhancer(nn.Module):
         K = K.expand(b, 3, 3) if K.ndim == 2 else _check(K, "K", (b, 3, 3))
         world_from_cam = (world_from_cam.expand(b, 4, 4) if world_from_cam.ndim == 2
                           else _check(world_from_cam, "world_from_cam", (b, 4, 4)))
+        # Checked here once for all neighbours, not again per neighbour in reproject (which
+        # would check the target's K and pose N times); check_pose may re-orthonormalise.
+        K, nb_K = check_intrinsics(K, "K"), check_intrinsics(nbrs.K, "neighbours.K")
+        world_from_cam = check_pose(world_from_cam, "world_from_cam")
+        nb_poses = check_pose(nbrs.world_from_cam, "neighbours.world_from_cam")
+        if nb_K is not nbrs.K or nb_poses is not nbrs.world_from_cam:
+            nbrs = dataclasses.replace(nbrs, K=nb_K, world_from_cam=nb_poses)
 
         scale = self.depth_scale(depth) if depth_scale is None else depth_scale.to(feats)
         if scale.shape != (b,) or not bool(known_depth_mask(scale).all()):
@@ -420,7 +429,7 @@ class Enhancer(nn.Module):
         and on the fast path the buffer they are views of (else None)."""
         if self.config.use_alignment:
             rp = reproject(src, src_depth, depth, src_K, K, world_from_src, world_from_cam,
-                           leniency=self.config.leniency, source=source)
+                           leniency=self.config.leniency, source=source, validated=True)
             return rp.features, rp.depth, rp.packed
         aligned = F.interpolate(src, size=size, mode="bilinear", align_corners=False)
         nb_depth = F.interpolate(known_depth(src_depth), size=size, mode="bilinear", align_corners=False)

@@ -67,6 +67,15 @@ static inline void taps4(float *restrict out, const float *restrict s00, const f
         acc = acc + ld16(s11 + c) * w11;
         st16(out + c, acc);
     }
+    if (c < C && C >= 16) {  /* the last 16 channels again: the same operations, the same values */
+        c = C - 16;
+        v16f acc = ld16(s00 + c) * w00;
+        acc = acc + ld16(s10 + c) * w10;
+        acc = acc + ld16(s01 + c) * w01;
+        acc = acc + ld16(s11 + c) * w11;
+        st16(out + c, acc);
+        return;
+    }
     for (; c < C; ++c) {
         float acc = w00 * s00[c];
         acc = acc + w10 * s10[c];
