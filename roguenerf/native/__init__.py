@@ -313,10 +313,10 @@ def window_attention(qkv: Tensor, bias: Tensor, mask: Tensor | None, heads: int,
     c = c3 // 3
     if mask is not None and wb % mask.shape[0]:
         raise ValueError(f"window_attention: {wb} windows are not a whole number of images of {mask.shape[0]}")
-    qkv, bias = qkv.contiguous(), bias.contiguous()
+    qkv, bias_t = qkv.contiguous(), bias.transpose(-1, -2).contiguous()  # the kernel's scores are transposed
     mask = mask.contiguous() if mask is not None else None
     out = torch.empty(wb, 16, c)
-    library().rg_window_attention16(_ptr(qkv), _ptr(bias), _ptr(mask) if mask is not None else None, _ptr(out),
+    library().rg_window_attention16(_ptr(qkv), _ptr(bias_t), _ptr(mask) if mask is not None else None, _ptr(out),
                                     wb, mask.shape[0] if mask is not None else 1, heads, c // heads, scale,
                                     _threads())
     _account("window_attention", qkv, out)

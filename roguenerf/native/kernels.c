@@ -470,60 +470,82 @@ static inline v16f wa_max(v16f a, v16f b) {
 }
 
 /* One 16-token window and one head of d channels:
- * out_i = softmax_j(scale * q_i . k_j + bias_ij [+ mask_ij]) v_j, rows of q, k, v 3C apart. */
-static inline void wa_window16(const float *restrict t, const float *restrict bn, const float *restrict mw,
+ * out_i = softmax_j(scale * q_i . k_j + bias_ij [+ mask_ij]) v_j, rows of q, k, v 3C apart.
+ * The scores are formed transposed, one vector per key j over the 16 queries, so that the
+ * softmax's max and sum over j are elementwise across 16 vectors (no horizontal shuffles) and
+ * the 16 sums q . k_j are independent chains the CPU overlaps. bt is the bias transposed,
+ * bt[j][i] = bias[i][j]; the mask is read transposed. The probabilities go through memory
+ * (pt[j][i]) to the value sum, four query rows at a time. */
+#define WA_ROWS 4
+static inline void wa_window16(const float *restrict t, const float *restrict bt, const float *restrict mw,
                                float *restrict oh, int64_t C, int64_t d, float scale) {
-    float kt[64 * 16] __attribute__((aligned(64))), e[16] __attribute__((aligned(64)));
-    for (int j = 0; j < 16; ++j)
-        for (int64_t c = 0; c < d; ++c) kt[c * 16 + j] = t[j * 3 * C + C + c];
-    for (int i = 0; i < 16; ++i) {
-        const float *q = t + i * 3 * C;
-        v16f s = WA_LD16(kt) * q[0];
-        for (int64_t c = 1; c < d; ++c) s = s + WA_LD16(kt + c * 16) * q[c];
-        s = s * scale + WA_LD16(bn + i * 16);
-        if (mw) s = s + WA_LD16(mw + i * 16);
-        v16f m = wa_max(s, WA_SHUF16(s, 8, 9, 10, 11, 12, 13, 14, 15, 0, 1, 2, 3, 4, 5, 6, 7));
-        m = wa_max(m, WA_SHUF16(m, 4, 5, 6, 7, 0, 1, 2, 3, 12, 13, 14, 15, 8, 9, 10, 11));
-        m = wa_max(m, WA_SHUF16(m, 2, 3, 0, 1, 6, 7, 4, 5, 10, 11, 8, 9, 14, 15, 12, 13));
-        m = wa_max(m, WA_SHUF16(m, 1, 0, 3, 2, 5, 4, 7, 6, 9, 8, 11, 10, 13, 12, 15, 14));
-        const v16f p = wa_exp16(s - m);
-        v16f sum = p + WA_SHUF16(p, 8, 9, 10, 11, 12, 13, 14, 15, 0, 1, 2, 3, 4, 5, 6, 7);
-        sum = sum + WA_SHUF16(sum, 4, 5, 6, 7, 0, 1, 2, 3, 12, 13, 14, 15, 8, 9, 10, 11);
-        sum = sum + WA_SHUF16(sum, 2, 3, 0, 1, 6, 7, 4, 5, 10, 11, 8, 9, 14, 15, 12, 13);
-        sum = sum + WA_SHUF16(sum, 1, 0, 3, 2, 5, 4, 7, 6, 9, 8, 11, 10, 13, 12, 15, 14);
-        const v16f pn = p / sum;
-        memcpy(e, &pn, sizeof(pn));
-        float *o = oh + i * C;
-        const float *v = t + 2 * C;
+    float qt[64 * 16] __attribute__((aligned(64))), pt[16][16] __attribute__((aligned(64)));
+    for (int i = 0; i < 16; ++i)
+        for (int64_t c = 0; c < d; ++c) qt[c * 16 + i] = t[i * 3 * C + c];
+    v16f s[16];
+    for (int j = 0; j < 16; ++j) s[j] = WA_LD16(qt) * t[j * 3 * C + C];
+    for (int64_t c = 1; c < d; ++c) {
+        const v16f q = WA_LD16(qt + c * 16);
+        for (int j = 0; j < 16; ++j) s[j] = s[j] + q * t[j * 3 * C + C + c];
+    }
+    v16f m;
+    for (int j = 0; j < 16; ++j) {
+        s[j] = s[j] * scale + WA_LD16(bt + j * 16);
+        if (mw) {
+            float col[16] __attribute__((aligned(64)));
+            for (int i = 0; i < 16; ++i) col[i] = mw[i * 16 + j];
+            s[j] = s[j] + WA_LD16(col);
+        }
+        m = j ? wa_max(m, s[j]) : s[j];
+    }
+    v16f sum;
+    for (int j = 0; j < 16; ++j) {
+        s[j] = wa_exp16(s[j] - m);
+        sum = j ? sum + s[j] : s[j];
+    }
+    for (int j = 0; j < 16; ++j) {
+        const v16f p = s[j] / sum;
+        memcpy(pt[j], &p, sizeof(p));
+    }
+    const float *v = t + 2 * C;
+    for (int i0 = 0; i0 < 16; i0 += WA_ROWS) {
         int64_t c = 0;
         for (; c + 16 <= d; c += 16) {
-            v16f acc = WA_LD16(v + c) * e[0];
-            for (int j = 1; j < 16; ++j) acc = acc + WA_LD16(v + j * 3 * C + c) * e[j];
-            memcpy(o + c, &acc, sizeof(acc));
+            v16f acc[WA_ROWS];
+            const v16f v0 = WA_LD16(v + c);
+            for (int r = 0; r < WA_ROWS; ++r) acc[r] = v0 * pt[0][i0 + r];
+            for (int j = 1; j < 16; ++j) {
+                const v16f vj = WA_LD16(v + j * 3 * C + c);
+                for (int r = 0; r < WA_ROWS; ++r) acc[r] = acc[r] + vj * pt[j][i0 + r];
+            }
+            for (int r = 0; r < WA_ROWS; ++r) memcpy(oh + (i0 + r) * C + c, &acc[r], sizeof(acc[r]));
         }
         for (; c + 8 <= d; c += 8) {
-            v8f acc, x;
-            memcpy(&acc, v + c, sizeof(acc));
-            acc = acc * e[0];
+            v8f acc[WA_ROWS], vj;
+            memcpy(&vj, v + c, sizeof(vj));
+            for (int r = 0; r < WA_ROWS; ++r) acc[r] = vj * pt[0][i0 + r];
             for (int j = 1; j < 16; ++j) {
-                memcpy(&x, v + j * 3 * C + c, sizeof(x));
-                acc = acc + x * e[j];
+                memcpy(&vj, v + j * 3 * C + c, sizeof(vj));
+                for (int r = 0; r < WA_ROWS; ++r) acc[r] = acc[r] + vj * pt[j][i0 + r];
             }
-            memcpy(o + c, &acc, sizeof(acc));
+            for (int r = 0; r < WA_ROWS; ++r) memcpy(oh + (i0 + r) * C + c, &acc[r], sizeof(acc[r]));
         }
         for (; c < d; ++c) {
-            float acc = v[c] * e[0];
-            for (int j = 1; j < 16; ++j) acc = acc + v[j * 3 * C + c] * e[j];
-            o[c] = acc;
+            for (int r = 0; r < WA_ROWS; ++r) {
+                float acc = v[c] * pt[0][i0 + r];
+                for (int j = 1; j < 16; ++j) acc = acc + v[j * 3 * C + c] * pt[j][i0 + r];
+                oh[(i0 + r) * C + c] = acc;
+            }
         }
     }
 }
 
 /* Window multi-head self-attention with a relative position bias and an optional additive shift
  * mask, for 4 x 4 windows (roguenerf.models.uformer.WindowAttention, between its two linears):
- * qkv (WB, 16, 3 * heads * d), channels (three, head, d); bias (heads, 16, 16); mask (nw, 16, 16)
+ * qkv (WB, 16, 3 * heads * d), channels (three, head, d); bias_t (heads, 16, 16) the bias
+ * transposed (bias_t[n][j][i] = bias[n][i][j]); mask (nw, 16, 16)
  * or NULL, window w using mask[w % nw]; out (WB, 16, heads * d). d <= 64. */
-RG_API void rg_window_attention16(const float *qkv, const float *bias, const float *mask, float *out,
+RG_API void rg_window_attention16(const float *qkv, const float *bias_t, const float *mask, float *out,
                                   int64_t WB, int64_t nw, int64_t heads, int64_t d, float scale, int nthreads) {
     const int64_t C = heads * d;
 #pragma omp parallel for schedule(static) num_threads(nthreads)
@@ -531,7 +553,7 @@ RG_API void rg_window_attention16(const float *qkv, const float *bias, const flo
         const float *t = qkv + w * 16 * 3 * C;
         const float *mw = mask ? mask + (w % nw) * 256 : 0;
         float *o = out + w * 16 * C;
-        for (int64_t n = 0; n < heads; ++n) wa_window16(t + n * d, bias + n * 256, mw, o + n * d, C, d, scale);
+        for (int64_t n = 0; n < heads; ++n) wa_window16(t + n * d, bias_t + n * 256, mw, o + n * d, C, d, scale);
     }
 }
 
