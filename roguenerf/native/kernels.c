@@ -287,14 +287,22 @@ RG_API int rg_attend_pool(const float *hidden, const float *term, const float *w
         float *g = malloc(((size_t)(3 * Hd * gw) + (size_t)W) * sizeof(float));
         if (!g) failed = 1;
         float *s = g ? g + 3 * Hd * gw : 0;
+        /* image row held by each of the three slots (-1: zeros): consecutive output rows of a
+         * thread share two of their three input rows, computed once */
+        int64_t have[3] = {-2, -2, -2};
+        const float *slot[3];
 #pragma omp for collapse(2) schedule(static)
         for (int64_t b = 0; b < B; ++b) {
             for (int64_t v = 0; v < H; ++v) {
                 if (!g) continue;
                 for (int64_t r = 0; r < 3; ++r) {
-                    float *gr = g + r * Hd * gw;
-                    const int64_t y = v + r - 1;
-                    if (y < 0 || y >= H) {
+                    const int64_t y = v + r - 1, key = (y < 0 || y >= H) ? -1 : b * H + y;
+                    const int k = (int)((y + 3) % 3);
+                    float *gr = g + k * Hd * gw;
+                    slot[r] = gr;
+                    if (have[k] == key) continue;
+                    have[k] = key;
+                    if (key < 0) {
                         memset(gr, 0, (size_t)(Hd * gw) * sizeof(float));
                         continue;
                     }
@@ -315,7 +323,7 @@ RG_API int rg_attend_pool(const float *hidden, const float *term, const float *w
                     for (int64_t r = 0; r < 3; ++r) {
                         for (int64_t dx = 0; dx < 3; ++dx) {
                             const float wt = w2[c * 9 + r * 3 + dx];
-                            const float *gr = g + (r * Hd + c) * gw + dx;
+                            const float *gr = slot[r] + c * gw + dx;
                             for (int64_t u = 0; u < W; ++u) s[u] = s[u] + wt * gr[u];
                         }
                     }
