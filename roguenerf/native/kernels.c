@@ -368,9 +368,43 @@ RG_API int rg_attend_pool(const float *hidden, const float *term, const float *w
 
 /* LayerNorm of one C-channel token into out (torch.nn.functional.layer_norm, biased variance).
  * Always inlined: the callers' constant C (8, 16, 32) gives unrolled, vectorised code. */
+typedef float ln8 __attribute__((vector_size(32)));
+
+/* Sum of the 8 lanes as a tree, not left to right: a float32 rounding apart from a sequential
+ * sum, as torch's own vectorised reductions are. */
+static inline float ln_hsum8(ln8 v) {
+    float a[8];
+    memcpy(a, &v, sizeof a);
+    return ((a[0] + a[4]) + (a[2] + a[6])) + ((a[1] + a[5]) + (a[3] + a[7]));
+}
+
 static inline __attribute__((always_inline)) void layer_norm_row(const float *restrict x, float *restrict out,
                                                                   const float *w, const float *bias, int64_t C,
                                                                   float eps) {
+    if (C % 8 == 0) {  /* 8-lane partial sums: a short dependency chain per token */
+        ln8 acc = {0}, v;
+        for (int64_t c = 0; c < C; c += 8) {
+            memcpy(&v, x + c, sizeof v);
+            acc = acc + v;
+        }
+        const float mean = ln_hsum8(acc) / (float)C;
+        ln8 sq = {0};
+        for (int64_t c = 0; c < C; c += 8) {
+            memcpy(&v, x + c, sizeof v);
+            v = v - mean;
+            sq = sq + v * v;
+        }
+        const float rstd = 1.0f / sqrtf(ln_hsum8(sq) / (float)C + eps);
+        for (int64_t c = 0; c < C; c += 8) {
+            ln8 g, b;
+            memcpy(&v, x + c, sizeof v);
+            memcpy(&g, w + c, sizeof g);
+            memcpy(&b, bias + c, sizeof b);
+            v = (v - mean) * rstd * g + b;
+            memcpy(out + c, &v, sizeof v);
+        }
+        return;
+    }
     float mean = 0.0f;
     for (int64_t c = 0; c < C; ++c) mean += x[c];
     mean /= (float)C;
