@@ -253,6 +253,14 @@ def test_leff_kernel_equals_the_torch_feed_forward(dim, size, batch, residual):
         assert err <= max(2 * err_torch, 1e-6 * scale)
         with torch.no_grad():
             leff.dwconv[0].weight.mul_(-1.5)  # a fine-tuning step: the second pass must see it
+    with torch.inference_mode():  # weights made in inference mode (no version counter): packed per call
+        made = LeFF(dim=dim, hidden=4 * dim).eval()
+        with native.disabled():
+            want = made(x, residual=res)
+        got = made(x, residual=res)
+        made.linear2.bias.add_(1.0)
+        torch.testing.assert_close(made(x, residual=res), got + 1.0, atol=1e-4, rtol=1e-5)
+    torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-5)
 
 
 def test_leff_gelu_is_the_exact_erf_gelu():

@@ -349,12 +349,14 @@ def _column_tiles(weight_t: Tensor, widths: tuple[int, ...]) -> Tensor:
 
 
 def _leff_weights(module: torch.nn.Module) -> tuple[Tensor, ...]:
-    """The LeFF's weights in ``rg_leff``'s layout, cached on the module until a weight changes."""
+    """The LeFF's weights in ``rg_leff``'s layout, cached on the module until a weight changes
+    (weights made in inference mode have no version counter: packed on every call)."""
     up, dw, down = module.linear1[0], module.dwconv[0], module.linear2
     params = (up.weight, up.bias, dw.weight, dw.bias, down.weight, down.bias)
-    key = tuple((p._version, p.data_ptr()) for p in params)
+    inference = any(p.is_inference() for p in params)
+    key = None if inference else tuple((p._version, p.data_ptr()) for p in params)
     cached = getattr(module, "_native_weights", None)
-    if cached is None or cached[0] != key:
+    if inference or cached is None or cached[0] != key:
         lanes = vector_width()
         hidden = up.out_features
         with torch.no_grad():

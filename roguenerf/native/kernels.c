@@ -8,6 +8,9 @@
  * elementwise operations. Forward only, float32, no gradient.
  */
 #include <math.h>
+#if defined(__x86_64__) || defined(__i386__)
+#include <immintrin.h>
+#endif
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -619,11 +622,22 @@ static inline vec lf_sel(veci m, vec a, vec b) { return (vec)((m & (veci)a) | (~
 /* GELU with the exact erf form, x/2 (1 + erf(x / sqrt 2)); erf by the rational approximation of
  * Eigen and XLA (|error| < 1e-7 on [-4, 4]; erf(+-4) rounds to +-1 in float32, so the argument
  * is clamped there). NaN propagates. */
-static inline vec lf_gelu(vec x) {
+/* clamp to [-4, 4] with NaN kept: one min and one max instruction where the target has them
+ * (x86 min/max return their second operand when either is NaN), else compare and select */
+static inline vec lf_clamp4(vec z) {
     const vec zero = {0};
-    vec z = x * 0.70710678118654752f;
+#if defined(__AVX512F__) && VW == 16
+    return (vec)_mm512_max_ps((__m512)(zero - 4.0f), _mm512_min_ps((__m512)(zero + 4.0f), (__m512)z));
+#elif defined(__AVX__) && VW == 8
+    return (vec)_mm256_max_ps((__m256)(zero - 4.0f), _mm256_min_ps((__m256)(zero + 4.0f), (__m256)z));
+#else
     z = lf_sel(z > 4.0f, zero + 4.0f, z);
-    z = lf_sel(z < -4.0f, zero - 4.0f, z);
+    return lf_sel(z < -4.0f, zero - 4.0f, z);
+#endif
+}
+
+static inline vec lf_gelu(vec x) {
+    const vec z = lf_clamp4(x * 0.70710678118654752f);
     const vec z2 = z * z;
     vec p = z2 * -2.72614225801306e-10f + 2.77068142495902e-08f;
     p = p * z2 + -2.10102402082508e-06f;
@@ -635,7 +649,8 @@ static inline vec lf_gelu(vec x) {
     q = q * z2 + -1.68282697438203e-03f;
     q = q * z2 + -7.37332916720468e-03f;
     q = q * z2 + -1.42647390514189e-02f;
-    return 0.5f * x * (1.0f + (p * z) / q);
+    const vec h = 0.5f * x;
+    return h + h * ((p * z) / q);
 }
 
 /* Weights come packed in column tiles (see roguenerf.native.leff): the tile of a (K, N) matrix
