@@ -196,6 +196,7 @@ def test_lewin_block_kernels_equal_the_torch_block(shift):
     ((2, 13), 17, 17, 16, True),    # the target half (with bias); two output blocks
     ((1, 1), 5, 3, 8, True),        # one pixel: only the centre tap lands inside
     ((6, 9), 4, 4, 8, False),       # one full 8-pixel block between the edge pixels
+    ((5, 21), 16, 16, 3, True),     # the Uformer's output: 3 channels computed in a block of 8
 ])
 def test_small_conv_kernel_equals_conv2d(size, cs, cin, co, bias):
     import torch.nn.functional as F
@@ -209,10 +210,10 @@ def test_small_conv_kernel_equals_conv2d(size, cs, cin, co, bias):
         with Calls() as calls:
             got = native.conv3x3(x, weight, b)
     want = F.conv2d(x[:, :cin], weight, b, padding=1)
-    assert calls.names == ["conv3x3"] and got.is_contiguous(memory_format=torch.channels_last)
+    assert calls.names == ["conv3x3"] and got.shape == want.shape
     torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5, equal_nan=True)
     with pytest.raises(ValueError, match="does not fit"):
-        native.conv3x3(x, torch.randn(4, cin, 3, 3))
+        native.conv3x3(x, torch.randn(4, cs + 1, 3, 3))
 
 
 @pytest.mark.parametrize("dim, size, batch, residual", [

@@ -387,27 +387,33 @@ def leff(x: Tensor, residual: Tensor | None, module: torch.nn.Module) -> Tensor:
 
 
 def conv3x3_supported(conv: torch.nn.Conv2d) -> bool:
-    """:func:`conv3x3` computes ``conv``: 3 x 3, stride 1, zero padding 1, no groups or dilation,
-    output channels a multiple of 8."""
+    """:func:`conv3x3` computes ``conv``: 3 x 3, stride 1, zero padding 1, no groups or dilation."""
     return (tuple(conv.kernel_size) == (3, 3) and tuple(conv.stride) == (1, 1) and conv.padding == (1, 1)
-            and tuple(conv.dilation) == (1, 1) and conv.groups == 1 and conv.padding_mode == "zeros"
-            and conv.out_channels % 8 == 0)
+            and tuple(conv.dilation) == (1, 1) and conv.groups == 1 and conv.padding_mode == "zeros")
 
 
 def conv3x3(x: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
     """``conv2d(x[:, :Cin], weight, bias, padding=1)`` for ``x`` ``(B, Cs, H, W)`` with
-    ``Cs >= Cin`` and ``weight`` ``(Co, Cin, 3, 3)``, ``Co`` a multiple of 8 -> ``(B, Co, H, W)``
-    channels-last: the channels of ``x`` past ``Cin`` are skipped without a copy."""
+    ``Cs >= Cin`` and ``weight`` ``(Co, Cin, 3, 3)`` -> ``(B, Co, H, W)`` channels-last: the
+    channels of ``x`` past ``Cin`` are skipped without a copy. The kernel works in blocks of 8
+    output channels: other counts are computed with zero weights up to the next multiple of 8
+    and returned as a view of the first ``Co`` (the Uformer's 3-channel output)."""
     b, cs, h, w = x.shape
     co, cin = weight.shape[:2]
-    if co % 8 or cin > cs or tuple(weight.shape[2:]) != (3, 3):
+    if cin > cs or tuple(weight.shape[2:]) != (3, 3):
         raise ValueError(f"conv3x3: weight {tuple(weight.shape)} does not fit input {tuple(x.shape)}")
     x = _channels_last(x)
-    packed = weight.detach().permute(2, 3, 1, 0).contiguous()  # (3, 3, Cin, Co)
-    bias = bias.detach().contiguous() if bias is not None else None
-    out = torch.empty(b, co, h, w, memory_format=torch.channels_last)
+    weight = weight.detach()
+    bias = bias.detach() if bias is not None else None
+    padded = -(-co // 8) * 8
+    if padded != co:
+        weight = torch.cat([weight, weight.new_zeros(padded - co, *weight.shape[1:])])
+        bias = torch.cat([bias, bias.new_zeros(padded - co)]) if bias is not None else None
+    packed = weight.permute(2, 3, 1, 0).contiguous()  # (3, 3, Cin, Co)
+    bias = bias.contiguous() if bias is not None else None
+    out = torch.empty(b, padded, h, w, memory_format=torch.channels_last)
     library().rg_conv3x3(_ptr(x), _ptr(packed), _ptr(bias) if bias is not None else None, _ptr(out), b, h, w, cs,
-                         cin, co, _threads())
+                         cin, padded, _threads())
     _account("conv3x3", x[:, :cin], out)
     profiling.add_flops(2 * 9 * cin * co * b * h * w)
-    return out
+    return out[:, :co] if padded != co else out
