@@ -106,6 +106,7 @@ RG_API void rg_reproject(const float *depth, const float *rows, const float *col
     const int64_t C = Cs - 2;
     const float xmax = (float)((double)Ws - 0.5), ymax = (float)((double)Hs - 0.5);
     const float xb = (float)(Ws - 1), yb = (float)(Hs - 1);
+    const v16f zero = {0};
 #pragma omp parallel for collapse(2) schedule(static) num_threads(nthreads)
     for (int64_t b = 0; b < B; ++b) {
         for (int64_t v = 0; v < H; ++v) {
@@ -116,45 +117,68 @@ RG_API void rg_reproject(const float *depth, const float *rows, const float *col
             const float *drow = depth + (b * H + v) * W;
             float *orow = out + (b * H + v) * W * Cs;
             float *crow = coords + (b * H + v) * W * 2;
-            for (int64_t u = 0; u < W; ++u) {
-                float *o = orow + u * Cs;
-                const float d = drow[u];
-                const int known = isfinite(d) && d > eps && d < max_depth;
-                const float z = known ? d : 1.0f;
-                float zp = (rw[2 * H + v] + cl[2 * W + u]) * z + cv[2];
-                float x = (rw[v] + cl[u]) * z + cv[0];
-                float y = (rw[H + v] + cl[W + u]) * z + cv[1];
-                const int front = isfinite(x) && isfinite(y) && isfinite(zp) && zp > eps;
-                if (!front) { zp = 1.0f; x = 0.0f; y = 0.0f; }
+            /* The per-pixel arithmetic 16 pixels at a time (the same float32 operations, lane by
+             * lane), then the sampling and visibility test pixel by pixel. */
+            for (int64_t u0 = 0; u0 < W; u0 += 16) {
+                const int64_t n = W - u0 < 16 ? W - u0 : 16;
+                float dv[16] = {0}, c0[16] = {0}, c1[16] = {0}, c2[16] = {0};
+                memcpy(dv, drow + u0, (size_t)n * sizeof(float));
+                memcpy(c0, cl + u0, (size_t)n * sizeof(float));
+                memcpy(c1, cl + W + u0, (size_t)n * sizeof(float));
+                memcpy(c2, cl + 2 * W + u0, (size_t)n * sizeof(float));
+                const v16f d = ld16(dv);
+                const v16i known = ((d - d) == 0.0f) & (d > eps) & (d < max_depth);  /* finite, in range */
+                const v16f z = sel16(known, d, zero + 1.0f);
+                v16f zp = (rw[2 * H + v] + ld16(c2)) * z + cv[2];
+                v16f x = (rw[v] + ld16(c0)) * z + cv[0];
+                v16f y = (rw[H + v] + ld16(c1)) * z + cv[1];
+                const v16i front = ((x - x) == 0.0f) & ((y - y) == 0.0f) & ((zp - zp) == 0.0f) & (zp > eps);
+                zp = sel16(front, zp, zero + 1.0f);
+                x = sel16(front, x, zero);
+                y = sel16(front, y, zero);
                 x = x / zp - 0.5f;
                 y = y / zp - 0.5f;
-                if (!front) { x = 0.0f; y = 0.0f; }
-                crow[2 * u] = x;
-                crow[2 * u + 1] = y;
-                const int inside = x >= -0.5f && x <= xmax && y >= -0.5f && y <= ymax;
-                if (!(known && front && inside)) {
-                    memset(o, 0, (size_t)Cs * sizeof(float));
-                    continue;
-                }
-                /* bilinear, border padding */
-                const float sx = clampf(x, 0.0f, xb), sy = clampf(y, 0.0f, yb);
-                const float x0f = floorf(sx), y0f = floorf(sy);
-                const float wx1 = sx - x0f, wy1 = sy - y0f;
-                const float wx0 = 1.0f - wx1, wy0 = 1.0f - wy1;
-                const int64_t x0 = (int64_t)x0f, y0 = (int64_t)y0f;
-                const int64_t x1 = x0 + 1 < Ws ? x0 + 1 : Ws - 1, y1 = y0 + 1 < Hs ? y0 + 1 : Hs - 1;
-                taps4(o, sb + (y0 * Ws + x0) * Cs, sb + (y0 * Ws + x1) * Cs, sb + (y1 * Ws + x0) * Cs,
-                      sb + (y1 * Ws + x1) * Cs, wx0 * wy0, wx1 * wy0, wx0 * wy1, wx1 * wy1, Cs);
-                /* visibility */
-                const float weight = o[C + 1];
-                const int seen = weight >= 0.5f;
-                const float zi = o[C] / (seen ? weight : 1.0f);
-                const int visible = zp <= lenient * zi;
-                if (seen && visible) {
-                    o[C] = zi;
-                    o[C + 1] = 1.0f;
-                } else {
-                    memset(o, 0, (size_t)Cs * sizeof(float));
+                x = sel16(front, x, zero);
+                y = sel16(front, y, zero);
+                const v16i ok = known & front & (x >= -0.5f) & (x <= xmax) & (y >= -0.5f) & (y <= ymax);
+                /* bilinear, border padding: clamp (lanes that are not ok are never read) */
+                v16f sx = sel16(x < 0.0f, zero, x), sy = sel16(y < 0.0f, zero, y);
+                sx = sel16(sx > xb, zero + xb, sx);
+                sy = sel16(sy > yb, zero + yb, sy);
+                sx = sel16(ok, sx, zero);
+                sy = sel16(ok, sy, zero);
+                const v16i xi = __builtin_convertvector(sx, v16i), yi = __builtin_convertvector(sy, v16i);
+                const v16f wx1 = sx - __builtin_convertvector(xi, v16f), wy1 = sy - __builtin_convertvector(yi, v16f);
+                const v16f wx0 = 1.0f - wx1, wy0 = 1.0f - wy1;
+                float xs[16], ys[16], zs[16], w00[16], w10[16], w01[16], w11[16];
+                int32_t oks[16], x0s[16], y0s[16];
+                st16(xs, x); st16(ys, y); st16(zs, zp);
+                st16(w00, wx0 * wy0); st16(w10, wx1 * wy0); st16(w01, wx0 * wy1); st16(w11, wx1 * wy1);
+                memcpy(oks, &ok, sizeof oks); memcpy(x0s, &xi, sizeof x0s); memcpy(y0s, &yi, sizeof y0s);
+                for (int64_t p = 0; p < n; ++p) {
+                    const int64_t u = u0 + p;
+                    float *o = orow + u * Cs;
+                    crow[2 * u] = xs[p];
+                    crow[2 * u + 1] = ys[p];
+                    if (!oks[p]) {
+                        memset(o, 0, (size_t)Cs * sizeof(float));
+                        continue;
+                    }
+                    const int64_t xa = x0s[p], ya = y0s[p];
+                    const int64_t xc = xa + 1 < Ws ? xa + 1 : Ws - 1, yc = ya + 1 < Hs ? ya + 1 : Hs - 1;
+                    taps4(o, sb + (ya * Ws + xa) * Cs, sb + (ya * Ws + xc) * Cs, sb + (yc * Ws + xa) * Cs,
+                          sb + (yc * Ws + xc) * Cs, w00[p], w10[p], w01[p], w11[p], Cs);
+                    /* visibility */
+                    const float weight = o[C + 1];
+                    const int seen = weight >= 0.5f;
+                    const float zi = o[C] / (seen ? weight : 1.0f);
+                    const int visible = zs[p] <= lenient * zi;
+                    if (seen && visible) {
+                        o[C] = zi;
+                        o[C + 1] = 1.0f;
+                    } else {
+                        memset(o, 0, (size_t)Cs * sizeof(float));
+                    }
                 }
             }
         }
