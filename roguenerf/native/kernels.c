@@ -28,35 +28,51 @@ typedef int32_t v16i __attribute__((vector_size(64)));
 static inline v16f ld16(const float *p) { v16f v; memcpy(&v, p, sizeof(v)); return v; }
 static inline void st16(float *p, v16f v) { memcpy(p, &v, sizeof(v)); }
 
-static inline v16f sel16(v16i m, v16f a, v16f b) { return (v16f)((m & (v16i)a) | (~m & (v16i)b)); }
+/* Vectors of the CPU's own width, VW float lanes: 16 where the compiler targets AVX-512, else 8.
+ * Code with comparisons or selects uses these: GCC lowers a comparison of a vector wider than
+ * the target's (16 lanes under AVX2) to one scalar compare and branch-free move per lane, which
+ * made the 16-lane kernels several times slower than their torch counterparts on AVX2 machines.
+ * Loads, stores, sums and products of 16 lanes split into two halves cleanly (taps4). The
+ * results do not depend on VW: every lane does the same float32 operations. */
+#if defined(__AVX512F__)
+#define VW 16
+#else
+#define VW 8
+#endif
+typedef float vec __attribute__((vector_size(VW * 4)));
+typedef int32_t veci __attribute__((vector_size(VW * 4)));
 
-/* exp(x), 16 lanes: Cephes' expf (range reduction by ln 2, degree-6 polynomial; about 1 ulp),
+static inline vec ldv(const float *p) { vec v; memcpy(&v, p, sizeof(v)); return v; }
+static inline void stv(float *p, vec v) { memcpy(p, &v, sizeof(v)); }
+static inline vec selv(veci m, vec a, vec b) { return (vec)((m & (veci)a) | (~m & (veci)b)); }
+
+/* exp(x), VW lanes: Cephes' expf (range reduction by ln 2, degree-6 polynomial; about 1 ulp),
  * x clamped to [-87, 88] (the result stays a normal float). A macro, so that the window
  * attention below gets its own copy compiled with its floating-point options (GCC does not
  * inline across different ones). */
-#define DEFINE_EXP16(name)                                                                 \
-    static inline v16f name(v16f x) {                                                      \
-        const v16f zero = {0}, lo = zero - 87.0f, hi = zero + 88.0f;                       \
-        x = sel16(x < lo, lo, x);                                                          \
-        x = sel16(x > hi, hi, x);                                                          \
-        const v16f y = x * 1.44269504088896341f + 0.5f;                                    \
-        v16f n = __builtin_convertvector(__builtin_convertvector(y, v16i), v16f);          \
-        n = n + __builtin_convertvector(n > y, v16f); /* floor: -1 where n > y */          \
-        v16f r = x - n * 0.693359375f;                                                     \
+#define DEFINE_EXPV(name, sel)                                                             \
+    static inline vec name(vec x) {                                                        \
+        const vec zero = {0}, lo = zero - 87.0f, hi = zero + 88.0f;                        \
+        x = sel(x < lo, lo, x);                                                            \
+        x = sel(x > hi, hi, x);                                                            \
+        const vec y = x * 1.44269504088896341f + 0.5f;                                     \
+        vec n = __builtin_convertvector(__builtin_convertvector(y, veci), vec);            \
+        n = n + __builtin_convertvector(n > y, vec); /* floor: -1 where n > y */           \
+        vec r = x - n * 0.693359375f;                                                      \
         r = r - n * -2.12194440e-4f;                                                       \
-        v16f p = r * 1.9875691500e-4f + 1.3981999507e-3f;                                  \
+        vec p = r * 1.9875691500e-4f + 1.3981999507e-3f;                                   \
         p = p * r + 8.3334519073e-3f;                                                      \
         p = p * r + 4.1665795894e-2f;                                                      \
         p = p * r + 1.6666665459e-1f;                                                      \
         p = p * r + 5.0000001201e-1f;                                                      \
         p = p * (r * r) + r + 1.0f;                                                        \
-        const v16i bits = (__builtin_convertvector(n, v16i) + 127) << 23;                  \
-        v16f scale;                                                                        \
+        const veci bits = (__builtin_convertvector(n, veci) + 127) << 23;                  \
+        vec scale;                                                                         \
         memcpy(&scale, &bits, sizeof(scale));                                              \
         return p * scale;                                                                  \
     }
 
-DEFINE_EXP16(exp16)
+DEFINE_EXPV(expv, selv)
 
 /* Weighted sum of four source rows of C channels into out (tap order as the torch path). */
 static inline void taps4(float *restrict out, const float *restrict s00, const float *restrict s10,
@@ -106,7 +122,7 @@ RG_API void rg_reproject(const float *depth, const float *rows, const float *col
     const int64_t C = Cs - 2;
     const float xmax = (float)((double)Ws - 0.5), ymax = (float)((double)Hs - 0.5);
     const float xb = (float)(Ws - 1), yb = (float)(Hs - 1);
-    const v16f zero = {0};
+    const vec zero = {0};
 #pragma omp parallel for collapse(2) schedule(static) num_threads(nthreads)
     for (int64_t b = 0; b < B; ++b) {
         for (int64_t v = 0; v < H; ++v) {
@@ -117,43 +133,43 @@ RG_API void rg_reproject(const float *depth, const float *rows, const float *col
             const float *drow = depth + (b * H + v) * W;
             float *orow = out + (b * H + v) * W * Cs;
             float *crow = coords + (b * H + v) * W * 2;
-            /* The per-pixel arithmetic 16 pixels at a time (the same float32 operations, lane by
+            /* The per-pixel arithmetic VW pixels at a time (the same float32 operations, lane by
              * lane), then the sampling and visibility test pixel by pixel. */
-            for (int64_t u0 = 0; u0 < W; u0 += 16) {
-                const int64_t n = W - u0 < 16 ? W - u0 : 16;
-                float dv[16] = {0}, c0[16] = {0}, c1[16] = {0}, c2[16] = {0};
+            for (int64_t u0 = 0; u0 < W; u0 += VW) {
+                const int64_t n = W - u0 < VW ? W - u0 : VW;
+                float dv[VW] = {0}, c0[VW] = {0}, c1[VW] = {0}, c2[VW] = {0};
                 memcpy(dv, drow + u0, (size_t)n * sizeof(float));
                 memcpy(c0, cl + u0, (size_t)n * sizeof(float));
                 memcpy(c1, cl + W + u0, (size_t)n * sizeof(float));
                 memcpy(c2, cl + 2 * W + u0, (size_t)n * sizeof(float));
-                const v16f d = ld16(dv);
-                const v16i known = ((d - d) == 0.0f) & (d > eps) & (d < max_depth);  /* finite, in range */
-                const v16f z = sel16(known, d, zero + 1.0f);
-                v16f zp = (rw[2 * H + v] + ld16(c2)) * z + cv[2];
-                v16f x = (rw[v] + ld16(c0)) * z + cv[0];
-                v16f y = (rw[H + v] + ld16(c1)) * z + cv[1];
-                const v16i front = ((x - x) == 0.0f) & ((y - y) == 0.0f) & ((zp - zp) == 0.0f) & (zp > eps);
-                zp = sel16(front, zp, zero + 1.0f);
-                x = sel16(front, x, zero);
-                y = sel16(front, y, zero);
+                const vec d = ldv(dv);
+                const veci known = ((d - d) == 0.0f) & (d > eps) & (d < max_depth);  /* finite, in range */
+                const vec z = selv(known, d, zero + 1.0f);
+                vec zp = (rw[2 * H + v] + ldv(c2)) * z + cv[2];
+                vec x = (rw[v] + ldv(c0)) * z + cv[0];
+                vec y = (rw[H + v] + ldv(c1)) * z + cv[1];
+                const veci front = ((x - x) == 0.0f) & ((y - y) == 0.0f) & ((zp - zp) == 0.0f) & (zp > eps);
+                zp = selv(front, zp, zero + 1.0f);
+                x = selv(front, x, zero);
+                y = selv(front, y, zero);
                 x = x / zp - 0.5f;
                 y = y / zp - 0.5f;
-                x = sel16(front, x, zero);
-                y = sel16(front, y, zero);
-                const v16i ok = known & front & (x >= -0.5f) & (x <= xmax) & (y >= -0.5f) & (y <= ymax);
+                x = selv(front, x, zero);
+                y = selv(front, y, zero);
+                const veci ok = known & front & (x >= -0.5f) & (x <= xmax) & (y >= -0.5f) & (y <= ymax);
                 /* bilinear, border padding: clamp (lanes that are not ok are never read) */
-                v16f sx = sel16(x < 0.0f, zero, x), sy = sel16(y < 0.0f, zero, y);
-                sx = sel16(sx > xb, zero + xb, sx);
-                sy = sel16(sy > yb, zero + yb, sy);
-                sx = sel16(ok, sx, zero);
-                sy = sel16(ok, sy, zero);
-                const v16i xi = __builtin_convertvector(sx, v16i), yi = __builtin_convertvector(sy, v16i);
-                const v16f wx1 = sx - __builtin_convertvector(xi, v16f), wy1 = sy - __builtin_convertvector(yi, v16f);
-                const v16f wx0 = 1.0f - wx1, wy0 = 1.0f - wy1;
-                float xs[16], ys[16], zs[16], w00[16], w10[16], w01[16], w11[16];
-                int32_t oks[16], x0s[16], y0s[16];
-                st16(xs, x); st16(ys, y); st16(zs, zp);
-                st16(w00, wx0 * wy0); st16(w10, wx1 * wy0); st16(w01, wx0 * wy1); st16(w11, wx1 * wy1);
+                vec sx = selv(x < 0.0f, zero, x), sy = selv(y < 0.0f, zero, y);
+                sx = selv(sx > xb, zero + xb, sx);
+                sy = selv(sy > yb, zero + yb, sy);
+                sx = selv(ok, sx, zero);
+                sy = selv(ok, sy, zero);
+                const veci xi = __builtin_convertvector(sx, veci), yi = __builtin_convertvector(sy, veci);
+                const vec wx1 = sx - __builtin_convertvector(xi, vec), wy1 = sy - __builtin_convertvector(yi, vec);
+                const vec wx0 = 1.0f - wx1, wy0 = 1.0f - wy1;
+                float xs[VW], ys[VW], zs[VW], w00[VW], w10[VW], w01[VW], w11[VW];
+                int32_t oks[VW], x0s[VW], y0s[VW];
+                stv(xs, x); stv(ys, y); stv(zs, zp);
+                stv(w00, wx0 * wy0); stv(w10, wx1 * wy0); stv(w01, wx0 * wy1); stv(w11, wx1 * wy1);
                 memcpy(oks, &ok, sizeof oks); memcpy(x0s, &xi, sizeof x0s); memcpy(y0s, &yi, sizeof y0s);
                 for (int64_t p = 0; p < n; ++p) {
                     const int64_t u = u0 + p;
@@ -357,9 +373,9 @@ RG_API int rg_attend_pool(const float *hidden, const float *term, const float *w
                 }
                 const float cb = cam[b];
                 int64_t u0 = 0;
-                for (; u0 + 16 <= W; u0 += 16) {  /* psi = cam * sigmoid(s + b2), 16 pixels at a time */
-                    const v16f t = ld16(s + u0) + b2;
-                    st16(s + u0, cb * (1.0f / (1.0f + exp16(-t))));
+                for (; u0 + VW <= W; u0 += VW) {  /* psi = cam * sigmoid(s + b2), VW pixels at a time */
+                    const vec t = ldv(s + u0) + b2;
+                    stv(s + u0, cb * (1.0f / (1.0f + expv(-t))));
                 }
                 for (; u0 < W; ++u0) s[u0] = cb * (1.0f / (1.0f + expf(-(s[u0] + b2))));
                 const float *brow = buf + (b * H + v) * W * Cs;
@@ -521,89 +537,87 @@ RG_API void rg_merge_ln(const float *x, const float *tokens, float *x_out, float
 #endif
 
 #define WA_LD16(p) ({ v16f _v; memcpy(&_v, (p), sizeof(_v)); _v; })
-#if defined(__clang__)
-#define WA_SHUF16(v, ...) __builtin_shufflevector(v, v, __VA_ARGS__)
-#else
-#define WA_SHUF16(v, ...) __builtin_shuffle(v, (v16i){__VA_ARGS__})
-#endif
+#define WA_LDV(p) ({ vec _v; memcpy(&_v, (p), sizeof(_v)); _v; })
 typedef float v8f __attribute__((vector_size(32)));
 
-static inline v16f wa_sel16(v16i m, v16f a, v16f b) { return (v16f)((m & (v16i)a) | (~m & (v16i)b)); }
-#define sel16 wa_sel16
-DEFINE_EXP16(wa_exp16)
-#undef sel16
+static inline vec wa_sel(veci m, vec a, vec b) { return (vec)((m & (veci)a) | (~m & (veci)b)); }
+DEFINE_EXPV(wa_exp, wa_sel)
 
-static inline v16f wa_max(v16f a, v16f b) {
-    const v16i gt = a > b;
-    return (v16f)((gt & (v16i)a) | (~gt & (v16i)b));
-}
+/* Keys whose scores are summed at once: 16 accumulators fill half of AVX-512's 32 registers,
+ * AVX2 has 16 in all, so there the keys go in two passes of 8. */
+#define WA_KEYS (VW == 16 ? 16 : 8)
 
-/* One 16-token window and one head of d channels:
+/* One 16-token window and one head of d channels, queries i0 .. i0 + VW - 1:
  * out_i = softmax_j(scale * q_i . k_j + bias_ij [+ mask_ij]) v_j, rows of q, k, v 3C apart.
- * The scores are formed transposed, one vector per key j over the 16 queries, so that the
+ * The scores are formed transposed, one vector per key j over the VW queries, so that the
  * softmax's max and sum over j are elementwise across 16 vectors (no horizontal shuffles) and
- * the 16 sums q . k_j are independent chains the CPU overlaps. bt is the bias transposed,
+ * the sums q . k_j are independent chains the CPU overlaps. bt is the bias transposed,
  * bt[j][i] = bias[i][j]; the mask is read transposed. The probabilities go through memory
  * (pt[j][i]) to the value sum, four query rows at a time. */
 #define WA_ROWS 4
-static inline void wa_window16(const float *restrict t, const float *restrict bt, const float *restrict mw,
-                               float *restrict oh, int64_t C, int64_t d, float scale) {
-    float qt[64 * 16] __attribute__((aligned(64))), pt[16][16] __attribute__((aligned(64)));
-    for (int i = 0; i < 16; ++i)
-        for (int64_t c = 0; c < d; ++c) qt[c * 16 + i] = t[i * 3 * C + c];
-    v16f s[16];
-    for (int j = 0; j < 16; ++j) s[j] = WA_LD16(qt) * t[j * 3 * C + C];
-    for (int64_t c = 1; c < d; ++c) {
-        const v16f q = WA_LD16(qt + c * 16);
-        for (int j = 0; j < 16; ++j) s[j] = s[j] + q * t[j * 3 * C + C + c];
-    }
-    v16f m;
-    for (int j = 0; j < 16; ++j) {
-        s[j] = s[j] * scale + WA_LD16(bt + j * 16);
-        if (mw) {
-            float col[16] __attribute__((aligned(64)));
-            for (int i = 0; i < 16; ++i) col[i] = mw[i * 16 + j];
-            s[j] = s[j] + WA_LD16(col);
+static inline void wa_block(const float *restrict t, const float *restrict bt, const float *restrict mw,
+                            float *restrict oh, int64_t C, int64_t d, float scale, int i0) {
+    float qt[64 * VW] __attribute__((aligned(64))), pt[16][VW] __attribute__((aligned(64)));
+    for (int i = 0; i < VW; ++i)
+        for (int64_t c = 0; c < d; ++c) qt[c * VW + i] = t[(i0 + i) * 3 * C + c];
+    vec s[16];
+    for (int j0 = 0; j0 < 16; j0 += WA_KEYS) {
+        vec acc[WA_KEYS];
+        for (int j = 0; j < WA_KEYS; ++j) acc[j] = WA_LDV(qt) * t[(j0 + j) * 3 * C + C];
+        for (int64_t c = 1; c < d; ++c) {
+            const vec q = WA_LDV(qt + c * VW);
+            for (int j = 0; j < WA_KEYS; ++j) acc[j] = acc[j] + q * t[(j0 + j) * 3 * C + C + c];
         }
-        m = j ? wa_max(m, s[j]) : s[j];
+        for (int j = 0; j < WA_KEYS; ++j) s[j0 + j] = acc[j];
     }
-    v16f sum;
+    vec m;
     for (int j = 0; j < 16; ++j) {
-        s[j] = wa_exp16(s[j] - m);
+        s[j] = s[j] * scale + WA_LDV(bt + j * 16 + i0);
+        if (mw) {
+            float col[VW] __attribute__((aligned(64)));
+            for (int i = 0; i < VW; ++i) col[i] = mw[(i0 + i) * 16 + j];
+            s[j] = s[j] + WA_LDV(col);
+        }
+        m = j ? wa_sel(m > s[j], m, s[j]) : s[j];
+    }
+    vec sum;
+    for (int j = 0; j < 16; ++j) {
+        s[j] = wa_exp(s[j] - m);
         sum = j ? sum + s[j] : s[j];
     }
     for (int j = 0; j < 16; ++j) {
-        const v16f p = s[j] / sum;
+        const vec p = s[j] / sum;
         memcpy(pt[j], &p, sizeof(p));
     }
     const float *v = t + 2 * C;
-    for (int i0 = 0; i0 < 16; i0 += WA_ROWS) {
+    for (int r0 = 0; r0 < VW; r0 += WA_ROWS) {
+        float *o = oh + (i0 + r0) * C;
         int64_t c = 0;
         for (; c + 16 <= d; c += 16) {
             v16f acc[WA_ROWS];
             const v16f v0 = WA_LD16(v + c);
-            for (int r = 0; r < WA_ROWS; ++r) acc[r] = v0 * pt[0][i0 + r];
+            for (int r = 0; r < WA_ROWS; ++r) acc[r] = v0 * pt[0][r0 + r];
             for (int j = 1; j < 16; ++j) {
                 const v16f vj = WA_LD16(v + j * 3 * C + c);
-                for (int r = 0; r < WA_ROWS; ++r) acc[r] = acc[r] + vj * pt[j][i0 + r];
+                for (int r = 0; r < WA_ROWS; ++r) acc[r] = acc[r] + vj * pt[j][r0 + r];
             }
-            for (int r = 0; r < WA_ROWS; ++r) memcpy(oh + (i0 + r) * C + c, &acc[r], sizeof(acc[r]));
+            for (int r = 0; r < WA_ROWS; ++r) memcpy(o + r * C + c, &acc[r], sizeof(acc[r]));
         }
         for (; c + 8 <= d; c += 8) {
             v8f acc[WA_ROWS], vj;
             memcpy(&vj, v + c, sizeof(vj));
-            for (int r = 0; r < WA_ROWS; ++r) acc[r] = vj * pt[0][i0 + r];
+            for (int r = 0; r < WA_ROWS; ++r) acc[r] = vj * pt[0][r0 + r];
             for (int j = 1; j < 16; ++j) {
                 memcpy(&vj, v + j * 3 * C + c, sizeof(vj));
-                for (int r = 0; r < WA_ROWS; ++r) acc[r] = acc[r] + vj * pt[j][i0 + r];
+                for (int r = 0; r < WA_ROWS; ++r) acc[r] = acc[r] + vj * pt[j][r0 + r];
             }
-            for (int r = 0; r < WA_ROWS; ++r) memcpy(oh + (i0 + r) * C + c, &acc[r], sizeof(acc[r]));
+            for (int r = 0; r < WA_ROWS; ++r) memcpy(o + r * C + c, &acc[r], sizeof(acc[r]));
         }
         for (; c < d; ++c) {
             for (int r = 0; r < WA_ROWS; ++r) {
-                float acc = v[c] * pt[0][i0 + r];
-                for (int j = 1; j < 16; ++j) acc = acc + v[j * 3 * C + c] * pt[j][i0 + r];
-                oh[(i0 + r) * C + c] = acc;
+                float acc = v[c] * pt[0][r0 + r];
+                for (int j = 1; j < 16; ++j) acc = acc + v[j * 3 * C + c] * pt[j][r0 + r];
+                o[r * C + c] = acc;
             }
         }
     }
@@ -622,7 +636,8 @@ RG_API void rg_window_attention16(const float *qkv, const float *bias_t, const f
         const float *t = qkv + w * 16 * 3 * C;
         const float *mw = mask ? mask + (w % nw) * 256 : 0;
         float *o = out + w * 16 * C;
-        for (int64_t n = 0; n < heads; ++n) wa_window16(t + n * d, bias_t + n * 256, mw, o + n * d, C, d, scale);
+        for (int64_t n = 0; n < heads; ++n)
+            for (int i0 = 0; i0 < 16; i0 += VW) wa_block(t + n * d, bias_t + n * 256, mw, o + n * d, C, d, scale, i0);
     }
 }
 
@@ -633,13 +648,6 @@ RG_API void rg_window_attention16(const float *qkv, const float *bias_t, const f
  * rows keeping the hidden maps of three rows in a ring (they stay in cache), where oneDNN writes
  * and reads back two full-resolution maps of 4 C channels. Vectors of VW lanes: 16 where the
  * compiler targets AVX-512, else 8 (what the CPU runs natively; more lanes only split). */
-#if defined(__AVX512F__)
-#define VW 16
-#else
-#define VW 8
-#endif
-typedef float vec __attribute__((vector_size(VW * 4)));
-typedef int32_t veci __attribute__((vector_size(VW * 4)));
 
 static inline vec lf_sel(veci m, vec a, vec b) { return (vec)((m & (veci)a) | (~m & (veci)b)); }
 
