@@ -22,18 +22,11 @@ static inline float clampf(float v, float lo, float hi) {
     return v < lo ? lo : (v > hi ? hi : v);
 }
 
-typedef float v16f __attribute__((vector_size(64)));
-typedef int32_t v16i __attribute__((vector_size(64)));
-
-static inline v16f ld16(const float *p) { v16f v; memcpy(&v, p, sizeof(v)); return v; }
-static inline void st16(float *p, v16f v) { memcpy(p, &v, sizeof(v)); }
-
 /* Vectors of the CPU's own width, VW float lanes: 16 where the compiler targets AVX-512, else 8.
- * Code with comparisons or selects uses these: GCC lowers a comparison of a vector wider than
- * the target's (16 lanes under AVX2) to one scalar compare and branch-free move per lane, which
- * made the 16-lane kernels several times slower than their torch counterparts on AVX2 machines.
- * Loads, stores, sums and products of 16 lanes split into two halves cleanly (taps4). The
- * results do not depend on VW: every lane does the same float32 operations. */
+ * No wider vector is used: under AVX2, GCC lowers a comparison of 16-lane vectors to a scalar
+ * compare and move per lane, and even a scalar broadcast into one goes lane by lane through
+ * memory, which made 16-lane kernels several times slower than the torch path on AVX2
+ * machines. The results do not depend on VW: every lane does the same float32 operations. */
 #if defined(__AVX512F__)
 #define VW 16
 #else
@@ -79,20 +72,20 @@ static inline void taps4(float *restrict out, const float *restrict s00, const f
                          const float *restrict s01, const float *restrict s11,
                          float w00, float w10, float w01, float w11, int64_t C) {
     int64_t c = 0;
-    for (; c + 16 <= C; c += 16) {  /* 16 channels at a time: the same operations per channel */
-        v16f acc = ld16(s00 + c) * w00;
-        acc = acc + ld16(s10 + c) * w10;
-        acc = acc + ld16(s01 + c) * w01;
-        acc = acc + ld16(s11 + c) * w11;
-        st16(out + c, acc);
+    for (; c + VW <= C; c += VW) {  /* VW channels at a time: the same operations per channel */
+        vec acc = ldv(s00 + c) * w00;
+        acc = acc + ldv(s10 + c) * w10;
+        acc = acc + ldv(s01 + c) * w01;
+        acc = acc + ldv(s11 + c) * w11;
+        stv(out + c, acc);
     }
-    if (c < C && C >= 16) {  /* the last 16 channels again: the same operations, the same values */
-        c = C - 16;
-        v16f acc = ld16(s00 + c) * w00;
-        acc = acc + ld16(s10 + c) * w10;
-        acc = acc + ld16(s01 + c) * w01;
-        acc = acc + ld16(s11 + c) * w11;
-        st16(out + c, acc);
+    if (c < C && C >= VW) {  /* the last VW channels again: the same operations, the same values */
+        c = C - VW;
+        vec acc = ldv(s00 + c) * w00;
+        acc = acc + ldv(s10 + c) * w10;
+        acc = acc + ldv(s01 + c) * w01;
+        acc = acc + ldv(s11 + c) * w11;
+        stv(out + c, acc);
         return;
     }
     for (; c < C; ++c) {
@@ -536,7 +529,6 @@ RG_API void rg_merge_ln(const float *x, const float *tokens, float *x_out, float
 #pragma GCC optimize("fp-contract=fast")
 #endif
 
-#define WA_LD16(p) ({ v16f _v; memcpy(&_v, (p), sizeof(_v)); _v; })
 #define WA_LDV(p) ({ vec _v; memcpy(&_v, (p), sizeof(_v)); _v; })
 typedef float v8f __attribute__((vector_size(32)));
 
@@ -593,12 +585,12 @@ static inline void wa_block(const float *restrict t, const float *restrict bt, c
     for (int r0 = 0; r0 < VW; r0 += WA_ROWS) {
         float *o = oh + (i0 + r0) * C;
         int64_t c = 0;
-        for (; c + 16 <= d; c += 16) {
-            v16f acc[WA_ROWS];
-            const v16f v0 = WA_LD16(v + c);
+        for (; c + VW <= d; c += VW) {
+            vec acc[WA_ROWS];
+            const vec v0 = WA_LDV(v + c);
             for (int r = 0; r < WA_ROWS; ++r) acc[r] = v0 * pt[0][r0 + r];
             for (int j = 1; j < 16; ++j) {
-                const v16f vj = WA_LD16(v + j * 3 * C + c);
+                const vec vj = WA_LDV(v + j * 3 * C + c);
                 for (int r = 0; r < WA_ROWS; ++r) acc[r] = acc[r] + vj * pt[j][r0 + r];
             }
             for (int r = 0; r < WA_ROWS; ++r) memcpy(o + r * C + c, &acc[r], sizeof(acc[r]));
