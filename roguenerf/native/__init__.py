@@ -325,16 +325,17 @@ def window_attention(qkv: Tensor, bias: Tensor, mask: Tensor | None, heads: int,
 
 
 def vector_width() -> int:
-    """Float lanes per vector the kernels were compiled for: 16 with AVX-512, else 8."""
+    """Float lanes per vector the kernels were compiled for: 16 with AVX-512, 8 with AVX, else 4."""
     return library().rg_vector_width()
 
 
 def leff_supported(channels: int, hidden: int) -> bool:
     """:func:`leff` handles ``channels`` a multiple of 8 and ``hidden`` of :func:`vector_width`,
     and is used where it measured faster than oneDNN (``bench/stages.py``): at every Uformer
-    level with 16-lane vectors, at up to 16 channels with 8-lane ones."""
+    level with 16-lane vectors, at up to 16 channels with 8-lane ones; not with 4-lane ones (a
+    build without -march=native, while oneDNN picks the CPU's own vectors at run time)."""
     lanes = vector_width()
-    return channels % 8 == 0 and hidden % lanes == 0 and (lanes == 16 or channels <= 16)
+    return channels % 8 == 0 and hidden % lanes == 0 and (lanes == 16 or (lanes == 8 and channels <= 16))
 
 
 def _column_tiles(weight_t: Tensor, widths: tuple[int, ...]) -> Tensor:
@@ -362,7 +363,7 @@ def _leff_weights(module: torch.nn.Module) -> tuple[Tensor, ...]:
         with torch.no_grad():
             packed = (_column_tiles(up.weight.t(), (2 * lanes, lanes)), up.bias.contiguous(),
                       dw.weight.reshape(hidden, 9).t().contiguous(), dw.bias.contiguous(),
-                      _column_tiles(down.weight.t(), (2 * lanes, lanes, 8)), down.bias.contiguous())
+                      _column_tiles(down.weight.t(), (32, 16, 8) if lanes == 16 else (16, 8)), down.bias.contiguous())
         cached = (key, packed)
         module._native_weights = cached
     return cached[1]

@@ -22,15 +22,18 @@ static inline float clampf(float v, float lo, float hi) {
     return v < lo ? lo : (v > hi ? hi : v);
 }
 
-/* Vectors of the CPU's own width, VW float lanes: 16 where the compiler targets AVX-512, else 8.
+/* Vectors of the CPU's own width, VW float lanes: 16 where the compiler targets AVX-512, 8 with
+ * AVX, else 4 (SSE, NEON: the build without -march=native).
  * No wider vector is used: under AVX2, GCC lowers a comparison of 16-lane vectors to a scalar
  * compare and move per lane, and even a scalar broadcast into one goes lane by lane through
  * memory, which made 16-lane kernels several times slower than the torch path on AVX2
  * machines. The results do not depend on VW: every lane does the same float32 operations. */
 #if defined(__AVX512F__)
 #define VW 16
-#else
+#elif defined(__AVX__)
 #define VW 8
+#else
+#define VW 4
 #endif
 typedef float vec __attribute__((vector_size(VW * 4)));
 typedef int32_t veci __attribute__((vector_size(VW * 4)));
@@ -800,7 +803,8 @@ static void lf_dw_row(const float *const rows[3], const float *restrict wdw, con
         for (; u < W; ++u) lf_down_##L##_1_##NK(a + u * Hd, w2, b2, res ? res + u * C : 0, out + u * C, C, Hd, c0); \
     }
 
-/* One row through the second linear (+ residual). Column tiles of 2 VW, VW, then 8. */
+/* One row through the second linear (+ residual). Column tiles of 32, 16, then 8 with AVX-512,
+ * else of 16, then 8. */
 static void lf_down_row(const float *restrict a, const float *restrict w2, const float *restrict b2,
                         const float *restrict res, float *restrict out, int64_t W, int64_t C, int64_t Hd) {
     int64_t c0 = 0;
@@ -816,7 +820,7 @@ static void lf_down_row(const float *restrict a, const float *restrict w2, const
 RG_API int rg_vector_width(void) { return VW; }
 
 /* x, res, out (B, H, W, C) (res may be NULL); w1 packed (C, Hd) = W1^T in tiles of 2 VW then VW;
- * b1 (Hd); wdw (9, Hd) tap-major; bdw (Hd); w2 packed (Hd, C) = W2^T in tiles of 2 VW, VW then 8;
+ * b1 (Hd); wdw (9, Hd) tap-major; bdw (Hd); w2 packed (Hd, C) = W2^T in tiles as lf_down_row's;
  * b2 (C). C a multiple of 8, Hd of VW. Returns -1 when a row buffer cannot be allocated. */
 RG_API int rg_leff(const float *x, const float *res, float *out, const float *w1, const float *b1,
                    const float *wdw, const float *bdw, const float *w2, const float *b2,
