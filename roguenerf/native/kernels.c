@@ -357,13 +357,29 @@ RG_API int rg_attend_pool(const float *hidden, const float *term, const float *w
                         }
                     }
                 }
-                for (int64_t u = 0; u < W; ++u) s[u] = 0.0f;
-                for (int64_t c = 0; c < Hd; ++c) {
+                /* the 3 x 3 conv to one channel, 2 VW pixels at a time in registers (the taps summed
+                 * in the same order for every pixel, the tail's included) */
+                int64_t ub = 0;
+                for (; ub + 2 * VW <= W; ub += 2 * VW) {
+                    vec s0 = {0}, s1 = {0};
+                    for (int64_t c = 0; c < Hd; ++c)
+                        for (int64_t r = 0; r < 3; ++r)
+                            for (int64_t dx = 0; dx < 3; ++dx) {
+                                const float wt = w2[c * 9 + r * 3 + dx];
+                                const float *gr = slot[r] + c * gw + dx + ub;
+                                s0 = s0 + wt * ldv(gr);
+                                s1 = s1 + wt * ldv(gr + VW);
+                            }
+                    stv(s + ub, s0);
+                    stv(s + ub + VW, s1);
+                }
+                for (int64_t u = ub; u < W; ++u) s[u] = 0.0f;
+                for (int64_t c = 0; c < Hd && ub < W; ++c) {
                     for (int64_t r = 0; r < 3; ++r) {
                         for (int64_t dx = 0; dx < 3; ++dx) {
                             const float wt = w2[c * 9 + r * 3 + dx];
                             const float *gr = slot[r] + c * gw + dx;
-                            for (int64_t u = 0; u < W; ++u) s[u] = s[u] + wt * gr[u];
+                            for (int64_t u = ub; u < W; ++u) s[u] = s[u] + wt * gr[u];
                         }
                     }
                 }
@@ -386,16 +402,20 @@ RG_API int rg_attend_pool(const float *hidden, const float *term, const float *w
                         if (lrow) memcpy(lrow + u * F, p, (size_t)F * sizeof(float));
                         continue;
                     }
-                    for (int64_t c = 0; c < F; ++c) {
+                    float *l = lrow ? lrow + u * F : 0;
+                    int64_t c = 0;
+                    for (; c + VW <= F; c += VW) {  /* VW channels at a time, as below */
+                        const vec a = ldv(f + c) * psi, pc = ldv(p + c);
+                        stv(p + c, selv((a > pc) | (a != a), a, pc));
+                        if (l) {
+                            const vec lc = ldv(l + c);
+                            stv(l + c, selv((a < lc) | (a != a), a, lc));
+                        }
+                    }
+                    for (; c < F; ++c) {
                         const float a = f[c] * psi;
                         p[c] = (a > p[c] || isnan(a)) ? a : p[c];
-                    }
-                    if (lrow) {
-                        float *l = lrow + u * F;
-                        for (int64_t c = 0; c < F; ++c) {
-                            const float a = f[c] * psi;
-                            l[c] = (a < l[c] || isnan(a)) ? a : l[c];
-                        }
+                        if (l) l[c] = (a < l[c] || isnan(a)) ? a : l[c];
                     }
                 }
             }
