@@ -12,7 +12,11 @@ Much of the fast path's time went to chains of cheap steps, each a pass over mem
 * the LeWin block's LayerNorm + roll + window partition, its merge + roll + residual +
   LayerNorm, the 4 x 4 window attention, and its feed-forward (LeFF: linear, GELU, depthwise
   3 x 3 convolution, GELU, linear, residual) with the hidden maps kept in cache
-  (:mod:`roguenerf.models.uformer`).
+  (:mod:`roguenerf.models.uformer`); and the Uformer's 3 x 3 output projection.
+
+The kernels use vectors of the CPU's own width (:func:`vector_width`: 16 float lanes with
+AVX-512, 8 with AVX, 4 without): GCC compiles comparisons of wider vectors lane by lane, which
+once made the 16-lane kernels slower than torch on AVX2 machines.
 
 Where a decision depends on rounding (the projection's inside and visibility tests) the
 kernels do the torch fast path's float32 operations in its order, unfused; the attention and
@@ -23,7 +27,7 @@ or :func:`disabled`). Results agree with the plain implementation to float32 rou
 (``tests/test_native.py``).
 
 Nothing is shipped pre-built: the first call compiles ``kernels.c`` with the system C compiler
-(``$CC``, else ``cc``/``gcc``/``clang``; -O3, -march=native, OpenMP where the compiler has it)
+(``$CC``, else ``cc``/``gcc``/``clang``; -O3, -march=native and OpenMP where the compiler has them)
 into ``$ROGUENERF_NATIVE_CACHE`` (default ``~/.cache/roguenerf/native``), named by a hash of the
 source, the compiler, the flags and this CPU, written atomically (concurrent processes are
 safe). It takes 0.4 s on this project's 2-core machine. Without a compiler, or when the build
