@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 from contextlib import asynccontextmanager
 from pathlib import Path
 
@@ -15,6 +16,8 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 from starlette.staticfiles import StaticFiles
 from starlette.middleware.cors import CORSMiddleware
+
+from roguenerf import native
 
 from service.auth import BearerAuthMiddleware
 from service.docs import install_docs
@@ -103,6 +106,9 @@ async def lifespan(app: FastAPI):
     settings: Settings = app.state.settings
     services = await run_in_threadpool(_open, settings)
     services.extras["loop"] = asyncio.get_running_loop()
+    # The fused CPU kernels compile on first use (about 3 s, then cached): do it now, beside
+    # the serving, so that the first enhancement does not wait for the compiler.
+    threading.Thread(target=native.library, name="roguenerf-native-build", daemon=True).start()
     app.state.services = services
     log.info("roguenerf service ready: data_dir=%s queue=%s", settings.data_dir, services.queue.backend)
     try:

@@ -8,8 +8,12 @@ worker's task function training a real (tiny) model.
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
+import subprocess
+import sys
+import textwrap
 import time
 from html.parser import HTMLParser
 from pathlib import Path
@@ -18,7 +22,7 @@ import numpy as np
 import pytest
 
 from service.settings import Settings
-from tests.service_helpers import FAST, LiveServer, make_checkpoint, make_scene, register, zip_folder
+from tests.service_helpers import FAST, ROOT, LiveServer, make_checkpoint, make_scene, register, zip_folder
 
 # ----------------------------------------------------------------------------- fixtures
 
@@ -320,3 +324,30 @@ def test_job_reports_evaluating_instead_of_done_while_it_evaluates(tmp_path, toy
 
 # An older job table getting the phase column (schema v3) is tested on SQLite and PostgreSQL in
 # tests/test_worker_jobs.py (test_a_v2_database_gets_the_phase_column).
+
+
+# ----------------------------------------------------------------------------- CPU kernels
+
+
+def test_the_service_builds_the_cpu_kernels_at_start_not_at_the_first_enhancement(tmp_path):
+    """The fused kernels compile on first use (seconds); the service starts that compile at
+    start-up beside the serving, so the first enhancement does not wait for the compiler. A fresh
+    process with an empty kernel cache: the kernels are built and loaded with no request made."""
+    code = f"""
+        import sys
+        from pathlib import Path
+        sys.path.insert(0, {str(ROOT)!r})
+        from roguenerf import native
+        from service.settings import Settings
+        from tests.service_helpers import FAST, LiveServer, wait_until
+        assert native.library.cache_info().currsize == 0
+        with LiveServer(Settings(data_dir={str(tmp_path / "data")!r}, **FAST)) as live, live.client() as c:
+            assert c.get("/healthz").status_code == 200
+            wait_until(lambda: native.library.cache_info().currsize == 1, timeout=120, what="the kernel build")
+        print("built", native.library() is not None, len(list(native.cache_dir().glob("kernels-*.so"))))
+    """
+    env = {**os.environ, "ROGUENERF_NATIVE_CACHE": str(tmp_path / "cache")}
+    run = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], cwd=ROOT, env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert "built True 1" in run.stdout

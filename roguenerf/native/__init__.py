@@ -30,7 +30,7 @@ Nothing is shipped pre-built: the first call compiles ``kernels.c`` with the sys
 (``$CC``, else ``cc``/``gcc``/``clang``; -O3, -march=native and OpenMP where the compiler has them)
 into ``$ROGUENERF_NATIVE_CACHE`` (default ``~/.cache/roguenerf/native``), named by a hash of the
 source, the compiler, the flags and this CPU, written atomically (concurrent processes are
-safe). It takes 0.4 s on this project's 2-core machine. Without a compiler, or when the build
+safe). It takes about 3 s on this project's 2-core machine (the service starts it at start-up). Without a compiler, or when the build
 fails, a warning is logged once and the torch fast path runs instead (same results, slower).
 ``ROGUENERF_NATIVE=0`` turns the kernels off.
 
