@@ -18,7 +18,6 @@ from starlette.staticfiles import StaticFiles
 from starlette.middleware.cors import CORSMiddleware
 
 from roguenerf import native
-
 from service.auth import BearerAuthMiddleware
 from service.docs import install_docs
 from service.errors import error_response, install_error_handlers
