@@ -387,7 +387,8 @@ def test_a_portable_build_passes_the_kernel_tests(tmp_path):
                        f"os.execv({cc!r}, [{cc!r}] + [a for a in sys.argv[1:] if a != '-march=native'])\n")
     wrapper.chmod(0o755)
     env = {**os.environ, "CC": str(wrapper), "ROGUENERF_NATIVE_CACHE": str(tmp_path / "cache")}
-    lanes = _run("import sys; sys.path.insert(0, '.'); from roguenerf import native; print(native.vector_width())", env)
+    lanes = _run("import sys; sys.path.insert(0, '.')\nfrom roguenerf import native\nprint(native.vector_width())",
+                 env)
     assert lanes.returncode == 0 and lanes.stdout.split() == ["4"], lanes.stderr
     run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-k",
                           "not without_kernels and not portable", __file__], cwd=ROOT, env=env,

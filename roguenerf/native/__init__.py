@@ -18,21 +18,21 @@ The kernels use vectors of the CPU's own width (:func:`vector_width`: 16 float l
 AVX-512, 8 with AVX, 4 without): GCC compiles comparisons of wider vectors lane by lane, which
 once made the 16-lane kernels slower than torch on AVX2 machines.
 
-Where a decision depends on rounding (the projection's inside and visibility tests) the
-kernels do the torch fast path's float32 operations in its order, unfused; the attention and
-the LeFF may fuse multiply-adds, as oneDNN does, and the LeFF's GELU evaluates erf by a rational
-approximation (error below 1e-7, as oneDNN's own is an approximation). The callers use a kernel only where the torch fast path
-would run (no gradient, float32, CPU; never in ``reference_mode()``, ``previous_fast_path()``
-or :func:`disabled`). Results agree with the plain implementation to float32 rounding
-(``tests/test_native.py``).
+Where a decision depends on rounding (the projection's inside and visibility tests) the kernels
+do the torch fast path's float32 operations in its order, unfused; the attention and the LeFF
+may fuse multiply-adds, as oneDNN does, and the LeFF's GELU evaluates erf by a rational
+approximation (error below 1e-7, as oneDNN's own is an approximation). The callers use a kernel
+only where the torch fast path would run (no gradient, float32, CPU; never in
+``reference_mode()``, ``previous_fast_path()`` or :func:`disabled`). Results agree with the
+plain implementation to float32 rounding (``tests/test_native.py``).
 
 Nothing is shipped pre-built: the first call compiles ``kernels.c`` with the system C compiler
-(``$CC``, else ``cc``/``gcc``/``clang``; -O3, -march=native and OpenMP where the compiler has them)
-into ``$ROGUENERF_NATIVE_CACHE`` (default ``~/.cache/roguenerf/native``), named by a hash of the
-source, the compiler, the flags and this CPU, written atomically (concurrent processes are
-safe). It takes about 3 s on this project's 2-core machine (the service starts it at start-up). Without a compiler, or when the build
-fails, a warning is logged once and the torch fast path runs instead (same results, slower).
-``ROGUENERF_NATIVE=0`` turns the kernels off.
+(``$CC``, else ``cc``/``gcc``/``clang``; -O3, -march=native and OpenMP where the compiler has
+them) into ``$ROGUENERF_NATIVE_CACHE`` (default ``~/.cache/roguenerf/native``), named by a hash
+of the source, the compiler, the flags and this CPU, written atomically (concurrent processes
+are safe). It takes about 3 s on this project's 2-core machine (the service starts it at
+start-up). Without a compiler, or when the build fails, a warning is logged once and the torch
+fast path runs instead (same results, slower). ``ROGUENERF_NATIVE=0`` turns the kernels off.
 
 Dimension letters: B batch, (H, W) target size, (Hs, Ws) neighbour size, Cs channels of a
 sampling source or packed buffer (features, depth, mask), F feature channels, (h, w) = 1/8 size.

@@ -941,8 +941,8 @@ static inline void c3_pixel(const float *restrict x, const float *restrict w, co
     memcpy(out + (v * W + u) * Co + o, &acc, sizeof acc);
 }
 
-RG_API void rg_conv3x3(const float *x, const float *w, const float *bias, float *out, int64_t B, int64_t H, int64_t W, int64_t Cs,
-                       int64_t Cin, int64_t Co, int nthreads) {
+RG_API void rg_conv3x3(const float *x, const float *w, const float *bias, float *out, int64_t B, int64_t H,
+                       int64_t W, int64_t Cs, int64_t Cin, int64_t Co, int nthreads) {
 #pragma omp parallel for collapse(2) schedule(static) num_threads(nthreads)
     for (int64_t b = 0; b < B; ++b) {
         for (int64_t v = 0; v < H; ++v) {
