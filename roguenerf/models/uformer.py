@@ -202,10 +202,14 @@ class LeWinBlock(nn.Module):
         shift = win // 2 if self.shift and min(h, w) > win else 0
         if (native.enabled(x) and self.modulator is None and not (self.training and self.drop_path.p)
                 and h % win == 0 and w % win == 0):  # (else the torch path below names the error)
-            # Same function: the norms, roll, window (un)partition and residual in two fused passes.
+            # Same function: the whole attention half window by window in one pass, else the
+            # norms, roll, window (un)partition and residual in two fused passes around it.
             mask = _shift_mask(h, w, win, shift, x.device) if shift else None
-            y = self.attn(native.ln_partition(x, self.norm1, win, shift), mask)
-            x, normed = native.merge_ln(x, y, self.norm2, win, shift)
+            if self.attn.fused and native.lewin_attention_supported(win, x.shape[-1], self.attn.heads):
+                x, normed = native.lewin_attention(x, self.norm1, self.attn, mask, self.norm2, shift)
+            else:
+                y = self.attn(native.ln_partition(x, self.norm1, win, shift), mask)
+                x, normed = native.merge_ln(x, y, self.norm2, win, shift)
             return self.mlp(normed, residual=x)
         y = self.norm1(x)
         mask = None

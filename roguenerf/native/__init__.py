@@ -9,8 +9,10 @@ Much of the fast path's time went to chains of cheap steps, each a pass over mem
   (:mod:`roguenerf.models.flow`, the enhancer);
 * the pixel attention's first convolution (17 -> 8 channels, reading the packed buffer in
   place), then the rest of it, the weighting and the max / min pooling;
-* the LeWin block's LayerNorm + roll + window partition, its merge + roll + residual +
-  LayerNorm, the 4 x 4 window attention, and its feed-forward (LeFF: linear, GELU, depthwise
+* the LeWin block's attention half window by window in one pass (LayerNorm, roll, window
+  partition, the qkv linear, the 4 x 4 window attention, the output linear, merge, residual and
+  the next LayerNorm; for channel counts it does not take, LayerNorm + roll + partition, the
+  window attention and merge + roll + residual + LayerNorm as three kernels), its feed-forward (LeFF: linear, GELU, depthwise
   3 x 3 convolution, GELU, linear, residual) with the hidden maps kept in cache
   (:mod:`roguenerf.models.uformer`); and the Uformer's 3 x 3 output projection.
 
@@ -80,6 +82,8 @@ _SIGNATURES = {
     "rg_vector_width": (_int, []),
     "rg_conv3x3": (None, [_p, _p, _p, _p, _i64, _i64, _i64, _i64, _i64, _i64, _int]),
     "rg_leff": (_int, [_p, _p, _p, _p, _p, _p, _p, _p, _p, _i64, _i64, _i64, _i64, _i64, _int]),
+    "rg_lewin_attention": (_int, [_p, _p, _p, _p, _p, _f32, _p, _p, _p, _p, _p, _p, _p, _p, _f32,
+                                  _i64, _i64, _i64, _i64, _i64, _i64, _f32, _int]),
 }
 
 
@@ -328,6 +332,40 @@ def window_attention(qkv: Tensor, bias: Tensor, mask: Tensor | None, heads: int,
     return out
 
 
+def lewin_attention_supported(win: int, channels: int, heads: int) -> bool:
+    """:func:`lewin_attention` handles 4 x 4 windows, ``channels`` a multiple of 8 and up to 64
+    channels per head."""
+    return win == 4 and channels % 8 == 0 and channels % heads == 0 and channels // heads <= 64
+
+
+def lewin_attention(x: Tensor, norm1: torch.nn.LayerNorm, attn: torch.nn.Module, mask: Tensor | None,
+                    norm2: torch.nn.LayerNorm, shift: int) -> tuple[Tensor, Tensor]:
+    """A LeWin block's attention half in one pass, window by window: ``x`` ``(B, H, W, C)`` ->
+    ``x + roll(merge(attn(partition(roll(norm1(x), -shift)), mask)), shift)`` and ``norm2`` of it
+    (what :func:`ln_partition`, the attention's linears, :func:`window_attention` and
+    :func:`merge_ln` compute in five passes). ``attn`` a
+    :class:`roguenerf.models.uformer.WindowAttention` with 4 x 4 windows; ``mask`` ``(H/4 * W/4,
+    16, 16)`` or None; see :func:`lewin_attention_supported`."""
+    b, h, w, c = x.shape
+    if mask is not None and mask.shape[0] != (h // 4) * (w // 4):
+        raise ValueError(f"lewin_attention: a mask of {mask.shape[0]} windows for a {h} x {w} image")
+    x = x.contiguous()
+    qkv, out = attn.to_qkv, attn.to_out
+    wqkv, bqkv, wout, bout = _packed(attn, (qkv.weight, qkv.bias, out.weight, out.bias), lambda: (
+        qkv.weight.t().contiguous(), qkv.bias.contiguous(), out.weight.t().contiguous(), out.bias.contiguous()))
+    bias_t = attn._cached_bias(None)[0].transpose(-1, -2).contiguous()  # the kernel's scores are transposed
+    mask = mask.contiguous() if mask is not None else None
+    x_out, normed = torch.empty_like(x), torch.empty_like(x)
+    if library().rg_lewin_attention(
+            _ptr(x), _ptr(x_out), _ptr(normed), _ptr(norm1.weight), _ptr(norm1.bias), norm1.eps, _ptr(wqkv),
+            _ptr(bqkv), _ptr(bias_t), _ptr(mask) if mask is not None else None, _ptr(wout), _ptr(bout),
+            _ptr(norm2.weight), _ptr(norm2.bias), norm2.eps, b, h, w, c, attn.heads, shift, attn.scale, _threads()):
+        raise MemoryError("roguenerf.native.lewin_attention: out of memory for its window buffers")
+    _account("lewin_attention", x, x_out, normed)
+    profiling.add_flops(b * h * w * (8 * c * c + 4 * 16 * c))  # the two linears (3C + C outputs) and the attention
+    return x_out, normed
+
+
 def vector_width() -> int:
     """Float lanes per vector the kernels were compiled for: 16 with AVX-512, 8 with AVX, else 4."""
     return library().rg_vector_width()
@@ -353,24 +391,27 @@ def _column_tiles(weight_t: Tensor, widths: tuple[int, ...]) -> Tensor:
     return torch.cat(tiles).contiguous()
 
 
-def _leff_weights(module: torch.nn.Module) -> tuple[Tensor, ...]:
-    """The LeFF's weights in ``rg_leff``'s layout, cached on the module until a weight changes
+def _packed(module: torch.nn.Module, params: tuple[Tensor, ...], pack: Callable[[], tuple[Tensor, ...]]):
+    """``pack()``: ``params`` in a kernel's layout, cached on ``module`` until one of them changes
     (weights made in inference mode have no version counter: packed on every call)."""
-    up, dw, down = module.linear1[0], module.dwconv[0], module.linear2
-    params = (up.weight, up.bias, dw.weight, dw.bias, down.weight, down.bias)
     inference = any(p.is_inference() for p in params)
     key = None if inference else tuple((p._version, p.data_ptr()) for p in params)
     cached = getattr(module, "_native_weights", None)
     if inference or cached is None or cached[0] != key:
-        lanes = vector_width()
-        hidden = up.out_features
         with torch.no_grad():
-            packed = (_column_tiles(up.weight.t(), (2 * lanes, lanes)), up.bias.contiguous(),
-                      dw.weight.reshape(hidden, 9).t().contiguous(), dw.bias.contiguous(),
-                      _column_tiles(down.weight.t(), (32, 16, 8) if lanes == 16 else (16, 8)), down.bias.contiguous())
-        cached = (key, packed)
+            cached = (key, pack())
         module._native_weights = cached
     return cached[1]
+
+
+def _leff_weights(module: torch.nn.Module) -> tuple[Tensor, ...]:
+    """The LeFF's weights in ``rg_leff``'s layout."""
+    up, dw, down = module.linear1[0], module.dwconv[0], module.linear2
+    lanes, hidden = vector_width(), up.out_features
+    return _packed(module, (up.weight, up.bias, dw.weight, dw.bias, down.weight, down.bias), lambda: (
+        _column_tiles(up.weight.t(), (2 * lanes, lanes)), up.bias.contiguous(),
+        dw.weight.reshape(hidden, 9).t().contiguous(), dw.bias.contiguous(),
+        _column_tiles(down.weight.t(), (32, 16, 8) if lanes == 16 else (16, 8)), down.bias.contiguous()))
 
 
 def leff(x: Tensor, residual: Tensor | None, module: torch.nn.Module) -> Tensor:

@@ -542,6 +542,26 @@ RG_API void rg_merge_ln(const float *x, const float *tokens, float *x_out, float
     }
 }
 
+/* For the fused attention half below (rg_lewin_attention, compiled with other floating-point
+ * options, so these are called, not inlined): the first LayerNorm of n tokens gathered from
+ * src[k] into dst (n x C), and x_out = x + y then the second LayerNorm, token k at offset
+ * at[k] of x, x_out and normed. The same float32 operations as rg_ln_partition / rg_merge_ln. */
+static __attribute__((noinline)) void ln_gather(const float *const *src, float *restrict dst, int n,
+                                                const float *w, const float *bias, float eps, int64_t C) {
+    for (int k = 0; k < n; ++k) LN_ANY(src[k], dst + k * C);
+}
+
+static __attribute__((noinline)) void add_ln_scatter(const float *x, const float *restrict y, const int64_t *at,
+                                                     int n, float *x_out, float *normed, const float *w,
+                                                     const float *bias, float eps, int64_t C) {
+    for (int k = 0; k < n; ++k) {
+        const float *xs = x + at[k], *ys = y + k * C;
+        float *xo = x_out + at[k];
+        for (int64_t c = 0; c < C; ++c) xo[c] = xs[c] + ys[c];
+        LN_ANY(xo, normed + at[k]);
+    }
+}
+
 /* ---- Window attention -------------------------------------------------------------------
  * From here on the compiler may contract a * b + c into a fused multiply-add, as oneDNN's and
  * torch's attention kernels do: these are sums of products whose rounding decides nothing.
@@ -654,6 +674,117 @@ RG_API void rg_window_attention16(const float *qkv, const float *bias_t, const f
         for (int64_t n = 0; n < heads; ++n)
             for (int i0 = 0; i0 < 16; i0 += VW) wa_block(t + n * d, bias_t + n * 256, mw, o + n * d, C, d, scale, i0);
     }
+}
+
+/* out (16 x N) = bias + in (16 x K) @ wt (K x N, row-major): the attention's two linears on one
+ * window. N a multiple of 8. Register blocks of NT tokens x NV vectors of VW columns (per input
+ * channel NV weight loads and NT broadcasts feed NT * NV multiply-adds), then VW-column and
+ * 8-column strips of 8 tokens. */
+#define WA_GEMM_BLOCK(NT, NV)                                                                        \
+    static inline void wa_gemm_##NT##_##NV(const float *restrict in, int64_t K, const float *restrict wt, \
+                                           const float *restrict bias, int64_t N, float *restrict out, \
+                                           int r0, int64_t n0) {                                     \
+        vec acc[NT][NV];                                                                             \
+        for (int j = 0; j < NV; ++j) {                                                               \
+            const vec b = WA_LDV(bias + n0 + j * VW);                                                \
+            for (int r = 0; r < NT; ++r) acc[r][j] = b;                                              \
+        }                                                                                            \
+        for (int64_t k = 0; k < K; ++k) {                                                            \
+            vec wv[NV];                                                                              \
+            for (int j = 0; j < NV; ++j) wv[j] = WA_LDV(wt + k * N + n0 + j * VW);                   \
+            for (int r = 0; r < NT; ++r) {                                                           \
+                const float a = in[(r0 + r) * K + k];                                                \
+                for (int j = 0; j < NV; ++j) acc[r][j] = acc[r][j] + wv[j] * a;                      \
+            }                                                                                        \
+        }                                                                                            \
+        for (int r = 0; r < NT; ++r)                                                                 \
+            for (int j = 0; j < NV; ++j) memcpy(out + (r0 + r) * N + n0 + j * VW, &acc[r][j], sizeof(vec)); \
+    }
+#if VW == 16
+WA_GEMM_BLOCK(8, 3)  /* 24 accumulators of AVX-512's 32 registers */
+#define WA_NT 8
+#define wa_gemm_big wa_gemm_8_3
+#else
+WA_GEMM_BLOCK(4, 3)  /* 12 of AVX2's 16 */
+#define WA_NT 4
+#define wa_gemm_big wa_gemm_4_3
+#endif
+WA_GEMM_BLOCK(8, 1)
+
+static inline void wa_gemm16(const float *restrict in, int64_t K, const float *restrict wt,
+                             const float *restrict bias, int64_t N, float *restrict out) {
+    int64_t n0 = 0;
+    for (; n0 + 3 * VW <= N; n0 += 3 * VW)
+        for (int r0 = 0; r0 < 16; r0 += WA_NT) wa_gemm_big(in, K, wt, bias, N, out, r0, n0);
+    for (; n0 + VW <= N; n0 += VW)
+        for (int r0 = 0; r0 < 16; r0 += 8) wa_gemm_8_1(in, K, wt, bias, N, out, r0, n0);
+    for (; n0 + 8 <= N; n0 += 8) {
+        for (int r0 = 0; r0 < 16; r0 += 8) {
+            v8f acc[8], b, wv;
+            memcpy(&b, bias + n0, sizeof b);
+            for (int r = 0; r < 8; ++r) acc[r] = b;
+            for (int64_t k = 0; k < K; ++k) {
+                memcpy(&wv, wt + k * N + n0, sizeof wv);
+                for (int r = 0; r < 8; ++r) acc[r] = acc[r] + wv * in[(r0 + r) * K + k];
+            }
+            for (int r = 0; r < 8; ++r) memcpy(out + (r0 + r) * N + n0, &acc[r], sizeof acc[r]);
+        }
+    }
+}
+
+/* A LeWin block's attention half with 4 x 4 windows, window by window (everything of a window
+ * stays in cache; roguenerf.models.uformer.LeWinBlock):
+ *   t = window_partition(roll(LN1(x), -shift)); qkv = t Wqkv^T + bqkv;
+ *   o = attention(qkv) (rg_window_attention16's wa_block); y = o Wout^T + bout;
+ *   x_out = x + roll(window_merge(y), shift); normed = LN2(x_out).
+ * A token's rolled position is the pixel it came from, so each window reads and writes only its
+ * own 16 pixels. x, x_out, normed (B, H, W, C), H and W multiples of 4, C = heads * d a multiple
+ * of 8, d <= 64; wqkv_t (C, 3C) and wout_t (C, C) the linears' weights transposed; bias_t
+ * (heads, 16, 16) transposed as rg_window_attention16's; mask (H/4 * W/4, 16, 16) or NULL.
+ * Returns -1 when a thread's buffers cannot be allocated. */
+RG_API int rg_lewin_attention(const float *x, float *x_out, float *normed, const float *ln1w, const float *ln1b,
+                              float eps1, const float *wqkv_t, const float *bqkv, const float *bias_t,
+                              const float *mask, const float *wout_t, const float *bout, const float *ln2w,
+                              const float *ln2b, float eps2, int64_t B, int64_t H, int64_t W, int64_t C,
+                              int64_t heads, int64_t shift, float scale, int nthreads) {
+    const int64_t nh = H / 4, nw = W / 4, d = C / heads;
+    int failed = 0;
+#pragma omp parallel num_threads(nthreads) reduction(| : failed)
+    {
+        float *t = malloc((size_t)(16 * 6 * C) * sizeof(float));  /* t, qkv (3C), o, y */
+        if (!t) failed = 1;
+        float *qkv = t ? t + 16 * C : 0, *o = t ? t + 64 * C : 0, *y = t ? t + 80 * C : 0;
+#pragma omp for collapse(2) schedule(static)
+        for (int64_t b = 0; b < B; ++b) {
+            for (int64_t wi = 0; wi < nh; ++wi) {
+                if (!t) continue;
+                for (int64_t wj = 0; wj < nw; ++wj) {
+                    const float *src[16];
+                    int64_t at[16];
+                    for (int a = 0; a < 4; ++a) {
+                        int64_t i = wi * 4 + a + shift;  /* rolled row r comes from row r + shift */
+                        if (i >= H) i -= H;
+                        for (int c = 0; c < 4; ++c) {
+                            int64_t j = wj * 4 + c + shift;
+                            if (j >= W) j -= W;
+                            at[a * 4 + c] = ((b * H + i) * W + j) * C;
+                            src[a * 4 + c] = x + at[a * 4 + c];
+                        }
+                    }
+                    ln_gather(src, t, 16, ln1w, ln1b, eps1, C);
+                    wa_gemm16(t, C, wqkv_t, bqkv, 3 * C, qkv);
+                    const float *mw = mask ? mask + (wi * nw + wj) * 256 : 0;
+                    for (int64_t n = 0; n < heads; ++n)
+                        for (int i0 = 0; i0 < 16; i0 += VW)
+                            wa_block(qkv + n * d, bias_t + n * 256, mw, o + n * d, C, d, scale, i0);
+                    wa_gemm16(o, C, wout_t, bout, C, y);
+                    add_ln_scatter(x, y, at, 16, x_out, normed, ln2w, ln2b, eps2, C);
+                }
+            }
+        }
+        free(t);
+    }
+    return failed ? -1 : 0;
 }
 
 /* ---- LeFF -------------------------------------------------------------------------------
