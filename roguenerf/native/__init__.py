@@ -12,9 +12,10 @@ Much of the fast path's time went to chains of cheap steps, each a pass over mem
 * the LeWin block's attention half window by window in one pass (LayerNorm, roll, window
   partition, the qkv linear, the 4 x 4 window attention, the output linear, merge, residual and
   the next LayerNorm; for channel counts it does not take, LayerNorm + roll + partition, the
-  window attention and merge + roll + residual + LayerNorm as three kernels), its feed-forward (LeFF: linear, GELU, depthwise
-  3 x 3 convolution, GELU, linear, residual) with the hidden maps kept in cache
-  (:mod:`roguenerf.models.uformer`); and the Uformer's 3 x 3 output projection.
+  window attention and merge + roll + residual + LayerNorm as three kernels), its
+  feed-forward (LeFF: linear, GELU, depthwise 3 x 3 convolution, GELU, linear, residual) with
+  the hidden maps kept in cache (:mod:`roguenerf.models.uformer`); and the Uformer's 3 x 3
+  output projection.
 
 The kernels use vectors of the CPU's own width (:func:`vector_width`: 16 float lanes with
 AVX-512, 8 with AVX, 4 without): GCC compiles comparisons of wider vectors lane by lane, which
