@@ -335,7 +335,6 @@ def test_the_service_builds_the_cpu_kernels_at_start_not_at_the_first_enhancemen
     process with an empty kernel cache: the kernels are built and loaded with no request made."""
     code = f"""
         import sys
-        from pathlib import Path
         sys.path.insert(0, {str(ROOT)!r})
         from roguenerf import native
         from service.settings import Settings
