@@ -351,10 +351,10 @@ def lewin_attention(x: Tensor, norm1: torch.nn.LayerNorm, attn: torch.nn.Module,
     if mask is not None and mask.shape[0] != (h // 4) * (w // 4):
         raise ValueError(f"lewin_attention: a mask of {mask.shape[0]} windows for a {h} x {w} image")
     x = x.contiguous()
-    qkv, out = attn.to_qkv, attn.to_out
-    wqkv, bqkv, wout, bout = _packed(attn, (qkv.weight, qkv.bias, out.weight, out.bias), lambda: (
-        qkv.weight.t().contiguous(), qkv.bias.contiguous(), out.weight.t().contiguous(), out.bias.contiguous()))
-    bias_t = attn._cached_bias(None)[0].transpose(-1, -2).contiguous()  # the kernel's scores are transposed
+    qkv, out, table = attn.to_qkv, attn.to_out, attn.relative_position_bias_table
+    wqkv, bqkv, wout, bout, bias_t = _packed(attn, (qkv.weight, qkv.bias, out.weight, out.bias, table), lambda: (
+        qkv.weight.t().contiguous(), qkv.bias.contiguous(), out.weight.t().contiguous(), out.bias.contiguous(),
+        attn.bias().transpose(-1, -2).contiguous()))  # the kernel's scores are transposed
     mask = mask.contiguous() if mask is not None else None
     x_out, normed = torch.empty_like(x), torch.empty_like(x)
     if library().rg_lewin_attention(

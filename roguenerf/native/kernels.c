@@ -485,29 +485,56 @@ static inline __attribute__((always_inline)) void layer_norm_row(const float *re
         else layer_norm_row(src, dst, w, bias, C, eps);                              \
     } while (0)
 
+/* Offsets into a (B, H, W, C) image of the win x win tokens of window (wi, wj) of image b after
+ * roll(x, (-shift, -shift)): token a * win + c comes from pixel (wi * win + a + shift,
+ * wj * win + c + shift) mod (H, W), and the merge's roll by +shift puts it back there. */
+static void window_offsets(int64_t *at, int64_t b, int64_t wi, int64_t wj, int64_t H, int64_t W, int64_t C,
+                           int64_t win, int64_t shift) {
+    for (int64_t a = 0; a < win; ++a) {
+        int64_t i = wi * win + a + shift;
+        if (i >= H) i -= H;
+        int64_t j = wj * win + shift;
+        for (int64_t c = 0; c < win; ++c, ++j) {
+            if (j >= W) j -= W;
+            at[a * win + c] = ((b * H + i) * W + j) * C;
+        }
+    }
+}
+
+/* The first LayerNorm of the n tokens at offsets at[k] of x into dst (n x C), and the way back:
+ * x_out = x + y then the second LayerNorm, token k at offset at[k] of x, x_out and normed. Not
+ * inlined: rg_lewin_attention below calls them from code compiled with other floating-point
+ * options, and they must do the same float32 operations for it as for the split kernels. */
+static __attribute__((noinline)) void ln_gather(const float *x, const int64_t *at, int64_t n, float *restrict dst,
+                                                const float *w, const float *bias, float eps, int64_t C) {
+    for (int64_t k = 0; k < n; ++k) LN_ANY(x + at[k], dst + k * C);
+}
+
+static __attribute__((noinline)) void add_ln_scatter(const float *x, const float *restrict y, const int64_t *at,
+                                                     int64_t n, float *x_out, float *normed, const float *w,
+                                                     const float *bias, float eps, int64_t C) {
+    for (int64_t k = 0; k < n; ++k) {
+        const float *xs = x + at[k], *ys = y + k * C;
+        float *xo = x_out + at[k];
+        for (int64_t c = 0; c < C; ++c) xo[c] = xs[c] + ys[c];
+        LN_ANY(xo, normed + at[k]);
+    }
+}
+
 /* LeWin block's first half, before the attention (roguenerf.models.uformer.LeWinBlock):
  * tokens = window_partition(roll(layer_norm(x), (-shift, -shift))).
- * x (B, H, W, C); tokens (B * nh * nw, win * win, C), windows row-major per image.
- * Walks the tokens in order (no divisions): window row by window row. */
+ * x (B, H, W, C); tokens (B * nh * nw, win * win, C), windows row-major per image. */
 RG_API void rg_ln_partition(const float *x, float *tokens, const float *w, const float *bias, float eps,
                             int64_t B, int64_t H, int64_t W, int64_t C, int64_t win, int64_t shift,
                             int nthreads) {
-    const int64_t nh = H / win, nw = W / win;
+    const int64_t nh = H / win, nw = W / win, L = win * win;
 #pragma omp parallel for collapse(2) schedule(static) num_threads(nthreads)
     for (int64_t b = 0; b < B; ++b) {
         for (int64_t wi = 0; wi < nh; ++wi) {
-            float *dst = tokens + (b * nh + wi) * nw * win * win * C;
+            int64_t at[L];
             for (int64_t wj = 0; wj < nw; ++wj) {
-                for (int64_t a = 0; a < win; ++a) {
-                    int64_t si = wi * win + a + shift;  /* rolled row i comes from row i + shift */
-                    if (si >= H) si -= H;
-                    const float *row = x + (b * H + si) * W * C;
-                    int64_t sj = wj * win + shift;
-                    for (int64_t c = 0; c < win; ++c, ++sj, dst += C) {
-                        if (sj >= W) sj -= W;
-                        LN_ANY(row + sj * C, dst);
-                    }
-                }
+                window_offsets(at, b, wi, wj, H, W, C, win, shift);
+                ln_gather(x, at, L, tokens + ((b * nh + wi) * nw + wj) * L * C, w, bias, eps, C);
             }
         }
     }
@@ -519,46 +546,17 @@ RG_API void rg_ln_partition(const float *x, float *tokens, const float *w, const
 RG_API void rg_merge_ln(const float *x, const float *tokens, float *x_out, float *normed, const float *w,
                         const float *bias, float eps, int64_t B, int64_t H, int64_t W, int64_t C, int64_t win,
                         int64_t shift, int nthreads) {
-    const int64_t nh = H / win, nw = W / win;
+    const int64_t nh = H / win, nw = W / win, L = win * win;
 #pragma omp parallel for collapse(2) schedule(static) num_threads(nthreads)
     for (int64_t b = 0; b < B; ++b) {
         for (int64_t wi = 0; wi < nh; ++wi) {
-            const float *t = tokens + (b * nh + wi) * nw * win * win * C;
+            int64_t at[L];
             for (int64_t wj = 0; wj < nw; ++wj) {
-                for (int64_t a = 0; a < win; ++a) {
-                    int64_t i = wi * win + a + shift;  /* rolled row r lands on row r + shift */
-                    if (i >= H) i -= H;
-                    const int64_t rowat = (b * H + i) * W * C;
-                    int64_t j = wj * win + shift;
-                    for (int64_t c = 0; c < win; ++c, ++j, t += C) {
-                        if (j >= W) j -= W;
-                        const int64_t at = rowat + j * C;
-                        for (int64_t k = 0; k < C; ++k) x_out[at + k] = x[at + k] + t[k];
-                        LN_ANY(x_out + at, normed + at);
-                    }
-                }
+                window_offsets(at, b, wi, wj, H, W, C, win, shift);
+                add_ln_scatter(x, tokens + ((b * nh + wi) * nw + wj) * L * C, at, L, x_out, normed, w, bias,
+                               eps, C);
             }
         }
-    }
-}
-
-/* For the fused attention half below (rg_lewin_attention, compiled with other floating-point
- * options, so these are called, not inlined): the first LayerNorm of n tokens gathered from
- * src[k] into dst (n x C), and x_out = x + y then the second LayerNorm, token k at offset
- * at[k] of x, x_out and normed. The same float32 operations as rg_ln_partition / rg_merge_ln. */
-static __attribute__((noinline)) void ln_gather(const float *const *src, float *restrict dst, int n,
-                                                const float *w, const float *bias, float eps, int64_t C) {
-    for (int k = 0; k < n; ++k) LN_ANY(src[k], dst + k * C);
-}
-
-static __attribute__((noinline)) void add_ln_scatter(const float *x, const float *restrict y, const int64_t *at,
-                                                     int n, float *x_out, float *normed, const float *w,
-                                                     const float *bias, float eps, int64_t C) {
-    for (int k = 0; k < n; ++k) {
-        const float *xs = x + at[k], *ys = y + k * C;
-        float *xo = x_out + at[k];
-        for (int64_t c = 0; c < C; ++c) xo[c] = xs[c] + ys[c];
-        LN_ANY(xo, normed + at[k]);
     }
 }
 
@@ -572,7 +570,8 @@ static __attribute__((noinline)) void add_ln_scatter(const float *x, const float
 #pragma GCC optimize("fp-contract=fast")
 #endif
 
-#define WA_LDV(p) ({ vec _v; memcpy(&_v, (p), sizeof(_v)); _v; })
+#define WA_LD(T, p) ({ T _v; memcpy(&_v, (p), sizeof(_v)); _v; })  /* a value, not a stored-to array */
+#define WA_LDV(p) WA_LD(vec, p)
 typedef float v8f __attribute__((vector_size(32)));
 
 static inline vec wa_sel(veci m, vec a, vec b) { return (vec)((m & (veci)a) | (~m & (veci)b)); }
@@ -677,39 +676,43 @@ RG_API void rg_window_attention16(const float *qkv, const float *bias_t, const f
 }
 
 /* out (16 x N) = bias + in (16 x K) @ wt (K x N, row-major): the attention's two linears on one
- * window. N a multiple of 8. Register blocks of NT tokens x NV vectors of VW columns (per input
- * channel NV weight loads and NT broadcasts feed NT * NV multiply-adds), then VW-column and
- * 8-column strips of 8 tokens. */
-#define WA_GEMM_BLOCK(NT, NV)                                                                        \
-    static inline void wa_gemm_##NT##_##NV(const float *restrict in, int64_t K, const float *restrict wt, \
-                                           const float *restrict bias, int64_t N, float *restrict out, \
-                                           int r0, int64_t n0) {                                     \
-        vec acc[NT][NV];                                                                             \
+ * window. N a multiple of 8. Register blocks of NT tokens x NV vectors of type T (L columns; per
+ * input channel NV weight loads and NT broadcasts feed NT * NV multiply-adds): 3 vectors of VW
+ * columns, then VW-column and (AVX-512) 8-column strips of 8 tokens. */
+#define WA_GEMM_BLOCK(T, L, NT, NV)                                                                  \
+    static inline void wa_gemm_##L##_##NT##_##NV(const float *restrict in, int64_t K, const float *restrict wt, \
+                                                 const float *restrict bias, int64_t N, float *restrict out, \
+                                                 int r0, int64_t n0) {                               \
+        T acc[NT][NV];                                                                               \
         for (int j = 0; j < NV; ++j) {                                                               \
-            const vec b = WA_LDV(bias + n0 + j * VW);                                                \
+            const T b = WA_LD(T, bias + n0 + j * L);                                                 \
             for (int r = 0; r < NT; ++r) acc[r][j] = b;                                              \
         }                                                                                            \
         for (int64_t k = 0; k < K; ++k) {                                                            \
-            vec wv[NV];                                                                              \
-            for (int j = 0; j < NV; ++j) wv[j] = WA_LDV(wt + k * N + n0 + j * VW);                   \
+            T wv[NV];                                                                                \
+            for (int j = 0; j < NV; ++j) wv[j] = WA_LD(T, wt + k * N + n0 + j * L);                  \
             for (int r = 0; r < NT; ++r) {                                                           \
                 const float a = in[(r0 + r) * K + k];                                                \
                 for (int j = 0; j < NV; ++j) acc[r][j] = acc[r][j] + wv[j] * a;                      \
             }                                                                                        \
         }                                                                                            \
         for (int r = 0; r < NT; ++r)                                                                 \
-            for (int j = 0; j < NV; ++j) memcpy(out + (r0 + r) * N + n0 + j * VW, &acc[r][j], sizeof(vec)); \
+            for (int j = 0; j < NV; ++j) memcpy(out + (r0 + r) * N + n0 + j * L, &acc[r][j], sizeof(T)); \
     }
 #if VW == 16
-WA_GEMM_BLOCK(8, 3)  /* 24 accumulators of AVX-512's 32 registers */
+WA_GEMM_BLOCK(vec, 16, 8, 3)  /* 24 accumulators of AVX-512's 32 registers */
+WA_GEMM_BLOCK(vec, 16, 8, 1)
+WA_GEMM_BLOCK(v8f, 8, 8, 1)   /* N = 24 or 8 (8 channels): an 8-column strip */
 #define WA_NT 8
-#define wa_gemm_big wa_gemm_8_3
+#define wa_gemm_big wa_gemm_16_8_3
+#define wa_gemm_one wa_gemm_16_8_1
 #else
-WA_GEMM_BLOCK(4, 3)  /* 12 of AVX2's 16 */
+WA_GEMM_BLOCK(vec, VW, 4, 3)  /* 12 of AVX2's 16 (## pastes the name VW, not its value) */
+WA_GEMM_BLOCK(vec, VW, 8, 1)
 #define WA_NT 4
-#define wa_gemm_big wa_gemm_4_3
+#define wa_gemm_big wa_gemm_VW_4_3
+#define wa_gemm_one wa_gemm_VW_8_1
 #endif
-WA_GEMM_BLOCK(8, 1)
 
 static inline void wa_gemm16(const float *restrict in, int64_t K, const float *restrict wt,
                              const float *restrict bias, int64_t N, float *restrict out) {
@@ -717,19 +720,11 @@ static inline void wa_gemm16(const float *restrict in, int64_t K, const float *r
     for (; n0 + 3 * VW <= N; n0 += 3 * VW)
         for (int r0 = 0; r0 < 16; r0 += WA_NT) wa_gemm_big(in, K, wt, bias, N, out, r0, n0);
     for (; n0 + VW <= N; n0 += VW)
-        for (int r0 = 0; r0 < 16; r0 += 8) wa_gemm_8_1(in, K, wt, bias, N, out, r0, n0);
-    for (; n0 + 8 <= N; n0 += 8) {
-        for (int r0 = 0; r0 < 16; r0 += 8) {
-            v8f acc[8], b, wv;
-            memcpy(&b, bias + n0, sizeof b);
-            for (int r = 0; r < 8; ++r) acc[r] = b;
-            for (int64_t k = 0; k < K; ++k) {
-                memcpy(&wv, wt + k * N + n0, sizeof wv);
-                for (int r = 0; r < 8; ++r) acc[r] = acc[r] + wv * in[(r0 + r) * K + k];
-            }
-            for (int r = 0; r < 8; ++r) memcpy(out + (r0 + r) * N + n0, &acc[r], sizeof acc[r]);
-        }
-    }
+        for (int r0 = 0; r0 < 16; r0 += 8) wa_gemm_one(in, K, wt, bias, N, out, r0, n0);
+#if VW == 16
+    for (; n0 + 8 <= N; n0 += 8)
+        for (int r0 = 0; r0 < 16; r0 += 8) wa_gemm_8_8_1(in, K, wt, bias, N, out, r0, n0);
+#endif
 }
 
 /* A LeWin block's attention half with 4 x 4 windows, window by window (everything of a window
@@ -759,19 +754,9 @@ RG_API int rg_lewin_attention(const float *x, float *x_out, float *normed, const
             for (int64_t wi = 0; wi < nh; ++wi) {
                 if (!t) continue;
                 for (int64_t wj = 0; wj < nw; ++wj) {
-                    const float *src[16];
                     int64_t at[16];
-                    for (int a = 0; a < 4; ++a) {
-                        int64_t i = wi * 4 + a + shift;  /* rolled row r comes from row r + shift */
-                        if (i >= H) i -= H;
-                        for (int c = 0; c < 4; ++c) {
-                            int64_t j = wj * 4 + c + shift;
-                            if (j >= W) j -= W;
-                            at[a * 4 + c] = ((b * H + i) * W + j) * C;
-                            src[a * 4 + c] = x + at[a * 4 + c];
-                        }
-                    }
-                    ln_gather(src, t, 16, ln1w, ln1b, eps1, C);
+                    window_offsets(at, b, wi, wj, H, W, C, 4, shift);
+                    ln_gather(x, at, 16, t, ln1w, ln1b, eps1, C);
                     wa_gemm16(t, C, wqkv_t, bqkv, 3 * C, qkv);
                     const float *mw = mask ? mask + (wi * nw + wj) * 256 : 0;
                     for (int64_t n = 0; n < heads; ++n)
@@ -795,8 +780,6 @@ RG_API int rg_lewin_attention(const float *x, float *x_out, float *normed, const
  * and reads back two full-resolution maps of 4 C channels. Vectors of VW lanes: 16 where the
  * compiler targets AVX-512, else 8 (what the CPU runs natively; more lanes only split). */
 
-static inline vec lf_sel(veci m, vec a, vec b) { return (vec)((m & (veci)a) | (~m & (veci)b)); }
-
 /* GELU with the exact erf form, x/2 (1 + erf(x / sqrt 2)); erf by the rational approximation of
  * Eigen and XLA (|error| < 1e-7 on [-4, 4]; erf(+-4) rounds to +-1 in float32, so the argument
  * is clamped there). NaN propagates. */
@@ -809,8 +792,8 @@ static inline vec lf_clamp4(vec z) {
 #elif defined(__AVX__) && VW == 8
     return (vec)_mm256_max_ps((__m256)(zero - 4.0f), _mm256_min_ps((__m256)(zero + 4.0f), (__m256)z));
 #else
-    z = lf_sel(z > 4.0f, zero + 4.0f, z);
-    return lf_sel(z < -4.0f, zero - 4.0f, z);
+    z = wa_sel(z > 4.0f, zero + 4.0f, z);
+    return wa_sel(z < -4.0f, zero - 4.0f, z);
 #endif
 }
 
