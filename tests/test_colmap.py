@@ -1,0 +1,211 @@
+"""COLMAP sparse models: our reader and writer against known answers and against pycolmap."""
+
+from __future__ import annotations
+
+import math
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from roguenerf.data.colmap import (
+    ColmapCamera,
+    ColmapImage,
+    ColmapModel,
+    find_sparse_dir,
+    qvec_to_rotmat,
+    read_colmap,
+    read_colmap_model,
+    rotmat_to_qvec,
+    write_colmap,
+    write_colmap_model,
+)
+from roguenerf.data.toy import make_toy_scene
+from roguenerf.errors import SceneFormatError
+from roguenerf.imageio import write_png
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory):
+    root = tmp_path_factory.mktemp("toy")
+    return make_toy_scene(root / "scene", seed=3, n_train=7, n_test=3, height=24, width=32)
+
+
+def _colmap_dataset(toy, root, *, binary, names=None, K=None):
+    """The toy scene's photos and poses as a COLMAP dataset at ``root`` (model order scrambled)."""
+    frames = toy.frames
+    names = names or [f"{f.name}.png" for f in frames]
+    (root / "images").mkdir(parents=True)
+    for f, name in zip(frames, names, strict=True):
+        shutil.copyfile(f.image_path, root / "images" / name)
+    Ks = torch.stack([f.K for f in frames]) if K is None else K
+    order = [3, 0, 7, 1, 9, 2, 5, 4, 8, 6]  # the model's own image order is not the name order
+    write_colmap(
+        root / "sparse" / "0",
+        names=[names[i] for i in order],
+        K=Ks[order],
+        world_from_cam=torch.stack([frames[i].world_from_cam for i in order]),
+        widths=32,
+        heights=24,
+        binary=binary,
+    )
+    return names
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_toy_scene_round_trip(toy, tmp_path, binary):
+    # Per-view focal lengths and principal points, so each view needs its own camera.
+    K = torch.stack([f.K for f in toy.frames]).clone()
+    K[:, 0, 0] += torch.arange(10, dtype=torch.float64) * 0.37
+    K[:, 1, 2] += 0.25
+    names = _colmap_dataset(toy, tmp_path, binary=binary, K=K)
+    ext = "bin" if binary else "txt"
+    assert (tmp_path / "sparse" / "0" / f"images.{ext}").is_file()
+    data = read_colmap(tmp_path)
+    assert data.format == ext
+    assert data.names == sorted(names)
+    assert data.stems == [n[:-4] for n in sorted(names)]
+    assert data.image_paths == [tmp_path / "images" / n for n in sorted(names)]
+    by_name = {f"{f.name}.png": (f, K[i]) for i, f in enumerate(toy.frames)}
+    for i, name in enumerate(data.names):
+        frame, k = by_name[name]
+        assert data.world_from_cam.dtype == torch.float64 and data.K.dtype == torch.float64
+        assert (data.world_from_cam[i] - frame.world_from_cam).abs().max() < 1e-9, name
+        assert (data.K[i] - k).abs().max() < 1e-9, name
+    assert data.widths == [32] * 10 and data.heights == [24] * 10
+    assert len(set(data.camera_ids)) == 10
+
+
+def test_handwritten_text_model_known_answer(tmp_path):
+    """A model written by hand: 90 degrees about z (w first), a SIMPLE_PINHOLE camera."""
+    sparse = tmp_path / "sparse"  # sparse/ without 0/, as some tools write it
+    sparse.mkdir()
+    (sparse / "cameras.txt").write_text("# comment\n1 SIMPLE_PINHOLE 64 48 50 32.5 24\n")
+    c, s = math.cos(math.pi / 4), math.sin(math.pi / 4)
+    (sparse / "images.txt").write_text(
+        "# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n"
+        f"7 {c!r} 0 0 {s!r} 1 2 3 1 b.jpg\n"
+        "10.5 20.5 -1 3 4 12\n"
+        f"2 1 0 0 0 0 0 0 1 a.jpg\n"
+        "\n"
+    )
+    data = read_colmap(tmp_path, check_files=False)
+    assert data.names == ["a.jpg", "b.jpg"] and data.image_ids == [2, 7]
+    want = torch.tensor(
+        [[0.0, 1, 0, -2], [-1, 0, 0, 1], [0, 0, 1, -3], [0, 0, 0, 1]], dtype=torch.float64
+    )
+    assert (data.world_from_cam[1] - want).abs().max() < 1e-12
+    assert torch.equal(data.world_from_cam[0], torch.eye(4, dtype=torch.float64))
+    assert torch.equal(
+        data.K[0], torch.tensor([[50.0, 0, 32.5], [0, 50, 24], [0, 0, 1]], dtype=torch.float64)
+    )
+    model = read_colmap_model(tmp_path, keypoints=True)
+    assert model.images[7].xys.tolist() == [[10.5, 20.5], [3.0, 4.0]]
+    assert model.images[7].point3D_ids.tolist() == [-1, 12]
+
+
+def test_quaternion_of_every_branch():
+    rng = np.random.default_rng(0)
+    for angle_axis in [
+        (math.pi, (1, 0, 0)),
+        (math.pi, (0, 1, 0)),
+        (math.pi, (0, 0, 1)),
+        (0.3, (1, 2, 3)),
+    ]:
+        angle, axis = angle_axis
+        axis = np.asarray(axis, float) / np.linalg.norm(axis)
+        q = np.array([math.cos(angle / 2), *(math.sin(angle / 2) * axis)])
+        R = qvec_to_rotmat(q)
+        assert np.allclose(rotmat_to_qvec(R), q if q[0] >= 0 else -q, atol=1e-12)
+    for _ in range(50):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        back = rotmat_to_qvec(qvec_to_rotmat(q))
+        assert np.allclose(back, q if q[0] >= 0 else -q, atol=1e-12)
+
+
+def test_locates_the_model(toy, tmp_path):
+    _colmap_dataset(toy, tmp_path, binary=True)
+    model_dir = tmp_path / "sparse" / "0"
+    assert find_sparse_dir(tmp_path) == model_dir
+    assert find_sparse_dir(model_dir) == model_dir
+    assert find_sparse_dir(model_dir / "images.bin") == model_dir
+    # Given the model folder, the dataset is the folder above sparse/.
+    assert read_colmap(model_dir).root == tmp_path
+    with pytest.raises(SceneFormatError, match="no COLMAP model"):
+        find_sparse_dir(tmp_path / "images")
+
+
+def test_distortion_refused_and_zero_distortion_accepted(tmp_path):
+    for k1, ok in ((0.0, True), (0.05, False)):
+        folder = tmp_path / f"k{k1}" / "sparse" / "0"
+        cams = {1: ColmapCamera(1, "OPENCV", 64, 48, (50.0, 51.0, 32.0, 24.0, k1, 0.0, 0.0, 0.0))}
+        ims = {1: ColmapImage(1, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1, "x.png")}
+        write_colmap_model(folder, ColmapModel(cams, ims), binary=True)
+        if ok:
+            data = read_colmap(folder.parent.parent, check_files=False)
+            assert data.K[0].tolist() == [[50.0, 0, 32.0], [0, 51.0, 24.0], [0, 0, 1]]
+        else:
+            with pytest.raises(SceneFormatError, match="image_undistorter") as err:
+                read_colmap(folder.parent.parent, check_files=False)
+            assert "OPENCV" in str(err.value) and "camera 1" in str(err.value)
+
+
+def test_malformed_files_are_named(toy, tmp_path):
+    _colmap_dataset(toy, tmp_path, binary=True)
+    images_bin = tmp_path / "sparse" / "0" / "images.bin"
+    images_bin.write_bytes(images_bin.read_bytes()[:-5])
+    with pytest.raises(SceneFormatError, match="truncated") as err:
+        read_colmap(tmp_path)
+    assert str(images_bin) in str(err.value)
+    (tmp_path / "sparse" / "0" / "images.bin").unlink()
+    (tmp_path / "sparse" / "0" / "cameras.bin").unlink()
+    (tmp_path / "sparse" / "0" / "cameras.txt").write_text("1 PINHOLE 32 24 abc 1 2 3\n")
+    (tmp_path / "sparse" / "0" / "images.txt").write_text("1 1 0 0 0 0 0 0 1 a.png\n\n")
+    with pytest.raises(SceneFormatError, match="line 1"):
+        read_colmap(tmp_path, check_files=False)
+
+
+def test_missing_image_and_downscaled_folder(toy, tmp_path):
+    _colmap_dataset(toy, tmp_path, binary=True)
+    # A half-size copy as images_2/ (gsplat's --data-factor 2): K follows the files.
+    (tmp_path / "images_2").mkdir()
+    for path in (tmp_path / "images").iterdir():
+        write_png(tmp_path / "images_2" / path.name, torch.zeros(3, 12, 16))
+    full = read_colmap(tmp_path)
+    half = read_colmap(tmp_path, images="images_2")
+    assert half.widths == [16] * 10 and half.heights == [12] * 10
+    assert torch.allclose(half.K[:, :2], full.K[:, :2] / 2, atol=1e-12)
+    (tmp_path / "images" / full.names[4]).unlink()
+    with pytest.raises(SceneFormatError, match="missing image"):
+        read_colmap(tmp_path)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_agrees_with_pycolmap(toy, tmp_path, binary):
+    """pycolmap (COLMAP's own code) reads what we write, and we read what it writes."""
+    import pycolmap  # in the dev extra (optional at run time: our reader needs no dependency)
+
+    _colmap_dataset(toy, tmp_path, binary=binary)
+    model_dir = tmp_path / "sparse" / "0"
+    ours = read_colmap(tmp_path)
+    rec = pycolmap.Reconstruction(str(model_dir))
+    assert sorted(im.name for im in rec.images.values()) == ours.names
+    for image in rec.images.values():
+        i = ours.names.index(image.name)
+        cam_from_world = image.cam_from_world()
+        cam_from_world = np.asarray(cam_from_world.matrix())
+        world_from_cam = np.linalg.inv(np.vstack([cam_from_world, [0, 0, 0, 1]]))
+        assert np.abs(world_from_cam - ours.world_from_cam[i].numpy()).max() < 1e-9
+        assert (
+            np.abs(np.asarray(image.camera.calibration_matrix()) - ours.K[i].numpy()).max() < 1e-9
+        )
+    # ... and the other way: pycolmap writes, we read (both encodings).
+    out = tmp_path / "written_by_pycolmap"
+    out.mkdir()
+    (rec.write_binary if binary else rec.write_text)(str(out))
+    theirs = read_colmap(out, images=tmp_path / "images")
+    assert theirs.names == ours.names
+    assert (theirs.world_from_cam - ours.world_from_cam).abs().max() < 1e-9
+    assert (theirs.K - ours.K).abs().max() < 1e-9
