@@ -422,10 +422,14 @@ def enhance(
 
 
 def _import_command(tool: str, dataset: Path, renders: Path, output: Path, depth_type, depth_scale: float,
-                    depth_units: str, dataparser_transforms, background) -> None:
+                    depth_units: str, dataparser_transforms, background, **split) -> None:
     from roguenerf.data.exports import import_renders
 
     with _errors():
+        if split.get("test_every") is not None and split["test_every"] < 0:
+            raise InputError(f"--test-every: expected >= 0, got {split['test_every']}")
+        if split.get("split_file") is not None and not split["split_file"].is_file():
+            raise InputError(f"--split-file: {split['split_file']} does not exist")
         if depth_type not in (None, "z", "ray"):
             raise InputError(f"--depth-type: expected z or ray, got {depth_type!r}")
         if background not in (None, "zero", "max"):
@@ -438,7 +442,7 @@ def _import_command(tool: str, dataset: Path, renders: Path, output: Path, depth
             scene = import_renders(dataset, renders, output, tool=tool, depth_type=depth_type,
                                    depth_scale=depth_scale, depth_units=depth_units,
                                    dataparser_transforms=dataparser_transforms, background=background,
-                                   progress=progress)
+                                   progress=progress, **split)
         typer.echo(f"wrote {scene!r}", err=True)
         typer.echo(str(output))
 
@@ -473,15 +477,30 @@ def import_nerfstudio(
 
 @app.command("import-gsplat")
 def import_gsplat(
-    dataset: Annotated[Path, typer.Argument(help="Dataset with transforms.json (nerfstudio style) and the photos.")],
+    dataset: Annotated[Path, typer.Argument(help=(
+        "Dataset with the photos and their poses: COLMAP (images/ + sparse/0/, .bin or .txt) or "
+        "transforms.json (nerfstudio style)."))],
     renders: Annotated[Path, typer.Option("--renders", help="Folder with rgb/ and depth/ (.npy, .npy.gz, .npz, 16-bit PNG, float TIFF).")],
     output: Annotated[Path, typer.Option("--output", help="Scene folder to write.")],
     depth_type: DepthTypeOpt = None,
     depth_scale: DepthScaleOpt = 1.0,
     background: BackgroundOpt = None,
+    images: Annotated[str, typer.Option("--images", help=(
+        "COLMAP dataset: the image folder (images_2 for gsplat's --data-factor 2)."))] = "images",
+    eval_split: Annotated[bool, typer.Option("--eval", help=(
+        "The model was trained with a held-out split: every 8th view in name order is a test view "
+        "(Inria's --eval, gsplat's default --test-every 8)."))] = False,
+    test_every: Annotated[int | None, typer.Option("--test-every", help=(
+        "Every N-th view in name order is a test view (0: all train). Overrides --eval."))] = None,
+    split_file: Annotated[Path | None, typer.Option("--split-file", help=(
+        'Test views by name: JSON {"train": [...], "test": [...]} or one name per line '
+        "(Inria's sparse/0/test.txt). Overrides --eval and --test-every."))] = None,
 ) -> None:
     """Turn gsplat renders + expected depth (and the dataset's poses) into a scene folder."""
-    _import_command("gsplat", dataset, renders, output, depth_type, depth_scale, "dataset", None, background)
+    if test_every is None and eval_split:
+        test_every = 8
+    _import_command("gsplat", dataset, renders, output, depth_type, depth_scale, "dataset", None, background,
+                    images=images, test_every=test_every, split_file=split_file)
 
 
 @app.command("enhance-path")

@@ -209,3 +209,148 @@ def test_agrees_with_pycolmap(toy, tmp_path, binary):
     assert theirs.names == ours.names
     assert (theirs.world_from_cam - ours.world_from_cam).abs().max() < 1e-9
     assert (theirs.K - ours.K).abs().max() < 1e-9
+
+
+# -- import-gsplat with a COLMAP dataset -------------------------------------------------------
+
+
+def _run(*args):
+    from typer.testing import CliRunner
+
+    from roguenerf.cli import app
+
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def _named_renders(toy, out):
+    """rgb/NAME.png + depth/NAME.npy (z), as a gsplat script writes them."""
+    (out / "rgb").mkdir(parents=True)
+    (out / "depth").mkdir()
+    for f in toy.frames:
+        shutil.copyfile(f.render_path, out / "rgb" / f"{f.name}.png")
+        np.save(out / "depth" / f"{f.name}.npy", toy.depth(f.name)[0].numpy())
+
+
+def test_import_gsplat_reads_a_colmap_dataset(toy, tmp_path):
+    _colmap_dataset(toy, tmp_path / "data", binary=True)
+    _named_renders(toy, tmp_path / "renders")
+    r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "renders", "--output",
+             tmp_path / "out", "--eval")
+    assert r.exit_code == 0, r.output
+    from roguenerf.data.readers import load_scene
+
+    scene = load_scene(tmp_path / "out")
+    names = sorted(f.name for f in toy.frames)
+    assert [f.name for f in scene.frames] == names
+    # --eval: names sorted, positions 0 and 8 held out (Inria's llffhold, gsplat's test_every).
+    assert [f.name for f in scene.frames if f.split == "test"] == [names[0], names[8]]
+    for f in scene.frames:
+        want = toy.frames[toy.index(f.name)]
+        assert (f.world_from_cam - want.world_from_cam).abs().max() < 1e-9
+        assert (f.K - want.K).abs().max() < 1e-9
+        assert torch.equal(scene.depth(f.name), toy.depth(f.name))
+    # Without --eval every view trains; --test-every and --split-file override.
+    r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "renders", "--output",
+             tmp_path / "all")
+    assert r.exit_code == 0, r.output
+    assert {f.split for f in load_scene(tmp_path / "all").frames} == {"train"}
+    r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "renders", "--output",
+             tmp_path / "t3", "--test-every", "3")
+    assert r.exit_code == 0, r.output
+    got = [f.name for f in load_scene(tmp_path / "t3").frames if f.split == "test"]
+    assert got == [names[0], names[3], names[6], names[9]]
+    (tmp_path / "test.txt").write_text(f"{names[2]}.png\n{names[5]}\n")
+    r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "renders", "--output",
+             tmp_path / "sf", "--eval", "--split-file", tmp_path / "test.txt")
+    assert r.exit_code == 0, r.output
+    got = [f.name for f in load_scene(tmp_path / "sf").frames if f.split == "test"]
+    assert got == [names[2], names[5]]
+    (tmp_path / "bad.txt").write_text("nope.png\n")
+    r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "renders", "--output",
+             tmp_path / "bad", "--split-file", tmp_path / "bad.txt")
+    assert r.exit_code == 2 and "nope.png" in r.output and "Traceback" not in r.output
+
+
+def _inria_render(toy, model_dir, *, test_every, depth):
+    """What Inria's render.py writes: MODEL/<split>/ours_30000/renders/00000.png (+ gt/), the
+    i-th camera of the split in name order; ``depth``: also a depth/ folder (as forks add)."""
+    names = sorted(f.name for f in toy.frames)
+    for split in ("train", "test"):
+        views = [n for i, n in enumerate(names) if (i % test_every == 0) == (split == "test")]
+        base = model_dir / split / "ours_30000"
+        (base / "renders").mkdir(parents=True)
+        (base / "gt").mkdir()
+        if depth:
+            (base / "depth").mkdir()
+        for i, name in enumerate(views):
+            frame = toy.frames[toy.index(name)]
+            shutil.copyfile(frame.render_path, base / "renders" / f"{i:05d}.png")
+            shutil.copyfile(frame.image_path, base / "gt" / f"{i:05d}.png")
+            if depth:
+                np.save(base / "depth" / f"{i:05d}.npy", toy.depth(name)[0].numpy())
+    # An older iteration that must not be used.
+    (model_dir / "test" / "ours_7000" / "renders").mkdir(parents=True)
+
+
+def test_inria_numbered_renders_map_to_views_in_name_order(toy, tmp_path):
+    from roguenerf.data.readers import load_scene
+
+    _colmap_dataset(toy, tmp_path / "data", binary=False)
+    _inria_render(toy, tmp_path / "model", test_every=8, depth=True)
+    # No --eval given: Inria's test renders say the model was trained with it (every 8th).
+    r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "model", "--output",
+             tmp_path / "out")
+    assert r.exit_code == 0, r.output
+    scene = load_scene(tmp_path / "out")
+    assert len(scene.frames) == 10
+    for f in scene.frames:
+        assert torch.equal(scene.depth(f.name), toy.depth(f.name)), f.name
+        assert torch.equal(scene.render(f.name), toy.render(f.name)), f.name
+    names = sorted(f.name for f in toy.frames)
+    assert [f.name for f in scene.frames if f.split == "test"] == [names[0], names[8]]
+    # A split that does not fit the renders is named, not guessed.
+    r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "model", "--output",
+             tmp_path / "o2", "--test-every", "3")
+    assert r.exit_code == 2 and "renders, but the dataset has" in r.output
+    assert "--test-every 8" in r.output
+
+
+def test_renders_without_depth_point_to_import_3dgs(toy, tmp_path):
+    _colmap_dataset(toy, tmp_path / "data", binary=True)
+    _inria_render(toy, tmp_path / "model", test_every=8, depth=False)
+    r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "model", "--output",
+             tmp_path / "out")
+    assert r.exit_code == 2, r.output
+    assert "depth" in r.output and "import-3dgs" in r.output and "Traceback" not in r.output
+    # gsplat simple_trainer's eval canvases (photo | render, no depth).
+    (tmp_path / "results" / "renders").mkdir(parents=True)
+    write_png(tmp_path / "results" / "renders" / "val_step29999_0000.png", torch.zeros(3, 24, 64))
+    r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "results", "--output",
+             tmp_path / "out2")
+    assert r.exit_code == 2 and "side by side" in r.output and "import-3dgs" in r.output
+
+
+def test_distorted_colmap_dataset_refused_by_the_cli(tmp_path):
+    folder = tmp_path / "data" / "sparse" / "0"
+    cams = {1: ColmapCamera(1, "SIMPLE_RADIAL", 32, 24, (30.0, 16.0, 12.0, -0.08))}
+    ims = {1: ColmapImage(1, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1, "a.png")}
+    write_colmap_model(folder, ColmapModel(cams, ims), binary=True)
+    (tmp_path / "data" / "images").mkdir()
+    write_png(tmp_path / "data" / "images" / "a.png", torch.zeros(3, 24, 32))
+    (tmp_path / "renders" / "rgb").mkdir(parents=True)
+    (tmp_path / "renders" / "depth").mkdir()
+    r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "renders", "--output",
+             tmp_path / "out")
+    assert r.exit_code == 2, r.output
+    assert "SIMPLE_RADIAL" in r.output and "colmap image_undistorter" in r.output
+    assert "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1
+
+
+def test_load_scene_autodetects_a_colmap_dataset(toy, tmp_path):
+    from roguenerf.data.readers import load_scene
+
+    _colmap_dataset(toy, tmp_path, binary=True)
+    scene = load_scene(tmp_path)
+    assert scene.meta["format"] == "colmap"
+    assert [f.name for f in scene.frames] == sorted(f.name for f in toy.frames)
+    assert {f.split for f in scene.frames} == {"train"}

@@ -850,3 +850,90 @@ def write_colmap(
             [np.zeros((0, 2), np.int32)] * len(xyz),
         )
     return write_colmap_model(folder, ColmapModel(cameras, images, pts), binary=binary)
+
+
+# -- splits and scenes ----------------------------------------------------------------------
+
+TRAINER_TEST_EVERY = 8
+"""Inria (``--eval``, ``llffhold``) and gsplat (``--test-every``) hold out every 8th view."""
+
+
+def read_split_file(path: str | Path) -> set[str]:
+    """Test-view names from a split file: JSON ``{"train": [...], "test": [...]}`` (as our
+    ``splits.json``) or text with one test image name per line (Inria's ``sparse/0/test.txt``)."""
+    import json
+
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SceneFormatError(path, "missing split file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SceneFormatError(path, f"cannot read ({exc})") from None
+    if path.suffix.lower() == ".json":
+        try:
+            doc = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise SceneFormatError(path, f"invalid JSON: {exc}") from None
+        if not isinstance(doc, dict) or not isinstance(doc.get("test", []), list):
+            raise SceneFormatError(path, 'expected {"train": [...], "test": [...]}')
+        return {str(n) for n in doc.get("test", []) + doc.get("val", [])}
+    return {line.strip() for line in text.splitlines() if line.strip() and not line.startswith("#")}
+
+
+def split_views(
+    names: list[str], *, test_every: int = 0, split_file: str | Path | None = None
+) -> list[str]:
+    """``"train"`` / ``"test"`` per view, the trainers' way.
+
+    ``names`` are sorted first (as Inria and gsplat sort them); with ``test_every = N > 0`` the
+    views at positions ``0, N, 2N, ...`` of that order are test views (Inria's ``--eval``,
+    gsplat's ``--test-every``); ``0`` keeps every view for training. A ``split_file`` (see
+    :func:`read_split_file`) wins: its names match a view by COLMAP name, file name or stem; a
+    name that matches no view raises :class:`~roguenerf.errors.SceneFormatError`.
+    """
+    if test_every < 0:
+        raise InputError(f"test_every: expected >= 0, got {test_every}")
+    if split_file is not None:
+        wanted = read_split_file(split_file)
+        keys = [{n, Path(n).name, Path(n).stem} for n in names]
+        unknown = sorted(w for w in wanted if not any(w in k for k in keys))
+        if unknown:
+            raise SceneFormatError(
+                split_file,
+                f"names no view of the dataset: {', '.join(unknown[:5])}"
+                + (" ..." if len(unknown) > 5 else ""),
+            )
+        return ["test" if k & wanted else "train" for k in keys]
+    rank = {name: i for i, name in enumerate(sorted(names))}
+    return ["test" if test_every and rank[n] % test_every == 0 else "train" for n in names]
+
+
+def colmap_scene(
+    dataset_dir: str | Path,
+    *,
+    images: str | Path = "images",
+    test_every: int = 0,
+    split_file: str | Path | None = None,
+    check_files: bool = True,
+):
+    """A :class:`~roguenerf.data.scene.Scene` of a COLMAP dataset's photos (no renders yet),
+    views in name order, split by :func:`split_views`; ``scene.meta["format"] == "colmap"``."""
+    from roguenerf.data.scene import Frame, Scene
+
+    data = read_colmap(dataset_dir, images=images, check_files=check_files)
+    splits = split_views(data.names, test_every=test_every, split_file=split_file)
+    frames = [
+        Frame(
+            name=name,
+            world_from_cam=data.world_from_cam[i],
+            K=data.K[i],
+            width=data.widths[i],
+            height=data.heights[i],
+            split=splits[i],
+            image_path=data.image_paths[i],
+        )
+        for i, name in enumerate(data.stems)
+    ]
+    meta = {"format": "colmap", "source": str(data.sparse_dir), "colmap_names": list(data.names)}
+    return Scene(root=data.root, frames=frames, meta=meta)

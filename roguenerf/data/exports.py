@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -176,6 +177,67 @@ def find_render_files(renders: str | Path) -> dict[str, tuple[Path, Path, str | 
     return out
 
 
+INRIA_ITERATION = re.compile(r"^ours_(\d+)$")
+GSPLAT_EVAL_IMAGE = re.compile(r"^(val|test|train)_step\d+_\d+\.png$")
+NO_DEPTH_HINT = (
+    "the enhancer needs a depth map per view, and this tool writes RGB only. Render RGB and depth "
+    "from the trained splats instead: `roguenerf import-3dgs DATA --ply "
+    "MODEL/point_cloud/iteration_30000/point_cloud.ply --output SCENE` (docs/splats.md)"
+)
+
+
+def find_indexed_renders(renders: str | Path) -> dict[str, list[tuple[Path, Path]]] | None:
+    """Inria ``render.py`` output: ``MODEL/<split>/ours_<iteration>/renders/00000.png``, the
+    ``i``-th camera of the split in name order (the latest iteration when several exist).
+
+    Returns split -> ``[(render, depth)]`` in index order, or None when ``renders`` is not laid
+    out that way. A depth folder beside ``renders/`` (``depth/``, any name of
+    :data:`DEPTH_FOLDERS`, files named by index) is required: Inria writes none, and the
+    :class:`InputError` says so and points to ``import-3dgs``. gsplat ``simple_trainer``'s eval
+    images (``renders/val_step<N>_<i>.png``: photo and render side by side, no depth) are refused
+    the same way.
+    """
+    renders = Path(renders)
+    for folder in (renders, renders / "renders"):
+        if folder.is_dir() and any(GSPLAT_EVAL_IMAGE.match(p.name) for p in folder.iterdir()):
+            raise InputError(f"{folder}: gsplat simple_trainer's eval images (val_step<N>_<i>.png) "
+                             f"hold the photo and the render side by side; {NO_DEPTH_HINT}")
+    found: list[tuple[str, Path]] = []
+    if INRIA_ITERATION.match(renders.name) and renders.parent.name in SPLIT_FOLDERS:
+        found.append((SPLIT_FOLDERS[renders.parent.name], renders))
+    else:
+        for name, split in SPLIT_FOLDERS.items():
+            folder = renders / name
+            if not folder.is_dir():
+                continue
+            runs = [(int(m.group(1)), p) for p in folder.iterdir()
+                    if p.is_dir() and (m := INRIA_ITERATION.match(p.name))]
+            if runs:
+                found.append((split, max(runs)[1]))
+    found = [(split, folder) for split, folder in found if (folder / "renders").is_dir()]
+    if not found:
+        return None
+    out: dict[str, list[tuple[Path, Path]]] = {}
+    for split, folder in found:
+        depth_dir = _pick(folder, DEPTH_FOLDERS)
+        if depth_dir is None:
+            raise InputError(f"{folder}: Inria gaussian-splatting render.py output (renders/, gt/) has no "
+                             f"depth; {NO_DEPTH_HINT}")
+        rgbs = _index(folder / "renders", IMAGE_SUFFIXES)
+        depths = _index(depth_dir, DEPTH_SUFFIXES)
+        if not all(stem.isdigit() for stem in rgbs):
+            return None
+        missing = sorted(set(rgbs) - set(depths))
+        if missing:
+            raise InputError(f"{depth_dir}: no depth for the renders {', '.join(missing[:5])}")
+        order = sorted(rgbs, key=int)
+        if [int(stem) for stem in order] != list(range(len(order))):
+            raise InputError(f"{folder / 'renders'}: expected renders numbered 0..{len(order) - 1} "
+                             "(00000.png, 00001.png, ...)")
+        out.setdefault(split, []).extend((rgbs[stem], depths[stem]) for stem in order)
+    return out
+
+
 def background_to_unknown(depth: Tensor, background: str) -> Tensor:
     """Make the no-surface pixels of a rendered depth unknown (0).
 
@@ -226,14 +288,20 @@ def import_renders(
     depth_units: str = "dataset",
     dataparser_transforms: str | Path | None = None,
     background: str | None = None,
+    images: str | Path = "images",
+    test_every: int | None = None,
+    split_file: str | Path | None = None,
     progress=None,
 ):
-    """Write a scene folder from a dataset (``transforms.json`` + photos) and a tool's renders.
+    """Write a scene folder from a dataset (poses + photos) and a tool's renders.
 
     Args:
-        dataset: the nerfstudio dataset (folder or its ``transforms.json``); its poses are the
+        dataset: a nerfstudio dataset (folder or its ``transforms.json``) or a COLMAP dataset
+            (``images/`` + ``sparse/0``, :mod:`roguenerf.data.colmap`); its poses are the
             scene's poses, its photos the scene's photos.
-        renders: the tool's output (see :func:`find_render_files`).
+        renders: the tool's output: named by view (see :func:`find_render_files`), or Inria's
+            numbered ``<split>/ours_<iter>/renders/`` with a depth folder beside it (see
+            :func:`find_indexed_renders`).
         output: the scene folder to write (created; files of the same name are replaced).
         tool: ``"nerfstudio"`` or ``"gsplat"``; picks the defaults below.
         depth_type: ``"ray"`` (nerfacto, gsplat ``ED``) or ``"z"`` (splatfacto, gsplat
@@ -246,6 +314,13 @@ def import_renders(
             the scene folder for camera paths drawn in nerfstudio's viewer.
         background: ``"zero"`` or ``"max"`` (see :func:`background_to_unknown`); default max for
             gsplat, zero for nerfstudio.
+        images: the COLMAP dataset's image folder (``images_2`` for a 2x downscaled copy).
+        test_every: held-out views, the trainers' way (:func:`~roguenerf.data.colmap.split_views`:
+            names sorted, every ``test_every``-th from the first is ``test``; 8 is Inria's
+            ``--eval`` and gsplat's default); 0: all train. None: the dataset's own split (a
+            COLMAP dataset: all train; with Inria's numbered test renders: 8).
+        split_file: test-view names (JSON ``{"train": [...], "test": [...]}`` or one name per
+            line, as Inria's ``sparse/0/test.txt``); wins over ``test_every``.
         progress: ``callback(done, total)`` per view.
     Returns:
         The written scene, loaded (:func:`~roguenerf.data.readers.load_scene`).
@@ -273,11 +348,27 @@ def import_renders(
     dataset = Path(dataset)
     if not dataset.exists():
         raise InputError(f"dataset {dataset} does not exist")
-    source = load_scene(dataset, check_files=False)
-    if source.meta.get("format") != "nerfstudio":
-        raise InputError(f"{dataset}: expected a nerfstudio dataset (transforms.json with the photos' poses), "
-                         f"got a {source.meta.get('format')} scene")
-    found = find_render_files(renders)
+    from roguenerf.data.colmap import TRAINER_TEST_EVERY, colmap_scene, is_colmap_dataset, split_views
+
+    indexed = find_indexed_renders(renders)
+    if test_every is None and indexed is not None and "test" in indexed:
+        test_every = TRAINER_TEST_EVERY  # Inria wrote test renders: it was trained with --eval
+    if dataset.is_dir() and not (dataset / "transforms.json").is_file() and is_colmap_dataset(dataset):
+        source = colmap_scene(dataset, images=images, check_files=True)
+    else:
+        source = load_scene(dataset, check_files=False)
+    if source.meta.get("format") not in ("nerfstudio", "colmap"):
+        raise InputError(f"{dataset}: expected a nerfstudio dataset (transforms.json with the photos' poses) "
+                         f"or a COLMAP dataset (images/ + sparse/0/), got a {source.meta.get('format')} scene")
+    if test_every is not None or split_file is not None:
+        names = source.meta.get("colmap_names") or [f.name for f in source.frames]
+        for frame, split in zip(source.frames, split_views(names, test_every=test_every or 0,
+                                                            split_file=split_file), strict=True):
+            frame.split = split
+    if indexed is not None:
+        found = _match_indexed(indexed, source, renders)
+    else:
+        found = find_render_files(renders)
     frames = [f for f in source.frames if f.name in found]
     if not frames:
         some = ", ".join(sorted(found)[:3]) or "none"
@@ -327,6 +418,26 @@ def import_renders(
     }
     atomic_write(output / "transforms.json", json.dumps(doc, indent=1).encode())
     return load_scene(output)
+
+
+def _match_indexed(indexed: dict[str, list[tuple[Path, Path]]], source, renders) -> dict:
+    """Numbered renders -> view names: the ``i``-th render of a split is the ``i``-th view of
+    that split in name order (how Inria lists its cameras)."""
+    order = source.meta.get("colmap_names") or [f.name for f in source.frames]
+    by_split: dict[str, list[str]] = {}
+    for _, frame in sorted(zip(order, source.frames, strict=True), key=lambda pair: pair[0]):
+        by_split.setdefault(frame.split, []).append(frame.name)
+    out = {}
+    for split, files in indexed.items():
+        views = by_split.get(split, [])
+        if len(files) != len(views):
+            raise InputError(
+                f"{renders}: {len(files)} {split} renders, but the dataset has {len(views)} {split} views "
+                f"with this split; pass the split the model was trained with (--test-every 8 for "
+                f"Inria's --eval, 0 without it, or --split-file)")
+        for name, (rgb, depth) in zip(views, files, strict=True):
+            out[name] = (rgb, depth, split)
+    return out
 
 
 def write_depth_like(path: str | Path, depth: np.ndarray, *, kind: str, scale: float = 1.0) -> Path:

@@ -12,6 +12,9 @@
   the ``train_filenames`` / ``val_filenames`` / ``test_filenames`` lists of nerfstudio, a
   ``splits.json`` file next to ``transforms.json`` (``{"train": [...], "test": [...]}``), a
   per-frame ``"split"`` key, or else every view is ``train``. Validation views count as test.
+* **COLMAP dataset** (``images/`` + ``sparse/0/{cameras,images,points3D}.bin`` or ``.txt``):
+  the photos and poses only, every view ``train`` (:func:`roguenerf.data.colmap.colmap_scene`
+  takes the trainers' splits); renders come with ``import-gsplat`` / ``import-3dgs``.
 * **LLFF**: ``poses_bounds.npy`` (N x 17: a 3x5 block per view, rotation columns down, right,
   back, then H, W, focal; near/far bounds) with images in ``images/`` or ``images_<factor>/``.
   Poses stay in their own units (bounds are only validated and kept in ``scene.meta``);
@@ -82,8 +85,15 @@ def load_scene(
         return _load_transforms(path / "transforms.json", depth_type, check_files, confine)
     if (path / "poses_bounds.npy").is_file():
         return _load_llff(path / "poses_bounds.npy", llff_factor, llff_hold, check_files)
+    from roguenerf.data.colmap import colmap_scene, is_colmap_dataset
+
+    if is_colmap_dataset(path):
+        if confine:
+            raise SceneFormatError(path, "a COLMAP dataset is not a scene folder: import it first")
+        return colmap_scene(path, check_files=check_files)
     raise SceneFormatError(
-        path, "not a scene: expected transforms.json (scene folder / nerfstudio) or poses_bounds.npy (LLFF)"
+        path, "not a scene: expected transforms.json (scene folder / nerfstudio), poses_bounds.npy (LLFF) "
+        "or a COLMAP model (sparse/0/)"
     )
 
 
