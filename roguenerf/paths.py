@@ -36,7 +36,7 @@ STATE_FILE = "path_state.json"
 FLICKER_FILE = "flicker.json"
 VIDEO_FILE = "enhanced.mp4"
 SIDE_BY_SIDE_FILE = "side_by_side.mp4"
-CAMERA_FILES = ("camera_path.json", "cameras.json", "transforms.json")
+CAMERA_FILES = ("camera_path.json", "cameras.json", "transforms.json", "images.txt")
 """Where :func:`find_camera_file` looks for a path's cameras in an uploaded folder (first found)."""
 POSE_MATCH_TOL = 1e-5
 """A path camera "is" a scene view (and has its photo) when rotation and position agree to this
@@ -53,7 +53,8 @@ class CameraPath:
     height: int
     fps: float = 24.0
     source: str = "transforms"
-    """``"nerfstudio"`` (camera_path.json) or ``"transforms"``."""
+    """``"nerfstudio"`` (camera_path.json), ``"transforms"``, ``"inria"`` (3DGS ``cameras.json``)
+    or ``"colmap"`` (``images.txt`` / ``images.bin`` with the cameras file beside it)."""
 
     def __len__(self) -> int:
         return int(self.world_from_cam.shape[0])
@@ -75,16 +76,33 @@ def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
     Transforms style: ``{"frames": [...]}`` or a bare list of frames, each with
     ``transform_matrix`` (OpenGL 4x4) and ``fl_x, fl_y, cx, cy, w, h`` (per frame or top level);
     poses already in the scene's units.
+
+    Inria 3DGS ``cameras.json`` (what ``train.py`` writes next to the model): a list of
+    ``{"id", "img_name", "width", "height", "position", "rotation", "fx", "fy"}``, where
+    ``rotation`` (3x3) and ``position`` are the OpenCV **camera-to-world** rotation and camera
+    centre (``camera_to_JSON`` inverts COLMAP's world-to-camera), the principal point at the
+    image centre; cameras in list order.
+
+    COLMAP ``images.txt`` (or ``images.bin``) with ``cameras.txt`` / ``cameras.bin`` beside it:
+    world-to-camera ``qvec`` (w first) and ``tvec`` per image, pinhole cameras; cameras in
+    image-name order (:mod:`roguenerf.data.colmap`).
+
+    Poses of these two are in the dataset's own units, as the scene imported from it.
+    Every error names the file and the camera's position in it.
     """
     from roguenerf.geometry.cameras import check_intrinsics, check_pose, opengl_to_opencv
 
     path = Path(path)
+    if path.suffix.lower() in (".txt", ".bin"):
+        return _read_colmap_path(path)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise _fail(path, "camera path file not found") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise _fail(path, f"cannot read the camera path ({exc})") from None
+    if _is_inria_cameras(data):
+        return _read_inria_cameras(path, data)
     poses, Ks = [], []
     if isinstance(data, dict) and "camera_path" in data:
         source = "nerfstudio"
@@ -149,6 +167,98 @@ def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
     if not (math.isfinite(fps) and 0 < fps <= 240):
         raise _fail(path, f"fps: expected a number in (0, 240], got {fps}")
     return CameraPath(world_from_cam=world_from_cam, K=K, width=width, height=height, fps=fps, source=source)
+
+
+def _is_inria_cameras(data) -> bool:
+    return (isinstance(data, list) and bool(data) and isinstance(data[0], dict)
+            and "rotation" in data[0] and "position" in data[0])
+
+
+def _checked_path(path: Path, poses: list[Tensor], Ks: list[Tensor], sizes: list[tuple[int, int]],
+                  labels: list[str], source: str) -> CameraPath:
+    """One size, proper rotations, valid intrinsics; errors name the camera (``labels``)."""
+    from roguenerf.geometry.cameras import check_intrinsics, check_pose
+
+    if len(set(sizes)) != 1:
+        first = sizes[0]
+        n = next(i for i, size in enumerate(sizes) if size != first)
+        raise _fail(path, f"{labels[n]} is {sizes[n][0]}x{sizes[n][1]}, {labels[0]} is {first[0]}x{first[1]}: "
+                          "all cameras of a path must have one size")
+    checked = []
+    for n, (pose, K) in enumerate(zip(poses, Ks, strict=True)):
+        try:
+            checked.append(check_pose(pose, f"{labels[n]} pose"))
+            check_intrinsics(K, f"{labels[n]} intrinsics")
+        except InputError as exc:
+            raise _fail(path, str(exc)) from None
+    width, height = sizes[0]
+    if width < 1 or height < 1:
+        raise _fail(path, f"render size must be positive, got {width}x{height}")
+    return CameraPath(world_from_cam=torch.stack(checked), K=torch.stack(Ks), width=width, height=height,
+                      fps=24.0, source=source)
+
+
+def _read_inria_cameras(path: Path, data: list) -> CameraPath:
+    poses, Ks, sizes, labels = [], [], [], []
+    for n, cam in enumerate(data):
+        label = f"cameras[{n}]"
+        if isinstance(cam, dict) and isinstance(cam.get("img_name"), str):
+            label += f" ({cam['img_name']})"
+        try:
+            if not isinstance(cam, dict):
+                raise TypeError
+            rotation = torch.tensor(cam["rotation"], dtype=torch.float64)
+            position = torch.tensor(cam["position"], dtype=torch.float64)
+            width, height = cam["width"], cam["height"]
+            if not all(isinstance(v, int) and not isinstance(v, bool) for v in (width, height)):
+                raise TypeError
+            fx, fy = float(cam["fx"]), float(cam["fy"])
+        except (KeyError, TypeError, ValueError, RuntimeError):
+            raise _fail(path, f"{label}: expected Inria's camera entry: rotation (3x3), position (3), "
+                              "width, height (integers), fx, fy") from None
+        if rotation.shape != (3, 3) or position.shape != (3,):
+            raise _fail(path, f"{label}: expected rotation 3x3 and position of 3 numbers, got "
+                              f"{tuple(rotation.shape)} and {tuple(position.shape)}")
+        pose = torch.eye(4, dtype=torch.float64)
+        pose[:3, :3], pose[:3, 3] = rotation, position
+        poses.append(pose)
+        Ks.append(torch.tensor([[fx, 0, width / 2], [0, fy, height / 2], [0, 0, 1]], dtype=torch.float64))
+        sizes.append((width, height))
+        labels.append(label)
+    return _checked_path(path, poses, Ks, sizes, labels, "inria")
+
+
+def _read_colmap_path(path: Path) -> CameraPath:
+    from roguenerf.data.colmap import pinhole_intrinsics, read_colmap_model, world_from_cam_of
+    from roguenerf.errors import SceneFormatError
+
+    fmt = path.suffix.lower()[1:]
+    if path.stem != "images":
+        raise _fail(path, "expected a camera path (.json) or COLMAP's images.txt / images.bin")
+    if not path.is_file():
+        raise _fail(path, "camera path file not found")
+    if not (path.parent / f"cameras.{fmt}").is_file():
+        raise _fail(path, f"COLMAP images.{fmt} needs its cameras.{fmt} beside it (the intrinsics)")
+    try:
+        model = read_colmap_model(path.parent, points=False, format=fmt)
+    except SceneFormatError as exc:
+        raise InputError(str(exc)) from None
+    if not model.images:
+        raise _fail(path, "holds no camera")
+    poses, Ks, sizes, labels = [], [], [], []
+    for n, image in enumerate(sorted(model.images.values(), key=lambda im: im.name)):
+        label = f"camera {n} (image {image.id}, {image.name})"
+        camera = model.cameras.get(image.camera_id)
+        if camera is None:
+            raise _fail(path, f"{label}: its camera {image.camera_id} is not in cameras.{fmt}")
+        try:
+            Ks.append(torch.from_numpy(pinhole_intrinsics(camera, path.parent / f"cameras.{fmt}")))
+            poses.append(torch.from_numpy(world_from_cam_of(image.qvec, image.tvec)))
+        except InputError as exc:
+            raise _fail(path, f"{label}: {exc}") from None
+        sizes.append((camera.width, camera.height))
+        labels.append(label)
+    return _checked_path(path, poses, Ks, sizes, labels, "colmap")
 
 
 def find_camera_file(folder: str | Path) -> Path:

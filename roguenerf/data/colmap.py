@@ -492,7 +492,7 @@ def _read_points_txt(path: Path, tracks: bool) -> ColmapPoints:
 
 
 def read_colmap_model(
-    path: str | Path, *, points: bool = True, keypoints: bool = False
+    path: str | Path, *, points: bool = True, keypoints: bool = False, format: str | None = None
 ) -> ColmapModel:
     """Read a COLMAP sparse model as stored (binary preferred when both forms are there).
 
@@ -500,9 +500,16 @@ def read_colmap_model(
         path: the model folder, or a dataset holding ``sparse/0`` / ``sparse``.
         points: read ``points3D`` too (without tracks); absent file -> no points.
         keypoints: keep each image's 2D keypoints (large; off by default).
+        format: ``"bin"`` or ``"txt"`` to read that encoding when a folder holds both.
     """
     folder = find_sparse_dir(path)
     fmt = _model_format(folder)
+    if format is not None:
+        if format not in ("bin", "txt"):
+            raise InputError(f"format: expected 'bin' or 'txt', got {format!r}")
+        if not all((folder / f"{name}.{format}").is_file() for name in ("cameras", "images")):
+            raise SceneFormatError(folder, f"expected cameras.{format} and images.{format}")
+        fmt = format
     if fmt == "bin":
         cameras = _read_cameras_bin(folder / "cameras.bin")
         images = _read_images_bin(folder / "images.bin", keypoints)
