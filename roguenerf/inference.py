@@ -240,8 +240,9 @@ class SceneEnhancer:
                 :func:`~roguenerf.geometry.depth.known_depth_mask` is False (non-finite,
                 ``<= DEPTH_EPS`` = 1e-6, or ``>= MAX_DEPTH`` = 1e10).
             K: ``(3, 3)`` intrinsics (pixel-centre convention).
-            world_from_cam: ``(4, 4)`` OpenCV camera-to-world; used in float64 (pass float64
-                for scenes far from the origin: float32 cannot hold 5e6 to better than 0.5).
+            world_from_cam: ``(4, 4)`` or ``(3, 4)`` OpenCV camera-to-world (a proper rotation:
+                :func:`~roguenerf.geometry.check_pose`); used in float64 (pass float64 for
+                scenes far from the origin: float32 cannot hold 5e6 to better than 0.5).
             exclude: scene indices or view names never used as neighbours (the target itself
                 when it is a training view).
             progress: optional ``callback(done, total)`` called after each tile of a tiled image.
@@ -263,7 +264,7 @@ class SceneEnhancer:
         K = check_intrinsics(torch.as_tensor(K).to(torch.float32), "K")
         world_from_cam = check_pose(torch.as_tensor(world_from_cam).to(torch.float64), "world_from_cam")
         if K.shape != (3, 3) or world_from_cam.shape != (4, 4):
-            raise InputError(f"K, world_from_cam: expected (3, 3) and (4, 4), got "
+            raise InputError(f"K, world_from_cam: expected (3, 3) and (4, 4) or (3, 4), got "
                              f"{tuple(K.shape)} and {tuple(world_from_cam.shape)}")
 
         dev = self.device

@@ -184,7 +184,8 @@ class Camera(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    transform_matrix: list[list[float]] = Field(description="4x4 camera-to-world")
+    transform_matrix: list[list[float]] = Field(
+        description="4x4 camera-to-world, or its top 3 rows (3x4, as most tools print poses)")
     convention: Literal["opengl", "opencv"] = Field(
         description="opengl: nerfstudio/Blender (x right, y up, -z forward); opencv: x right, y down, z forward")
     fl_x: float
@@ -199,9 +200,9 @@ class Camera(BaseModel):
     @field_validator("transform_matrix")
     @classmethod
     def _four_by_four(cls, value):
-        if len(value) != 4 or any(len(row) != 4 for row in value):
+        if len(value) not in (3, 4) or any(len(row) != 4 for row in value):
             shape = f"{len(value)} rows of lengths {[len(r) for r in value]}"
-            raise ValueError(f"expected 4x4 (4 rows of 4 numbers), got {shape}")
+            raise ValueError(f"expected 4x4 or 3x4 (4 or 3 rows of 4 numbers), got {shape}")
         if not all(math.isfinite(x) for row in value for x in row):
             raise ValueError("contains NaN or infinite values")
         return value

@@ -146,6 +146,28 @@ def test_input_errors_name_the_argument(scene):
         SceneEnhancer(scene, _model(), num_neighbours=-1)
 
 
+def test_3x4_pose_is_the_4x4_pose_and_still_checked(scene):
+    """Poses as tools print them (3x4) give the same image as the 4x4 form; an improper rotation
+    is refused the same way (one check: geometry.check_pose)."""
+    enhancer = SceneEnhancer(scene, _model())
+    i = next(n for n, f in enumerate(scene.frames) if f.split == "test")
+    frame = scene.frames[i]
+    render, depth = scene.render(i), scene.depth(i)
+    four = enhancer.enhance(render, depth, frame.K, frame.world_from_cam)
+    three = enhancer.enhance(render, depth, frame.K, frame.world_from_cam[:3])
+    assert torch.equal(four.image, three.image) and four.neighbours == three.neighbours
+    reflected = frame.world_from_cam[:3].clone()
+    reflected[:, 0] *= -1
+    with pytest.raises(InputError, match=r"world_from_cam.*det"):
+        enhancer.enhance(render, depth, frame.K, reflected)
+    scaled = frame.world_from_cam[:3].clone()
+    scaled[:, :3] *= 1.1
+    with pytest.raises(InputError, match=r"world_from_cam.*orthonormal"):
+        enhancer.enhance(render, depth, frame.K, scaled)
+    with pytest.raises(InputError, match=r"world_from_cam.*4x4 or 3x4"):
+        enhancer.enhance(render, depth, frame.K, frame.world_from_cam[:2])
+
+
 def test_concurrent_calls_match_sequential_and_encode_once(scene):
     model = _model()
     calls = _counting(model)

@@ -130,13 +130,13 @@ def _with_pose(s, pose) -> dict:
 
 
 @pytest.mark.parametrize("case, needle", [
-    ("3x4", "4x4"), ("4x3", "4x4"), ("nan", "NaN"), ("inf", "NaN"), ("last_row", "last row"),
+    ("2x4", "4x4 or 3x4"), ("4x3", "4x4"), ("nan", "NaN"), ("inf", "NaN"), ("last_row", "last row"),
     ("reflection", "det"), ("scaled", "orthonormal"), ("sheared", "orthonormal"),
 ])
 def test_bad_poses_are_422(s, case, needle):
     pose = s.scene.frames[6].world_from_cam.to(torch.float64).clone()
-    if case == "3x4":
-        value = pose[:3].tolist()
+    if case == "2x4":  # 3x4 is accepted (tests/test_service_api.py); fewer rows are not
+        value = pose[:2].tolist()
     elif case == "4x3":
         value = pose[:, :3].tolist()
     elif case in ("nan", "inf"):

@@ -240,8 +240,8 @@ def test_enhance_input_validation(client, scene_id, toy, server):
     assert "not valid JSON" in assert_error(r, 422, "validation_error")
     missing = {**view, "camera": {k: v for k, v in view["camera"].items() if k != "convention"}}
     assert "convention" in assert_error(enhance(client, scene_id, missing), 422, "validation_error")
-    three = {**view, "camera": {**view["camera"], "transform_matrix": view["camera"]["transform_matrix"][:3]}}
-    assert "4x4" in assert_error(enhance(client, scene_id, three), 422, "validation_error")
+    two = {**view, "camera": {**view["camera"], "transform_matrix": view["camera"]["transform_matrix"][:2]}}
+    assert "4x4 or 3x4" in assert_error(enhance(client, scene_id, two), 422, "validation_error")
     skew = np.array(view["camera"]["transform_matrix"])
     skew[:3, 0] *= 3.0
     bad_pose = {**view, "camera": {**view["camera"], "transform_matrix": skew.tolist()}}
@@ -284,6 +284,30 @@ def test_enhance_ok_and_over_capacity(client, scene_id, toy, server):
     finally:
         loop.call_soon_threadsafe(services.enhance_slots.release)
     assert enhance(client, scene_id, view).status_code == 200
+
+
+@pytest.mark.parametrize("convention", ["opengl", "opencv"])
+def test_enhance_takes_3x4_poses_and_checks_their_rotation(client, scene_id, toy, convention):
+    """A 3x4 camera-to-world (as most tools print poses) gives the 4x4 answer, byte for byte;
+    its rotation is checked the same way (a reflection or a scaled matrix is a 422)."""
+    view = view_request(toy["scene"], 6)
+    pose = np.array(view["camera"]["transform_matrix"])
+    if convention == "opencv":
+        pose = pose * np.array([1.0, -1.0, -1.0, 1.0])  # OpenGL -> OpenCV axes
+    four = {**view, "camera": {**view["camera"], "convention": convention, "transform_matrix": pose.tolist()}}
+    three = {**four, "camera": {**four["camera"], "transform_matrix": pose[:3].tolist()}}
+    r4, r3 = enhance(client, scene_id, four), enhance(client, scene_id, three)
+    assert r4.status_code == 200 and r3.status_code == 200, (r4.text, r3.text)
+    assert r3.content == r4.content and r3.headers["X-Neighbours"] == r4.headers["X-Neighbours"]
+    reflected = pose[:3].copy()
+    reflected[:, 0] *= -1
+    bad = {**four, "camera": {**four["camera"], "transform_matrix": reflected.tolist()}}
+    message = assert_error(enhance(client, scene_id, bad), 422, "invalid_input")
+    assert "camera.transform_matrix" in message and "det" in message
+    scaled = pose[:3].copy()
+    scaled[:, :3] *= 1.1
+    bad = {**four, "camera": {**four["camera"], "transform_matrix": scaled.tolist()}}
+    assert "orthonormal" in assert_error(enhance(client, scene_id, bad), 422, "invalid_input")
 
 
 def _png_of(array: np.ndarray) -> bytes:

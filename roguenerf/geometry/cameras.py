@@ -125,12 +125,20 @@ def check_intrinsics(K: Tensor, name: str = "K") -> Tensor:
 
 
 def check_pose(world_from_cam: Tensor, name: str = "pose", tol: float = ORTHONORMAL_TOL) -> Tensor:
-    """Validate ``(..., 4, 4)`` camera-to-world: finite, last row (0, 0, 0, 1), det(R) = +1,
-    rotation orthonormal within ``tol`` (then re-orthonormalised with SVD; beyond it InputError).
+    """Validate ``(..., 4, 4)`` or ``(..., 3, 4)`` camera-to-world: finite, last row
+    (0, 0, 0, 1), det(R) = +1, rotation orthonormal within ``tol`` (then re-orthonormalised
+    with SVD; beyond it InputError). A 3x4 pose (the form most tools print) gets the row
+    (0, 0, 0, 1) appended.
 
-    Returns the (possibly re-orthonormalised) pose, same dtype.
+    Returns the (possibly re-orthonormalised) ``(..., 4, 4)`` pose, same dtype.
     """
-    _check_tensor(world_from_cam, name, (4, 4))
+    _check_tensor(world_from_cam, name)
+    if world_from_cam.ndim < 2 or tuple(world_from_cam.shape[-2:]) not in ((4, 4), (3, 4)):
+        raise InputError(f"{name}: expected a 4x4 or 3x4 camera-to-world matrix, shape (..., 4, 4) or "
+                         f"(..., 3, 4), got {tuple(world_from_cam.shape)}")
+    if world_from_cam.shape[-2] == 3:
+        bottom = world_from_cam.new_tensor((0.0, 0.0, 0.0, 1.0)).expand(*world_from_cam.shape[:-2], 1, 4)
+        world_from_cam = torch.cat([world_from_cam, bottom], dim=-2)
     if not torch.isfinite(world_from_cam).all():
         raise InputError(f"{name}: expected a finite 4x4 camera-to-world matrix, got non-finite values")
     last = world_from_cam[..., 3, :]

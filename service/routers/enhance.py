@@ -44,9 +44,10 @@ def parse_camera(text: str) -> Camera:
 
 
 def camera_tensors(camera: Camera):
-    """``(K (3, 3), world_from_cam (4, 4) OpenCV)`` as float64, validated with messages that
-    name the camera fields. The pose handed to the library is the converted, unchecked one,
-    so the service computes exactly what a direct library call with these inputs computes."""
+    """``(K (3, 3), world_from_cam (4, 4) or (3, 4) OpenCV)`` as float64, validated with
+    messages that name the camera fields. The pose handed to the library is the converted,
+    unchecked one, so the service computes exactly what a direct library call with these inputs
+    computes (a 3x4 pose gets its last row there, in the one check, ``check_pose``)."""
     import torch
 
     from roguenerf.geometry import check_intrinsics, check_pose, intrinsics_matrix, opengl_to_opencv
