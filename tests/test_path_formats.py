@@ -116,3 +116,52 @@ def test_colmap_sizes_must_agree(tmp_path):
     write_colmap_model(tmp_path, ColmapModel(cams, ims), binary=False)
     with pytest.raises(InputError, match=r"camera 1 \(image 2, b.png\) is 64x48.*one size"):
         read_camera_path(tmp_path / "images.txt")
+
+
+def test_enhance_path_cli_same_frames_from_every_camera_format(tmp_path):
+    """The same path given as a transforms list, Inria's cameras.json and COLMAP's images.txt
+    enhances to byte-identical frames (the readers agree end to end)."""
+    from kornia.filters import gaussian_blur2d
+    from typer.testing import CliRunner
+
+    from roguenerf.cli import app
+    from roguenerf.data.toy import make_toy_scene, render_toy_view
+    from roguenerf.geometry import opencv_to_opengl
+    from roguenerf.imageio import write_png
+    from roguenerf.paths import smooth_path
+
+    h, w = 24, 32
+    scene = make_toy_scene(tmp_path / "scene", seed=4, n_train=6, n_test=1, height=h, width=w, kind="orbit")
+    world = make_toy_world(4)
+    poses = smooth_path(scene.poses([1, 2, 3]), 2)
+    K = scene.frames[0].K
+    (tmp_path / "frames" / "rgb").mkdir(parents=True)
+    (tmp_path / "frames" / "depth").mkdir()
+    names = [f"frame_{t}" for t in range(len(poses))]
+    for name, pose in zip(names, poses, strict=True):
+        rgb, z = render_toy_view(world, pose, K, h, w)
+        render = gaussian_blur2d(rgb[None], (5, 5), (1.0, 1.0), border_type="replicate")[0].clamp(0, 1)
+        write_png(tmp_path / "frames" / "rgb" / f"{name}.png", render)
+        np.save(tmp_path / "frames" / "depth" / f"{name}.npy", z[0].numpy())
+    fx, fy = float(K[0, 0]), float(K[1, 1])
+    assert float(K[0, 2]) == w / 2 and float(K[1, 2]) == h / 2  # Inria's principal point
+    (tmp_path / "transforms.json").write_text(json.dumps({
+        "fl_x": fx, "fl_y": fy, "cx": w / 2, "cy": h / 2, "w": w, "h": h,
+        "frames": [{"transform_matrix": opencv_to_opengl(p).tolist()} for p in poses]}))
+    inria = [_inria_entry(i, n, p, fx, fy) for i, (n, p) in enumerate(zip(names, poses, strict=True))]
+    for cam in inria:
+        cam["width"], cam["height"] = w, h
+    (tmp_path / "cameras.json").write_text(json.dumps(inria))
+    write_colmap(tmp_path / "colmap", names=[f"{n}.png" for n in names], K=K, world_from_cam=poses,
+                 widths=w, heights=h, binary=False)
+    runner = CliRunner()
+    frames = {}
+    for label, cameras in (("transforms", tmp_path / "transforms.json"), ("inria", tmp_path / "cameras.json"),
+                           ("colmap", tmp_path / "colmap" / "images.txt")):
+        out = tmp_path / f"out_{label}"
+        r = runner.invoke(app, ["enhance-path", str(tmp_path / "scene"), "--frames", str(tmp_path / "frames"),
+                                "--cameras", str(cameras), "--output", str(out), "--no-video"])
+        assert r.exit_code == 0, r.output
+        frames[label] = [p.read_bytes() for p in sorted((out / "frames").iterdir())]
+    assert len(frames["transforms"]) == len(poses)
+    assert frames["inria"] == frames["transforms"] and frames["colmap"] == frames["transforms"]
