@@ -354,3 +354,29 @@ def test_load_scene_autodetects_a_colmap_dataset(toy, tmp_path):
     assert scene.meta["format"] == "colmap"
     assert [f.name for f in scene.frames] == sorted(f.name for f in toy.frames)
     assert {f.split for f in scene.frames} == {"train"}
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_points_round_trip_and_pycolmap_reads_them(tmp_path, binary):
+    import pycolmap
+
+    rng = np.random.default_rng(1)
+    xyz = rng.normal(size=(7, 3))
+    rgb = rng.integers(0, 256, size=(7, 3)).astype(np.uint8)
+    pose = torch.eye(4, dtype=torch.float64)
+    K = torch.tensor([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]], dtype=torch.float64)
+    write_colmap(tmp_path, names=["a.png"], K=K, world_from_cam=pose[None], widths=32, heights=24,
+                 binary=binary, points_xyz=xyz, points_rgb=rgb)
+    data = read_colmap(tmp_path, points=True, check_files=False)
+    assert np.array_equal(data.points_xyz.numpy(), xyz)
+    assert np.array_equal(data.points_rgb.numpy(), rgb)
+    rec = pycolmap.Reconstruction(str(tmp_path))
+    theirs = np.stack([rec.points3D[i].xyz for i in sorted(rec.points3D)])
+    assert np.array_equal(theirs, xyz)
+
+
+def test_colliding_stems_keep_their_folders(tmp_path):
+    from roguenerf.data.colmap import view_names
+
+    assert view_names(["b.png", "a.jpg"]) == ["b", "a"]
+    assert view_names(["cam0/0001.jpg", "cam1/0001.jpg"]) == ["cam0_0001", "cam1_0001"]
