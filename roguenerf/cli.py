@@ -480,7 +480,9 @@ def import_gsplat(
     dataset: Annotated[Path, typer.Argument(help=(
         "Dataset with the photos and their poses: COLMAP (images/ + sparse/0/, .bin or .txt) or "
         "transforms.json (nerfstudio style)."))],
-    renders: Annotated[Path, typer.Option("--renders", help="Folder with rgb/ and depth/ (.npy, .npy.gz, .npz, 16-bit PNG, float TIFF).")],
+    renders: Annotated[Path, typer.Option("--renders", help=(
+        "Folder with rgb/ and depth/ (.npy, .npy.gz, .npz, 16-bit PNG, float TIFF), files named by view; or an "
+        "Inria model folder whose <split>/ours_<iter>/ holds renders/ and a depth/ folder (numbered)."))],
     output: Annotated[Path, typer.Option("--output", help="Scene folder to write.")],
     depth_type: DepthTypeOpt = None,
     depth_scale: DepthScaleOpt = 1.0,
@@ -507,7 +509,9 @@ def import_gsplat(
 def enhance_path_command(
     scene_dir: Annotated[Path, typer.Argument(help="Scene folder (the training photos, poses, renders, depths).")],
     frames: Annotated[Path, typer.Option("--frames", help="Folder of the path's renders and depths (rgb/ + depth/, or NAME.png + NAME.npy).")],
-    cameras: Annotated[Path, typer.Option("--cameras", help="nerfstudio camera_path.json, or a transforms-style list of cameras.")],
+    cameras: Annotated[Path, typer.Option("--cameras", help=(
+        "nerfstudio camera_path.json, a transforms-style list of cameras, Inria 3DGS cameras.json, or COLMAP "
+        "images.txt / images.bin (cameras file beside it)."))],
     output: Annotated[Path, typer.Option("--output", help="Output folder: frames/, enhanced.mp4, side_by_side.mp4, flicker.json.")],
     checkpoint: CheckpointOpt = None,
     neighbours: NeighboursOpt = None,
