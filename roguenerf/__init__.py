@@ -62,6 +62,8 @@ _LAZY = {
     "enhance_path": "roguenerf.paths",
     "import_renders": "roguenerf.data.exports",
     "DataparserTransform": "roguenerf.data.exports",
+    "read_colmap": "roguenerf.data.colmap",
+    "write_colmap": "roguenerf.data.colmap",
 }
 
 __all__ = [
