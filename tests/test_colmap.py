@@ -103,6 +103,14 @@ def test_handwritten_text_model_known_answer(tmp_path):
     model = read_colmap_model(tmp_path, keypoints=True)
     assert model.images[7].xys.tolist() == [[10.5, 20.5], [3.0, 4.0]]
     assert model.images[7].point3D_ids.tolist() == [-1, 12]
+    # Written by hand without the keypoint lines: every image is still read.
+    (sparse / "images.txt").write_text(
+        f"7 {c!r} 0 0 {s!r} 1 2 3 1 b.jpg\n2 1 0 0 0 0 0 0 1 a.jpg\n3 1 0 0 0 0 0 1 1 c.jpg\n"
+    )
+    assert read_colmap(tmp_path, check_files=False).names == ["a.jpg", "b.jpg", "c.jpg"]
+    (sparse / "images.txt").write_text("2 1 0 0 0 0 0 0 1 a.jpg\n\n2 1 0 0 0 0 0 0 1 b.jpg\n\n")
+    with pytest.raises(SceneFormatError, match="image id 2 appears twice"):
+        read_colmap(tmp_path, check_files=False)
 
 
 def test_quaternion_of_every_branch():

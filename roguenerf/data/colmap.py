@@ -452,16 +452,37 @@ def _read_images_txt(path: Path, keypoints: bool) -> dict[int, ColmapImage]:
         image = ColmapImage(
             image_id, tuple(pose[:4]), tuple(pose[4:]), camera_id, " ".join(tokens[9:])
         )
-        points_line = lines[i + 1][1] if i + 1 < len(lines) else ""
+        if image_id in images:
+            raise SceneFormatError(path, f"line {lineno}: image id {image_id} appears twice")
+        images[image_id] = image
+        # The keypoint line follows (empty when there are none); files written by hand sometimes
+        # leave it out, so a line that reads as the next image's header is not taken for it.
+        points_lineno, points_line = lines[i + 1] if i + 1 < len(lines) else (lineno + 1, "")
+        if _is_image_header(points_line):
+            i += 1
+            continue
         if keypoints and points_line:
             values = points_line.split()
             if len(values) % 3:
-                raise SceneFormatError(path, f"line {lineno + 1}: expected X Y POINT3D_ID triples")
-            arr = np.array(_numbers(path, values, float, lineno + 1, "keypoints")).reshape(-1, 3)
+                raise SceneFormatError(
+                    path, f"line {points_lineno}: expected X Y POINT3D_ID triples"
+                )
+            arr = np.array(_numbers(path, values, float, points_lineno, "keypoints")).reshape(-1, 3)
             image.xys, image.point3D_ids = arr[:, :2], arr[:, 2].astype(np.int64)
-        images[image_id] = image
         i += 2
     return images
+
+
+def _is_image_header(line: str) -> bool:
+    """IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME: a keypoint line is numbers only."""
+    tokens = line.split()
+    if len(tokens) < 10:
+        return False
+    try:
+        float(tokens[9])
+    except ValueError:
+        return True
+    return False
 
 
 def _read_points_txt(path: Path, tracks: bool) -> ColmapPoints:
