@@ -1,4 +1,5 @@
-"""The `roguenerf` command: exact flags, JSON output, exit codes and one-line errors."""
+"""The `roguenerf` command (roguecli: the library's commands plus serve and make-pairs): exact
+flags, JSON output, exit codes and one-line errors."""
 
 from __future__ import annotations
 
@@ -13,8 +14,8 @@ import torch
 from typer.testing import CliRunner
 
 import roguenerf.checkpoint
+from roguecli import app
 from roguenerf.checkpoint import load_checkpoint, save_checkpoint
-from roguenerf.cli import app
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.models import build_enhancer
 from roguenerf.training import evaluate
@@ -205,7 +206,7 @@ def test_console_entry_point_runs_as_a_module(tmp_path):
 SERVE_PROBE = r"""
 import os, sys
 import service.server
-from roguenerf.cli import app
+from roguecli import app
 
 def fake_run(**kwargs):
     import torch  # noqa: F401  (the real server loads it after this point)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -60,6 +61,38 @@ GPU_MINUTES = 60.0
 CPU_PLAN_WHY = ("CPU defaults chosen by measured gain after 1, 3 and 10 min on unseen real scenes and lego, "
                 "bench/results/real_scenes.csv; the lr decays to 0 by the end of the budget")
 GPU_PLAN_WHY = "GPU defaults: the paper's 512 px crops, the checkpoint's neighbours, 60 min"
+
+
+def validate_budget(steps, minutes, *, required: bool = False, lenient: bool = False,
+                    names: tuple[str, str] = ("steps", "minutes")) -> None:
+    """Check a training budget; raise :class:`InputError` naming the field.
+
+    The rules, for every entry point (``TrainConfig``, the CLI's ``--steps``/``--minutes``, the
+    API's ``POST /scenes/{id}/finetune`` body): ``steps`` an integer > 0, ``minutes`` a finite
+    number > 0, and not both at once. Neither means the plan's default (CPU_MINUTES or
+    GPU_MINUTES) unless ``required`` (the API: a queued job states its own length).
+    ``lenient``: what the library's :class:`TrainConfig` takes beyond a request: 0 (save the
+    starting weights and stop) and both at once (whichever runs out first).
+    ``names``: how the caller spells the two fields (the CLI: ``("--steps", "--minutes")``).
+    """
+    steps_name, minutes_name = names
+    floor = ">= 0" if lenient else "> 0"
+    if steps is not None and minutes is not None and not lenient:
+        raise InputError(f"give either {minutes_name} or {steps_name}, not both")
+    if steps is None and minutes is None and required:
+        raise InputError(f"give exactly one of {steps_name} or {minutes_name}")
+    if steps is not None:
+        if isinstance(steps, bool) or not isinstance(steps, numbers.Integral):
+            raise InputError(f"{steps_name}: expected an integer {floor}, got {steps!r}")
+        if steps < 0 or (steps == 0 and not lenient):
+            raise InputError(f"{steps_name}: expected {floor}, got {steps}")
+    if minutes is not None:
+        if isinstance(minutes, bool) or not isinstance(minutes, numbers.Real):
+            raise InputError(f"{minutes_name}: expected a number {floor}, got {minutes!r}")
+        if not math.isfinite(minutes):
+            raise InputError(f"{minutes_name} must be a finite number {floor}, got {minutes}")
+        if minutes < 0 or (minutes == 0 and not lenient):
+            raise InputError(f"{minutes_name}: expected a number {floor}, got {minutes:g}")
 
 
 @dataclass
@@ -125,11 +158,15 @@ class TrainConfig:
     see; "whole": every neighbour photo whole (the former path, kept for comparison). Same
     loss and gradients (:mod:`roguenerf.training.batches`)."""
 
+    @staticmethod
+    def validate_budget(steps, minutes, *, required: bool = False, lenient: bool = False,
+                        names: tuple[str, str] = ("steps", "minutes")) -> None:
+        """The training budget's rules, the one place every entry point takes them from
+        (:func:`validate_budget`)."""
+        validate_budget(steps, minutes, required=required, lenient=lenient, names=names)
+
     def validate(self) -> TrainConfig:
-        if self.steps is not None and int(self.steps) < 0:
-            raise InputError(f"steps: expected >= 0, got {self.steps}")
-        if self.minutes is not None and not float(self.minutes) >= 0:
-            raise InputError(f"minutes: expected >= 0, got {self.minutes}")
+        validate_budget(self.steps, self.minutes, lenient=True)
         if self.crop is not None and int(self.crop) < 8:
             raise InputError(f"crop: expected >= 8 pixels, got {self.crop}")
         if int(self.batch) < 1:
