@@ -578,7 +578,8 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
     if saved is not None:
         model, plan, transfer, before = _resume(saved, scenes, config, kind, output_dir)
     else:
-        (model, plan, transfer), before = _plan(scenes, config, kind, checkpoint, held_out_scenes), None
+        model, plan, transfer = _plan(scenes, config, kind, checkpoint, held_out_scenes)
+        before = None
     run = _set_up(scenes, output_dir, kind=kind, config=config, model=model, plan=plan, transfer=transfer,
                   before=before, saved=saved, progress=progress, held_out_scenes=held_out_scenes)
 
