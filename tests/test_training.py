@@ -447,3 +447,31 @@ def test_evaluate_shape_and_render_psnr(scene):
     train = evaluate(scene, model, split="train", max_views=2)
     for view in train["views"]:
         assert view["name"] not in view["neighbours"]
+
+
+def test_the_plan_is_a_frozen_dataclass_saved_as_before():
+    import dataclasses
+
+    from roguenerf.training import TrainPlan
+    from roguenerf.training.config import budget_fraction, describe_plan
+
+    class _Frame:
+        height, width = 200, 200
+
+    class _Scene:
+        frames = [_Frame()] * 3
+
+    plan = plan_training(_Scene(), TrainConfig(steps=8, without=("attention",)), "cpu")
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        plan.lr = 1.0
+    saved = json.loads(json.dumps(plan.to_dict()))
+    assert list(saved)[:4] == ["device", "variant", "crop", "crop_used"] and saved["without"] == ["attention"]
+    assert TrainPlan.from_dict({**saved, "loss_kind": "l1"}) == plan  # a result's extra keys are ignored
+    assert describe_plan(saved) == describe_plan(plan) and "without attention" in describe_plan(plan)
+    assert plan.budget_fraction(2, 0.0) == budget_fraction(saved, 2, 0.0) == 0.25
+    assert not plan.budget_done(7, 1e9) and plan.budget_done(8, 0.0)
+    # A plan saved before a field existed: the default that run trained with.
+    old = {k: v for k, v in saved.items() if k not in ("lr_schedule", "freeze_neighbour_encoder",
+                                                         "render_blur", "render_warp", "held_out_share")}
+    restored = TrainPlan.from_dict(old)
+    assert (restored.lr_schedule, restored.freeze_neighbour_encoder, restored.render_warp) == ("constant", False, 0.0)
