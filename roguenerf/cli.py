@@ -123,8 +123,8 @@ def _check_budget(steps, minutes, *, evaluate_hint: bool = False) -> None:
     try:
         TrainConfig.validate_budget(steps, minutes, names=("--steps", "--minutes"))
     except InputError as exc:
-        if not evaluate_hint or "not both" in str(exc):
-            raise
+        if not evaluate_hint or (steps is not None and minutes is not None):
+            raise  # the hint is for a budget too small to train
         raise InputError(f"{exc} (to measure a checkpoint without training, use `roguenerf evaluate`)") from None
 
 

@@ -160,12 +160,8 @@ class TrainConfig:
     see; "whole": every neighbour photo whole (the former path, kept for comparison). Same
     loss and gradients (:mod:`roguenerf.training.batches`)."""
 
-    @staticmethod
-    def validate_budget(steps, minutes, *, required: bool = False, lenient: bool = False,
-                        names: tuple[str, str] = ("steps", "minutes")) -> None:
-        """The training budget's rules, the one place every entry point takes them from
-        (:func:`validate_budget`)."""
-        validate_budget(steps, minutes, required=required, lenient=lenient, names=names)
+    validate_budget = staticmethod(validate_budget)
+    """The training budget's rules (:func:`validate_budget`): the CLI and the API call it too."""
 
     def validate(self) -> TrainConfig:
         validate_budget(self.steps, self.minutes, lenient=True)
