@@ -31,6 +31,7 @@ COPY pyproject.toml README.md ./
 COPY roguenerf ./roguenerf
 COPY service ./service
 COPY workers ./workers
+COPY roguecli ./roguecli
 RUN pip install ".[service,postgresql]" ${EXTRA_PIP}
 
 RUN useradd --create-home --uid 10001 roguenerf \

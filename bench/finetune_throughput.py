@@ -364,7 +364,7 @@ def main(argv=None) -> int:
     first = next(iter(scenes.values()))
     plan = plan_training(first, TrainConfig(), device="cpu")
     print(f"fine-tuning from scratch here would use: {describe_plan(plan)}", flush=True)
-    neighbours = args.neighbours if args.neighbours is not None else [plan["num_neighbours"]]
+    neighbours = args.neighbours if args.neighbours is not None else [plan.num_neighbours]
     if args.neighbours is None:
         print(f"neighbours per target: {neighbours[0]} (plan_training's CPU choice)", flush=True)
     loss_fn = build_loss(args.vgg_weights, "cpu")

@@ -145,7 +145,7 @@ def run(args, save=None) -> list[dict]:
             model, _ = load_checkpoint(ckpt)
             record(kind, 0.0, 0, 0.0, evaluate(scene, model, max_views=args.max_views), checkpoint=str(ckpt))
         for plan_name in args.plans:
-            scheduled = plan_training(scene, TrainConfig(**PLANS[plan_name]))["lr_schedule"] != "constant"
+            scheduled = plan_training(scene, TrainConfig(**PLANS[plan_name])).lr_schedule != "constant"
             for minutes in sorted(args.minutes):
                 run_dir = work / f"{label.replace('/', '_')}_{plan_name}" / (f"{minutes:g}min" if scheduled else "")
                 config = TrainConfig(minutes=minutes, evaluate=False, **PLANS[plan_name])

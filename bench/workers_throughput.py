@@ -43,7 +43,7 @@ from tests.service_helpers import (  # noqa: E402
     wait_job,
     wait_until,
 )
-from workers.settings import Settings  # noqa: E402
+from service.settings import Settings  # noqa: E402
 
 
 def _settings(root: Path, redis_url: str, db_url: str) -> Settings:

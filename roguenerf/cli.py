@@ -1,5 +1,6 @@
-"""The ``roguenerf`` command: finetune, evaluate, enhance, enhance-path, import-nerfstudio, import-gsplat,
-pretrain, make-pairs, serve.
+"""The library's commands: finetune, evaluate, enhance, enhance-path, import-nerfstudio,
+import-gsplat, pretrain (``python -m roguenerf``). The ``roguenerf`` console script
+(:mod:`roguecli`) builds on this app and adds ``serve`` and ``make-pairs``.
 
 Errors are one line on stderr and an exit code: 2 for bad input (missing scene, bad
 checkpoint, bad flag values), 1 for failures (divergence, cancellation, anything else).
@@ -115,18 +116,23 @@ def _load_model(checkpoint: Path | None):
     return model
 
 
+def _check_budget(steps, minutes, *, evaluate_hint: bool = False) -> None:
+    """The budget flags, by the library's rules (:meth:`TrainConfig.validate_budget`)."""
+    from roguenerf.training import TrainConfig
+
+    try:
+        TrainConfig.validate_budget(steps, minutes, names=("--steps", "--minutes"))
+    except InputError as exc:
+        if not evaluate_hint or (steps is not None and minutes is not None):
+            raise  # the hint is for a budget too small to train
+        raise InputError(f"{exc} (to measure a checkpoint without training, use `roguenerf evaluate`)") from None
+
+
 def _train_config(*, minutes, steps, without, variant, crop, vgg_weights, seed, neighbours, lr=None,
                   lr_schedule=None, evaluate=True, **extra):
     from roguenerf.training import COMPONENTS, TrainConfig
 
-    if minutes is not None and steps is not None:
-        raise InputError("give either --minutes or --steps, not both")
-    if minutes is not None and not (math.isfinite(minutes) and minutes > 0):
-        raise InputError(f"--minutes: expected a number > 0, got {minutes:g} "
-                         "(to measure a checkpoint without training, use `roguenerf evaluate`)")
-    if steps is not None and steps <= 0:
-        raise InputError(f"--steps: expected > 0, got {steps} "
-                         "(to measure a checkpoint without training, use `roguenerf evaluate`)")
+    _check_budget(steps, minutes, evaluate_hint=True)
     without = tuple(without or ())
     for w in without:
         if w not in COMPONENTS:
@@ -264,77 +270,6 @@ def make_toy_scenes(root: Path, count: int, *, seed: int = 0, height: int = 96, 
             scenes.append(make_toy_scene(path, seed=seed + k, height=height, width=width,
                                          degradation=Degradation()))
     return scenes
-
-
-@app.command("make-pairs")
-def make_pairs_command(
-    photos_dir: Annotated[Path, typer.Argument(help="Posed photo set: transforms.json + photos (every 8th view is held out).")],
-    output: Annotated[Path, typer.Option("--output", help="Scene folder to write (renders, depths, acc for every view).")] = ...,
-    preset: Annotated[str, typer.Option("--preset", help="Field preset: blur (64³ RGB grid, half-size render), coarse (96³ RGB grid) or fine (160³, view-dependent).")] = "fine",
-    minutes: Annotated[float | None, typer.Option("--minutes", help="Fitting budget in minutes (default: the preset's).")] = None,
-    steps: Annotated[int | None, typer.Option("--steps", help="Fitting budget in steps (instead of minutes).")] = None,
-    resolution: Annotated[int | None, typer.Option("--resolution", help="Final grid side (default: the preset's).")] = None,
-    seed: SeedOpt = 0,
-) -> None:
-    """Fit a radiance field to a posed photo set's training views and render render/photo pairs.
-
-    A data tool (package ``roguefit``) for pre-training: resumable (run the same command again),
-    a finished output folder is left as it is.
-    """
-    import dataclasses
-
-    _setup_logging()
-    with _errors():
-        try:
-            from roguefit import PRESETS, make_pairs
-        except ImportError:
-            _fail("make-pairs needs the roguefit data tool, which ships in this repository beside roguenerf", 1)
-        if preset not in PRESETS:
-            raise InputError(f"--preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
-        if minutes is not None and steps is not None:
-            raise InputError("give either --minutes or --steps, not both")
-        if minutes is not None and not (math.isfinite(minutes) and minutes > 0):
-            raise InputError(f"--minutes: expected > 0, got {minutes}")
-        if steps is not None and steps < 1:
-            raise InputError(f"--steps: expected >= 1, got {steps}")
-        if resolution is not None and not 16 <= resolution <= 512:
-            raise InputError(f"--resolution: expected 16..512, got {resolution}")
-        if not photos_dir.is_dir():
-            raise InputError(f"photo set {photos_dir} is not a directory")
-        config = PRESETS[preset]
-        changes = {"seed": seed}
-        if steps is not None:
-            changes.update(steps=steps, minutes=None)
-        elif minutes is not None:
-            changes.update(minutes=minutes, steps=None)
-        if resolution is not None:
-            changes["resolution"] = resolution
-        config = dataclasses.replace(config, **changes)
-        from tqdm import tqdm
-
-        total = config.steps if config.steps is not None else 100
-        bar = tqdm(total=total, desc=f"fitting {photos_dir.name}", unit="step" if config.steps else "%",
-                   file=sys.stderr)
-
-        def progress(p: dict) -> None:
-            done = p["step"] if config.steps is not None else int(100 * p["fraction"])
-            bar.set_postfix(psnr=f"{p['psnr']:.2f}", grid=p["resolution"], refresh=False)
-            bar.update(done - bar.n)
-
-        try:
-            with _progress_bar("rendering", "view") as view_progress:
-                def render_progress(done: int, total_views: int) -> None:
-                    bar.close()
-                    view_progress(done, total_views)
-
-                report = make_pairs(photos_dir, output, config, progress=progress, render_progress=render_progress)
-        finally:
-            bar.close()
-        test = report["test"]
-        typer.echo(f"fitted {report['steps']} steps in {report['fit_seconds']:.0f} s: training views "
-                   f"{report['train']['psnr']:.2f} dB" + (f", held-out views {test['psnr']:.2f} dB" if test else ""),
-                   err=True)
-        typer.echo(str(output))
 
 
 @contextlib.contextmanager
@@ -584,27 +519,26 @@ def enhance_path_command(
         typer.echo(str(result.video or output))
 
 
-@app.command()
-def serve(
-    host: Annotated[str, typer.Option("--host", help="Address to listen on.")] = "127.0.0.1",
-    port: Annotated[int, typer.Option("--port", help="Port to listen on.")] = 8000,
-    data_dir: Annotated[Path, typer.Option("--data-dir", help="Where scenes, jobs and checkpoints live.")] = Path("./data"),
-) -> None:
-    """Start the HTTP API with its embedded job worker."""
-    # OpenMP's wait policy was chosen when this module imported roguenerf (roguenerf.runtime:
-    # PASSIVE unless the user set one), before torch loads; the worker inherits it.
-    with _errors():
-        try:
-            from service.server import run
-        except ImportError as exc:
-            missing = exc.name or str(exc)
-            _fail(f"the service cannot start: {missing} is not installed "
-                  "(install the extras: pip install 'roguenerf[service]')", 1)
-        run(host=host, port=port, data_dir=data_dir)
+# What the top-level CLI (package roguecli, which adds `serve` and `make-pairs` from the
+# packages above this one) shares with these commands: one error format, logging, bars, budgets.
+handle_errors, fail, setup_logging, progress_bar, check_budget = (
+    _errors, _fail, _setup_logging, _progress_bar, _check_budget)
+
+ABOVE_THE_LIBRARY = {"serve": "the service", "make-pairs": "the roguefit data tool"}
+"""Commands of the ``roguenerf`` console script that live above the library (package roguecli)."""
 
 
 def main() -> None:
-    """Console-script entry point."""
+    """Entry point of ``python -m roguenerf``: the library's commands.
+
+    The ``roguenerf`` console script is :func:`roguecli.main`, which adds ``serve`` and
+    ``make-pairs``; asked for one of those here, say where it is (the library imports nothing
+    above it)."""
+    command = sys.argv[1] if len(sys.argv) > 1 else None
+    if command in ABOVE_THE_LIBRARY:
+        typer.echo(f"error: `{command}` runs {ABOVE_THE_LIBRARY[command]}, above the library: use the "
+                   f"console script (`roguenerf {command}`) or `python -m roguecli {command}`", err=True)
+        raise SystemExit(2)
     app()
 
 

@@ -14,8 +14,8 @@ from pathlib import Path
 from fastapi import FastAPI
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
-from starlette.staticfiles import StaticFiles
 from starlette.middleware.cors import CORSMiddleware
+from starlette.staticfiles import StaticFiles
 
 from roguenerf import native
 from service.auth import BearerAuthMiddleware
@@ -27,7 +27,7 @@ from service.state import EnhancerCache, Services
 from workers.jobs import JobStore
 from workers.layout import Layout
 from workers.queue import JobQueue
-from workers.tasks import bundled_checkpoint
+from workers.runtime import bundled_checkpoint
 
 log = logging.getLogger("roguenerf.service")
 

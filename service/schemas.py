@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import math
 from datetime import datetime, timezone
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic_core import PydanticCustomError
 
 
 def iso(ts: float | None) -> str | None:
@@ -99,21 +100,41 @@ class JobCreate(BaseModel):
         {"required": ["minutes"], "properties": {"minutes": {"type": "number"}, "steps": {"type": "null"}}},
     ]})
 
-    steps: int | None = Field(default=None, gt=0, description="optimiser steps")
-    minutes: float | None = Field(default=None, gt=0, description="wall-clock budget")
+    # The bounds are published in the schema too; the rules are the library's (_budget).
+    steps: Annotated[int, Field(json_schema_extra={"exclusiveMinimum": 0})] | None = Field(
+        default=None, description="optimiser steps")
+    minutes: Annotated[float, Field(json_schema_extra={"exclusiveMinimum": 0})] | None = Field(
+        default=None, description="wall-clock budget")
 
-    @field_validator("minutes")
+    @field_validator("steps", "minutes")
     @classmethod
-    def _finite(cls, value):
-        if value is not None and not math.isfinite(value):
-            raise ValueError("must be a finite number")
+    def _one_field(cls, value, info):
+        """Each field alone, so a 422 names it (its ``loc``)."""
+        budget = {"steps": None, "minutes": None, info.field_name: value}
+        _budget(budget["steps"], budget["minutes"], field=info.field_name)
         return value
 
     @model_validator(mode="after")
-    def _one_budget(self) -> JobCreate:
-        if (self.steps is None) == (self.minutes is None):
-            raise ValueError("give exactly one of 'steps' or 'minutes'")
+    def _both_fields(self) -> JobCreate:
+        """Exactly one of them: a queued job states its own length."""
+        _budget(self.steps, self.minutes, required=True)
         return self
+
+
+def _budget(steps, minutes, *, required: bool = False, field: str | None = None) -> None:
+    """The training budget's rules, from the library (:meth:`TrainConfig.validate_budget`);
+    broken, they answer 422 with the library's message (less the field's name when the error
+    names the ``field`` already)."""
+    from roguenerf.errors import InputError
+    from roguenerf.training.config import TrainConfig
+
+    try:
+        TrainConfig.validate_budget(steps, minutes, required=required)
+    except InputError as exc:
+        message = str(exc)
+        if field is not None:
+            message = message.removeprefix(f"{field}: ").removeprefix(f"{field} ")
+        raise PydanticCustomError("invalid_budget", "{message}", {"message": message}) from None
 
 
 class JobPublic(BaseModel):

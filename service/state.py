@@ -21,7 +21,7 @@ from service.settings import Settings
 from workers.jobs import JobStore
 from workers.layout import Layout
 from workers.queue import JobQueue
-from workers.tasks import base_checkpoint
+from workers.runtime import base_checkpoint
 
 log = logging.getLogger("roguenerf.service")
 

@@ -1,4 +1,5 @@
-"""The `roguenerf` command: exact flags, JSON output, exit codes and one-line errors."""
+"""The `roguenerf` command (roguecli: the library's commands plus serve and make-pairs): exact
+flags, JSON output, exit codes and one-line errors."""
 
 from __future__ import annotations
 
@@ -7,14 +8,15 @@ import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
 from typer.testing import CliRunner
 
 import roguenerf.checkpoint
+from roguecli import app
 from roguenerf.checkpoint import load_checkpoint, save_checkpoint
-from roguenerf.cli import app
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.models import build_enhancer
 from roguenerf.training import evaluate
@@ -205,7 +207,7 @@ def test_console_entry_point_runs_as_a_module(tmp_path):
 SERVE_PROBE = r"""
 import os, sys
 import service.server
-from roguenerf.cli import app
+from roguecli import app
 
 def fake_run(**kwargs):
     import torch  # noqa: F401  (the real server loads it after this point)
@@ -360,9 +362,45 @@ def test_library_and_cli_choose_passive_wait_before_torch_loads(first, env, expe
     assert proc.stdout.strip() == expected, proc.stdout + proc.stderr
 
 
-def test_cli_process_runs_with_passive_wait():
-    # The console command: importing roguenerf.cli alone (what the entry point does) decides it.
+@pytest.mark.parametrize("entry", ["roguecli", "roguenerf.cli"])
+def test_cli_process_runs_with_passive_wait(entry):
+    # The console command: importing its module alone (what the entry point does) decides it.
     base = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
-    code = "import os, sys, roguenerf.cli; print(os.environ.get('OMP_WAIT_POLICY'), 'torch' in sys.modules)"
+    code = f"import os, sys, {entry}; print(os.environ.get('OMP_WAIT_POLICY'), 'torch' in sys.modules)"
     proc = subprocess.run([sys.executable, "-c", code], env=base, capture_output=True, text=True, timeout=120)
     assert proc.stdout.strip() == "PASSIVE False", proc.stdout + proc.stderr
+
+
+# ------------------------------------------------------------------ issue 36: the layers' CLIs
+
+
+def test_console_script_is_the_top_level_cli_with_every_command():
+    import tomllib
+
+    from roguenerf.cli import app as library_app
+
+    project = tomllib.loads((Path(__file__).resolve().parent.parent / "pyproject.toml").read_text())
+    assert project["project"]["scripts"]["roguenerf"] == "roguecli:main"
+    assert "roguecli*" in project["tool"]["setuptools"]["packages"]["find"]["include"]
+    names = [c.name or c.callback.__name__.replace("_", "-") for c in app.registered_commands]
+    assert names == ["finetune", "pretrain", "make-pairs", "evaluate", "enhance", "import-nerfstudio",
+                     "import-gsplat", "enhance-path", "serve"]
+    library = {c.name or c.callback.__name__.replace("_", "-") for c in library_app.registered_commands}
+    assert library == set(names) - {"serve", "make-pairs"}
+    # --help names no module above the library and loads none of them.
+    code = ("import sys; from roguecli import app\ntry:\n    app(['--help'])\nexcept SystemExit:\n    pass\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('service', 'workers', 'roguefit')))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.stdout.strip().splitlines()[-1] == "[]", proc.stdout + proc.stderr
+
+
+@pytest.mark.parametrize("command", ["serve", "make-pairs"])
+def test_library_module_says_where_the_commands_above_it_are(command):
+    proc = subprocess.run([sys.executable, "-m", "roguenerf", command, "--help"], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert f"`roguenerf {command}`" in proc.stderr and f"python -m roguecli {command}" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "roguecli", command, "--help"], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0 and f"Usage: python -m roguecli {command}" in proc.stdout, proc.stderr

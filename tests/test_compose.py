@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from workers.settings import Settings
+from service.settings import Settings
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -157,7 +157,7 @@ def test_a_photo_set_it_cannot_read_is_a_clear_error(tmp_path, breakage, message
     with pytest.raises(InputError, match=message.replace("(", r"\(")):
         read_photo_set(root)
     # The CLI says the same in one line, exit code 2, no traceback.
-    proc = subprocess.run([sys.executable, "-m", "roguenerf.cli", "make-pairs", str(root), "--output",
+    proc = subprocess.run([sys.executable, "-m", "roguecli", "make-pairs", str(root), "--output",
                            str(tmp_path / "out"), "--steps", "2"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2, proc.stderr
     assert message in proc.stderr and "Traceback" not in proc.stderr
@@ -166,7 +166,7 @@ def test_a_photo_set_it_cannot_read_is_a_clear_error(tmp_path, breakage, message
 def test_make_pairs_cli_runs_and_the_library_never_imports_the_fitter(tmp_path):
     root = tmp_path / "photos"
     write_photo_set(root, views=9)
-    proc = subprocess.run([sys.executable, "-m", "roguenerf.cli", "make-pairs", str(root), "--output",
+    proc = subprocess.run([sys.executable, "-m", "roguecli", "make-pairs", str(root), "--output",
                            str(tmp_path / "out"), "--preset", "coarse", "--steps", "3", "--resolution", "24"],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr

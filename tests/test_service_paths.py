@@ -22,7 +22,7 @@ from roguenerf.paths import smooth_path
 from roguenerf.video import read_video_info
 from service.settings import Settings
 from tests.service_helpers import FAST, LiveServer, make_checkpoint, register, tree_digest, wait_until, zip_folder
-from workers.tasks import run_job
+from workers.dispatch import run_job
 from workers.worker import build_worker
 
 H, W, SEED = 24, 32, 0

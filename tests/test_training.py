@@ -157,10 +157,10 @@ def test_render_augmentation_is_planned_saved_and_resumed(scene, tmp_path):
 
     config = TrainConfig(steps=1, render_warp=3.0, render_blur=1.5, **FAST)
     plan = plan_training(scene, config, "cpu")
-    assert (plan["render_warp"], plan["render_blur"]) == (3.0, 1.5)
+    assert (plan.render_warp, plan.render_blur) == (3.0, 1.5)
     assert "warped (up to 3 px)" in describe_plan(plan) and "blurred (sigma up to 1.5 px)" in describe_plan(plan)
     pre = plan_training(scene, TrainConfig(), "cpu", kind="pretrain")
-    assert (pre["render_warp"], pre["render_blur"]) == (0.0, 0.0)
+    assert (pre.render_warp, pre.render_blur) == (0.0, 0.0)
     finetune(scene, tmp_path, config=config)
     # resumed with other wishes: the saved run keeps its own augmentation
     resumed = finetune(scene, tmp_path, config=TrainConfig(**{**FAST, "steps": 2}))
@@ -410,21 +410,21 @@ def test_plan_for_a_cpu():
         frames = [_Frame()] * 3
 
     plan = plan_training(_Scene(), TrainConfig(), "cpu")
-    assert plan["variant"] == "micro" and plan["crop"] == 64 and plan["crop_used"] == 64
-    assert plan["num_neighbours"] == 2 and plan["batch"] == 4 and plan["lr"] == 5e-4
-    assert plan["lr_schedule"] == "cosine"
-    assert plan["freeze_neighbour_encoder"] is FREEZE_NEIGHBOUR_ENCODER
-    assert plan_training(_Scene(), TrainConfig(), "cpu", kind="pretrain")["freeze_neighbour_encoder"] is False
+    assert plan.variant == "micro" and plan.crop == 64 and plan.crop_used == 64
+    assert plan.num_neighbours == 2 and plan.batch == 4 and plan.lr == 5e-4
+    assert plan.lr_schedule == "cosine"
+    assert plan.freeze_neighbour_encoder is FREEZE_NEIGHBOUR_ENCODER
+    assert plan_training(_Scene(), TrainConfig(), "cpu", kind="pretrain").freeze_neighbour_encoder is False
     assert plan_training(_Scene(), TrainConfig(freeze_neighbour_encoder=True), "cpu",
-                         kind="pretrain")["freeze_neighbour_encoder"] is True
-    assert plan["minutes"] == 10.0 and plan["steps"] is None
+                         kind="pretrain").freeze_neighbour_encoder is True
+    assert plan.minutes == 10.0 and plan.steps is None
     small = plan_training(_Scene(), TrainConfig(crop=512, steps=7, variant="micro", num_neighbours=4), "cpu")
-    assert small["crop_used"] == 200 and small["steps"] == 7 and small["minutes"] is None
-    assert small["variant"] == "micro" and small["num_neighbours"] == 4
+    assert small.crop_used == 200 and small.steps == 7 and small.minutes is None
+    assert small.variant == "micro" and small.num_neighbours == 4
     gpu = plan_training(_Scene(), TrainConfig(), "cuda")
-    assert gpu["crop"] == 512 and gpu["variant"] == "T" and gpu["num_neighbours"] == 5 and gpu["minutes"] == 60.0
-    assert gpu["lr"] == 1e-4 and plan_training(_Scene(), TrainConfig(lr=2e-4), "cpu")["lr"] == 2e-4
-    json.dumps(plan)
+    assert gpu.crop == 512 and gpu.variant == "T" and gpu.num_neighbours == 5 and gpu.minutes == 60.0
+    assert gpu.lr == 1e-4 and plan_training(_Scene(), TrainConfig(lr=2e-4), "cpu").lr == 2e-4
+    json.dumps(plan.to_dict())
     with pytest.raises(InputError, match="variant"):
         plan_training(_Scene(), TrainConfig(variant="huge"), "cpu")
 
@@ -447,3 +447,31 @@ def test_evaluate_shape_and_render_psnr(scene):
     train = evaluate(scene, model, split="train", max_views=2)
     for view in train["views"]:
         assert view["name"] not in view["neighbours"]
+
+
+def test_the_plan_is_a_frozen_dataclass_saved_as_before():
+    import dataclasses
+
+    from roguenerf.training import TrainPlan
+    from roguenerf.training.config import budget_fraction, describe_plan
+
+    class _Frame:
+        height, width = 200, 200
+
+    class _Scene:
+        frames = [_Frame()] * 3
+
+    plan = plan_training(_Scene(), TrainConfig(steps=8, without=("attention",)), "cpu")
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        plan.lr = 1.0
+    saved = json.loads(json.dumps(plan.to_dict()))
+    assert list(saved)[:4] == ["device", "variant", "crop", "crop_used"] and saved["without"] == ["attention"]
+    assert TrainPlan.from_dict({**saved, "loss_kind": "l1"}) == plan  # a result's extra keys are ignored
+    assert describe_plan(saved) == describe_plan(plan) and "without attention" in describe_plan(plan)
+    assert plan.budget_fraction(2, 0.0) == budget_fraction(saved, 2, 0.0) == 0.25
+    assert not plan.budget_done(7, 1e9) and plan.budget_done(8, 0.0)
+    # A plan saved before a field existed: the default that run trained with.
+    old = {k: v for k, v in saved.items() if k not in ("lr_schedule", "freeze_neighbour_encoder",
+                                                         "render_blur", "render_warp", "held_out_share")}
+    restored = TrainPlan.from_dict(old)
+    assert (restored.lr_schedule, restored.freeze_neighbour_encoder, restored.render_warp) == ("constant", False, 0.0)

@@ -10,13 +10,13 @@ import time
 
 import pytest
 
-from workers.settings import Settings
+from service.settings import Settings
 from tests.service_helpers import (
-    toy_upload,
     FAST,
     LiveServer,
     WorkerProcess,
     register,
+    toy_upload,
     tree_digest,
     wait_job,
     wait_until,

@@ -15,10 +15,9 @@ import threading
 import time
 
 import pytest
-
 import sqlalchemy as sa
 
-from workers.settings import Settings
+from service.settings import Settings
 from workers.db import Database, DatabaseError
 from workers.jobs import (
     SCHEMA_VERSION,

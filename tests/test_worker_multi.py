@@ -15,6 +15,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
+from service.settings import Settings
 from tests.service_helpers import (
     FAST,
     LiveServer,
@@ -25,7 +26,6 @@ from tests.service_helpers import (
     wait_job,
     wait_until,
 )
-from workers.settings import Settings
 
 
 @pytest.fixture(scope="module")

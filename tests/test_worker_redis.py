@@ -10,15 +10,15 @@ from __future__ import annotations
 import pytest
 
 from roguenerf.imageio import read_image
-from workers.settings import Settings
+from service.settings import Settings
 from tests.service_helpers import (
-    toy_upload,
     FAST,
     LiveServer,
     WorkerProcess,
     enhance,
     redis_server,
     register,
+    toy_upload,
     view_request,
     wait_job,
     wait_until,

@@ -15,7 +15,7 @@ import zipfile
 from pathlib import Path
 
 from workers.layout import public_message
-from workers.tasks import cancel_poller
+from workers.runtime import base_checkpoint, cancel_poller, jsonable
 
 log = logging.getLogger("roguenerf.worker")
 
@@ -33,7 +33,6 @@ def run_path_job(ctx, job: dict, lease: str, beat) -> str:
     from roguenerf import PathCancelled, RoGUENeRFError, SceneEnhancer, load_checkpoint, load_scene
     from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
     from roguenerf.paths import enhance_path, find_camera_file, read_camera_path
-    from workers.tasks import base_checkpoint
 
     settings, store, layout = ctx.settings, ctx.store, ctx.layout
     job_id, scene_id, request = job["id"], job["scene_id"], job["request"]
@@ -110,9 +109,7 @@ def run_path_job(ctx, job: dict, lease: str, beat) -> str:
         "files": {"video": "GET /jobs/{id}/result", "side_by_side": "?what=side_by_side",
                   "frames": "?what=frames", "flicker": "?what=flicker"},
     }
-    from workers.tasks import _jsonable
-
-    if not store.finish(job_id, lease, "succeeded", result=_jsonable(summary)):
+    if not store.finish(job_id, lease, "succeeded", result=jsonable(summary)):
         log.warning("path job %s finished after losing its lease", job_id)
         return "lost"
     log.info("path job %s succeeded: %d frames, flicker %s", job_id, result.frames, summary["flicker"])

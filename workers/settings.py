@@ -1,14 +1,13 @@
-"""Every knob of the worker and the service, from ``ROGUENERF_*`` environment variables.
+"""Every knob of the worker, from ``ROGUENERF_*`` environment variables.
 
 Each field reads the environment variable ``ROGUENERF_<FIELD>`` (case-insensitive), e.g.
 ``ROGUENERF_DATA_DIR=/srv/roguenerf``. Lists (``cors_origins``) are JSON:
 ``ROGUENERF_CORS_ORIGINS='["https://app.example"]'``.
 
 :class:`WorkerSettings` holds what the fine-tuning worker needs (data, job table, queue,
-training, liveness); :class:`Settings` extends it with the API's own knobs, so one set of
-variables configures both processes. Both live here, below the service and the worker: the
-service re-exports :class:`Settings` (``service.settings``) and the workers package never
-imports ``service``. This module imports only pydantic.
+training, liveness); the API's :class:`service.settings.Settings` extends it with its own
+knobs, so one set of variables configures both processes (the workers package never imports
+``service``). This module imports only pydantic.
 """
 
 from __future__ import annotations
@@ -20,7 +19,7 @@ from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
-def _unset_if_empty(value):
+def unset_if_empty(value):
     # docker compose passes ${VAR:-} as an empty string; that means "not configured".
     if isinstance(value, str) and not value.strip():
         return None
@@ -77,7 +76,7 @@ class WorkerSettings(BaseSettings):
     @field_validator("redis_url", "database_url", mode="before")
     @classmethod
     def _empty_is_unset(cls, value):
-        return _unset_if_empty(value)
+        return unset_if_empty(value)
 
     @field_validator("data_dir")
     @classmethod
@@ -113,38 +112,3 @@ class WorkerSettings(BaseSettings):
                 value = json.dumps(value)
             out[f"ROGUENERF_{name.upper()}"] = str(value)
         return out
-
-
-class Settings(WorkerSettings):
-    """Configuration of the API and the fine-tuning worker (env prefix ``ROGUENERF_``)."""
-
-    api_key: SecretStr | None = None
-    """When set, every route but /healthz needs ``Authorization: Bearer <key>``."""
-
-    max_body_bytes: int = Field(default=1 << 30, ge=1024)
-    """Largest request body (a zipped scene upload), chunked bodies included."""
-    max_upload_pixels: int = Field(default=4096 * 4096, ge=1)
-    """Largest render / depth accepted by /enhance (H * W)."""
-    max_scene_files: int = Field(default=20_000, ge=1)
-    """Largest number of members of a scene zip."""
-    max_scene_bytes: int = Field(default=4 << 30, ge=1024)
-    """Largest total uncompressed size of a scene zip."""
-    max_checkpoint_bytes: int = Field(default=512 << 20, ge=1024)
-
-    enhance_concurrency: int = Field(default=1, ge=1)
-    """/enhance calls computed at once; more answer 503 with Retry-After at once."""
-    enhancer_cache_size: int = Field(default=4, ge=1)
-    """SceneEnhancers (one per scene and checkpoint version) kept in memory."""
-
-    max_queued_jobs: int = Field(default=64, ge=1)
-    """Fine-tuning jobs waiting in the queue at most; more answer 503 with Retry-After."""
-    max_job_steps: int = Field(default=200_000, ge=1)
-    max_job_minutes: float = Field(default=24 * 60, gt=0)
-
-    cors_origins: list[str] = []
-    """Origins allowed by CORS; empty: no CORS headers at all. Credentials are never allowed."""
-
-    @field_validator("api_key", mode="before")
-    @classmethod
-    def _empty_key_is_unset(cls, value):
-        return _unset_if_empty(value)

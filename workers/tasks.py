@@ -11,55 +11,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import math
-import threading
-import time
 import traceback
-import uuid
-from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 
-from workers.jobs import JobStore
-from workers.layout import Layout, copy_atomic, public_message
+from workers.layout import copy_atomic, public_message
+from workers.runtime import Heartbeat, WorkerContext, base_checkpoint, cancel_poller, jsonable
 
 log = logging.getLogger("roguenerf.worker")
-
-SHOULD_STOP_POLL_S = 0.5
-"""The training loop asks should_stop every step; the table is read at most this often."""
-
-
-@dataclass
-class WorkerContext:
-    settings: object
-    """workers.settings.WorkerSettings (or the API's Settings, which extends it)."""
-    store: JobStore
-    layout: Layout
-    enqueue: Callable[[str], None]
-    """Hand a job id back to the queue (after a drain)."""
-    draining: threading.Event = field(default_factory=threading.Event)
-    """Set on SIGINT: the running job checkpoints, stops and is requeued."""
-
-
-def base_checkpoint(settings, layout: Layout, scene_id: str, version: int) -> Path | None:
-    """The checkpoint a scene's active ``version`` means: vN.safetensors, or for version 0
-    the configured / bundled default (None when neither exists)."""
-    if version > 0:
-        return layout.checkpoint(scene_id, version)
-    if settings.default_checkpoint is not None:
-        return Path(settings.default_checkpoint)
-    return bundled_checkpoint()
-
-
-def bundled_checkpoint() -> Path | None:
-    """The library's default checkpoint, or None when the package ships none."""
-    from roguenerf import CheckpointError, default_checkpoint_path
-
-    try:
-        path = Path(default_checkpoint_path())
-    except CheckpointError:
-        return None
-    return path if path.is_file() else None
 
 
 def train_options(train_config_cls, settings, request: dict) -> dict:
@@ -81,82 +39,8 @@ def train_options(train_config_cls, settings, request: dict) -> dict:
     return {k: v for k, v in wanted.items() if k in known}
 
 
-def _jsonable(value):
-    """Training summaries may hold tensors, Paths or NaN; the job row holds plain JSON."""
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if hasattr(value, "item") and callable(value.item) and getattr(value, "ndim", 1) == 0:
-        value = value.item()
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if value is None or isinstance(value, (bool, int, str)):
-        return value
-    return str(value)
-
-
-class _Heartbeat(threading.Thread):
-    """Proves the worker is alive even while one training step takes long."""
-
-    def __init__(self, store: JobStore, job_id: str, lease: str, period: float):
-        super().__init__(name=f"heartbeat-{job_id[:8]}", daemon=True)
-        self.store, self.job_id, self.lease, self.period = store, job_id, lease, period
-        self.stop = threading.Event()
-        self.lost = threading.Event()
-
-    def run(self) -> None:
-        while not self.stop.wait(self.period):
-            try:
-                if not self.store.heartbeat(self.job_id, self.lease):
-                    self.lost.set()
-                    return
-            except Exception:  # a busy database must not kill the heartbeat; retry next period
-                log.exception("heartbeat of job %s failed", self.job_id)
-
-
-def cancel_poller(ctx, beat, store: JobStore, job_id: str, lease: str) -> Callable[[], bool]:
-    """``should_stop`` for a running job: True when the worker drains, the lease is lost, or the
-    job's cancel flag is set (read from the store at most every SHOULD_STOP_POLL_S)."""
-    last_poll, stop_cached = [0.0], [False]
-
-    def should_stop() -> bool:
-        if ctx.draining.is_set() or beat.lost.is_set():
-            return True
-        now = time.monotonic()
-        if now - last_poll[0] >= SHOULD_STOP_POLL_S:
-            last_poll[0] = now
-            try:
-                stop_cached[0] = store.should_stop(job_id, lease)
-            except Exception:
-                log.exception("job %s: could not read its cancel flag", job_id)
-        return stop_cached[0]
-
-    return should_stop
-
-
-def run_job(ctx: WorkerContext, job_id: str) -> str:
-    """Claim and run one job; returns what happened (for logs and tests)."""
-    lease = uuid.uuid4().hex
-    job = ctx.store.claim(job_id, lease)
-    if job is None:
-        log.info("job %s not claimable (not queued any more); message dropped", job_id)
-        return "skipped"
-    log.info("job %s: attempt %s on scene %s", job_id, job["attempt"], job["scene_id"])
-    beat = _Heartbeat(ctx.store, job_id, lease, ctx.settings.heartbeat_period)
-    beat.start()
-    try:
-        if (job.get("request") or {}).get("kind") == "path":
-            from workers.paths import run_path_job
-
-            return run_path_job(ctx, job, lease, beat)
-        return _train(ctx, job, lease, beat)
-    finally:
-        beat.stop.set()
-        beat.join()
-
-
-def _train(ctx: WorkerContext, job: dict, lease: str, beat: _Heartbeat) -> str:
+def run_finetune_job(ctx: WorkerContext, job: dict, lease: str, beat: Heartbeat) -> str:
+    """Run a claimed fine-tuning job to its end; returns what happened."""
     from roguenerf import (
         RoGUENeRFError,
         TrainConfig,
@@ -240,7 +124,7 @@ def _train(ctx: WorkerContext, job: dict, lease: str, beat: _Heartbeat) -> str:
     sidecar = Path(result.checkpoint).with_suffix(".json")
     if sidecar.is_file():
         copy_atomic(sidecar, destination.with_suffix(".json"))
-    summary = _jsonable({
+    summary = jsonable({
         "steps": result.steps,
         "seconds": result.seconds,
         "final_loss": result.final_loss,

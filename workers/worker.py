@@ -13,10 +13,11 @@ import threading
 
 from huey.consumer import Consumer
 
+from workers.dispatch import run_job
 from workers.jobs import JobStore
 from workers.layout import Layout
 from workers.queue import JobQueue
-from workers.tasks import WorkerContext, run_job
+from workers.runtime import WorkerContext
 
 log = logging.getLogger("roguenerf.worker")
 

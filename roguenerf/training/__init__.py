@@ -1,6 +1,13 @@
 """Pre-training, per-scene fine-tuning and evaluation of the enhancer."""
 
-from roguenerf.training.config import COMPONENTS, TrainConfig, TrainProgress, TrainResult, plan_training
+from roguenerf.training.config import (
+    COMPONENTS,
+    TrainConfig,
+    TrainPlan,
+    TrainProgress,
+    TrainResult,
+    plan_training,
+)
 from roguenerf.training.evaluate import evaluate
 from roguenerf.training.loop import MODEL_FILE, STATE_FILE, finetune, pretrain, transfer_weights
 
@@ -9,6 +16,7 @@ __all__ = [
     "MODEL_FILE",
     "STATE_FILE",
     "TrainConfig",
+    "TrainPlan",
     "TrainProgress",
     "TrainResult",
     "evaluate",

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import numbers
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -60,6 +63,38 @@ GPU_MINUTES = 60.0
 CPU_PLAN_WHY = ("CPU defaults chosen by measured gain after 1, 3 and 10 min on unseen real scenes and lego, "
                 "bench/results/real_scenes.csv; the lr decays to 0 by the end of the budget")
 GPU_PLAN_WHY = "GPU defaults: the paper's 512 px crops, the checkpoint's neighbours, 60 min"
+
+
+def validate_budget(steps, minutes, *, required: bool = False, lenient: bool = False,
+                    names: tuple[str, str] = ("steps", "minutes")) -> None:
+    """Check a training budget; raise :class:`InputError` naming the field.
+
+    The rules, for every entry point (``TrainConfig``, the CLI's ``--steps``/``--minutes``, the
+    API's ``POST /scenes/{id}/finetune`` body): ``steps`` an integer > 0, ``minutes`` a finite
+    number > 0, and not both at once. Neither means the plan's default (CPU_MINUTES or
+    GPU_MINUTES) unless ``required`` (the API: a queued job states its own length).
+    ``lenient``: what the library's :class:`TrainConfig` takes beyond a request: 0 (save the
+    starting weights and stop) and both at once (whichever runs out first).
+    ``names``: how the caller spells the two fields (the CLI: ``("--steps", "--minutes")``).
+    """
+    steps_name, minutes_name = names
+    floor = ">= 0" if lenient else "> 0"
+    if steps is not None and minutes is not None and not lenient:
+        raise InputError(f"give either {minutes_name} or {steps_name}, not both")
+    if steps is None and minutes is None and required:
+        raise InputError(f"give exactly one of {steps_name} or {minutes_name}")
+    if steps is not None:
+        if isinstance(steps, bool) or not isinstance(steps, numbers.Integral):
+            raise InputError(f"{steps_name}: expected an integer {floor}, got {steps!r}")
+        if steps < 0 or (steps == 0 and not lenient):
+            raise InputError(f"{steps_name}: expected {floor}, got {steps}")
+    if minutes is not None:
+        if isinstance(minutes, bool) or not isinstance(minutes, numbers.Real):
+            raise InputError(f"{minutes_name}: expected a number {floor}, got {minutes!r}")
+        if not math.isfinite(minutes):
+            raise InputError(f"{minutes_name} must be a finite number {floor}, got {minutes}")
+        if minutes < 0 or (minutes == 0 and not lenient):
+            raise InputError(f"{minutes_name}: expected a number {floor}, got {minutes:g}")
 
 
 @dataclass
@@ -125,11 +160,11 @@ class TrainConfig:
     see; "whole": every neighbour photo whole (the former path, kept for comparison). Same
     loss and gradients (:mod:`roguenerf.training.batches`)."""
 
+    validate_budget = staticmethod(validate_budget)
+    """The training budget's rules (:func:`validate_budget`): the CLI and the API call it too."""
+
     def validate(self) -> TrainConfig:
-        if self.steps is not None and int(self.steps) < 0:
-            raise InputError(f"steps: expected >= 0, got {self.steps}")
-        if self.minutes is not None and not float(self.minutes) >= 0:
-            raise InputError(f"minutes: expected >= 0, got {self.minutes}")
+        validate_budget(self.steps, self.minutes, lenient=True)
         if self.crop is not None and int(self.crop) < 8:
             raise InputError(f"crop: expected >= 8 pixels, got {self.crop}")
         if int(self.batch) < 1:
@@ -186,6 +221,79 @@ class TrainResult:
     """The plan (device, variant, crop, batch, neighbours, budget), model config and transfer report."""
 
 
+@dataclass(frozen=True)
+class TrainPlan:
+    """What a run trains, on what, for how long: :func:`plan_training`'s choices for the scenes and
+    the machine, every field set. Saved with the run (:meth:`to_dict`); a resumed run keeps it."""
+
+    device: str
+    variant: str
+    crop: int
+    """The crop side asked for."""
+    crop_used: int
+    """The crop side cut: ``crop``, at most the smallest frame's sides."""
+    batch: int
+    lr: float
+    num_neighbours: int
+    steps: int | None
+    minutes: float | None
+    seed: int
+    without: tuple[str, ...] = ()
+    lr_schedule: str = "constant"
+    """Defaults below: what a run saved before the field existed had (see :meth:`from_dict`)."""
+    neighbour_encoding: str = "window"
+    freeze_neighbour_encoder: bool = False
+    render_blur: float = 0.0
+    render_warp: float = 0.0
+    why: str = ""
+    threads: int = 0
+    held_out_share: float = 0.0
+    """Pre-training: the share of held-out views among the targets of ``held_out_scenes``."""
+
+    # The saved plan's key order (JSON in the state and the checkpoint's meta).
+    _ORDER = ("device", "variant", "crop", "crop_used", "batch", "lr", "lr_schedule", "num_neighbours",
+              "steps", "minutes", "without", "seed", "neighbour_encoding", "freeze_neighbour_encoder",
+              "render_blur", "render_warp", "why", "threads", "held_out_share")
+
+    def to_dict(self) -> dict:
+        """JSON-able, as saved (``without`` a list)."""
+        out = {key: getattr(self, key) for key in self._ORDER}
+        out["without"] = list(self.without)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: Mapping) -> TrainPlan:
+        """A saved plan (extra keys, such as a result's ``loss_kind``, are ignored; keys a run saved
+        before they existed take their defaults)."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        values = {key: value for key, value in data.items() if key in known}
+        values["without"] = tuple(values.get("without", ()))
+        return cls(**values)
+
+    def replace(self, **changes) -> TrainPlan:
+        if "without" in changes:
+            changes["without"] = tuple(changes["without"])
+        return dataclasses.replace(self, **changes)
+
+    def budget_fraction(self, step: int, elapsed_s: float) -> float:
+        """See :func:`budget_fraction`."""
+        return budget_fraction(self, step, elapsed_s)
+
+    def budget_done(self, step: int, elapsed_s: float) -> bool:
+        """True once ``step`` steps or ``elapsed_s`` seconds of training reach the budget."""
+        if self.steps is not None and step >= self.steps:
+            return True
+        return self.minutes is not None and elapsed_s >= self.minutes * 60.0
+
+    def describe(self) -> str:
+        """One line for the log: see :func:`describe_plan`."""
+        return describe_plan(self)
+
+
+def _as_plan(plan: TrainPlan | Mapping) -> TrainPlan:
+    return plan if isinstance(plan, TrainPlan) else TrainPlan.from_dict(plan)
+
+
 def default_device() -> str:
     return "cuda" if torch.cuda.is_available() else "cpu"
 
@@ -197,7 +305,7 @@ def _frame_sizes(scenes) -> tuple[int, int]:
 
 
 def plan_training(scene, config: TrainConfig, device: str | torch.device | None = None, *,
-                  model_config=None, kind: str = "finetune") -> dict:
+                  model_config=None, kind: str = "finetune") -> TrainPlan:
     """Choose variant, crop, batch, neighbours and budget for the scene(s) and the machine.
 
     Args:
@@ -207,8 +315,7 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
         model_config: the starting model's EnhancerConfig when fine-tuning a checkpoint.
         kind: "finetune" or "pretrain" (pre-training never freezes conv_H unless asked to).
     Returns:
-        A JSON-able dict: ``device, variant, crop, batch, lr, lr_schedule, num_neighbours, steps,
-        minutes, freeze_neighbour_encoder``, ...
+        A :class:`TrainPlan` (``to_dict()``: JSON-able).
     """
     from roguenerf.models import VARIANTS
 
@@ -251,57 +358,62 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
     steps, minutes = config.steps, config.minutes
     if steps is None and minutes is None:
         minutes = GPU_MINUTES if on_gpu else CPU_MINUTES
-    return {
-        "device": str(dev),
-        "variant": variant,
-        "crop": crop,
-        "crop_used": min(crop, height, width),
-        "batch": int(config.batch),
-        "lr": float(config.lr) if config.lr is not None else (GPU_LR if on_gpu else CPU_LR),
-        "lr_schedule": config.lr_schedule or LR_SCHEDULE,
-        "num_neighbours": n,
-        "steps": None if steps is None else int(steps),
-        "minutes": None if minutes is None else float(minutes),
-        "without": list(config.without),
-        "seed": int(config.seed),
-        "neighbour_encoding": config.neighbour_encoding,
-        "freeze_neighbour_encoder": bool(freeze),
+    return TrainPlan(
+        device=str(dev),
+        variant=variant,
+        crop=crop,
+        crop_used=min(crop, height, width),
+        batch=int(config.batch),
+        lr=float(config.lr) if config.lr is not None else (GPU_LR if on_gpu else CPU_LR),
+        lr_schedule=config.lr_schedule or LR_SCHEDULE,
+        num_neighbours=n,
+        steps=None if steps is None else int(steps),
+        minutes=None if minutes is None else float(minutes),
+        without=tuple(config.without),
+        seed=int(config.seed),
+        neighbour_encoding=config.neighbour_encoding,
+        freeze_neighbour_encoder=bool(freeze),
         **augment,
-        "why": GPU_PLAN_WHY if on_gpu else CPU_PLAN_WHY,
-        "threads": torch.get_num_threads(),
-    }
+        why=GPU_PLAN_WHY if on_gpu else CPU_PLAN_WHY,
+        threads=torch.get_num_threads(),
+    )
 
 
-def describe_plan(plan: dict) -> str:
-    budget = f"{plan['steps']} steps" if plan["steps"] is not None else f"{plan['minutes']:g} min"
-    if plan["steps"] is not None and plan["minutes"] is not None:
-        budget = f"{plan['steps']} steps or {plan['minutes']:g} min"
-    without = f", without {'+'.join(plan['without'])}" if plan["without"] else ""
-    if plan.get("render_blur"):
-        without += f", half the target renders blurred (sigma up to {plan['render_blur']:g} px)"
-    if plan.get("render_warp"):
-        without += f", half the target renders warped (up to {plan['render_warp']:g} px)"
-    if plan.get("held_out_share"):
-        without += f", held-out views {plan['held_out_share']:.0%} of their scenes' targets"
-    return (f"plan: {plan['device']} ({plan['threads']} threads), variant {plan['variant']}, "
-            f"crop {plan['crop_used']}, batch {plan['batch']}, {plan['num_neighbours']} neighbours, "
-            f"lr {plan['lr']:g}{' cosine to 0' if plan.get('lr_schedule') == 'cosine' else ''}, "
+def describe_plan(plan: TrainPlan | Mapping) -> str:
+    """The plan in one line (``plan``: a :class:`TrainPlan`, or one as saved, a dict)."""
+    plan = _as_plan(plan)
+    budget = f"{plan.steps} steps" if plan.steps is not None else f"{plan.minutes:g} min"
+    if plan.steps is not None and plan.minutes is not None:
+        budget = f"{plan.steps} steps or {plan.minutes:g} min"
+    without = f", without {'+'.join(plan.without)}" if plan.without else ""
+    if plan.render_blur:
+        without += f", half the target renders blurred (sigma up to {plan.render_blur:g} px)"
+    if plan.render_warp:
+        without += f", half the target renders warped (up to {plan.render_warp:g} px)"
+    if plan.held_out_share:
+        without += f", held-out views {plan.held_out_share:.0%} of their scenes' targets"
+    return (f"plan: {plan.device} ({plan.threads} threads), variant {plan.variant}, "
+            f"crop {plan.crop_used}, batch {plan.batch}, {plan.num_neighbours} neighbours, "
+            f"lr {plan.lr:g}{' cosine to 0' if plan.lr_schedule == 'cosine' else ''}, "
             f"budget {budget}{without}"
-            + (", conv_H frozen (neighbour features encoded once)" if plan.get("freeze_neighbour_encoder")
+            + (", conv_H frozen (neighbour features encoded once)" if plan.freeze_neighbour_encoder
                else f", neighbour photos encoded "
-                    f"{'per crop window' if plan.get('neighbour_encoding') == 'window' else 'whole'}")
-            + (f" ({plan['why']})" if plan.get("why") else ""))
+                    f"{'per crop window' if plan.neighbour_encoding == 'window' else 'whole'}")
+            + (f" ({plan.why})" if plan.why else ""))
 
 
-def budget_fraction(plan: dict, step: int, elapsed_s: float) -> float:
+def budget_fraction(plan: TrainPlan | Mapping, step: int, elapsed_s: float) -> float:
     """How much of the plan's budget ``step`` steps and ``elapsed_s`` seconds of training have
     used, in [0, 1]: of a step budget, a time budget, or both (the larger share: the one that
-    runs out first)."""
+    runs out first). ``plan``: a :class:`TrainPlan` or a mapping with its ``steps`` and
+    ``minutes``."""
+    steps, minutes = (plan.steps, plan.minutes) if isinstance(plan, TrainPlan) else (plan.get("steps"),
+                                                                                     plan.get("minutes"))
     shares = []
-    if plan.get("steps"):
-        shares.append(step / plan["steps"])
-    if plan.get("minutes"):
-        shares.append(elapsed_s / (plan["minutes"] * 60.0))
+    if steps:
+        shares.append(step / steps)
+    if minutes:
+        shares.append(elapsed_s / (minutes * 60.0))
     return min(max(shares, default=0.0), 1.0)
 
 

@@ -43,9 +43,9 @@ from roguenerf.training.evaluate import evaluate
 from roguenerf.training.config import (
     FEATURE_CACHE_BYTES,
     TrainConfig,
+    TrainPlan,
     TrainProgress,
     TrainResult,
-    budget_fraction,
     describe_plan,
     lr_factor,
     plan_training,
@@ -183,11 +183,11 @@ def make_optimizer(model, lr: float) -> torch.optim.Optimizer:
         return torch.optim.Adam(params, lr=lr)
 
 
-def set_lr(optimizer: torch.optim.Optimizer, plan: dict, step: int, elapsed_s: float) -> float:
+def set_lr(optimizer: torch.optim.Optimizer, plan: TrainPlan, step: int, elapsed_s: float) -> float:
     """Set the learning rate of the step about to be taken, the plan's ``lr`` times
     :func:`~roguenerf.training.config.lr_factor` of its schedule at the share of the budget used
     so far; returns it."""
-    lr = plan["lr"] * lr_factor(plan["lr_schedule"], budget_fraction(plan, step, elapsed_s))
+    lr = plan.lr * lr_factor(plan.lr_schedule, plan.budget_fraction(step, elapsed_s))
     for group in optimizer.param_groups:
         group["lr"] = lr
     return lr
@@ -307,60 +307,126 @@ def _initial_model(checkpoint, config: TrainConfig, plan_variant: str | None):
     return model, report
 
 
-def _budget_done(step: int, elapsed: float, plan: dict) -> bool:
-    if plan["steps"] is not None and step >= plan["steps"]:
-        return True
-    return plan["minutes"] is not None and elapsed >= plan["minutes"] * 60.0
+RESUMED_KEYS = ("variant", "crop", "crop_used", "batch", "lr", "num_neighbours", "without", "seed",
+                "lr_schedule", "freeze_neighbour_encoder", "held_out_share", "render_blur", "render_warp")
+"""What a resumed run keeps of its saved plan whatever the new wishes (a run saved before a field
+existed keeps TrainPlan's default: no schedule, no freezing, no held-out views, no augmentation)."""
 
 
-def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: TrainConfig,
-         progress: Callable[[TrainProgress], None] | None, should_stop: Callable[[], bool] | None,
-         resume: bool, held_out_scenes: Sequence[int] = ()) -> TrainResult:
-    from roguenerf.checkpoint import save_checkpoint
+def _resume(saved: dict, scenes: list, config: TrainConfig, kind: str, output_dir: Path):
+    """A saved run's model, its plan (the saved choices over today's plan for the rest), its
+    transfer report and its evaluation before training."""
+    from roguenerf.models import EnhancerConfig, build_enhancer
 
-    config = config.validate()
-    output_dir = Path(output_dir)
-    output_dir.mkdir(parents=True, exist_ok=True)
-    model_path = output_dir / MODEL_FILE
-    state_path = output_dir / STATE_FILE
+    info = saved["info"]
+    model = build_enhancer(EnhancerConfig.from_dict(info["model_config"]))
+    model.load_state_dict(saved["model"])
+    stored = info["plan"]
+    plan = plan_training(scenes, config, stored["device"] if config.device is None else None,
+                         model_config=model.config, kind=kind)
+    kept = TrainPlan.from_dict(stored)  # fields saved before they existed: TrainPlan's defaults
+    plan = plan.replace(**{key: getattr(kept, key) for key in RESUMED_KEYS})
+    log.info("resuming %s from step %d in %s", kind, saved["step"], output_dir)
+    return model, plan, info.get("transfer"), info.get("before")
 
-    saved = load_state(state_path) if resume and state_path.is_file() else None
-    if saved is not None:
-        from roguenerf.models import EnhancerConfig, build_enhancer
 
-        info = saved["info"]
-        model = build_enhancer(EnhancerConfig.from_dict(info["model_config"]))
-        model.load_state_dict(saved["model"])
-        stored = info["plan"]
-        plan = plan_training(scenes, config, stored["device"] if config.device is None else None,
-                             model_config=model.config, kind=kind)
-        for key in ("variant", "crop", "crop_used", "batch", "lr", "num_neighbours", "without", "seed"):
-            plan[key] = stored[key]
-        plan["lr_schedule"] = stored.get("lr_schedule", "constant")  # runs saved before schedules
-        plan["freeze_neighbour_encoder"] = stored.get("freeze_neighbour_encoder", False)
-        plan["held_out_share"] = stored.get("held_out_share", 0.0)
-        for key in ("render_blur", "render_warp"):  # runs saved before target augmentation had none
-            plan[key] = stored.get(key, 0.0)
-        transfer, before = info.get("transfer"), info.get("before")
-        log.info("resuming %s from step %d in %s", kind, saved["step"], output_dir)
-    else:
-        start_config = None
-        if checkpoint is not None and not isinstance(checkpoint, (str, Path)):
-            start_config = checkpoint.config
-        elif checkpoint is not None:
-            from roguenerf.checkpoint import load_checkpoint
+def _plan(scenes: list, config: TrainConfig, kind: str, checkpoint, held_out_scenes: Sequence[int]):
+    """A fresh run's plan, its starting model (``checkpoint``'s weights, moved over to the
+    planned model where it differs, or the seed's) and the transfer report."""
+    start_config = None
+    if checkpoint is not None and not isinstance(checkpoint, (str, Path)):
+        start_config = checkpoint.config
+    elif checkpoint is not None:
+        from roguenerf.checkpoint import load_checkpoint
 
-            checkpoint, _ = load_checkpoint(checkpoint)
-            start_config = checkpoint.config
-        plan = plan_training(scenes, config, model_config=start_config, kind=kind)
-        torch.manual_seed(plan["seed"])  # fresh weights depend on the seed alone
-        model, transfer = _initial_model(checkpoint, config, plan["variant"])
-        plan["variant"] = model.config.variant
-        plan["held_out_share"] = float(config.held_out_share) if held_out_scenes else 0.0
-        before = None
-    device = torch.device(plan["device"])
-    if model.config.num_neighbours != plan["num_neighbours"] and plan["num_neighbours"] > 0:
-        model.config = dataclasses.replace(model.config, num_neighbours=plan["num_neighbours"])
+        checkpoint, _ = load_checkpoint(checkpoint)
+        start_config = checkpoint.config
+    plan = plan_training(scenes, config, model_config=start_config, kind=kind)
+    torch.manual_seed(plan.seed)  # fresh weights depend on the seed alone
+    model, transfer = _initial_model(checkpoint, config, plan.variant)
+    plan = plan.replace(variant=model.config.variant,
+                        held_out_share=float(config.held_out_share) if held_out_scenes else 0.0)
+    return model, plan, transfer
+
+
+@dataclasses.dataclass
+class _Run:
+    """What the training loop works on, set up by :func:`_set_up`; ``save`` writes the model and
+    the resumable state of the batches consumed so far."""
+
+    kind: str
+    plan: TrainPlan
+    config: TrainConfig
+    model: torch.nn.Module
+    device: torch.device
+    loss_fn: Callable
+    datasets: list
+    optimizer: torch.optim.Optimizer
+    generator: torch.Generator
+    model_path: Path
+    state_path: Path
+    transfer: dict | None
+    before: dict | None
+    frozen: bool
+    weights: Tensor | None = None
+    """Each dataset's chance of giving a batch: its training-view count."""
+    step: int = 0
+    elapsed_before: float = 0.0
+    encoding: str = "window"
+    margin: int = 0
+    sampler_state: Tensor | None = None
+    """The sampler state of the batches consumed so far: what a checkpoint stores (the prefetch
+    thread is ahead), so a resumed run draws the very batches this one would have drawn next."""
+
+    def augment(self, render: Tensor, depth: Tensor) -> tuple[Tensor, Tensor]:
+        # Fine-tuning targets made to look like novel views (TrainConfig.render_warp, render_blur).
+        if self.plan.render_warp > 0:
+            render, depth = warp_renders(render, depth, self.plan.render_warp, self.generator)
+        if self.plan.render_blur > 0:
+            render = blur_renders(render, self.plan.render_blur, self.generator)
+        return render, depth
+
+    def make_batch(self) -> StepBatch:
+        # Runs in the prefetch thread, which owns ``generator`` from the first batch on.
+        plan, generator = self.plan, self.generator
+        index = int(torch.multinomial(self.weights, 1, generator=generator))
+        d = self.datasets[index]
+        targets = d.draw_targets(plan.batch, generator, plan.held_out_share)
+        origins = sample_crops(d, plan.batch, plan.crop, generator)
+        batch = prepare_batch(d, targets, origins, plan.crop, encoding=self.encoding, margin=self.margin,
+                              use_neighbours=self.model.config.use_neighbours,
+                              augment=self.augment if plan.render_warp or plan.render_blur else None)
+        batch.dataset, batch.sampler_state = index, generator.get_state()
+        return batch
+
+    @property
+    def meta(self) -> dict:
+        return {"kind": self.kind, "plan": self.plan.to_dict(), "loss_kind": self.loss_fn.kind,
+                "transfer": self.transfer, "scenes": [str(d.scene.root) for d in self.datasets]}
+
+    def save(self, step: int, elapsed: float, loss_value: float | None) -> None:
+        from roguenerf.checkpoint import save_checkpoint
+
+        if loss_value is not None and not math.isfinite(loss_value):
+            loss_value = None
+        meta = self.meta
+        info = {**meta, "model_config": self.model.config.to_dict(), "before": self.before}
+        consumed = torch.Generator()
+        consumed.set_state(self.sampler_state)
+        save_state(self.state_path, model=self.model, optimizer=self.optimizer, generator=consumed, step=step,
+                   elapsed_s=elapsed, info=info)
+        save_checkpoint(self.model_path, self.model, meta={"training": {**meta, "steps": step,
+                                                                        "seconds": round(elapsed, 3),
+                                                                        "final_loss": loss_value}})
+
+
+def _set_up(scenes: list, output_dir: Path, *, kind: str, config: TrainConfig, model, plan: TrainPlan,
+            transfer, before, saved: dict | None, progress, held_out_scenes: Sequence[int]) -> _Run:
+    """Device, loss, data, the evaluation before training, a frozen conv_H's feature cache,
+    optimiser and sampler (a saved run's state restored); a fresh run saves its step 0."""
+    device = torch.device(plan.device)
+    if model.config.num_neighbours != plan.num_neighbours and plan.num_neighbours > 0:
+        model.config = dataclasses.replace(model.config, num_neighbours=plan.num_neighbours)
     model.to(device)
 
     loss_fn = build_loss(config.vgg_weights, device)
@@ -374,12 +440,12 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
                  torch.get_num_threads(), available_cpus())
 
     held = set(held_out_scenes)
-    datasets = [SceneData(s, plan["num_neighbours"] if model.config.use_neighbours else 0, held_out=k in held)
+    datasets = [SceneData(s, plan.num_neighbours if model.config.use_neighbours else 0, held_out=k in held)
                 for k, s in enumerate(scenes)]
     if kind == "finetune" and config.evaluate and saved is None and datasets[0].scene.indices("test"):
         _evaluating(progress, 0, plan)
         before = _summary(evaluate(datasets[0].scene, model))
-    frozen = bool(plan["freeze_neighbour_encoder"]) and model.conv_H is not None
+    frozen = bool(plan.freeze_neighbour_encoder) and model.conv_H is not None
     if frozen:
         # Fixed weights: every step would encode the same photos to the same features.
         model.conv_H.requires_grad_(False)
@@ -392,107 +458,87 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
             log.info("conv_H frozen; its features would take %.1f GB (> %.1f GB): each step encodes "
                      "its windows without gradient instead", need / 1e9, FEATURE_CACHE_BYTES / 1e9)
 
-    optimizer = make_optimizer(model, plan["lr"])
-    generator = torch.Generator().manual_seed(plan["seed"])
-    step, elapsed_before = 0, 0.0
+    run = _Run(kind=kind, plan=plan, config=config, model=model, device=device, loss_fn=loss_fn,
+               datasets=datasets, optimizer=make_optimizer(model, plan.lr),
+               generator=torch.Generator().manual_seed(plan.seed), model_path=output_dir / MODEL_FILE,
+               state_path=output_dir / STATE_FILE, transfer=transfer, before=before, frozen=frozen)
     if saved is not None:
-        optimizer.load_state_dict(saved["optim"])
+        run.optimizer.load_state_dict(saved["optim"])
         torch.set_rng_state(saved["rng_torch"])
-        generator.set_state(saved["rng_sampler"])
-        step, elapsed_before = saved["step"], saved["elapsed_s"]
+        run.generator.set_state(saved["rng_sampler"])
+        run.step, run.elapsed_before = saved["step"], saved["elapsed_s"]
     else:
-        torch.manual_seed(plan["seed"])
-
-    weights = torch.tensor([float(len(d)) for d in datasets])
-    margin = neighbour_margin(model)  # prepare_batch needs none for cached features
-    encoding = batch_encoding(model, plan["neighbour_encoding"])
-
-    def augment(render: Tensor, depth: Tensor) -> tuple[Tensor, Tensor]:
-        # Fine-tuning targets made to look like novel views (TrainConfig.render_warp, render_blur).
-        if plan["render_warp"] > 0:
-            render, depth = warp_renders(render, depth, plan["render_warp"], generator)
-        if plan["render_blur"] > 0:
-            render = blur_renders(render, plan["render_blur"], generator)
-        return render, depth
-
-    def make_batch() -> StepBatch:
-        # Runs in the prefetch thread, which owns ``generator`` from the first batch on.
-        index = int(torch.multinomial(weights, 1, generator=generator))
-        d = datasets[index]
-        targets = d.draw_targets(plan["batch"], generator, plan["held_out_share"])
-        origins = sample_crops(d, plan["batch"], plan["crop"], generator)
-        batch = prepare_batch(d, targets, origins, plan["crop"], encoding=encoding, margin=margin,
-                              use_neighbours=model.config.use_neighbours,
-                              augment=augment if plan["render_warp"] or plan["render_blur"] else None)
-        batch.dataset, batch.sampler_state = index, generator.get_state()
-        return batch
-
-    # The sampler state of the batches consumed so far: what a checkpoint stores (the prefetch
-    # thread is ahead), so a resumed run draws the very batches this one would have drawn next.
-    sampler_state = generator.get_state()
-    meta_base = {"kind": kind, "plan": plan, "loss_kind": loss_fn.kind, "transfer": transfer,
-                 "scenes": [str(d.scene.root) for d in datasets]}
-
-    def save(current_step: int, elapsed: float, loss_value: float | None) -> None:
-        if loss_value is not None and not math.isfinite(loss_value):
-            loss_value = None
-        info = {**meta_base, "model_config": model.config.to_dict(), "before": before}
-        consumed = torch.Generator()
-        consumed.set_state(sampler_state)
-        save_state(state_path, model=model, optimizer=optimizer, generator=consumed, step=current_step,
-                   elapsed_s=elapsed, info=info)
-        save_checkpoint(model_path, model, meta={"training": {**meta_base, "steps": current_step,
-                                                               "seconds": round(elapsed, 3),
-                                                               "final_loss": loss_value}})
-
+        torch.manual_seed(plan.seed)
+    run.weights = torch.tensor([float(len(d)) for d in datasets])
+    run.margin = neighbour_margin(model)  # prepare_batch needs none for cached features
+    run.encoding = batch_encoding(model, plan.neighbour_encoding)
+    run.sampler_state = run.generator.get_state()
     if saved is None:
-        save(0, 0.0, None)
+        run.save(0, 0.0, None)
+    return run
 
-    total = plan["steps"]
-    bar = None
-    # A step budget counts steps; a time budget counts seconds (its step total is only an
-    # estimate that moves with the step rate, so a bar of steps would keep changing its total).
-    by_time = plan["steps"] is None
-    if config.progress_bar:
-        from tqdm import tqdm
 
-        if by_time:
-            budget_s = round(plan["minutes"] * 60.0)
-            bar = tqdm(total=budget_s, initial=min(round(elapsed_before), budget_s),
-                       desc=f"{kind} ({plan['minutes']:g} min)", unit="s", file=sys.stderr, dynamic_ncols=True,
-                       bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}{postfix}]")
-        else:
-            bar = tqdm(total=total, initial=step, desc=kind, unit="step", file=sys.stderr, dynamic_ncols=True)
+def _progress_bar(run: _Run):
+    """A tqdm bar on stderr, or None. A step budget counts steps; a time budget counts seconds
+    (its step total is only an estimate that moves with the step rate, so a bar of steps would
+    keep changing its total)."""
+    if not run.config.progress_bar:
+        return None
+    from tqdm import tqdm
+
+    plan = run.plan
+    if plan.steps is None:
+        budget_s = round(plan.minutes * 60.0)
+        return tqdm(total=budget_s, initial=min(round(run.elapsed_before), budget_s),
+                    desc=f"{run.kind} ({plan.minutes:g} min)", unit="s", file=sys.stderr, dynamic_ncols=True,
+                    bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}{postfix}]")
+    return tqdm(total=plan.steps, initial=run.step, desc=run.kind, unit="step", file=sys.stderr,
+                dynamic_ncols=True)
+
+
+def _loop(run: _Run, progress: Callable[[TrainProgress], None] | None,
+          should_stop: Callable[[], bool] | None) -> tuple[int, float, float]:
+    """Train until the budget is spent; returns (step, elapsed seconds, last loss).
+
+    Raises:
+        TrainingCancelled: ``should_stop()`` returned True (state saved first).
+        TrainingDivergedError: from :func:`optimise`.
+    """
+    plan, model = run.plan, run.model
+    by_time = plan.steps is None
+    bar = _progress_bar(run)
     model.train()
+    step, elapsed_before = run.step, run.elapsed_before
     start = time.perf_counter()
     last_save = start
     first_step = step
     loss_value = float("nan")
     batches = None
     try:
-        while not _budget_done(step, elapsed_before + time.perf_counter() - start, plan):
+        while not plan.budget_done(step, elapsed_before + time.perf_counter() - start):
             if should_stop is not None and should_stop():
                 elapsed = elapsed_before + time.perf_counter() - start
-                save(step, elapsed, loss_value)
-                raise TrainingCancelled(step, str(model_path))
+                run.save(step, elapsed, loss_value)
+                raise TrainingCancelled(step, str(run.model_path))
             if batches is None:
-                batches = Prefetcher(make_batch, depth=PREFETCH)
+                batches = Prefetcher(run.make_batch, depth=PREFETCH)
             batch = next(batches)
-            lr = set_lr(optimizer, plan, step, elapsed_before + time.perf_counter() - start)
-            loss_value = optimise(model, batch, device, loss_fn, optimizer, step=step, checkpoint=str(model_path))
-            sampler_state = batch.sampler_state
+            lr = set_lr(run.optimizer, plan, step, elapsed_before + time.perf_counter() - start)
+            loss_value = optimise(model, batch, run.device, run.loss_fn, run.optimizer, step=step,
+                                  checkpoint=str(run.model_path))
+            run.sampler_state = batch.sampler_state
             step += 1
 
             now = time.perf_counter()
             elapsed = elapsed_before + now - start
             rate = (step - first_step) / max(now - start, 1e-9)
-            if plan["steps"] is not None:
-                total_est = plan["steps"]
+            if plan.steps is not None:
+                total_est = plan.steps
             else:
-                total_est = step + int(max(plan["minutes"] * 60.0 - elapsed, 0.0) * rate)
-            remaining = [] if plan["steps"] is None else [(plan["steps"] - step) / max(rate, 1e-9)]
-            if plan["minutes"] is not None:
-                remaining.append(max(plan["minutes"] * 60.0 - elapsed, 0.0))
+                total_est = step + int(max(plan.minutes * 60.0 - elapsed, 0.0) * rate)
+            remaining = [] if plan.steps is None else [(plan.steps - step) / max(rate, 1e-9)]
+            if plan.minutes is not None:
+                remaining.append(max(plan.minutes * 60.0 - elapsed, 0.0))
             eta = min(remaining) if remaining else None
             fraction = step / total_est if total_est else 1.0
             if bar is not None:
@@ -506,8 +552,8 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
             if progress is not None:
                 progress(TrainProgress(step=step, total_steps=total_est, fraction=min(fraction, 1.0),
                                        loss=loss_value, steps_per_s=rate, eta_s=eta, elapsed_s=elapsed, lr=lr))
-            if now - last_save >= config.checkpoint_every_s:
-                save(step, elapsed, loss_value)
+            if now - last_save >= run.config.checkpoint_every_s:
+                run.save(step, elapsed, loss_value)
                 last_save = time.perf_counter()
     finally:
         if batches is not None:
@@ -515,26 +561,46 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
         if bar is not None:
             bar.close()
         model.eval()
-        if frozen:
+        if run.frozen:
             model.conv_H.requires_grad_(True)
+    return step, elapsed_before + time.perf_counter() - start, loss_value
 
-    elapsed = elapsed_before + time.perf_counter() - start
-    save(step, elapsed, loss_value)
+
+def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: TrainConfig,
+         progress: Callable[[TrainProgress], None] | None, should_stop: Callable[[], bool] | None,
+         resume: bool, held_out_scenes: Sequence[int] = ()) -> TrainResult:
+    """Resume or plan, set up, train, save, evaluate (fine-tuning), report."""
+    config = config.validate()
+    output_dir = Path(output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    state_path = output_dir / STATE_FILE
+    saved = load_state(state_path) if resume and state_path.is_file() else None
+    if saved is not None:
+        model, plan, transfer, before = _resume(saved, scenes, config, kind, output_dir)
+    else:
+        model, plan, transfer = _plan(scenes, config, kind, checkpoint, held_out_scenes)
+        before = None
+    run = _set_up(scenes, output_dir, kind=kind, config=config, model=model, plan=plan, transfer=transfer,
+                  before=before, saved=saved, progress=progress, held_out_scenes=held_out_scenes)
+
+    step, elapsed, loss_value = _loop(run, progress, should_stop)
+    run.save(step, elapsed, loss_value)
     after = None
-    if kind == "finetune" and config.evaluate and datasets[0].scene.indices("test"):
+    if kind == "finetune" and config.evaluate and run.datasets[0].scene.indices("test"):
         _evaluating(progress, step, plan, loss=loss_value, elapsed=elapsed)
-        after = _summary(evaluate(datasets[0].scene, model))
-    plan_out = {**plan, "loss_kind": loss_fn.kind, "model": model.config.to_dict(), "transfer": transfer}
-    return TrainResult(checkpoint=model_path, steps=step, seconds=elapsed, final_loss=loss_value,
-                       loss_kind=loss_fn.kind, before=before, after=after, config=plan_out)
+        after = _summary(evaluate(run.datasets[0].scene, model))
+    plan_out = {**plan.to_dict(), "loss_kind": run.loss_fn.kind, "model": model.config.to_dict(),
+                "transfer": transfer}
+    return TrainResult(checkpoint=run.model_path, steps=step, seconds=elapsed, final_loss=loss_value,
+                       loss_kind=run.loss_fn.kind, before=run.before, after=after, config=plan_out)
 
 
-def _evaluating(progress, step: int, plan: dict, *, loss: float = float("nan"), elapsed: float = 0.0) -> None:
+def _evaluating(progress, step: int, plan: TrainPlan, *, loss: float = float("nan"), elapsed: float = 0.0) -> None:
     """Tell ``progress`` that the held-out views are being evaluated (before or after training):
     no training step happens meanwhile, and how long it takes is not a step rate."""
     if progress is None:
         return
-    total = plan["steps"] if plan["steps"] is not None else (step or None)
+    total = plan.steps if plan.steps is not None else (step or None)
     fraction = 0.0 if step == 0 else 1.0
     progress(TrainProgress(step=step, total_steps=total, fraction=fraction, loss=loss, steps_per_s=0.0,
                            eta_s=None, elapsed_s=elapsed, phase="evaluating"))

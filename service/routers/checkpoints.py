@@ -15,9 +15,9 @@ from typing import Annotated
 from fastapi import APIRouter, File, UploadFile
 
 from roguenerf.errors import RoGUENeRFError
+from service.deps import scene_or_404, scene_public
 from service.errors import ApiError, error_responses
 from service.limits import checkpoint_error
-from service.routers.scenes import scene_or_404, scene_public
 from service.schemas import ScenePublic
 from service.state import Services, ServicesDep
 from service.storage import discard, save_upload

@@ -12,9 +12,9 @@ from fastapi.responses import Response
 from pydantic import ValidationError
 
 from roguenerf.errors import InputError, RoGUENeRFError
+from service.deps import scene_or_404
 from service.errors import ApiError, error_responses, library_error
 from service.limits import check_depth_coverage, decode_field
-from service.routers.scenes import scene_or_404
 from service.schemas import Camera
 from service.state import Services, ServicesDep
 

@@ -9,9 +9,9 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, File, Form, Response, UploadFile
 
 from roguenerf.errors import RoGUENeRFError
+from service.deps import scene_or_404
 from service.errors import ApiError, error_responses, library_error
 from service.limits import queue_full
-from service.routers.scenes import scene_or_404
 from service.schemas import JobPublic
 from service.state import ServicesDep
 from service.storage import ZipLimits, discard, extract_scene_zip, place

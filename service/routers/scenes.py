@@ -8,38 +8,19 @@ from typing import Annotated
 from fastapi import APIRouter, File, Header, Response, UploadFile
 
 from roguenerf.errors import RoGUENeRFError
+from service.deps import scene_or_404, scene_public
 from service.errors import ApiError, error_responses, library_error
 from service.limits import checkpoint_error, queue_full
 from service.pagination import CursorQuery, LimitQuery, decode_cursor, page
-from service.schemas import JobCreate, JobPublic, ScenePage, ScenePublic, iso
+from service.schemas import JobCreate, JobPublic, ScenePage, ScenePublic
 from service.state import Services, ServicesDep
 from service.storage import ZipLimits, discard, extract_scene_zip, place, save_upload
 from workers.jobs import ActiveJobExists, IdempotencyMismatch, QueueFull, SceneBusy
-from workers.layout import ID_RE, new_id
+from workers.layout import new_id
 from workers.queue import QueueUnavailable
 
 log = logging.getLogger("roguenerf.service")
 router = APIRouter(prefix="/scenes", tags=["scenes"])
-
-
-def scene_or_404(services: Services, scene_id: str) -> dict:
-    row = services.store.get_scene(scene_id) if ID_RE.match(scene_id) else None
-    if row is None:
-        raise ApiError(404, "not_found", f"scene {scene_id!r} not found")
-    return row
-
-
-def scene_public(services: Services, row: dict, *, active_job: str | None | bool = False) -> ScenePublic:
-    """The public view of a scene row (``active_job``: its active job's id when already known)."""
-    if active_job is False:
-        active = services.store.active_job(row["id"])
-        active_job = active["id"] if active else None
-    return ScenePublic(
-        id=row["id"], views=row["views"], train_views=row["train_views"], test_views=row["test_views"],
-        width=row["width"], height=row["height"], created_at=iso(row["created_at"]),
-        active_version=row["active_version"], checkpoint_versions=services.layout.versions(row["id"]),
-        active_job=active_job,
-    )
 
 
 def _register(services: Services, archive: UploadFile, checkpoint: UploadFile | None) -> ScenePublic:

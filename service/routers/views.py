@@ -17,9 +17,9 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
 from roguenerf.errors import RoGUENeRFError
+from service.deps import scene_or_404
 from service.errors import ApiError, error_responses, library_error
 from service.limits import decode_field
-from service.routers.scenes import scene_or_404
 from service.schemas import ImageScore, ViewCamera, ViewList, ViewPublic
 from service.state import Services, ServicesDep
 

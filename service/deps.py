@@ -1,0 +1,28 @@
+"""Route dependencies that several routers share: a scene row or 404, a scene's public view."""
+
+from __future__ import annotations
+
+from service.errors import ApiError
+from service.schemas import ScenePublic, iso
+from service.state import Services
+from workers.layout import ID_RE
+
+
+def scene_or_404(services: Services, scene_id: str) -> dict:
+    row = services.store.get_scene(scene_id) if ID_RE.match(scene_id) else None
+    if row is None:
+        raise ApiError(404, "not_found", f"scene {scene_id!r} not found")
+    return row
+
+
+def scene_public(services: Services, row: dict, *, active_job: str | None | bool = False) -> ScenePublic:
+    """The public view of a scene row (``active_job``: its active job's id when already known)."""
+    if active_job is False:
+        active = services.store.active_job(row["id"])
+        active_job = active["id"] if active else None
+    return ScenePublic(
+        id=row["id"], views=row["views"], train_views=row["train_views"], test_views=row["test_views"],
+        width=row["width"], height=row["height"], created_at=iso(row["created_at"]),
+        active_version=row["active_version"], checkpoint_versions=services.layout.versions(row["id"]),
+        active_job=active_job,
+    )

@@ -1,0 +1,129 @@
+"""Who may import whom (docs/architecture.md, Layers), read from the code itself.
+
+    roguecli  (the console script: the library's commands + serve + make-pairs)
+      |-> service  -> workers -> roguenerf
+      |-> roguefit -> roguenerf
+      '-> roguenerf (the library imports nothing above it)
+
+Every import counts, a function's lazy one included.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("roguenerf", "roguefit", "service", "workers", "roguecli")
+MAY_IMPORT = {
+    "roguenerf": {"roguenerf"},
+    "roguefit": {"roguefit", "roguenerf"},
+    "workers": {"workers", "roguenerf"},
+    "service": {"service", "workers", "roguenerf"},
+    "roguecli": {"roguecli", "roguenerf", "roguefit", "service"},
+}
+
+
+def _imports(path: Path) -> list[tuple[int, str]]:
+    """(line, module) of every import in a file, at any depth, relative ones resolved."""
+    package = ".".join(path.relative_to(ROOT).with_suffix("").parts)
+    if path.name != "__init__.py":
+        package = package.rpartition(".")[0]
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            module = node.module or ""
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                module = ".".join(base + ([module] if module else []))
+            found += [(node.lineno, module)] + [(node.lineno, f"{module}.{a.name}") for a in node.names
+                                                 if (ROOT / module.replace(".", "/") / f"{a.name}.py").is_file()]
+    return found
+
+
+def _files(package: str) -> list[Path]:
+    return sorted((ROOT / package).rglob("*.py"))
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_each_package_imports_only_the_layers_below_it(package):
+    offenders = [f"{path.relative_to(ROOT)}:{line}: {module}"
+                 for path in _files(package) for line, module in _imports(path)
+                 if module.split(".")[0] in PACKAGES and module.split(".")[0] not in MAY_IMPORT[package]]
+    assert offenders == []
+
+
+def test_nothing_imports_the_console_script_package():
+    offenders = [f"{path.relative_to(ROOT)}:{line}" for package in PACKAGES if package != "roguecli"
+                 for path in _files(package) for line, module in _imports(path)
+                 if module.split(".")[0] == "roguecli"]
+    assert offenders == []
+
+
+def test_the_issue_grep_finds_nothing_in_the_library():
+    proc = subprocess.run(["grep", "-rnE", r"^\s*(from|import) (service|workers|roguefit|roguecli)", "roguenerf/"],
+                          cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 1 and proc.stdout == ""  # 1: no line matched
+
+
+def _workers_graph() -> dict[str, set[str]]:
+    graph = {}
+    for path in _files("workers"):
+        name = f"workers.{path.stem}" if path.stem != "__init__" else "workers"
+        graph[name] = {m for _, m in _imports(path) if m.startswith("workers.") and m != name
+                       and (ROOT / (m.replace(".", "/") + ".py")).is_file()}
+    return graph
+
+
+def test_workers_modules_import_each_other_without_cycles():
+    graph = _workers_graph()
+    assert graph["workers.runtime"] <= {"workers.jobs", "workers.layout", "workers.db"}
+    # The two tasks share the job runtime and never import each other.
+    assert "workers.tasks" not in graph["workers.paths"] and "workers.paths" not in graph["workers.tasks"]
+    assert "workers.runtime" in graph["workers.paths"] and "workers.runtime" in graph["workers.tasks"]
+    # A DAG: a depth-first walk never meets a module still on its own path.
+    state: dict[str, str] = {}
+
+    def visit(node: str, trail: list[str]) -> None:
+        state[node] = "open"
+        for nxt in sorted(graph.get(node, ())):
+            assert state.get(nxt) != "open", f"import cycle: {' -> '.join(trail + [node, nxt])}"
+            if nxt not in state:
+                visit(nxt, trail + [node])
+        state[node] = "done"
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node, [])
+
+
+def test_the_cycle_check_catches_a_cycle(monkeypatch):
+    # The check above can fail: jobs -> dispatch closes dispatch -> tasks -> runtime -> jobs.
+    graph = _workers_graph()
+    graph["workers.jobs"] = graph["workers.jobs"] | {"workers.dispatch"}
+    monkeypatch.setattr(sys.modules[__name__], "_workers_graph", lambda: graph)
+    with pytest.raises(AssertionError, match="import cycle: .*workers.jobs -> workers.dispatch"):
+        test_workers_modules_import_each_other_without_cycles()
+
+
+def test_the_api_settings_live_in_the_service_and_extend_the_workers():
+    from service.settings import Settings
+    from workers import settings as worker_settings
+    from workers.settings import WorkerSettings
+
+    assert issubclass(Settings, WorkerSettings) and Settings.__module__ == "service.settings"
+    assert not hasattr(worker_settings, "Settings")
+    assert {"api_key", "max_body_bytes", "cors_origins"} <= set(Settings.model_fields)
+    assert not {"api_key", "max_body_bytes", "cors_origins"} & set(WorkerSettings.model_fields)
+
+
+def test_routers_take_shared_dependencies_from_deps_not_from_each_other():
+    offenders = [f"{path.name}:{line}: {module}" for path in _files("service/routers")
+                 for line, module in _imports(path) if module.startswith("service.routers.")]
+    assert offenders == []
