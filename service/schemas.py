@@ -26,6 +26,9 @@ class ErrorBody(BaseModel):
 
 class ScenePublic(BaseModel):
     id: str
+    name: str | None = None
+    """A person's label (the upload's ``name`` field, or the zip's file name without ``.zip``);
+    None for scenes registered before scenes had names."""
     views: int
     """All views (train + test)."""
     train_views: int
