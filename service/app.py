@@ -35,7 +35,8 @@ UI_DIR = Path(__file__).resolve().parent / "ui"
 """The web page (static HTML/JS/CSS, no build step): served at ``/`` and ``/ui/``."""
 
 UI_HEADERS = {
-    "Content-Security-Policy": "default-src 'self'; img-src 'self' blob:; connect-src 'self'; "
+    "Content-Security-Policy": "default-src 'self'; img-src 'self' blob:; media-src 'self' blob:; "
+                               "connect-src 'self'; "
                                "style-src 'self'; script-src 'self'; object-src 'none'; "
                                "base-uri 'none'; form-action 'none'; frame-ancestors 'none'",
     "Referrer-Policy": "no-referrer",

@@ -797,8 +797,11 @@
     $("cmp-zoom").addEventListener("change", applyZoom);
     $("ft-download").addEventListener("click", downloadCheckpoint);
     $("videos-refresh").addEventListener("click", loadVideos);
-    $("video-player").addEventListener("error", () => showError("videos-error", new ApiError(0, "video_error",
-      "this browser cannot play the MP4 (H.264); download it instead")));
+    $("video-player").addEventListener("error", () => {
+      const e = $("video-player").error;
+      showError("videos-error", new ApiError(0, "video_error", "this browser cannot play the MP4 (H.264): "
+        + `${e ? e.message || "error " + e.code : "unknown error"}; download it instead`));
+    });
     window.addEventListener("hashchange", route);
     reload();
   });
