@@ -461,8 +461,9 @@ def test_6_compare_retries_over_capacity_and_the_newest_view_wins(chromium, site
     try:
         page.route("**/enhance", busy_then_through)
         page.evaluate("""() => { window.statusSeen = [];
-            new MutationObserver(() => window.statusSeen.push(document.getElementById('cmp-status').textContent))
-              .observe(document.getElementById('cmp-status'), {childList: true, characterData: true, subtree: true}); }""")
+            const status = document.getElementById('cmp-status');
+            new MutationObserver(() => window.statusSeen.push(status.textContent))
+              .observe(status, {childList: true, characterData: true, subtree: true}); }""")
         page.get_by_role("link", name="Compare").click()
         # Always busy: the page keeps retrying (never stuck on an error), the render and photo
         # of the view are shown, nothing is broken, and no enhanced image is made up.
@@ -555,19 +556,28 @@ def test_8_small_view_fits_and_the_divider_stays_in_view_at_4x(chromium, site, t
     divider is in sight after the zoom and follows when the user pans to either edge."""
     api = site["api"]
     make_scene(tmp_path / "wide", seed=3, height=378, width=504, n_train=3, n_test=1)
+    ckpt = make_checkpoint(tmp_path / "m.safetensors").read_bytes()
     r = api.post("/scenes", files={"archive": ("wide-504.zip", zip_folder(tmp_path / "wide"), "application/zip"),
-                                   "checkpoint": ("m.safetensors", make_checkpoint(tmp_path / "m.safetensors").read_bytes(),
-                                                  "application/octet-stream")})
+                                   "checkpoint": ("m.safetensors", ckpt, "application/octet-stream")})
     assert r.status_code == 201, r.text
     sid = r.json()["id"]
     assert r.json()["name"] == "wide-504"
     context, page = _open(chromium, site)
+
+    def with_flip(route):
+        # A score endpoint that also reports FLIP: the page gives any further metric a column.
+        answer = route.fetch()
+        route.fulfill(response=answer, body=json.dumps({**answer.json(), "flip": 0.125}))
+
     try:
+        page.route("**/score", with_flip)
         page.get_by_role("button", name="Compare scene wide-504").click()
         wait_for(page, "() => document.getElementById('compare').dataset.ready === 'true'", timeout_s=180)
         _assert_no_broken_images(page)
         _assert_fills_box(page, 504, 378)
         assert page.locator("#cmp-after").evaluate("e => getComputedStyle(e).imageRendering") == "pixelated"
+        assert page.locator("#cmp-metrics thead th").all_inner_texts()[1:] == ["PSNR (dB)", "SSIM", "FLIP"]
+        assert page.locator("#cmp-metrics tbody tr").nth(1).locator("td").all_inner_texts()[2] == "0.1250"
 
         page.get_by_label("Zoom").select_option("4")
         box = page.locator("#stage-scroll")
@@ -664,9 +674,9 @@ def test_9_videos_tab_lists_plays_and_downloads_path_jobs(chromium, site, sessio
 
 def test_a_delete_a_scene_refused_while_busy(chromium, site, toy):
     api = site["api"]
-    r = api.post("/scenes", files={"archive": ("doomed.zip", toy["zip"].read_bytes(), "application/zip"),
-                                   "checkpoint": ("m.safetensors", toy["ckpt"].read_bytes(), "application/octet-stream")},
-                 data={"name": "Doomed scene"})
+    files = {"archive": ("doomed.zip", toy["zip"].read_bytes(), "application/zip"),
+             "checkpoint": ("m.safetensors", toy["ckpt"].read_bytes(), "application/octet-stream")}
+    r = api.post("/scenes", files=files, data={"name": "Doomed scene"})
     sid = r.json()["id"]
     job = api.post(f"/scenes/{sid}/finetune", json={"steps": 10_000}).json()
     context, page = _open(chromium, site)

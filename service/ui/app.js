@@ -385,6 +385,7 @@
     const id = $("cmp-scene").value;
     if (!id) return;
     if (viewsOf === id && views.length) return showView();
+    if (compareAbort) compareAbort.abort();   // the previous scene's view is not drawn any more
     try {
       const items = (await getJSON(`/scenes/${id}/views?split=test`)).items;
       if ($("cmp-scene").value !== id) return;   // another scene was picked meanwhile
