@@ -181,6 +181,10 @@
       status.textContent = `deleted "${label}"`;
       for (const key of [...enhancedCache.keys()]) if (key.startsWith(s.id + ":")) enhancedCache.delete(key);
       if (viewsOf === s.id) { viewsOf = null; views = []; }
+      const jobs = JSON.parse(sessionStorage.getItem(JOBS_ITEM) || "{}");
+      if (jobShown && jobs[s.id] === jobShown) { stopWatching(); jobShown = null; $("job").hidden = true; }
+      delete jobs[s.id];
+      sessionStorage.setItem(JOBS_ITEM, JSON.stringify(jobs));
       await loadScenes();
     } catch (err) { showError("scenes-error", err); }
   }
@@ -284,7 +288,13 @@
         renderJob(job);
         if (job.state === "queued" || job.state === "running") jobTimer = setTimeout(poll, 1000);
         else { jobTimer = null; await loadScenes(); showCheckpointDownload(); }
-      } catch (err) { showError("ft-error", err); jobTimer = setTimeout(poll, 3000); }
+      } catch (err) {
+        if (jobShown !== jobId) return;
+        if (err.status === 404) {   // gone with its scene
+          stopWatching(); jobShown = null; $("job").hidden = true; $("ft-cancel").disabled = true; return;
+        }
+        showError("ft-error", err); jobTimer = setTimeout(poll, 3000);
+      }
     };
     poll();
   }
@@ -292,7 +302,7 @@
   /** What a job is doing, in words: the API's state and phase mapped for people. */
   function jobPhase(job) {
     if (job.state === "queued") return "waiting for a worker";
-    if (job.state !== "running") return job.state;
+    if (job.state !== "running") return "–";   // finished: the state says how
     if (job.cancel_requested) return "stopping";
     if ((job.request || {}).kind === "path") return "enhancing frames";
     if (job.phase === "training") return "training";
@@ -626,6 +636,10 @@
       $(id).style.height = h + "px";
       $(id).style.imageRendering = scale >= 1 ? "pixelated" : "auto";
     }
+    // Centred in its box while it fits (whole pixels: the stage's pixels stay on the screen's).
+    const box = $("stage-scroll"), cs = getComputedStyle(box);
+    const free = box.clientWidth - parseFloat(cs.paddingLeft) - parseFloat(cs.paddingRight) - w;
+    $("stage").style.marginLeft = free > 1 ? Math.floor(free / 2) + "px" : "0px";
     $("stage").dataset.scale = scale.toFixed(3);
     const key = `${$("cmp-zoom").value}:${view.width}x${view.height}`;
     if (key !== lastZoom) { lastZoom = key; keepDividerInView(true); } else keepDividerInView(false);
@@ -686,7 +700,7 @@
       e.preventDefault();
     });
     $("stage-scroll").addEventListener("scroll", () => keepDividerInView(false), { passive: true });
-    window.addEventListener("resize", () => { if ($("cmp-zoom").value === "fit") applyZoom(); });
+    window.addEventListener("resize", () => { if (!$("compare").hidden) applyZoom(); });
     setDivider(50);
   }
 
