@@ -106,7 +106,7 @@
     const s = sceneOf(id) || (typeof idOrScene === "string" ? null : idOrScene);
     const wrap = document.createElement("span"); wrap.className = "scene-badge";
     const name = document.createElement("span"); name.className = "scene-name";
-    name.textContent = s && s.name ? s.name : "(no name)";
+    name.textContent = !s ? "–" : s.name || "(no name)";
     const code = document.createElement("code"); code.className = "scene-id"; code.textContent = id;
     wrap.append(name, code);
     return wrap;
