@@ -193,7 +193,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             CORSMiddleware,
             allow_origins=settings.cors_origins,
             allow_credentials=False,
-            allow_methods=["GET", "POST", "DELETE"],
+            allow_methods=["GET", "POST", "PATCH", "DELETE"],
             allow_headers=["Authorization", "Content-Type", "Idempotency-Key"],
             expose_headers=["X-Enhance-Seconds", "X-Total-Seconds", "X-Neighbours",
                             "X-Enhance-Note", "X-Checkpoint-Version", "Location", "Retry-After"],

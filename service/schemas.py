@@ -44,6 +44,14 @@ class ScenePublic(BaseModel):
     """Id of the queued or running fine-tuning job, if any."""
 
 
+class SceneUpdate(BaseModel):
+    """``PATCH /scenes/{id}``: a new name (whitespace runs become one space; at most 120 characters)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(max_length=1000, description="the scene's new name")
+
+
 class ScenePage(BaseModel):
     """One page of ``GET /scenes``, newest first."""
 

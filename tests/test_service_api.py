@@ -447,6 +447,20 @@ def test_scene_names_at_upload(client, toy, server):
     assert "empty" in assert_error(client.post("/scenes", files=files, data={"name": "   "}),
                                    422, "validation_error")
     assert stored(server) == before
+
+    # Renamed later: the same rules; the id, views and checkpoints stay.
+    sid = by_file.json()["id"]
+    renamed = client.patch(f"/scenes/{sid}", json={"name": " Garden,  final "})
+    assert renamed.status_code == 200 and renamed.json()["name"] == "Garden, final"
+    assert {k: v for k, v in renamed.json().items() if k != "name"} == \
+        {k: v for k, v in by_file.json().items() if k != "name"}
+    assert client.get(f"/scenes/{sid}").json()["name"] == "Garden, final"
+    assert_error(client.patch(f"/scenes/{sid}", json={"name": ""}), 422, "validation_error")
+    assert_error(client.patch(f"/scenes/{sid}", json={"name": "x" * 121}), 422, "validation_error")
+    assert_error(client.patch(f"/scenes/{sid}", json={"name": "ok", "views": 3}), 422, "validation_error")
+    assert_error(client.patch(f"/scenes/{sid}", json={}), 422, "validation_error")
+    assert_error(client.patch(f"/scenes/{'0' * 32}", json={"name": "x"}), 404, "not_found")
+    assert client.get(f"/scenes/{sid}").json()["name"] == "Garden, final"
     for sid in ids:
         assert client.delete(f"/scenes/{sid}").status_code == 204
 

@@ -271,6 +271,11 @@ class JobStore:
         with self.db.tx(write=False) as tx:
             return tx.one(sa.select(scenes).where(scenes.c.id == scene_id))
 
+    def rename_scene(self, scene_id: str, name: str | None) -> bool:
+        """Set the scene's name; False if the scene is unknown."""
+        with self.db.tx() as tx:
+            return tx.execute(sa.update(scenes).where(scenes.c.id == scene_id).values(name=name)).rowcount == 1
+
     def delete_scene(self, scene_id: str) -> bool:
         """Remove the scene's row; False if unknown. Raises SceneBusy while a job is active."""
         return self.delete_scene_and_jobs(scene_id) is not None

@@ -13,7 +13,7 @@ from roguenerf.errors import RoGUENeRFError
 from service.errors import ApiError, error_responses, library_error
 from service.limits import checkpoint_error, queue_full
 from service.pagination import CursorQuery, LimitQuery, decode_cursor, page
-from service.schemas import JobCreate, JobPublic, ScenePage, ScenePublic, iso
+from service.schemas import JobCreate, JobPublic, ScenePage, ScenePublic, SceneUpdate, iso
 from service.state import Services, ServicesDep
 from service.storage import ZipLimits, discard, extract_scene_zip, place, save_upload
 from workers.jobs import ActiveJobExists, IdempotencyMismatch, QueueFull, SceneBusy
@@ -153,6 +153,16 @@ def list_scenes(services: ServicesDep, limit: LimitQuery = 50, cursor: CursorQue
             responses=error_responses(404))
 def read_scene(scene_id: str, services: ServicesDep) -> ScenePublic:
     return scene_public(services, scene_or_404(services, scene_id))
+
+
+@router.patch("/{scene_id}", response_model=ScenePublic, summary="Rename a scene",
+              responses=error_responses(404, 422))
+def update_scene(scene_id: str, body: SceneUpdate, services: ServicesDep) -> ScenePublic:
+    scene_or_404(services, scene_id)
+    name = scene_name(body.name, None)
+    if not services.store.rename_scene(scene_id, name):
+        raise ApiError(404, "not_found", f"scene {scene_id!r} not found")
+    return scene_public(services, services.store.get_scene(scene_id))
 
 
 @router.delete("/{scene_id}", status_code=204,

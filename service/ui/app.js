@@ -151,6 +151,11 @@
         b.addEventListener("click", () => { selectScene(s.id); location.hash = screen; });
         actions.append(b);
       }
+      const rename = document.createElement("button");
+      rename.type = "button"; rename.textContent = "Rename";
+      rename.setAttribute("aria-label", `Rename scene ${sceneLabel(s)}`);
+      rename.addEventListener("click", () => renameScene(s));
+      actions.append(rename);
       const del = document.createElement("button");
       del.type = "button"; del.textContent = "Delete"; del.className = "danger";
       del.setAttribute("aria-label", `Delete scene ${sceneLabel(s)}`);
@@ -170,6 +175,18 @@
   }
 
   function selectScene(id) { $("ft-scene").value = id; $("cmp-scene").value = id; showCheckpointDownload(); }
+
+  async function renameScene(s) {
+    const name = prompt(`New name of scene "${sceneLabel(s)}" (${s.id}):`, s.name || "");
+    if (name === null || name.trim() === (s.name || "")) return;
+    try {
+      const scene = await (await api("/scenes/" + s.id, { method: "PATCH", body: JSON.stringify({ name }),
+                                                           headers: { "Content-Type": "application/json" } })).json();
+      showError("scenes-error", null);
+      $("upload-status").textContent = `renamed to "${scene.name}"`;
+      await loadScenes();
+    } catch (err) { showError("scenes-error", err); }
+  }
 
   async function deleteScene(s) {
     const label = sceneLabel(s);
