@@ -156,7 +156,7 @@ def read_scene(scene_id: str, services: ServicesDep) -> ScenePublic:
 
 
 @router.patch("/{scene_id}", response_model=ScenePublic, summary="Rename a scene",
-              responses=error_responses(404, 422))
+              responses=error_responses(400, 404, 422))
 def update_scene(scene_id: str, body: SceneUpdate, services: ServicesDep) -> ScenePublic:
     scene_or_404(services, scene_id)
     name = scene_name(body.name, None)
