@@ -1,4 +1,4 @@
-"""Scenes: register (zipped scene folder), read, delete, start fine-tuning."""
+"""Scenes: register (zipped scene folder, optional name), read, rename, delete, start fine-tuning."""
 
 from __future__ import annotations
 
