@@ -2,8 +2,9 @@
 
 Starts the embedded server (API + worker) on loopback in a temporary data dir, drives
 Debian's headless Chromium with Playwright like a user: upload a toy scene (with the bundled
-default checkpoint), fine-tune it for a few steps, open a test view in Compare. Takes each
-screen at 1280x800 and the compare screen at 390x844 too. Nothing leaves the machine.
+default checkpoint), fine-tune it for a few steps, open a test view in Compare, enhance a
+camera path (Videos). Takes each screen at 1280x800 and the compare screen at 390x844 too.
+Nothing leaves the machine.
 
     ./dev python bench/screenshots.py [--out docs/screenshots] [--steps 20] [--size 160x120]
 """
@@ -18,7 +19,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tests.browser_helpers import CHROMIUM_ARGS, chromium_path, embedded_server, wait_for  # noqa: E402
+from tests.browser_helpers import CHROMIUM_ARGS, chromium_path, embedded_server, path_zip, wait_for  # noqa: E402
 from tests.service_helpers import zip_folder  # noqa: E402
 
 KEY = "screenshot-key"
@@ -34,6 +35,7 @@ def main() -> None:
     exe = chromium_path()
     if exe is None:
         sys.exit("chromium not found: apt-get install -y chromium (or set ROGUENERF_CHROMIUM)")
+    import httpx
     from playwright.sync_api import sync_playwright
 
     from roguenerf import make_toy_scene
@@ -41,7 +43,7 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        make_toy_scene(tmp / "scene", seed=7, n_train=8, n_test=3, height=height, width=width)
+        scene = make_toy_scene(tmp / "scene", seed=7, n_train=8, n_test=3, height=height, width=width)
         (tmp / "toy-scene.zip").write_bytes(zip_folder(tmp / "scene"))
         with embedded_server(tmp / "data", log_path=tmp / "server.log", api_key=KEY, finetune_crop=48,
                              finetune_batch=2, finetune_evaluate="true") as url, sync_playwright() as p:
@@ -53,6 +55,7 @@ def main() -> None:
             page.get_by_label("API key").fill(KEY)
             page.get_by_label("API key").press("Enter")
             page.get_by_label("Scene zip").set_input_files(str(tmp / "toy-scene.zip"))
+            page.get_by_label("Name (optional)").fill("Toy garden")
             page.get_by_role("button", name="Upload", exact=True).click()
             page.locator("#scenes-table tbody tr").first.wait_for(timeout=120_000)
             page.screenshot(path=str(args.out / "scenes.png"))
@@ -76,14 +79,32 @@ def main() -> None:
                 page.keyboard.press("ArrowLeft")
             page.locator("#cmp-handle").blur()
             page.screenshot(path=str(args.out / "compare.png"))
+            page.get_by_label("Zoom").select_option("fit")
+            page.screenshot(path=str(args.out / "compare-fit.png"))
             page.set_viewport_size({"width": 390, "height": 844})
             page.get_by_label("Zoom").select_option("2")
             page.screenshot(path=str(args.out / "compare-390x844.png"), full_page=True)
+            page.set_viewport_size({"width": 1280, "height": 800})
+
+            with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {KEY}"}, timeout=120) as api:
+                sid = api.get("/scenes").json()["items"][0]["id"]
+                archive, _ = path_zip(scene, seed=7, frames_per_segment=8)
+                r = api.post(f"/scenes/{sid}/paths", files={"archive": ("path.zip", archive, "application/zip")})
+                r.raise_for_status()
+                job_id = r.json()["id"]
+            page.get_by_role("link", name="Videos").click()
+            wait_for(page, f"() => document.querySelector(\"#videos-table tr[data-job='{job_id}']\")"
+                           "?.dataset.state === 'succeeded'", timeout_s=600)
+            page.locator(f"#videos-table tr[data-job='{job_id}']").get_by_role("button", name="Play").click()
+            wait_for(page, "() => document.getElementById('video-player').readyState >= 2", timeout_s=60)
+            page.locator("#video-player").evaluate("v => { v.pause(); v.currentTime = v.duration / 2; }")
+            page.wait_for_timeout(500)
+            page.screenshot(path=str(args.out / "videos.png"), full_page=True)
             browser.close()
             if foreign:
                 sys.exit(f"the page contacted other origins: {foreign}")
     for name in sorted(args.out.glob("*.png")):
-        print(name.relative_to(ROOT))
+        print(name.relative_to(ROOT) if name.is_relative_to(ROOT) else name)
 
 
 if __name__ == "__main__":

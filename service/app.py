@@ -35,7 +35,8 @@ UI_DIR = Path(__file__).resolve().parent / "ui"
 """The web page (static HTML/JS/CSS, no build step): served at ``/`` and ``/ui/``."""
 
 UI_HEADERS = {
-    "Content-Security-Policy": "default-src 'self'; img-src 'self' blob:; connect-src 'self'; "
+    "Content-Security-Policy": "default-src 'self'; img-src 'self' blob:; media-src 'self' blob:; "
+                               "connect-src 'self'; "
                                "style-src 'self'; script-src 'self'; object-src 'none'; "
                                "base-uri 'none'; form-action 'none'; frame-ancestors 'none'",
     "Referrer-Policy": "no-referrer",
@@ -192,7 +193,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             CORSMiddleware,
             allow_origins=settings.cors_origins,
             allow_credentials=False,
-            allow_methods=["GET", "POST", "DELETE"],
+            allow_methods=["GET", "POST", "PATCH", "DELETE"],
             allow_headers=["Authorization", "Content-Type", "Idempotency-Key"],
             expose_headers=["X-Enhance-Seconds", "X-Total-Seconds", "X-Neighbours",
                             "X-Enhance-Note", "X-Checkpoint-Version", "Location", "Retry-After"],

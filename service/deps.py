@@ -21,7 +21,8 @@ def scene_public(services: Services, row: dict, *, active_job: str | None | bool
         active = services.store.active_job(row["id"])
         active_job = active["id"] if active else None
     return ScenePublic(
-        id=row["id"], views=row["views"], train_views=row["train_views"], test_views=row["test_views"],
+        id=row["id"], name=row.get("name"), views=row["views"], train_views=row["train_views"],
+        test_views=row["test_views"],
         width=row["width"], height=row["height"], created_at=iso(row["created_at"]),
         active_version=row["active_version"], checkpoint_versions=services.layout.versions(row["id"]),
         active_job=active_job,

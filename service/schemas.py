@@ -27,6 +27,9 @@ class ErrorBody(BaseModel):
 
 class ScenePublic(BaseModel):
     id: str
+    name: str | None = None
+    """A person's label (the upload's ``name`` field, or the zip's file name without ``.zip``);
+    None for scenes registered before scenes had names."""
     views: int
     """All views (train + test)."""
     train_views: int
@@ -40,6 +43,14 @@ class ScenePublic(BaseModel):
     """Every stored version (older ones are kept)."""
     active_job: str | None
     """Id of the queued or running fine-tuning job, if any."""
+
+
+class SceneUpdate(BaseModel):
+    """``PATCH /scenes/{id}``: a new name (whitespace runs become one space; at most 120 characters)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(max_length=1000, description="the scene's new name")
 
 
 class ScenePage(BaseModel):

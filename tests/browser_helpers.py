@@ -5,6 +5,8 @@ server (API + worker) started on loopback with test settings."""
 from __future__ import annotations
 
 import contextlib
+import io
+import json
 import os
 import shutil
 import subprocess
@@ -80,6 +82,37 @@ def embedded_server(data_dir: Path, *, log_path: Path, **settings):
                 proc.kill()
                 proc.wait(10)
         log.close()
+
+
+def path_zip(scene, *, seed: int, frames_per_segment: int = 2) -> tuple[bytes, int]:
+    """A camera-path upload for ``POST /scenes/{id}/paths`` of a toy scene made with ``seed``: a
+    nerfstudio camera_path.json through three of its views, rgb/ and depth/ of each frame.
+    Returns (zip bytes, frame count)."""
+    import math
+    import zipfile
+
+    from roguenerf.data.toy import make_toy_world, render_toy_view
+    from roguenerf.geometry import opencv_to_opengl
+    from roguenerf.imageio import encode_npy, encode_png
+    from roguenerf.paths import smooth_path
+
+    world = make_toy_world(seed)
+    height, width = scene.frames[0].height, scene.frames[0].width
+    poses = smooth_path(scene.poses([0, 1, 2]), frames_per_segment)
+    K = scene.frames[0].K
+    fov = math.degrees(2 * math.atan(height / 2 / float(K[1, 1])))
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        cams = []
+        for t, pose in enumerate(poses):
+            rgb, depth = render_toy_view(world, pose, K, height, width)
+            zf.writestr(f"rgb/{t:04d}.png", encode_png((rgb * 0.9).clamp(0, 1)))
+            zf.writestr(f"depth/{t:04d}.npy", encode_npy(depth[0].numpy()))
+            cams.append({"camera_to_world": opencv_to_opengl(pose).flatten().tolist(), "fov": fov,
+                         "aspect": width / height})
+        zf.writestr("camera_path.json", json.dumps({"render_height": height, "render_width": width, "fps": 10,
+                                                    "camera_path": cams}))
+    return buf.getvalue(), len(poses)
 
 
 def pixels_of_img(page, selector: str) -> tuple[int, int, bytes]:

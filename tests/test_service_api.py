@@ -443,3 +443,74 @@ def test_cors_only_when_configured(tmp_path, client):
         assert "access-control-allow-credentials" not in r.headers
         other = c.options("/enhance", headers={**preflight, "Origin": "https://evil.example"})
         assert "access-control-allow-origin" not in other.headers
+
+
+def test_scene_names_at_upload(client, toy, server):
+    """A scene's name: the ``name`` field, else the zip's file name without ``.zip``; shown by
+    every scene answer; a bad name is refused before anything is stored."""
+    files = {"archive": ("Garden scan 2.zip", toy["zip"], "application/zip")}
+    by_file = client.post("/scenes", files=files)
+    assert by_file.status_code == 201, by_file.text
+    assert by_file.json()["name"] == "Garden scan 2"
+    given = client.post("/scenes", files=files, data={"name": "  Lego   bulldozer\tv2 "})
+    assert given.status_code == 201 and given.json()["name"] == "Lego bulldozer v2"
+    windows = client.post("/scenes", files={"archive": ("C:\\Users\\me\\kitchen.ZIP", toy["zip"], "application/zip")})
+    assert windows.json()["name"] == "kitchen"
+    unicode = client.post("/scenes", files=files, data={"name": "Cafe\u0301 \u00e9t\u00e9"})
+    assert unicode.json()["name"] == "Caf\u00e9 \u00e9t\u00e9"  # NFC
+    ids = {r.json()["id"]: r.json()["name"] for r in (by_file, given, windows, unicode)}
+    listed = {s["id"]: s["name"] for s in client.get("/scenes", params={"limit": 200}).json()["items"]}
+    assert {k: listed[k] for k in ids} == ids
+    assert all(client.get(f"/scenes/{k}").json()["name"] == v for k, v in ids.items())
+
+    before = stored(server)
+    assert "at most 120" in assert_error(client.post("/scenes", files=files, data={"name": "x" * 121}),
+                                         422, "validation_error")
+    assert "control" in assert_error(client.post("/scenes", files=files, data={"name": "a\nb"}),
+                                     422, "validation_error")
+    assert "empty" in assert_error(client.post("/scenes", files=files, data={"name": "   "}),
+                                   422, "validation_error")
+    assert stored(server) == before
+
+    # Renamed later: the same rules; the id, views and checkpoints stay.
+    sid = by_file.json()["id"]
+    renamed = client.patch(f"/scenes/{sid}", json={"name": " Garden,  final "})
+    assert renamed.status_code == 200 and renamed.json()["name"] == "Garden, final"
+    assert {k: v for k, v in renamed.json().items() if k != "name"} == \
+        {k: v for k, v in by_file.json().items() if k != "name"}
+    assert client.get(f"/scenes/{sid}").json()["name"] == "Garden, final"
+    assert_error(client.patch(f"/scenes/{sid}", json={"name": ""}), 422, "validation_error")
+    assert_error(client.patch(f"/scenes/{sid}", json={"name": "x" * 121}), 422, "validation_error")
+    assert_error(client.patch(f"/scenes/{sid}", json={"name": "ok", "views": 3}), 422, "validation_error")
+    assert_error(client.patch(f"/scenes/{sid}", json={}), 422, "validation_error")
+    assert_error(client.patch(f"/scenes/{'0' * 32}", json={"name": "x"}), 404, "not_found")
+    assert client.get(f"/scenes/{sid}").json()["name"] == "Garden, final"
+    for sid in ids:
+        assert client.delete(f"/scenes/{sid}").status_code == 204
+
+
+def test_checkpoint_download(client, toy, server):
+    r = register(client, toy["zip"], toy["checkpoint"])
+    sid = r.json()["id"]
+    one = client.get(f"/scenes/{sid}/checkpoints/1")
+    assert one.status_code == 200 and one.content == toy["checkpoint"]
+    assert one.headers["content-type"] == "application/octet-stream"
+    assert one.headers["content-disposition"] == 'attachment; filename="scene-v1.safetensors"'
+    assert client.get(f"/scenes/{sid}/checkpoints/active").content == toy["checkpoint"]
+    # An uploaded replacement becomes v2 and the active one; v1 stays downloadable.
+    other = make_checkpoint(server.settings.data_dir.parent / "other.safetensors", seed=5).read_bytes()
+    assert client.post(f"/scenes/{sid}/checkpoints",
+                       files={"checkpoint": ("o.safetensors", other, "application/octet-stream")}).status_code == 201
+    assert client.get(f"/scenes/{sid}/checkpoints/active").content == other
+    assert client.get(f"/scenes/{sid}/checkpoints/2").content == other
+    assert client.get(f"/scenes/{sid}/checkpoints/1").content == toy["checkpoint"]
+    assert "stored: [1, 2]" in assert_error(client.get(f"/scenes/{sid}/checkpoints/3"), 404, "not_found")
+    assert_error(client.get(f"/scenes/{sid}/checkpoints/-1"), 422, "validation_error")
+    assert_error(client.get(f"/scenes/{sid}/checkpoints/..%2Fv1"), 404, "not_found")
+    assert_error(client.get(f"/scenes/{'0' * 32}/checkpoints/1"), 404, "not_found")
+    # A scene on the server's default checkpoint has nothing of its own to download.
+    bare = register(client, toy["zip"]).json()["id"]
+    assert "default checkpoint" in assert_error(client.get(f"/scenes/{bare}/checkpoints/active"), 404, "not_found")
+    for s in (sid, bare):
+        assert client.delete(f"/scenes/{s}").status_code == 204
+    assert_error(client.get(f"/scenes/{sid}/checkpoints/1"), 404, "not_found")

@@ -156,3 +156,35 @@ def test_cancel_queued_and_running_path_jobs(setup, monkeypatch):
     assert job["state"] == "cancelled" and job["step"] < frames
     assert not (data / "jobs" / running["id"]).exists()
     assert client.get(f"/jobs/{running['id']}/result").status_code == 409
+
+
+def test_video_served_in_ranges_and_deleted_with_its_scene(setup, tmp_path):
+    """The MP4 as a browser's <video> asks for it (byte ranges, 206), and a deleted scene takes
+    its finished path jobs with it: rows, folders, videos."""
+    client, data = setup["client"], setup["data"]
+    ckpt = make_checkpoint(tmp_path / "m.safetensors")
+    r = register(client, zip_folder(setup["scene"].root), ckpt.read_bytes())
+    assert r.status_code == 201, r.text
+    sid = r.json()["id"]
+    archive, _ = path_zip(setup["scene"])
+    job = post_path(client, sid, archive).json()
+    assert run_job(setup["ctx"], job["id"]) == "succeeded"
+    url = f"/jobs/{job['id']}/result"
+    whole = client.get(url)
+    assert whole.status_code == 200 and whole.headers["accept-ranges"] == "bytes"
+    size = len(whole.content)
+    assert size > 200 and int(whole.headers["content-length"]) == size
+    part = client.get(url, headers={"Range": "bytes=100-199"})
+    assert part.status_code == 206 and part.content == whole.content[100:200]
+    assert part.headers["content-range"] == f"bytes 100-199/{size}"
+    assert part.headers["content-type"] == "video/mp4"
+    tail = client.get(url, headers={"Range": "bytes=-50"})
+    assert tail.status_code == 206 and tail.content == whole.content[-50:]
+    assert client.get(url, headers={"Range": f"bytes={size + 10}-"}).status_code == 416
+
+    assert (data / "jobs" / job["id"] / "output" / "enhanced.mp4").is_file()
+    assert client.delete(f"/scenes/{sid}").status_code == 204
+    assert client.get(f"/jobs/{job['id']}").status_code == 404
+    assert client.get(url).status_code == 404
+    assert not (data / "jobs" / job["id"]).exists() and not (data / "scenes" / sid).exists()
+    assert all(j["scene_id"] != sid for j in client.get("/jobs", params={"limit": 200}).json()["items"])

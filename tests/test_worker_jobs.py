@@ -212,9 +212,9 @@ def _indexes(db: Database) -> set[str]:
         return {i["name"] for i in sa.inspect(tx.conn).get_indexes("jobs")}
 
 
-def _columns(db: Database) -> set[str]:
+def _columns(db: Database, table: str = "jobs") -> set[str]:
     with db.tx(write=False) as tx:
-        return {c["name"] for c in sa.inspect(tx.conn).get_columns("jobs")}
+        return {c["name"] for c in sa.inspect(tx.conn).get_columns(table)}
 
 
 def test_schema_is_versioned_and_a_legacy_database_is_upgraded(database_url):
@@ -225,9 +225,10 @@ def test_schema_is_versioned_and_a_legacy_database_is_upgraded(database_url):
     assert "jobs_by_scene_created" not in _indexes(legacy)
     store = JobStore(database_url)
     assert store.init_schema() == 0  # no version table: the legacy schema, adopted as v1
-    assert store.schema_version() == SCHEMA_VERSION == 3
+    assert store.schema_version() == SCHEMA_VERSION == 4
     assert "jobs_by_scene_created" in _indexes(store.db)  # the v2 step ran
     assert {"jobs_by_created", "phase"} <= _indexes(store.db) | _columns(store.db)  # and v3
+    assert "name" in _columns(store.db, "scenes")  # and v4
     job = store.get_job("b" * 32)
     assert job["request"] == {"steps": 3} and job["state"] == "queued"  # rows kept
     with pytest.raises(ActiveJobExists):  # and the v1 constraints still hold
@@ -246,7 +247,7 @@ def test_processes_starting_together_create_the_schema_once(database_url):
     stores = [JobStore(database_url) for _ in range(4)]
     try:
         found = _race(4, lambda i: stores[i].init_schema())
-        assert sorted(found) == [0, 3, 3, 3], found
+        assert sorted(found) == [0, 4, 4, 4], found
         assert stores[0].schema_version() == SCHEMA_VERSION
     finally:
         for s in stores:
@@ -266,13 +267,50 @@ def test_a_v2_database_gets_the_phase_column(database_url):
     assert "phase" not in _columns(old)
     store = JobStore(database_url)
     assert store.init_schema() == 2
-    assert store.init_schema() == 3  # idempotent
+    assert store.init_schema() == 4  # idempotent
     assert "phase" in _columns(store.db) and "jobs_by_created" in _indexes(store.db)
     job = store.get_job("b" * 32)
     assert job["phase"] is None and job["request"] == {"steps": 3}
     assert store.claim(job["id"], "lease")
     assert store.record_phase(job["id"], "lease", "evaluating")
     assert store.get_job(job["id"])["phase"] == "evaluating"
+    for db in (old, store.db):
+        db.close()
+
+
+def test_a_v3_database_gets_scene_names(database_url):
+    """Schema v4 adds scenes.name to a v3 table: old scenes keep their rows and have no name;
+    new ones store theirs; deleting a scene removes its finished jobs' rows too."""
+    old = Database(database_url)
+    with old.tx() as tx:
+        for statement in LEGACY_SCHEMA:
+            tx.conn.exec_driver_sql(statement)
+        tx.conn.exec_driver_sql("ALTER TABLE jobs ADD COLUMN phase TEXT")
+        tx.conn.exec_driver_sql("CREATE TABLE schema_version (id INTEGER PRIMARY KEY, version INTEGER NOT NULL,"
+                                " upgraded_at DOUBLE PRECISION NOT NULL)")
+        tx.conn.exec_driver_sql("INSERT INTO schema_version VALUES (1, 3, 1.0)")
+        tx.conn.exec_driver_sql("INSERT INTO scenes (id, created_at, views, train_views, test_views, width,"
+                                f" height, active_version, next_version) VALUES ('{'c' * 32}', 1.0, 3, 2, 1,"
+                                " 8, 6, 0, 1)")
+    assert "name" not in _columns(old, "scenes")
+    store = JobStore(database_url)
+    assert store.init_schema() == 3
+    assert store.init_schema() == 4 == store.schema_version()
+    assert "name" in _columns(store.db, "scenes")
+    assert store.get_scene("c" * 32)["name"] is None and store.get_scene("c" * 32)["views"] == 3
+    named = store.create_scene("d" * 32, views=2, train_views=1, test_views=1, width=8, height=6,
+                               active_version=0, name="Caf\u00e9 kitchen")
+    assert named["name"] == "Caf\u00e9 kitchen"
+    names = [s["name"] for s in store.list_scenes()]
+    assert names[0] == "Caf\u00e9 kitchen" and names[1:] == [None, None]  # the legacy scenes
+    job, _ = store.create_job("d" * 32, {"steps": 1})
+    with pytest.raises(SceneBusy):
+        store.delete_scene_and_jobs("d" * 32)
+    store.request_cancel(job["id"])
+    assert store.delete_scene_and_jobs("d" * 32) == [job["id"]]
+    assert store.get_job(job["id"]) is None and store.get_scene("d" * 32) is None
+    assert store.delete_scene_and_jobs("d" * 32) is None
+    assert store.get_job("b" * 32) is not None  # another scene's job is kept
     for db in (old, store.db):
         db.close()
 

@@ -60,6 +60,9 @@ scenes = sa.Table(
     sa.Column("height", sa.Integer, nullable=False),
     sa.Column("active_version", sa.Integer, nullable=False),
     sa.Column("next_version", sa.Integer, nullable=False),
+    sa.Column("name", sa.Text),
+    # Schema v4 added ``name`` (a person's label for the scene; a table made by v1-v3 gets it
+    # from the v4 step, its scenes keep none).
 )
 
 jobs = sa.Table(
@@ -135,7 +138,15 @@ def _v3(tx: Tx) -> None:
         index.create(tx.conn, checkfirst=True)
 
 
-UPGRADES: list[tuple[int, Callable[[Tx], None]]] = [(1, _v1), (2, _v2), (3, _v3)]
+def _v4(tx: Tx) -> None:
+    # The scene's name (given at upload; the zip's file name by default). Nullable: scenes
+    # registered before it have none, and the page shows their id instead.
+    have = {c["name"] for c in sa.inspect(tx.conn).get_columns("scenes")}
+    if "name" not in have:
+        tx.conn.exec_driver_sql("ALTER TABLE scenes ADD COLUMN name TEXT")
+
+
+UPGRADES: list[tuple[int, Callable[[Tx], None]]] = [(1, _v1), (2, _v2), (3, _v3), (4, _v4)]
 """(version, step): each step takes the schema from version - 1 to version. Append, never edit."""
 SCHEMA_VERSION = UPGRADES[-1][0]
 
@@ -247,12 +258,12 @@ class JobStore:
 
     # ---------------------------------------------------------------- scenes
     def create_scene(self, scene_id: str, *, views: int, train_views: int, test_views: int,
-                     width: int, height: int, active_version: int) -> dict:
+                     width: int, height: int, active_version: int, name: str | None = None) -> dict:
         with self.db.tx() as tx:
             tx.execute(sa.insert(scenes).values(
                 id=scene_id, created_at=time.time(), views=views, train_views=train_views,
                 test_views=test_views, width=width, height=height,
-                active_version=active_version, next_version=active_version + 1,
+                active_version=active_version, next_version=active_version + 1, name=name,
             ))
         return self.get_scene(scene_id)
 
@@ -260,13 +271,27 @@ class JobStore:
         with self.db.tx(write=False) as tx:
             return tx.one(sa.select(scenes).where(scenes.c.id == scene_id))
 
+    def rename_scene(self, scene_id: str, name: str | None) -> bool:
+        """Set the scene's name; False if the scene is unknown."""
+        with self.db.tx() as tx:
+            return tx.execute(sa.update(scenes).where(scenes.c.id == scene_id).values(name=name)).rowcount == 1
+
     def delete_scene(self, scene_id: str) -> bool:
         """Remove the scene's row; False if unknown. Raises SceneBusy while a job is active."""
+        return self.delete_scene_and_jobs(scene_id) is not None
+
+    def delete_scene_and_jobs(self, scene_id: str) -> list[str] | None:
+        """Remove the scene's row and its (finished) jobs' rows in one transaction; returns the
+        removed jobs' ids (their folders are the caller's), None if the scene is unknown.
+        Raises SceneBusy while a job is queued or running on it."""
         with self.db.tx() as tx:
             active = tx.one(sa.select(jobs.c.id).where(jobs.c.scene_id == scene_id, _ACTIVE))
             if active is not None:
                 raise SceneBusy(active["id"])
-            return tx.execute(sa.delete(scenes).where(scenes.c.id == scene_id)).rowcount == 1
+            if tx.execute(sa.delete(scenes).where(scenes.c.id == scene_id)).rowcount != 1:
+                return None
+            return list(tx.execute(sa.delete(jobs).where(jobs.c.scene_id == scene_id)
+                                   .returning(jobs.c.id)).scalars())
 
     def list_scenes(self, *, limit: int = 50, before: tuple[float, str] | None = None) -> list[dict]:
         """Scenes, newest first: at most ``limit`` rows created before the ``(created_at, id)``

@@ -1,4 +1,5 @@
-"""POST /scenes/{id}/checkpoints: replace a scene's enhancer with an uploaded checkpoint.
+"""POST /scenes/{id}/checkpoints: replace a scene's enhancer with an uploaded checkpoint;
+GET /scenes/{id}/checkpoints/{version}: download a stored one (a fine-tuned one included).
 
 The upload is validated by the library's ``load_checkpoint`` (safetensors only, header,
 keys, shapes, finite weights, size) in a temporary file; only a checkpoint that loads is
@@ -13,6 +14,7 @@ import os
 from typing import Annotated
 
 from fastapi import APIRouter, File, UploadFile
+from fastapi.responses import FileResponse
 
 from roguenerf.errors import RoGUENeRFError
 from service.deps import scene_or_404, scene_public
@@ -67,3 +69,27 @@ def create_checkpoint(
     checkpoint: Annotated[UploadFile, File(description="enhancer checkpoint (.safetensors)")],
 ) -> ScenePublic:
     return _replace(services, scene_id, checkpoint)
+
+
+@router.get("/{scene_id}/checkpoints/{version}", response_class=FileResponse,
+            summary="Download a stored checkpoint (.safetensors): a version number, or 'active'",
+            responses={**error_responses(404, 422),
+                       200: {"content": {"application/octet-stream": {}},
+                             "description": "the checkpoint file, as load_checkpoint reads it"}})
+def read_checkpoint(scene_id: str, version: str, services: ServicesDep) -> FileResponse:
+    row = scene_or_404(services, scene_id)
+    if version == "active":
+        number = row["active_version"]
+    elif version.isascii() and version.isdigit() and len(version) <= 9:
+        number = int(version)
+    else:
+        raise ApiError(422, "validation_error", f"version: expected a number or 'active', got {version[:40]!r}")
+    if number == 0:
+        raise ApiError(404, "not_found", f"scene {scene_id} uses the server's default checkpoint (v0), "
+                                         "which is not stored with the scene")
+    path = services.layout.checkpoint(scene_id, number)
+    if not path.is_file():
+        raise ApiError(404, "not_found", f"scene {scene_id} has no checkpoint v{number} "
+                                         f"(stored: {services.layout.versions(scene_id) or 'none'})")
+    name = f"{(row.get('name') or scene_id)}-v{number}.safetensors"
+    return FileResponse(path, media_type="application/octet-stream", filename=name)

@@ -1,18 +1,20 @@
-"""Scenes: register (zipped scene folder), read, delete, start fine-tuning."""
+"""Scenes: register (zipped scene folder, optional name), read, rename, delete, start fine-tuning."""
 
 from __future__ import annotations
 
 import logging
+import unicodedata
+from pathlib import PurePosixPath, PureWindowsPath
 from typing import Annotated
 
-from fastapi import APIRouter, File, Header, Response, UploadFile
+from fastapi import APIRouter, File, Form, Header, Response, UploadFile
 
 from roguenerf.errors import RoGUENeRFError
 from service.deps import scene_or_404, scene_public
 from service.errors import ApiError, error_responses, library_error
 from service.limits import checkpoint_error, queue_full
 from service.pagination import CursorQuery, LimitQuery, decode_cursor, page
-from service.schemas import JobCreate, JobPublic, ScenePage, ScenePublic
+from service.schemas import JobCreate, JobPublic, ScenePage, ScenePublic, SceneUpdate
 from service.state import Services, ServicesDep
 from service.storage import ZipLimits, discard, extract_scene_zip, place, save_upload
 from workers.jobs import ActiveJobExists, IdempotencyMismatch, QueueFull, SceneBusy
@@ -23,10 +25,38 @@ log = logging.getLogger("roguenerf.service")
 router = APIRouter(prefix="/scenes", tags=["scenes"])
 
 
-def _register(services: Services, archive: UploadFile, checkpoint: UploadFile | None) -> ScenePublic:
+MAX_NAME_CHARS = 120
+
+
+def scene_name(given: str | None, filename: str | None) -> str | None:
+    """The scene's name: ``given`` (the form field), else the uploaded zip's file name without
+    its folder and ``.zip``; None when neither says anything. Whitespace runs become one space;
+    control characters and more than :data:`MAX_NAME_CHARS` characters are refused (422)."""
+    if given is None:
+        if not filename:
+            return None
+        stem = PureWindowsPath(PurePosixPath(filename).name).name  # a browser may send C:\...\x.zip
+        if stem.lower().endswith(".zip"):
+            stem = stem[:-4]
+        given = "".join(c for c in stem if unicodedata.category(c)[0] != "C")[:MAX_NAME_CHARS]
+        return " ".join(unicodedata.normalize("NFC", given).split()) or None
+    if any(unicodedata.category(c) in ("Cc", "Cf", "Cs", "Co", "Cn") for c in given.replace("\t", " ")):
+        raise ApiError(422, "validation_error", "name: control or unassigned characters are not allowed")
+    name = " ".join(unicodedata.normalize("NFC", given).split())
+    if not name:
+        raise ApiError(422, "validation_error", "name: must not be empty or only spaces (leave it out "
+                                                "to use the zip's file name)")
+    if len(name) > MAX_NAME_CHARS:
+        raise ApiError(422, "validation_error", f"name: at most {MAX_NAME_CHARS} characters, got {len(name)}")
+    return name
+
+
+def _register(services: Services, archive: UploadFile, checkpoint: UploadFile | None,
+              name: str | None = None) -> ScenePublic:
     from roguenerf import load_checkpoint, load_scene
 
     settings, layout = services.settings, services.layout
+    name = scene_name(name, archive.filename)
     scene_id = new_id()
     tmp = layout.temp_dir()
     try:
@@ -65,12 +95,12 @@ def _register(services: Services, archive: UploadFile, checkpoint: UploadFile | 
         row = services.store.create_scene(
             scene_id, views=len(scene.frames), train_views=train,
             test_views=len(scene.indices("test")), width=int(first.width), height=int(first.height),
-            active_version=version,
+            active_version=version, name=name,
         )
     except BaseException:
         layout.remove_tree(layout.scene_dir(scene_id))
         raise
-    log.info("scene %s registered: %d views, checkpoint v%d", scene_id, len(scene.frames), version)
+    log.info("scene %s (%r) registered: %d views, checkpoint v%d", scene_id, name, len(scene.frames), version)
     return scene_public(services, row)
 
 
@@ -82,8 +112,11 @@ def create_scene(
     # Not `UploadFile | None`: that publishes a nullable schema, and a multipart "null" text
     # part is then schema-valid but refused. Omitting the part is how it is left out.
     checkpoint: Annotated[UploadFile, File(description="optional enhancer checkpoint (.safetensors)")] = None,
+    name: Annotated[str, Form(max_length=1000, description=(
+        f"optional label shown instead of the id (at most {MAX_NAME_CHARS} characters); "
+        "default: the zip's file name without .zip"))] = None,
 ) -> ScenePublic:
-    return _register(services, archive, checkpoint)
+    return _register(services, archive, checkpoint, name)
 
 
 @router.get("", response_model=ScenePage, summary="List scenes, newest first (paginated)",
@@ -102,19 +135,33 @@ def read_scene(scene_id: str, services: ServicesDep) -> ScenePublic:
     return scene_public(services, scene_or_404(services, scene_id))
 
 
-@router.delete("/{scene_id}", status_code=204, summary="Delete a scene and its checkpoints",
+@router.patch("/{scene_id}", response_model=ScenePublic, summary="Rename a scene",
+              responses=error_responses(400, 404, 422))
+def update_scene(scene_id: str, body: SceneUpdate, services: ServicesDep) -> ScenePublic:
+    scene_or_404(services, scene_id)
+    name = scene_name(body.name, None)
+    if not services.store.rename_scene(scene_id, name):
+        raise ApiError(404, "not_found", f"scene {scene_id!r} not found")
+    return scene_public(services, services.store.get_scene(scene_id))
+
+
+@router.delete("/{scene_id}", status_code=204,
+               summary="Delete a scene, its checkpoints and its finished jobs (their videos too)",
                responses=error_responses(404, 409))
 def delete_scene(scene_id: str, services: ServicesDep) -> Response:
     scene_or_404(services, scene_id)
     try:
-        deleted = services.store.delete_scene(scene_id)
+        job_ids = services.store.delete_scene_and_jobs(scene_id)
     except SceneBusy as exc:
         raise ApiError(409, "scene_busy",
-                       f"scene {scene_id} has an active fine-tuning job ({exc}); cancel it first") from None
-    if not deleted:
+                       f"scene {scene_id} has an active job ({exc}); cancel it or wait for it first") from None
+    if job_ids is None:
         raise ApiError(404, "not_found", f"scene {scene_id!r} not found")
     services.enhancers.evict(scene_id)
     services.layout.remove_tree(services.layout.scene_dir(scene_id))
+    for job_id in job_ids:
+        services.layout.remove_tree(services.layout.job_dir(job_id))
+    log.info("scene %s deleted with %d finished jobs", scene_id, len(job_ids))
     return Response(status_code=204)
 
 
