@@ -13,8 +13,9 @@ Columns per stage:
   seconds            median over ``--repeats`` timed runs of the fast path (after one warm-up)
   seconds_torch_fast the present fast path with its fused C kernels off (``native.disabled()``):
                      torch operators only, as on a machine without a C compiler
-  seconds_previous   the fast path before issue 12's inference work (``previous_fast_path()``);
-                     the three paths' runs alternate, run by run
+                     (the two paths' runs alternate, run by run; the fast path before issue
+                     12's inference work, once a third column, is at the git tag
+                     ``pre-ops-dispatch``)
   gb_moved           GB the stage's operators read and write (every aten operator's tensor
                      arguments and outputs: the code as written, each operator streaming its
                      operands; views free; a fused C kernel of roguenerf.native counts its
@@ -52,7 +53,7 @@ import torch  # noqa: E402
 
 from bench.common import stamp, write_csv, write_json  # noqa: E402
 from roguenerf import native, runtime  # noqa: E402
-from roguenerf.fastpath import previous_fast_path, reference_mode  # noqa: E402
+from roguenerf.fastpath import reference_mode  # noqa: E402
 from roguenerf.models import VARIANTS, NeighbourBatch, Uformer, build_enhancer  # noqa: E402
 from roguenerf.profiling import STAGES, StageProfile  # noqa: E402
 
@@ -189,18 +190,12 @@ def profile(variant: str, h: int, w: int, repeats: int, reference: bool) -> tupl
         run = lambda: model(render, depth, K, pose, nb)  # noqa: E731
         fast_out = run()
 
-        def run_previous():
-            with previous_fast_path():
-                return run()
-
         def run_torch():
             with native.disabled():
                 return run()
 
-        prev_diff = float((run_previous() - fast_out).abs().max())
         torch_diff = float((run_torch() - fast_out).abs().max())
-        (seconds, total), (torch_seconds, torch_total), (prev_seconds, prev_total) = _stage_times(
-            run, repeats, run_torch, run_previous)
+        (seconds, total), (torch_seconds, torch_total) = _stage_times(run, repeats, run_torch)
         executed = _stage_flops(run)
         moved = _stage_bytes(run)
     ref_seconds, ref_total, diff = {}, float("nan"), float("nan")
@@ -215,15 +210,14 @@ def profile(variant: str, h: int, w: int, repeats: int, reference: bool) -> tupl
     for stage in names + ["total"]:
         if stage == "total":
             sec, ref, gm, ge = total, ref_total, sum(model_flops.values()), sum(executed.values())
-            prev, tfast = prev_total, torch_total
+            tfast = torch_total
         else:
             sec, ref = seconds[stage], ref_seconds.get(stage, float("nan"))
-            prev = prev_seconds.get(stage, float("nan"))
             tfast = torch_seconds.get(stage, float("nan"))
             gm, ge = model_flops.get(stage, 0.0), executed.get(stage, 0.0)
         gb = sum(moved.values()) if stage == "total" else moved.get(stage, 0.0)
         rows.append(dict(variant=variant, height=h, width=w, neighbours=NEIGHBOURS, stage=stage,
-                         seconds=round(sec, 4), seconds_torch_fast=round(tfast, 4), seconds_previous=round(prev, 4),
+                         seconds=round(sec, 4), seconds_torch_fast=round(tfast, 4),
                          seconds_reference=round(ref, 4), gflop_model=round(gm, 3),
                          gflop_executed=round(ge, 3), gb_moved=round(gb, 4), max_abs_diff=diff))
     official = Uformer(model.config.uformer, in_channels=3, out_channels=3).eval()
@@ -235,8 +229,7 @@ def profile(variant: str, h: int, w: int, repeats: int, reference: bool) -> tupl
         official_s = time.perf_counter() - t
         official_gflop = _stage_flops(lambda: official(rgb))["other"]
     lib = native.library()
-    summary = dict(variant=variant, height=h, width=w, seconds=total, seconds_previous=prev_total,
-                   speedup_vs_previous=prev_total / total, max_abs_diff_previous=prev_diff,
+    summary = dict(variant=variant, height=h, width=w, seconds=total,
                    native_kernels=lib._name if lib is not None else None,
                    seconds_torch_fast=torch_total, speedup_vs_torch_fast=torch_total / total,
                    max_abs_diff_torch_fast=torch_diff,
@@ -255,8 +248,7 @@ def plot(rows: list[dict], summaries: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     configs = [(s["variant"], s["height"], s["width"]) for s in summaries]
-    paths = (("seconds_reference", "plain"), ("seconds_previous", "previous fast path"),
-             ("seconds_torch_fast", "fast, no C kernels"), ("seconds", "fast"))
+    paths = (("seconds_reference", "plain"), ("seconds_torch_fast", "fast, no C kernels"), ("seconds", "fast"))
     fig, (ax_t, ax_e) = plt.subplots(1, 2, figsize=(13, 0.35 * len(configs) * len(paths) + 2.5))
     colors = dict(zip((*STAGES, "other"), plt.cm.tab10.colors))
     labels = []
@@ -312,8 +304,7 @@ def main(argv=None) -> None:
             r, s = profile(variant, h, w, args.repeats, not args.no_reference)
             rows += [{**meta, **row} for row in r]
             summaries.append(s)
-            print(f"{variant} {w}x{h}: {s['seconds']:.3f} s (previous fast path {s['seconds_previous']:.3f} s: "
-                  f"{s['speedup_vs_previous']:.2f}x, max |diff| {s['max_abs_diff_previous']:.1e}; "
+            print(f"{variant} {w}x{h}: {s['seconds']:.3f} s ("
                   f"without the C kernels {s['seconds_torch_fast']:.3f} s: {s['speedup_vs_torch_fast']:.2f}x; "
                   f"plain {s['seconds_reference']:.3f} s), "
                   f"{s['gflop_model']:.1f} GFLOP model / {s['gflop_executed']:.1f} executed, "
@@ -357,8 +348,8 @@ def main(argv=None) -> None:
         print(f"{s['variant']} {s['width']}x{s['height']}: efficiency {s['efficiency_model']:.1%} of peak "
               f"(executed FLOPs: {s['efficiency_executed']:.1%}), {s['speedup_vs_plain']:.2f}x the plain path, "
               f"limited by {s['limiting_stage']}", flush=True)
-        print("  stage seconds now / without the C kernels / previous fast path: " + ", ".join(
-            f"{r['stage']} {r['seconds']:.4f}/{r['seconds_torch_fast']:.4f}/{r['seconds_previous']:.4f}" for r in rows
+        print("  stage seconds now / without the C kernels: " + ", ".join(
+            f"{r['stage']} {r['seconds']:.4f}/{r['seconds_torch_fast']:.4f}" for r in rows
             if (r["variant"], r["height"], r["width"]) == (s["variant"], s["height"], s["width"])), flush=True)
         print(f"  floor (per stage max(FLOP / {peak:.0f} GFLOP/s, bytes / {bandwidth:.1f} GB/s)): "
               f"{s['floor_s']:.4f} s of {s['seconds']:.4f} s", flush=True)

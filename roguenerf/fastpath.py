@@ -42,17 +42,6 @@ def reference_mode(enabled: bool = True):
     return thread_switch("reference", enabled)
 
 
-def previous_fast_path(enabled: bool = True):
-    """Inside: the fast path as it was before issue 12's inference work (per-tap bilinear
-    sampling, the plain projection maths), for ``bench/stages.py`` to time against the present
-    one in one run. Same outputs; not for other use."""
-    return thread_switch("previous", enabled)
-
-
-def in_previous_fast_path() -> bool:
-    return switched("previous")
-
-
 def in_reference_mode() -> bool:
     return switched("reference")
 

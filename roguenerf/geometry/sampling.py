@@ -18,7 +18,6 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from roguenerf.errors import InputError
-from roguenerf.fastpath import in_previous_fast_path
 
 
 def bilinear_sample(source: Tensor, x: Tensor, y: Tensor, *, padding: str = "zeros") -> Tensor:
@@ -30,8 +29,6 @@ def bilinear_sample(source: Tensor, x: Tensor, y: Tensor, *, padding: str = "zer
     """
     if padding not in ("zeros", "border"):
         raise InputError(f"padding: expected 'zeros' or 'border', got {padding!r}")
-    if in_previous_fast_path():
-        return _bilinear_sample_per_tap(source, x, y, padding=padding)
     b, c, hs, ws = source.shape
     h, w = x.shape[-2:]
     table = source.permute(0, 2, 3, 1).reshape(b * hs * ws, c)  # free when source is channels-last
@@ -64,27 +61,3 @@ def bilinear_sample(source: Tensor, x: Tensor, y: Tensor, *, padding: str = "zer
     out = F.embedding_bag(index.view(-1, 4), table, per_sample_weights=weight.view(-1, 4), mode="sum")
     return out.view(b, h, w, c).permute(0, 3, 1, 2)
 
-
-def _bilinear_sample_per_tap(source: Tensor, x: Tensor, y: Tensor, *, padding: str) -> Tensor:
-    """The previous implementation (each tap masked in 2-D), kept for ``previous_fast_path()``."""
-    b, c, hs, ws = source.shape
-    h, w = x.shape[-2:]
-    table = source.permute(0, 2, 3, 1).reshape(b * hs * ws, c)  # free when source is channels-last
-    if padding == "border":
-        x = x.clamp(0, ws - 1)
-        y = y.clamp(0, hs - 1)
-    x0f, y0f = x.floor(), y.floor()
-    wx1, wy1 = x - x0f, y - y0f
-    wx0, wy0 = 1.0 - wx1, 1.0 - wy1
-    x0, y0 = x0f.long(), y0f.long()
-    x1, y1 = x0 + 1, y0 + 1
-    base = (torch.arange(b, device=source.device) * (hs * ws)).view(b, 1, 1)
-    index, weight = [], []
-    for xi, yi, wgt in ((x0, y0, wx0 * wy0), (x1, y0, wx1 * wy0), (x0, y1, wx0 * wy1), (x1, y1, wx1 * wy1)):
-        inside = (xi >= 0) & (xi < ws) & (yi >= 0) & (yi < hs)
-        index.append(base + yi.clamp(0, hs - 1) * ws + xi.clamp(0, ws - 1))
-        weight.append(torch.where(inside, wgt, 0.0))
-    index = torch.stack(index, dim=-1).view(-1, 4)
-    weight = torch.stack(weight, dim=-1).view(-1, 4).to(source.dtype)
-    out = F.embedding_bag(index, table, per_sample_weights=weight, mode="sum")
-    return out.view(b, h, w, c).permute(0, 3, 1, 2)

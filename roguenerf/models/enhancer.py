@@ -46,15 +46,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from roguenerf import native
+from roguenerf import ops
 from roguenerf.errors import InputError
+from roguenerf.fastpath import layout_enabled
 from roguenerf.geometry import euler_angles, reproject, sampling_source
 from roguenerf.geometry.cameras import check_intrinsics, check_pose
 from roguenerf.geometry.depth import DEPTH_EPS, MAX_DEPTH, known_depth, known_depth_mask, median_known_depth
 from roguenerf.images import check_float_image
 from roguenerf.models.config import _UFORMER_KEYS, EnhancerConfig, make_config
-from roguenerf.models.flow import FLOW_STRIDE, FlowRefiner, flow_warp, upsample_flow
-from roguenerf.models import fastops
+from roguenerf.models.flow import FLOW_STRIDE, FlowRefiner, flow_warp
 from roguenerf.models.layers import (
     CameraAttention,
     ConvEncoder,
@@ -220,12 +220,9 @@ class Enhancer(nn.Module):
                 if pooled is None:
                     pooled = [torch.zeros_like(feats)] * self.pooled_maps
                 parts = [feats, *pooled]
-                if fastops.fast_enabled(feats):
-                    merged = conv_act(self.conv_merge, cat_channels_last(parts))
-                elif fastops.layout_enabled(feats):  # training: channels-last convolutions are faster
-                    merged = self.conv_merge(cat_channels_last(parts))
-                else:
-                    merged = self.conv_merge(torch.cat(parts, dim=1))
+                # channels-last also in training: its convolutions are faster
+                merged = conv_act(self.conv_merge,
+                                  cat_channels_last(parts) if layout_enabled(feats) else torch.cat(parts, dim=1))
         with stage("uformer"):
             residual = self.uformer(merged) if self.uformer is not None else self.to_rgb(merged)
         return render + residual
@@ -269,7 +266,8 @@ class Enhancer(nn.Module):
 
         # Fast path (no gradient): work that depends only on the target is done once, every
         # full-resolution map is channels-last, and the pooling is in place. Same result.
-        fast = fastops.fast_enabled(feats)
+        body = ops.pick(feats)
+        fast = body.fast
         target_low = attention_term = None
         if fast and self.flow is not None:
             with stage("flow"):
@@ -281,7 +279,7 @@ class Enhancer(nn.Module):
         if fast:
             return self._fuse_fast(feats, depth, K, world_from_cam, nbrs, scale_b, camera_inputs,
                                    target_low, attention_term)
-        if torch.is_grad_enabled() and not fastops.in_reference_mode():
+        if body is ops.Body.TORCH and torch.is_grad_enabled():
             return self._fuse_batched(feats, depth, K, world_from_cam, nbrs, scale_b, target_depth, camera_inputs)
         pooled = low = None
         spread = self.config.pool_spread
@@ -343,7 +341,7 @@ class Enhancer(nn.Module):
                 term = self.pixel_attention.target_term(feats, target_depth)
                 parts = [aligned, nb_rel.view(n * b, 1, h, w)]
                 psi_pix = self.pixel_attention.from_target_term(
-                    cat_channels_last(parts) if fastops.layout_enabled(feats) else torch.cat(parts, dim=1), term)
+                    cat_channels_last(parts) if layout_enabled(feats) else torch.cat(parts, dim=1), term)
                 psi_cam = self.camera_attention(camera_inputs.transpose(0, 1).reshape(n * b, -1))
                 aligned = psi_cam[:, :, None, None] * psi_pix * aligned
         with stage("fusion"):
@@ -373,10 +371,9 @@ class Enhancer(nn.Module):
                                                      K, nbrs.world_from_cam[:, j], world_from_cam, (h, w), source)
                 packed.append(buf if buf is not None else cat_channels_last([aligned, nb_depth]))
         flows = None
-        fused = native.enabled(feats)  # the warp upsamples the flow and normalises the depth too
         if self.flow is not None:
-            with stage("flow"):
-                flows = self.flow.batched(packed, target_low, h, w, upsample=not fused)
+            with stage("flow"):  # at 1/8 size: upsample_warp upsamples them
+                flows = self.flow.batched(packed, target_low, h, w, upsample=False)
         pooled = low = None
         spread = self.config.pool_spread
         attend = self.pixel_attention is not None
@@ -385,37 +382,20 @@ class Enhancer(nn.Module):
             packed[j] = None  # release each buffer as soon as it is used
             normalised = False
             if flows is not None:
-                with stage("flow"):
-                    warped = None
-                    if fused:
-                        warped = native.flow_warp(buf, flows[j], depth_scale=scale_b.flatten() if attend else None,
-                                                  depth_channel=f, depth_max=MAX_RELATIVE_DEPTH)
-                        normalised = warped is not None and attend
-                        if warped is None:  # a non-finite flow: the torch path handles it
-                            warped = flow_warp(buf, upsample_flow(flows[j], h, w))
-                    else:
-                        warped = flow_warp(buf, flows[j])
-                    buf = warped
-            aligned = buf[:, :f]
+                with stage("flow"):  # (the C kernel also normalises the depth channel)
+                    buf, normalised = ops.upsample_warp(
+                        buf, flows[j], depth_scale=scale_b.flatten() if attend else None, depth_channel=f,
+                        depth_max=MAX_RELATIVE_DEPTH)
             if attend:
                 with stage("attention"):
                     if not normalised:
                         buf[:, f:f + 1] = (buf[:, f:f + 1] / scale_b).clamp(0, MAX_RELATIVE_DEPTH)
-                    if fused:  # the rest of the attention and the max / min pooling in one pass
-                        # (so the pooling counts to this stage: no "fusion" stage without pool_spread)
-                        pa = self.pixel_attention
-                        pooled, low = native.attend_pool(
-                            pa.neighbour_term(buf), attention_term, pa.net[2], pa.net[1].negative_slope,
-                            self.camera_attention(camera_inputs[:, j]), buf, f, pooled, low, spread=spread)
-                        continue
-                    psi_pix = self.pixel_attention.from_target_term(buf, attention_term)
-                    psi_cam = self.camera_attention(camera_inputs[:, j])[:, :, None, None]
-                    # aligned first: the product keeps its channels-last layout (same values).
-                    aligned = aligned * (psi_cam * psi_pix)
+                    camera = self.camera_attention(camera_inputs[:, j])
+                pooled, low = ops.attend_pool(self.pixel_attention, buf, attention_term, camera, f, pooled, low,
+                                              spread=spread)
+                continue
             with stage("fusion"):
-                if spread:  # a copy: the max-pool below writes into the first neighbour's map
-                    low = aligned.clone() if low is None else torch.minimum(low, aligned, out=low)
-                pooled = aligned if pooled is None else torch.maximum(pooled, aligned, out=pooled)
+                pooled, low = ops.pool_neighbours(buf[:, :f], pooled, low, spread)
         if spread:
             with stage("fusion"):
                 low = torch.sub(pooled, low, out=low)  # H_spread, written over the running min

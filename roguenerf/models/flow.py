@@ -16,39 +16,22 @@ Dimension letters: B batch, F feature channels, H x W full resolution, h x w = 1
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
-from roguenerf import native
-from roguenerf.fastpath import fast_enabled
-from roguenerf.geometry.sampling import bilinear_sample
-from roguenerf.models import fastops
+from roguenerf import ops
 from roguenerf.models.layers import act, conv_act, he_init, zero_init
 
-FLOW_STRIDE = 8
+FLOW_STRIDE = ops.flow.STRIDE
 """The flow is estimated at 1/FLOW_STRIDE resolution."""
 
 
-def flow_warp(x: Tensor, flow: Tensor) -> Tensor:
-    """Backward-warp ``x`` ``(B, C, H, W)`` by ``flow`` ``(B, 2, H, W)`` (pixels, (dx, dy)).
-
-    Bilinear, zero outside the image. Returns ``(B, C, H, W)`` (channels-last on the fast path).
-    """
-    _, _, h, w = x.shape
-    ys = torch.arange(h, device=x.device, dtype=x.dtype)
-    xs = torch.arange(w, device=x.device, dtype=x.dtype)
-    if fast_enabled(x) and torch.isfinite(flow).all():
-        return bilinear_sample(x, xs[None, None, :] + flow[:, 0], ys[None, :, None] + flow[:, 1], padding="zeros")
-    gx = (2.0 * (xs[None, None, :] + flow[:, 0]) + 1.0) / w - 1.0
-    gy = (2.0 * (ys[None, :, None] + flow[:, 1]) + 1.0) / h - 1.0
-    grid = torch.stack([gx, gy], dim=-1)
-    return F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+flow_warp = ops.warp
+"""Backward-warp ``x`` ``(B, C, H, W)`` by ``flow`` ``(B, 2, H, W)`` (:func:`roguenerf.ops.flow.warp`)."""
 
 
 def upsample_flow(flow: Tensor, height: int, width: int) -> Tensor:
     """``(B, 2, h, w)`` flow at 1/8 resolution -> ``(B, 2, height, width)`` (values x 8)."""
-    up = F.interpolate(flow, scale_factor=FLOW_STRIDE, mode="bilinear", align_corners=False)
-    return up[..., :height, :width] * FLOW_STRIDE
+    return ops.upsample_flow(flow, height, width)
 
 
 class ConvGRU(nn.Module):
@@ -62,14 +45,7 @@ class ConvGRU(nn.Module):
 
     def forward(self, h: Tensor, x: Tensor) -> Tensor:
         hx = torch.cat([h, x], dim=1)
-        if fast_enabled(hx):
-            # z and r read the same input: one convolution with both gates' filters (same values).
-            weight = torch.cat([self.to_z.weight, self.to_r.weight])
-            bias = torch.cat([self.to_z.bias, self.to_r.bias])
-            z, r = torch.sigmoid(F.conv2d(hx, weight, bias, padding=1)).chunk(2, dim=1)
-        else:
-            z = torch.sigmoid(self.to_z(hx))
-            r = torch.sigmoid(self.to_r(hx))
+        z, r = ops.gru_gates(hx, self.to_z, self.to_r)
         q = torch.tanh(self.to_q(torch.cat([r * h, x], dim=1)))
         return (1 - z) * h + z * q
 
@@ -126,7 +102,7 @@ class FlowRefiner(nn.Module):
         n = len(neighbours)
         pooled = torch.cat([self._pool(x) for x in neighbours], dim=0)
         nb = self._encode_low(pooled)
-        tg = fastops.channels_last(target_low.repeat(n, 1, 1, 1))  # repeat gives NCHW; the convs want NHWC
+        tg = ops.channels_last(target_low.repeat(n, 1, 1, 1))  # repeat gives NCHW; the convs want NHWC
         return list(self._iterate(nb, tg, height, width, upsample=upsample).chunk(n, dim=0))
 
     def _iterate(self, nb: Tensor, tg: Tensor, height: int, width: int, *, upsample: bool = True) -> Tensor:
@@ -145,12 +121,7 @@ class FlowRefiner(nn.Module):
 
     def _pool(self, x: Tensor) -> Tensor:
         """``(B, C, H, W)`` -> ``(B, F, h, w)``: edge-padded to a multiple of 8, averaged, first F channels."""
-        if native.enabled(x) and x.dtype == torch.float32:
-            return native.pool8(x, self.encode[0].in_channels)
-        ph, pw = -x.shape[-2] % FLOW_STRIDE, -x.shape[-1] % FLOW_STRIDE
-        if ph or pw:
-            x = F.pad(x, (0, pw, 0, ph), mode="replicate")
-        return F.avg_pool2d(x, FLOW_STRIDE)[:, :self.encode[0].in_channels]
+        return ops.pool_flow(x, self.encode[0].in_channels)
 
     def _encode_low(self, low: Tensor) -> Tensor:
         return conv_act(self.encode[2:], conv_act(self.encode[:2], low))

@@ -1,7 +1,7 @@
 """Building blocks: conv encoders and the geometry-aware attention (paper sections 3.3, 3.5).
 
-Imports nothing from the rest of the package but :mod:`roguenerf.models.fastops`. Dimension letters: B batch, C channels,
-H x W image size, F feature channels.
+Imports nothing from the rest of the package but :mod:`roguenerf.ops` and its switches.
+Dimension letters: B batch, C channels, H x W image size, F feature channels.
 """
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from roguenerf import native
-from roguenerf.models import fastops
+from roguenerf import ops
+from roguenerf.fastpath import layout_enabled
 
 LEAKY_SLOPE = 0.01
 """Leaky ReLU slope of every conv block (supplementary, implementation details)."""
@@ -55,10 +55,7 @@ class ConvEncoder(nn.Sequential):
         he_init(self)
 
     def forward(self, x: Tensor) -> Tensor:
-        if not fastops.fast_enabled(x):
-            return super().forward(x)
-        x = fastops.conv2d(fastops.channels_last(x), self[0], "leaky_relu", LEAKY_SLOPE)
-        return fastops.conv2d(x, self[2], "leaky_relu", LEAKY_SLOPE)
+        return ops.conv_act(self, x)
 
 
 def receptive_radius(module: nn.Module) -> int:
@@ -82,11 +79,8 @@ def receptive_radius(module: nn.Module) -> int:
     return radius
 
 
-def conv_act(block: nn.Sequential, x: Tensor) -> Tensor:
-    """``block`` = Sequential(Conv2d, LeakyReLU) applied to ``x``, fused on the fast path (channels-last out)."""
-    if not fastops.fast_enabled(x):
-        return block(x)
-    return fastops.conv2d(fastops.channels_last(x), block[0], "leaky_relu", block[1].negative_slope)
+conv_act = ops.conv_act
+"""``block`` = Sequential(Conv2d, LeakyReLU) applied to ``x``, fused on the fast path (channels-last out)."""
 
 
 def cat_channels_last(tensors: list[Tensor]) -> Tensor:
@@ -136,24 +130,16 @@ class PixelAttention(nn.Module):
         f = target.shape[1]
         weight = torch.cat([conv.weight[:, f:2 * f], conv.weight[:, 2 * f + 1:]], dim=1)
         x = [target, target_depth]
-        x = cat_channels_last(x) if fastops.layout_enabled(target) else torch.cat(x, dim=1)
-        if native.enabled(x) and native.conv3x3_supported(conv):
-            return native.conv3x3(x, weight, conv.bias)
-        return F.conv2d(x, weight, conv.bias, padding=conv.padding)
+        x = cat_channels_last(x) if layout_enabled(target) else torch.cat(x, dim=1)
+        return ops.conv3x3(x, conv, weight, conv.bias)
 
     def neighbour_term(self, neighbour_and_depth: Tensor) -> Tensor:
         """``(B, hidden, H, W)``: the first conv's response to [H', D_i] (no bias), from a buffer
-        ``(B, F + 1 + extra, H, W)`` whose channels after D_i are ignored."""
+        ``(B, F + 1 + extra, H, W)`` whose channels after D_i are ignored (read in place)."""
         conv = self.net[0]
         f = (conv.weight.shape[1] - 2) // 2
-        if native.enabled(neighbour_and_depth) and native.conv3x3_supported(conv):
-            # reads the first F + 1 channels in place: no zero weights for the rest
-            weight = torch.cat([conv.weight[:, :f], conv.weight[:, 2 * f:2 * f + 1]], dim=1)
-            return native.conv3x3(neighbour_and_depth, weight)
-        extra = neighbour_and_depth.shape[1] - (f + 1)
-        weight = torch.cat([conv.weight[:, :f], conv.weight[:, 2 * f:2 * f + 1],
-                            conv.weight.new_zeros(conv.weight.shape[0], extra, *conv.weight.shape[2:])], dim=1)
-        return F.conv2d(neighbour_and_depth, weight, None, padding=conv.padding)
+        weight = torch.cat([conv.weight[:, :f], conv.weight[:, 2 * f:2 * f + 1]], dim=1)
+        return ops.conv3x3(neighbour_and_depth, conv, weight)
 
     def from_target_term(self, neighbour_and_depth: Tensor, term: Tensor) -> Tensor:
         """psi_pix from [H', D_i, ...] ``(B, F + 1 + extra, H, W)`` and :meth:`target_term`
@@ -170,7 +156,7 @@ class PixelAttention(nn.Module):
         else:
             hidden.add_(term)
         hidden = F.leaky_relu(hidden, self.net[1].negative_slope)
-        return torch.sigmoid(fastops.conv2d(hidden, self.net[2]))
+        return torch.sigmoid(ops.conv2d(hidden, self.net[2]))
 
 
 CAMERA_INPUTS = 9

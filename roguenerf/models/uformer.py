@@ -24,8 +24,7 @@ import torch.nn.functional as F
 from einops import rearrange
 from torch import Tensor, nn
 
-from roguenerf import native
-from roguenerf.models import fastops
+from roguenerf import ops
 from roguenerf.models.config import UformerConfig
 from roguenerf.models.layers import conv_act
 
@@ -80,40 +79,7 @@ class WindowAttention(nn.Module):
         return rearrange(b, "i j n -> n i j")
 
     def forward(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
-        qkv = fastops.linear(x, self.to_qkv)
-        if (self.fused and native.enabled(x)
-                and native.window_attention_supported(x.shape[1], x.shape[-1] // self.heads)):
-            out = native.window_attention(qkv, self._cached_bias(None)[0], mask, self.heads, self.scale)
-            return fastops.linear(out, self.to_out)
-        q, k, v = rearrange(qkv, "b l (three n d) -> three b n l d", three=3, n=self.heads)
-        if self.fused and fastops.fast_enabled(x):
-            out = self._fast_attention(q, k, v, mask)
-        else:
-            bias = self.bias()[None]
-            if mask is not None:
-                num_windows = mask.shape[0]
-                bias = rearrange(bias + mask[:, None], "nw n i j -> 1 nw n i j")
-                bias = bias.expand(x.shape[0] // num_windows, -1, -1, -1, -1).reshape(-1, *bias.shape[2:])
-            if self.fused and not fastops.in_reference_mode():
-                out = F.scaled_dot_product_attention(q, k, v, attn_mask=bias.to(q.dtype), scale=self.scale)
-            else:
-                attn = (q * self.scale) @ k.transpose(-2, -1) + bias
-                out = attn.softmax(dim=-1) @ v
-        return fastops.linear(rearrange(out, "b n l d -> b l (n d)"), self.to_out)
-
-    def _fast_attention(self, q: Tensor, k: Tensor, v: Tensor, mask: Tensor | None) -> Tensor:
-        """Fused attention with the bias broadcast over all windows; with a shift mask, only the
-        windows the mask touches (the last row and column of windows) are redone with it.
-        Elsewhere the mask is exactly 0, so the result equals the plain path. No gradient."""
-        bias, edges, edge_bias = self._cached_bias(mask)
-        out = F.scaled_dot_product_attention(q, k, v, attn_mask=bias[None], scale=self.scale)
-        if mask is not None and edges.numel():
-            num_windows = mask.shape[0]
-            images = q.shape[0] // num_windows
-            idx = (torch.arange(images, device=q.device)[:, None] * num_windows + edges[None]).flatten()
-            eb = edge_bias.repeat(images, 1, 1, 1) if images > 1 else edge_bias
-            out[idx] = F.scaled_dot_product_attention(q[idx], k[idx], v[idx], attn_mask=eb, scale=self.scale)
-        return out
+        return ops.window_attention(self, x, mask)
 
     def _cached_bias(self, mask: Tensor | None) -> tuple[Tensor, Tensor | None, Tensor | None]:
         """``(n, L, L)`` bias; with a mask also the windows it touches ``(E,)`` and their bias + mask
@@ -144,15 +110,8 @@ class LeFF(nn.Module):
 
     def forward(self, x: Tensor, residual: Tensor | None = None) -> Tensor:
         """``residual`` (fast path): returned as ``residual + leff(x)``, the sum fused into the
-        last linear, or the whole block one fused kernel (:func:`roguenerf.native.leff`)."""
-        if native.enabled(x) and native.leff_supported(x.shape[-1], self.linear1[0].out_features):
-            return native.leff(x, residual, self)
-        x = fastops.linear(x, self.linear1[0], "gelu")
-        # (B, H, W, C) permuted is a channels-last (B, C, H, W): no copy either way.
-        x = fastops.conv2d(x.permute(0, 3, 1, 2), self.dwconv[0], "gelu").permute(0, 2, 3, 1)
-        if residual is not None:
-            return fastops.linear_add(x, self.linear2, residual)
-        return fastops.linear(x, self.linear2)
+        last linear, or the whole block one fused kernel (:func:`roguenerf.ops.uformer.leff`)."""
+        return ops.leff(self, x, residual)
 
 
 def _shift_mask(h: int, w: int, win: int, shift: int, device) -> Tensor:
@@ -200,31 +159,8 @@ class LeWinBlock(nn.Module):
         win = self.win_size
         # As in the official code, a single window needs no shift.
         shift = win // 2 if self.shift and min(h, w) > win else 0
-        if (native.enabled(x) and self.modulator is None and not (self.training and self.drop_path.p)
-                and h % win == 0 and w % win == 0):  # (else the torch path below names the error)
-            # Same function: the whole attention half window by window in one pass, else the
-            # norms, roll, window (un)partition and residual in two fused passes around it.
-            mask = _shift_mask(h, w, win, shift, x.device) if shift else None
-            if self.attn.fused and native.lewin_attention_supported(win, x.shape[-1], self.attn.heads):
-                x, normed = native.lewin_attention(x, self.norm1, self.attn, mask, self.norm2, shift)
-            else:
-                y = self.attn(native.ln_partition(x, self.norm1, win, shift), mask)
-                x, normed = native.merge_ln(x, y, self.norm2, win, shift)
-            return self.mlp(normed, residual=x)
-        y = self.norm1(x)
-        mask = None
-        if shift:
-            y = torch.roll(y, shifts=(-shift, -shift), dims=(1, 2))
-            mask = _shift_mask(h, w, win, shift, x.device)
-        y = rearrange(y, "b (nh wh) (nw ww) c -> (b nh nw) (wh ww) c", wh=win, ww=win)
-        if self.modulator is not None:
-            y = y + self.modulator.weight
-        y = self.attn(y, mask)
-        y = rearrange(y, "(b nh nw) (wh ww) c -> b (nh wh) (nw ww) c", nh=h // win, nw=w // win, wh=win)
-        if shift:
-            y = torch.roll(y, shifts=(shift, shift), dims=(1, 2))
-        x = x + self.drop_path(y)
-        return x + self.drop_path(self.mlp(self.norm2(x)))
+        mask = _shift_mask(h, w, win, shift, x.device) if shift else None
+        return ops.lewin_block(self, x, shift, mask)
 
 
 class Stage(nn.Sequential):
@@ -297,10 +233,7 @@ class Uformer(nn.Module):
             y = up(y.permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
             y = decoder(torch.cat([y, skip], dim=-1))
         y = y.permute(0, 3, 1, 2)
-        if native.enabled(y) and native.conv3x3_supported(self.output_proj):
-            y = native.conv3x3(y, self.output_proj.weight, self.output_proj.bias)  # 3 channels: 2 ms less
-        else:
-            y = self.output_proj(y)
+        y = ops.conv3x3(y, self.output_proj)  # the C kernel for 3 channels: 2 ms less
         return y[..., :h, :w]
 
 

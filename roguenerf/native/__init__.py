@@ -26,7 +26,7 @@ do the torch fast path's float32 operations in its order, unfused; the attention
 may fuse multiply-adds, as oneDNN does, and the LeFF's GELU evaluates erf by a rational
 approximation (error below 1e-7, as oneDNN's own is an approximation). The callers use a kernel
 only where the torch fast path would run (no gradient, float32, CPU; never in
-``reference_mode()``, ``previous_fast_path()`` or :func:`disabled`). Results agree with the
+``reference_mode()`` or :func:`disabled`; :mod:`roguenerf.ops` chooses). Results agree with the
 plain implementation to float32 rounding (``tests/test_native.py``).
 
 Nothing is shipped pre-built: the first call compiles ``kernels.c`` with the system C compiler
@@ -59,7 +59,7 @@ import torch
 from torch import Tensor
 
 from roguenerf import profiling
-from roguenerf.fastpath import fast_enabled, in_previous_fast_path, switched, thread_switch
+from roguenerf.fastpath import fast_enabled, switched, thread_switch
 
 log = logging.getLogger(__name__)
 
@@ -182,10 +182,9 @@ def disabled(off: bool = True):
 
 
 def enabled(x: Tensor) -> bool:
-    """The kernels apply to ``x``: the torch fast path would run (not reference or previous mode,
-    no gradient, float32 CPU), they are not :func:`disabled`, and they are built."""
-    return (fast_enabled(x) and not in_previous_fast_path() and not switched("native_off")
-            and library() is not None)
+    """The kernels apply to ``x``: the torch fast path would run (not reference mode, no
+    gradient, float32 CPU), they are not :func:`disabled`, and they are built."""
+    return fast_enabled(x) and not switched("native_off") and library() is not None
 
 
 def _account(name: str, *tensors: Tensor | None) -> None:

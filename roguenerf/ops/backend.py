@@ -1,0 +1,52 @@
+"""The one place that chooses which body of an operation runs.
+
+Every operation of :mod:`roguenerf.ops` has up to four bodies that compute the same function
+(to float32 rounding; ``tests/test_fastpath.py``, ``tests/test_native.py``):
+
+* ``NATIVE``: a fused C kernel of :mod:`roguenerf.native`: no gradient recorded, float32 CPU
+  tensors, the kernels built and not :func:`roguenerf.native.disabled`;
+* ``FAST``: torch's fast path (oneDNN fused kernels, channels-last, gather sampling): no
+  gradient recorded, float32 CPU tensors;
+* ``TORCH``: the torch operators that also serve training and other dtypes / devices (fused
+  scaled-dot-product attention, channels-last convolutions), outside reference mode;
+* ``REFERENCE``: the plain implementation, the ground truth of the equality tests, inside
+  :func:`roguenerf.fastpath.reference_mode`.
+
+:func:`pick` applies these rules to an operation's tensors; an op that has no body of some
+kind takes the next one down (NATIVE -> FAST -> TORCH -> REFERENCE).
+"""
+
+from __future__ import annotations
+
+import enum
+
+from torch import Tensor
+
+from roguenerf import native
+from roguenerf.fastpath import fast_enabled, in_reference_mode
+
+
+class Body(enum.Enum):
+    NATIVE = "native"
+    FAST = "fast"
+    TORCH = "torch"
+    REFERENCE = "reference"
+
+    @property
+    def fast(self) -> bool:
+        """No gradient, float32 CPU, not reference mode: the native or the torch fast body."""
+        return self in (Body.NATIVE, Body.FAST)
+
+
+def pick(*tensors: Tensor, allow_native: bool = True) -> Body:
+    """The body an operation on ``tensors`` runs: NATIVE where every tensor takes the kernels
+    (:func:`roguenerf.native.enabled`) and ``allow_native``, else FAST where every tensor
+    takes the fast path (:func:`roguenerf.fastpath.fast_enabled`), else TORCH outside
+    reference mode, else REFERENCE."""
+    if in_reference_mode():
+        return Body.REFERENCE
+    if not all(fast_enabled(t) for t in tensors):
+        return Body.TORCH
+    if allow_native and all(native.enabled(t) for t in tensors):
+        return Body.NATIVE
+    return Body.FAST
