@@ -4,8 +4,9 @@ Legend: B batch, C channels, (H, W) target image, (Hs, Ws) neighbour ("src") ima
 
 Built from kornia's ``create_meshgrid``, ``transform_points`` and ``remap`` plus our own
 validity mask. This module checks the inputs; :func:`roguenerf.ops.reproject.reproject` holds
-the projection, sampling and masking bodies (fused kernel, torch fast path, reference). ``kornia.geometry.depth.warp_frame_depth`` is not used: it takes one K for
-both views, samples points behind the camera and fills zero depth from the principal point.
+the projection, sampling and masking bodies (fused kernel, torch fast path, reference).
+``kornia.geometry.depth.warp_frame_depth`` is not used: it takes one K for both views, samples
+points behind the camera and fills zero depth from the principal point.
 """
 
 from __future__ import annotations

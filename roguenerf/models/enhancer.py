@@ -48,7 +48,6 @@ from torch import Tensor, nn
 
 from roguenerf import ops
 from roguenerf.errors import InputError
-from roguenerf.fastpath import layout_enabled
 from roguenerf.geometry import euler_angles, reproject, sampling_source
 from roguenerf.geometry.cameras import check_intrinsics, check_pose
 from roguenerf.geometry.depth import DEPTH_EPS, MAX_DEPTH, known_depth, known_depth_mask, median_known_depth
@@ -221,8 +220,7 @@ class Enhancer(nn.Module):
                     pooled = [torch.zeros_like(feats)] * self.pooled_maps
                 parts = [feats, *pooled]
                 # channels-last also in training: its convolutions are faster
-                merged = conv_act(self.conv_merge,
-                                  cat_channels_last(parts) if layout_enabled(feats) else torch.cat(parts, dim=1))
+                merged = conv_act(self.conv_merge, ops.cat_channels(parts, like=feats))
         with stage("uformer"):
             residual = self.uformer(merged) if self.uformer is not None else self.to_rgb(merged)
         return render + residual
@@ -341,7 +339,7 @@ class Enhancer(nn.Module):
                 term = self.pixel_attention.target_term(feats, target_depth)
                 parts = [aligned, nb_rel.view(n * b, 1, h, w)]
                 psi_pix = self.pixel_attention.from_target_term(
-                    cat_channels_last(parts) if layout_enabled(feats) else torch.cat(parts, dim=1), term)
+                    ops.cat_channels(parts, like=feats), term)
                 psi_cam = self.camera_attention(camera_inputs.transpose(0, 1).reshape(n * b, -1))
                 aligned = psi_cam[:, :, None, None] * psi_pix * aligned
         with stage("fusion"):

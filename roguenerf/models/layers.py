@@ -11,7 +11,6 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from roguenerf import ops
-from roguenerf.fastpath import layout_enabled
 
 LEAKY_SLOPE = 0.01
 """Leaky ReLU slope of every conv block (supplementary, implementation details)."""
@@ -83,16 +82,8 @@ conv_act = ops.conv_act
 """``block`` = Sequential(Conv2d, LeakyReLU) applied to ``x``, fused on the fast path (channels-last out)."""
 
 
-def cat_channels_last(tensors: list[Tensor]) -> Tensor:
-    """``torch.cat(tensors, dim=1)`` written straight into a channels-last tensor (one copy;
-    ``torch.cat`` alone returns NCHW when a one-channel input is among channels-last ones).
-    With gradient (``out=`` has no autograd formula): the concatenation, then one layout copy."""
-    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-        return torch.cat(tensors, dim=1).contiguous(memory_format=torch.channels_last)
-    b, _, h, w = tensors[0].shape
-    out = torch.empty(b, sum(t.shape[1] for t in tensors), h, w, dtype=tensors[0].dtype,
-                      device=tensors[0].device, memory_format=torch.channels_last)
-    return torch.cat(tensors, dim=1, out=out)
+cat_channels_last = ops.cat_channels_last
+"""``torch.cat(tensors, dim=1)`` written straight into a channels-last tensor (:mod:`roguenerf.ops.fused`)."""
 
 
 class PixelAttention(nn.Module):
@@ -130,7 +121,7 @@ class PixelAttention(nn.Module):
         f = target.shape[1]
         weight = torch.cat([conv.weight[:, f:2 * f], conv.weight[:, 2 * f + 1:]], dim=1)
         x = [target, target_depth]
-        x = cat_channels_last(x) if layout_enabled(target) else torch.cat(x, dim=1)
+        x = ops.cat_channels(x, like=target)
         return ops.conv3x3(x, conv, weight, conv.bias)
 
     def neighbour_term(self, neighbour_and_depth: Tensor) -> Tensor:

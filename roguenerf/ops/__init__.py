@@ -5,21 +5,22 @@ kernels are built and allowed, else FAST, else TORCH (with gradient) or REFERENC
 :func:`~roguenerf.fastpath.reference_mode`). Model and geometry code call these functions; the
 reference bodies are the ground truth of ``tests/test_fastpath.py`` and ``tests/test_native.py``.
 
-=====================  ==========================================  ==============================
-operation              function                                    bodies
-=====================  ==========================================  ==============================
-reprojection           :func:`reproject`                           native, fast, reference
-sampling               :func:`sample`, :func:`pack_channels`       fast, reference
-window attention       :func:`window_attention`                    native, fast, torch, reference
-LeWin block            :func:`lewin_block`                         native, torch / reference
-LeFF                   :func:`leff`                                native, fast, reference
-pixel attention tail   :func:`attend_pool`, :func:`pool_neighbours`  native, fast
-flow                   :func:`warp`, :func:`upsample_warp`,        native, fast, reference
-                       :func:`pool_flow`, :func:`gru_gates`
-3x3 convolution        :func:`conv3x3`                             native, torch
-linear / conv + act    :func:`linear`, :func:`linear_add`,         fast (oneDNN), reference
-                       :func:`conv2d`, :func:`conv_act`
-=====================  ==========================================  ==============================
+====================  ============================================  ==============================
+operation             function                                      bodies
+====================  ============================================  ==============================
+reprojection          :func:`reproject`                             native, fast, reference
+sampling              :func:`sample`                                fast, reference
+window attention      :func:`window_attention`                      native, fast, torch, reference
+LeWin block           :func:`lewin_block`                           native, torch / reference
+LeFF                  :func:`leff`                                  native, fast, reference
+pixel attention tail  :func:`attend_pool`, :func:`pool_neighbours`  native, fast
+flow                  :func:`warp`, :func:`upsample_warp`,          native, fast, reference
+                      :func:`pool_flow`, :func:`gru_gates`
+3x3 convolution       :func:`conv3x3`                               native, torch
+linear / conv + act   :func:`linear`, :func:`linear_add`,           fast (oneDNN), reference
+                      :func:`conv2d`, :func:`conv_act`
+concatenation         :func:`cat_channels`, :func:`pack_channels`   channels-last, plain
+====================  ============================================  ==============================
 """
 
 from roguenerf.ops import flow
@@ -29,10 +30,20 @@ from roguenerf.ops.backend import Body, pick
 from roguenerf.ops.flow import gru_gates, upsample_warp, warp
 from roguenerf.ops.flow import pool as pool_flow
 from roguenerf.ops.flow import upsample as upsample_flow
-from roguenerf.ops.fused import channels_last, conv2d, conv3x3, conv_act, linear, linear_add
+from roguenerf.ops.fused import (
+    cat_channels,
+    cat_channels_last,
+    channels_last,
+    conv2d,
+    conv3x3,
+    conv_act,
+    linear,
+    linear_add,
+)
 from roguenerf.ops.reproject import pack_channels, reproject, sample
 from roguenerf.ops.uformer import leff, lewin_block, window_attention
 
-__all__ = ["Body", "attend_pool", "channels_last", "conv2d", "conv3x3", "conv_act", "flow", "gru_gates", "leff",
-           "lewin_block", "linear", "linear_add", "pack_channels", "pick", "pool_flow", "pool_neighbours",
-           "reproject", "sample", "upsample_flow", "upsample_warp", "warp", "window_attention"]
+__all__ = ["Body", "attend_pool", "cat_channels", "cat_channels_last", "channels_last", "conv2d", "conv3x3",
+           "conv_act", "flow", "gru_gates", "leff", "lewin_block", "linear", "linear_add", "pack_channels", "pick",
+           "pool_flow", "pool_neighbours", "reproject", "sample", "upsample_flow", "upsample_warp", "warp",
+           "window_attention"]

@@ -26,9 +26,11 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from roguenerf import native
+from roguenerf.fastpath import layout_enabled
 from roguenerf.ops.backend import Body, pick
 
-__all__ = ["channels_last", "conv2d", "conv3x3", "conv_act", "linear", "linear_add", "mkldnn_fused_available"]
+__all__ = ["cat_channels", "cat_channels_last", "channels_last", "conv2d", "conv3x3", "conv_act", "linear",
+           "linear_add", "mkldnn_fused_available"]
 
 
 @functools.lru_cache(maxsize=1)
@@ -136,3 +138,22 @@ def conv3x3(x: Tensor, conv: nn.Conv2d, weight: Tensor | None = None, bias: Tens
     if extra:
         weight = torch.cat([weight, weight.new_zeros(weight.shape[0], extra, *weight.shape[2:])], dim=1)
     return F.conv2d(x, weight, bias, padding=conv.padding)
+
+
+def cat_channels_last(tensors: list[Tensor]) -> Tensor:
+    """``torch.cat(tensors, dim=1)`` written straight into a channels-last tensor (one copy;
+    ``torch.cat`` alone returns NCHW when a one-channel input is among channels-last ones).
+    With gradient (``out=`` has no autograd formula): the concatenation, then one layout copy."""
+    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+        return torch.cat(tensors, dim=1).contiguous(memory_format=torch.channels_last)
+    b, _, h, w = tensors[0].shape
+    out = torch.empty(b, sum(t.shape[1] for t in tensors), h, w, dtype=tensors[0].dtype,
+                      device=tensors[0].device, memory_format=torch.channels_last)
+    return torch.cat(tensors, dim=1, out=out)
+
+
+def cat_channels(tensors: list[Tensor], like: Tensor) -> Tensor:
+    """``torch.cat(tensors, dim=1)``, channels-last where that layout applies to ``like``
+    (:func:`roguenerf.fastpath.layout_enabled`: float32 CPU outside reference mode, also with
+    gradient: oneDNN's convolutions are faster on it)."""
+    return cat_channels_last(tensors) if layout_enabled(like) else torch.cat(tensors, dim=1)
