@@ -53,12 +53,14 @@ import shutil
 import subprocess
 import tempfile
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
 from roguenerf import profiling
+from roguenerf.errors import InputError
 from roguenerf.fastpath import fast_enabled, switched, thread_switch
 
 log = logging.getLogger(__name__)
@@ -196,60 +198,133 @@ def _threads() -> int:
     return max(1, torch.get_num_threads())
 
 
-def _ptr(x: Tensor) -> int:
+class NativeArgumentError(InputError):
+    """A tensor (or size) handed to a C kernel is not what the kernel reads: wrong dtype, not on
+    the CPU, not in the expected memory layout, or of the wrong shape. Raised by :func:`_call`
+    before the kernel runs, instead of letting it read or write the wrong memory."""
+
+
+@dataclass(frozen=True)
+class _Arg:
+    """A tensor argument of a kernel, with what the kernel expects of it (see :func:`_arg`)."""
+
+    name: str
+    tensor: Tensor | None
+    shape: tuple[int | None, ...]
+    layout: str
+    optional: bool
+
+
+def _arg(name: str, tensor: Tensor | None, shape: tuple[int | None, ...], *, layout: str = "contiguous",
+         optional: bool = False) -> _Arg:
+    """A float32 CPU tensor argument for :func:`_call`: ``shape`` its sizes (None: any),
+    ``layout`` "contiguous" (row-major) or "channels_last" (a 4-D NHWC buffer), ``optional``: it
+    may be None (a NULL pointer)."""
+    return _Arg(name, tensor, tuple(shape), layout, optional)
+
+
+def _pointer(kernel: str, arg: _Arg) -> int | None:
+    """``arg``'s data pointer, after checking its dtype, device, shape and layout."""
+    x, where = arg.tensor, f"roguenerf.native.{kernel}: argument {arg.name!r}"
+    if x is None:
+        if arg.optional:
+            return None
+        raise NativeArgumentError(f"{where}: expected a tensor, got None")
+    if not isinstance(x, Tensor):
+        raise NativeArgumentError(f"{where}: expected a tensor, got {type(x).__name__}")
+    if x.dtype != torch.float32:
+        raise NativeArgumentError(f"{where}: expected dtype torch.float32, got {x.dtype}")
+    if x.device.type != "cpu":
+        raise NativeArgumentError(f"{where}: expected a CPU tensor, got device {x.device}")
+    if x.ndim != len(arg.shape) or any(want is not None and got != want
+                                       for got, want in zip(x.shape, arg.shape, strict=True)):
+        want = "(" + ", ".join("*" if d is None else str(d) for d in arg.shape) + ")"
+        raise NativeArgumentError(f"{where}: expected shape {want}, got {tuple(x.shape)}")
+    if arg.layout == "channels_last":
+        ok = x.ndim == 4 and x.is_contiguous(memory_format=torch.channels_last)
+    else:
+        ok = x.is_contiguous()
+    if not ok:
+        raise NativeArgumentError(f"{where}: expected a {arg.layout.replace('_', '-')} tensor, got shape "
+                                  f"{tuple(x.shape)} with strides {x.stride()}")
     return x.data_ptr()
 
 
-def _channels_last(x: Tensor) -> Tensor:
-    return x.contiguous(memory_format=torch.channels_last)
+def _call(kernel: str, *args):
+    """The one door to the kernels: ``library().<kernel>(*args)`` after checking every tensor
+    argument (given as :func:`_arg`; each becomes its data pointer) and that tensors stand
+    exactly where the kernel's signature has pointers. Raises :class:`NativeArgumentError`
+    before the call on any mismatch."""
+    _, argtypes = _SIGNATURES[kernel]
+    if len(args) != len(argtypes):
+        raise NativeArgumentError(f"roguenerf.native.{kernel}: expected {len(argtypes)} arguments, got {len(args)}")
+    values = []
+    for i, (value, kind) in enumerate(zip(args, argtypes, strict=True)):
+        if (kind is _p) != isinstance(value, _Arg):
+            raise NativeArgumentError(f"roguenerf.native.{kernel}: argument {i} must be "
+                                      f"{'a tensor' if kind is _p else 'a number'}, got {type(value).__name__}")
+        values.append(_pointer(kernel, value) if kind is _p else value)
+    return getattr(library(), kernel)(*values)
+
+
+def _sizes(kernel: str, **checks: bool) -> None:
+    """Raise :class:`NativeArgumentError` naming the first of ``checks`` (a size relation the
+    kernel relies on, by name) that is False."""
+    for name, ok in checks.items():
+        if not ok:
+            raise NativeArgumentError(f"roguenerf.native.{kernel}: expected {name.replace('_', ' ')}")
+
+
+def _norm_args(prefix: str, norm: torch.nn.LayerNorm, c: int) -> tuple[_Arg, _Arg]:
+    return (_arg(f"{prefix}.weight", norm.weight.detach(), (c,)), _arg(f"{prefix}.bias", norm.bias.detach(), (c,)))
 
 
 def reproject(depth: Tensor, rows: Tensor, cols: Tensor, offset: Tensor, source: Tensor, *,
               eps: float, max_depth: float, leniency: float) -> tuple[Tensor, Tensor]:
     """One neighbour into B targets: ``depth`` ``(B, 1, H, W)``, the projection's per-row
-    ``(B, 3, H)`` and per-column ``(B, 3, W)`` terms and ``offset`` ``(B, 3)`` (float32, from
-    :func:`roguenerf.geometry.reproject._projection_terms`), ``source`` ``(B, Cs, Hs, Ws)`` ->
-    the packed ``(B, Cs, H, W)`` channels-last buffer [features * valid, depth, valid] and
-    ``coords`` ``(B, H, W, 2)``."""
+    ``(B, 3, H)`` and per-column ``(B, 3, W)`` terms and ``offset`` ``(B, 3)`` (float32,
+    contiguous, from :func:`roguenerf.ops.reproject.projection_terms`), ``source``
+    ``(B, Cs, Hs, Ws)`` channels-last -> the packed ``(B, Cs, H, W)`` channels-last buffer
+    [features * valid, depth, valid] and ``coords`` ``(B, H, W, 2)``."""
     b, cs, hs, ws = source.shape
     h, w = depth.shape[-2:]
-    depth = depth.contiguous()
-    source = _channels_last(source)
-    rows, cols, offset = rows.contiguous(), cols.contiguous(), offset.contiguous()
     out = torch.empty(b, cs, h, w, memory_format=torch.channels_last)
     coords = torch.empty(b, h, w, 2)
-    library().rg_reproject(_ptr(depth), _ptr(rows), _ptr(cols), _ptr(offset), _ptr(source), _ptr(out),
-                           _ptr(coords), b, h, w, hs, ws, cs, eps, max_depth,
-                           1.0 + leniency, _threads())  # ctypes rounds it to float32, as torch's product does
+    _call("rg_reproject", _arg("depth", depth, (b, 1, h, w)), _arg("rows", rows, (b, 3, h)),
+          _arg("cols", cols, (b, 3, w)), _arg("offset", offset, (b, 3)),
+          _arg("source", source, (b, cs, hs, ws), layout="channels_last"),
+          _arg("out", out, (b, cs, h, w), layout="channels_last"), _arg("coords", coords, (b, h, w, 2)),
+          b, h, w, hs, ws, cs, eps, max_depth, 1.0 + leniency, _threads())  # ctypes rounds it to float32, as torch
     _account("reproject", depth, source, out, coords)
     return out, coords
 
 
 def flow_warp(x: Tensor, flow_low: Tensor, *, depth_scale: Tensor | None = None, depth_channel: int = 0,
               depth_max: float = 0.0) -> Tensor | None:
-    """``flow_warp(x, upsample_flow(flow_low, H, W))`` in one pass: ``x`` ``(B, Cs, H, W)``,
-    ``flow_low`` ``(B, 2, h, w)`` -> ``(B, Cs, H, W)`` channels-last. With ``depth_scale``
-    ``(B,)``, channel ``depth_channel`` of the result is then ``clamp(v / scale, 0, depth_max)``.
-    None where a sample coordinate is not finite (the caller takes the torch path)."""
+    """``flow_warp(x, upsample_flow(flow_low, H, W))`` in one pass: ``x`` ``(B, Cs, H, W)``
+    channels-last, ``flow_low`` ``(B, 2, h, w)`` -> ``(B, Cs, H, W)`` channels-last. With
+    ``depth_scale`` ``(B,)``, channel ``depth_channel`` of the result is then
+    ``clamp(v / scale, 0, depth_max)``. None where a sample coordinate is not finite (the
+    caller takes the torch path)."""
     b, cs, h, w = x.shape
-    x = _channels_last(x)
-    flow_low = flow_low.contiguous()
+    _sizes("flow_warp", depth_channel_within_the_channels=depth_scale is None or 0 <= depth_channel < cs)
     out = torch.empty(b, cs, h, w, memory_format=torch.channels_last)
-    scale = depth_scale.contiguous() if depth_scale is not None else None
-    bad = library().rg_flow_warp(_ptr(x), _ptr(flow_low), _ptr(out), b, h, w, cs, flow_low.shape[-2],
-                                 flow_low.shape[-1], _ptr(scale) if scale is not None else None,
-                                 depth_channel, depth_max, _threads())
+    bad = _call("rg_flow_warp", _arg("x", x, (b, cs, h, w), layout="channels_last"),
+                _arg("flow_low", flow_low, (b, 2, None, None)), _arg("out", out, (b, cs, h, w), layout="channels_last"),
+                b, h, w, cs, flow_low.shape[-2], flow_low.shape[-1],
+                _arg("depth_scale", depth_scale, (b,), optional=True), depth_channel, depth_max, _threads())
     _account("flow_warp", x, flow_low, out)
     return None if bad else out
 
 
 def pool8(x: Tensor, channels: int) -> Tensor:
-    """Edge-padded 8 x 8 average pool of the first ``channels`` channels: ``(B, Cs, H, W)`` ->
-    ``(B, channels, ceil(H / 8), ceil(W / 8))`` channels-last."""
+    """Edge-padded 8 x 8 average pool of the first ``channels`` channels: ``(B, Cs, H, W)``
+    channels-last -> ``(B, channels, ceil(H / 8), ceil(W / 8))`` channels-last."""
     b, cs, h, w = x.shape
-    x = _channels_last(x)
+    _sizes("pool8", channels_within_the_input_channels=0 < channels <= cs)
     out = torch.empty(b, channels, -(-h // 8), -(-w // 8), memory_format=torch.channels_last)
-    library().rg_pool8(_ptr(x), _ptr(out), b, h, w, cs, channels, _threads())
+    _call("rg_pool8", _arg("x", x, (b, cs, h, w), layout="channels_last"),
+          _arg("out", out, (b, channels, None, None), layout="channels_last"), b, h, w, cs, channels, _threads())
     _account("pool8", x[:, :channels], out)
     return out
 
@@ -262,21 +337,26 @@ def attend_pool(hidden: Tensor, term: Tensor, conv: torch.nn.Conv2d, slope: floa
     ``a = buf[:, :features] * psi``, then ``pooled = max(pooled, a)`` and (``spread``)
     ``low = min(low, a)``, in place; ``pooled`` None starts both at ``a``.
 
-    ``hidden``, ``term`` ``(B, Hd, H, W)``; ``conv`` a 3 x 3 convolution Hd -> 1 (zero padding);
-    ``camera`` ``(B, 1)``; ``buf`` ``(B, Cs, H, W)``. Returns ``(pooled, low)``
-    ``(B, features, H, W)`` channels-last (low None without ``spread``)."""
+    ``hidden``, ``term`` ``(B, Hd, H, W)`` channels-last; ``conv`` a 3 x 3 convolution Hd -> 1
+    (zero padding); ``camera`` ``(B, 1)``; ``buf`` ``(B, Cs, H, W)`` channels-last. Returns
+    ``(pooled, low)`` ``(B, features, H, W)`` channels-last (low None without ``spread``)."""
     b, hd, h, w = hidden.shape
     cs = buf.shape[1]
-    hidden, term, buf = _channels_last(hidden), _channels_last(term), _channels_last(buf)
+    _sizes("attend_pool", features_within_the_buffer_channels=0 < features <= cs,
+           a_running_min_with_spread=pooled is None or (low is not None) == spread)
     weight = conv.weight.detach().reshape(hd, 9).contiguous()
-    camera = camera.detach().reshape(b).contiguous()
+    camera = camera.detach().reshape(b)
     first = pooled is None
     if first:
         pooled = torch.empty(b, features, h, w, memory_format=torch.channels_last)
         low = torch.empty(b, features, h, w, memory_format=torch.channels_last) if spread else None
-    if library().rg_attend_pool(_ptr(hidden), _ptr(term), _ptr(weight), float(conv.bias.detach()[0]), slope,
-                                _ptr(camera), _ptr(buf), _ptr(pooled), _ptr(low) if low is not None else None,
-                                b, h, w, hd, cs, features, int(first), _threads()):
+    cl = "channels_last"
+    if _call("rg_attend_pool", _arg("hidden", hidden, (b, hd, h, w), layout=cl),
+             _arg("term", term, (b, hd, h, w), layout=cl), _arg("weight", weight, (hd, 9)),
+             float(conv.bias.detach()[0]), slope, _arg("camera", camera, (b,)),
+             _arg("buf", buf, (b, cs, h, w), layout=cl), _arg("pooled", pooled, (b, features, h, w), layout=cl),
+             _arg("low", low, (b, features, h, w), layout=cl, optional=True),
+             b, h, w, hd, cs, features, int(first), _threads()):
         raise MemoryError("roguenerf.native.attend_pool: out of memory for its row buffers")
     _account("attend_pool", hidden, term, buf[:, :features], pooled, low, *(() if first else (pooled, low)))
     profiling.add_flops(2 * 9 * hd * b * h * w)  # the Hd -> 1 convolution, as torch would count it
@@ -284,28 +364,30 @@ def attend_pool(hidden: Tensor, term: Tensor, conv: torch.nn.Conv2d, slope: floa
 
 
 def ln_partition(x: Tensor, norm: torch.nn.LayerNorm, win: int, shift: int) -> Tensor:
-    """A LeWin block's attention input: ``x`` ``(B, H, W, C)`` (H, W multiples of ``win``) ->
-    windows of ``roll(norm(x), (-shift, -shift))``, ``(B * H/win * W/win, win * win, C)``."""
+    """A LeWin block's attention input: ``x`` ``(B, H, W, C)`` contiguous (H, W multiples of
+    ``win``) -> windows of ``roll(norm(x), (-shift, -shift))``, ``(B * H/win * W/win, win * win, C)``."""
     b, h, w, c = x.shape
-    x = x.contiguous()
+    _sizes("ln_partition", image_sides_multiples_of_the_window=win > 0 and h % win == 0 and w % win == 0)
     out = torch.empty(b * (h // win) * (w // win), win * win, c)
-    library().rg_ln_partition(_ptr(x), _ptr(out), _ptr(norm.weight), _ptr(norm.bias), norm.eps,
-                              b, h, w, c, win, shift, _threads())
+    _call("rg_ln_partition", _arg("x", x, (b, h, w, c)), _arg("out", out, tuple(out.shape)),
+          *_norm_args("norm", norm, c), norm.eps, b, h, w, c, win, shift, _threads())
     _account("ln_partition", x, out)
     return out
 
 
 def merge_ln(x: Tensor, tokens: Tensor, norm: torch.nn.LayerNorm, win: int, shift: int) -> tuple[Tensor, Tensor]:
     """The attention's windows back into the image with the residual, and the next LayerNorm:
-    ``x + roll(merge(tokens), (shift, shift))`` and ``norm`` of it, both ``(B, H, W, C)``."""
+    ``x + roll(merge(tokens), (shift, shift))`` and ``norm`` of it, both ``(B, H, W, C)``
+    (``x``, ``tokens`` contiguous)."""
     b, h, w, c = x.shape
-    x, tokens = x.contiguous(), tokens.contiguous()
-    out, normed = torch.empty_like(x), torch.empty_like(x)
-    library().rg_merge_ln(_ptr(x), _ptr(tokens), _ptr(out), _ptr(normed), _ptr(norm.weight), _ptr(norm.bias),
-                          norm.eps, b, h, w, c, win, shift, _threads())
+    _sizes("merge_ln", image_sides_multiples_of_the_window=win > 0 and h % win == 0 and w % win == 0)
+    out, normed = torch.empty_like(x, memory_format=torch.contiguous_format), torch.empty(b, h, w, c)
+    windows = b * (h // win) * (w // win)
+    _call("rg_merge_ln", _arg("x", x, (b, h, w, c)), _arg("tokens", tokens, (windows, win * win, c)),
+          _arg("out", out, (b, h, w, c)), _arg("normed", normed, (b, h, w, c)), *_norm_args("norm", norm, c),
+          norm.eps, b, h, w, c, win, shift, _threads())
     _account("merge_ln", x, tokens, out, normed)
     return out, normed
-
 
 
 def window_attention_supported(tokens: int, head_channels: int) -> bool:
@@ -315,18 +397,21 @@ def window_attention_supported(tokens: int, head_channels: int) -> bool:
 
 def window_attention(qkv: Tensor, bias: Tensor, mask: Tensor | None, heads: int, scale: float) -> Tensor:
     """``softmax(scale * q k^T + bias [+ mask]) v`` per 16-token window and head: ``qkv``
-    ``(WB, 16, 3 C)`` (channels q, k, v, each heads x d), ``bias`` ``(heads, 16, 16)``, ``mask``
-    ``(nW, 16, 16)`` (window ``w`` uses ``mask[w % nW]``) or None -> ``(WB, 16, C)`` (heads x d)."""
+    ``(WB, 16, 3 C)`` contiguous (channels q, k, v, each heads x d), ``bias`` ``(heads, 16, 16)``,
+    ``mask`` ``(nW, 16, 16)`` contiguous (window ``w`` uses ``mask[w % nW]``) or None ->
+    ``(WB, 16, C)`` (heads x d)."""
     wb, _, c3 = qkv.shape
     c = c3 // 3
     if mask is not None and wb % mask.shape[0]:
-        raise ValueError(f"window_attention: {wb} windows are not a whole number of images of {mask.shape[0]}")
-    qkv, bias_t = qkv.contiguous(), bias.transpose(-1, -2).contiguous()  # the kernel's scores are transposed
-    mask = mask.contiguous() if mask is not None else None
+        raise NativeArgumentError(f"roguenerf.native.window_attention: {wb} windows are not a whole number of "
+                                  f"images of {mask.shape[0]}")
+    _sizes("window_attention", channels_three_times_heads_times_d=c3 == 3 * c and heads > 0 and c % heads == 0)
+    bias_t = bias.detach().transpose(-1, -2).contiguous()  # the kernel's scores are transposed
     out = torch.empty(wb, 16, c)
-    library().rg_window_attention16(_ptr(qkv), _ptr(bias_t), _ptr(mask) if mask is not None else None, _ptr(out),
-                                    wb, mask.shape[0] if mask is not None else 1, heads, c // heads, scale,
-                                    _threads())
+    nw = mask.shape[0] if mask is not None else 1
+    _call("rg_window_attention16", _arg("qkv", qkv, (wb, 16, 3 * c)), _arg("bias", bias_t, (heads, 16, 16)),
+          _arg("mask", mask, (nw, 16, 16), optional=True), _arg("out", out, (wb, 16, c)),
+          wb, nw, heads, c // heads, scale, _threads())
     _account("window_attention", qkv, out)
     profiling.add_flops(4 * wb * 16 * 16 * c)  # q k^T and p v, as torch counts attention
     return out
@@ -340,26 +425,29 @@ def lewin_attention_supported(win: int, channels: int, heads: int) -> bool:
 
 def lewin_attention(x: Tensor, norm1: torch.nn.LayerNorm, attn: torch.nn.Module, mask: Tensor | None,
                     norm2: torch.nn.LayerNorm, shift: int) -> tuple[Tensor, Tensor]:
-    """A LeWin block's attention half in one pass, window by window: ``x`` ``(B, H, W, C)`` ->
-    ``x + roll(merge(attn(partition(roll(norm1(x), -shift)), mask)), shift)`` and ``norm2`` of it
-    (what :func:`ln_partition`, the attention's linears, :func:`window_attention` and
-    :func:`merge_ln` compute in five passes). ``attn`` a
+    """A LeWin block's attention half in one pass, window by window: ``x`` ``(B, H, W, C)``
+    contiguous -> ``x + roll(merge(attn(partition(roll(norm1(x), -shift)), mask)), shift)`` and
+    ``norm2`` of it (what :func:`ln_partition`, the attention's linears, :func:`window_attention`
+    and :func:`merge_ln` compute in five passes). ``attn`` a
     :class:`roguenerf.models.uformer.WindowAttention` with 4 x 4 windows; ``mask`` ``(H/4 * W/4,
-    16, 16)`` or None; see :func:`lewin_attention_supported`."""
+    16, 16)`` contiguous or None; see :func:`lewin_attention_supported`."""
     b, h, w, c = x.shape
     if mask is not None and mask.shape[0] != (h // 4) * (w // 4):
-        raise ValueError(f"lewin_attention: a mask of {mask.shape[0]} windows for a {h} x {w} image")
-    x = x.contiguous()
+        raise NativeArgumentError(f"roguenerf.native.lewin_attention: a mask of {mask.shape[0]} windows for a "
+                                  f"{h} x {w} image")
+    _sizes("lewin_attention", image_sides_multiples_of_4=h % 4 == 0 and w % 4 == 0,
+           a_supported_window_and_channel_count=lewin_attention_supported(attn.win_size, c, attn.heads))
     qkv, out, table = attn.to_qkv, attn.to_out, attn.relative_position_bias_table
     wqkv, bqkv, wout, bout, bias_t = _packed(attn, (qkv.weight, qkv.bias, out.weight, out.bias, table), lambda: (
         qkv.weight.t().contiguous(), qkv.bias.contiguous(), out.weight.t().contiguous(), out.bias.contiguous(),
         attn.bias().transpose(-1, -2).contiguous()))  # the kernel's scores are transposed
-    mask = mask.contiguous() if mask is not None else None
-    x_out, normed = torch.empty_like(x), torch.empty_like(x)
-    if library().rg_lewin_attention(
-            _ptr(x), _ptr(x_out), _ptr(normed), _ptr(norm1.weight), _ptr(norm1.bias), norm1.eps, _ptr(wqkv),
-            _ptr(bqkv), _ptr(bias_t), _ptr(mask) if mask is not None else None, _ptr(wout), _ptr(bout),
-            _ptr(norm2.weight), _ptr(norm2.bias), norm2.eps, b, h, w, c, attn.heads, shift, attn.scale, _threads()):
+    x_out, normed = torch.empty(b, h, w, c), torch.empty(b, h, w, c)
+    if _call("rg_lewin_attention", _arg("x", x, (b, h, w, c)), _arg("x_out", x_out, (b, h, w, c)),
+             _arg("normed", normed, (b, h, w, c)), *_norm_args("norm1", norm1, c), norm1.eps,
+             _arg("wqkv", wqkv, (c, 3 * c)), _arg("bqkv", bqkv, (3 * c,)), _arg("bias", bias_t, (attn.heads, 16, 16)),
+             _arg("mask", mask, ((h // 4) * (w // 4), 16, 16), optional=True), _arg("wout", wout, (c, c)),
+             _arg("bout", bout, (c,)), *_norm_args("norm2", norm2, c), norm2.eps,
+             b, h, w, c, attn.heads, shift, attn.scale, _threads()):
         raise MemoryError("roguenerf.native.lewin_attention: out of memory for its window buffers")
     _account("lewin_attention", x, x_out, normed)
     profiling.add_flops(b * h * w * (8 * c * c + 4 * 16 * c))  # the two linears (3C + C outputs) and the attention
@@ -368,7 +456,7 @@ def lewin_attention(x: Tensor, norm1: torch.nn.LayerNorm, attn: torch.nn.Module,
 
 def vector_width() -> int:
     """Float lanes per vector the kernels were compiled for: 16 with AVX-512, 8 with AVX, else 4."""
-    return library().rg_vector_width()
+    return _call("rg_vector_width")
 
 
 def leff_supported(channels: int, hidden: int) -> bool:
@@ -416,16 +504,17 @@ def _leff_weights(module: torch.nn.Module) -> tuple[Tensor, ...]:
 
 def leff(x: Tensor, residual: Tensor | None, module: torch.nn.Module) -> Tensor:
     """``residual + module(x)`` for a :class:`roguenerf.models.uformer.LeFF` ``module``
-    (``linear2(gelu(dwconv(gelu(linear1(x)))))``), ``x`` and ``residual`` ``(B, H, W, C)``, in one
-    pass; see :func:`leff_supported` for the shapes it takes."""
+    (``linear2(gelu(dwconv(gelu(linear1(x)))))``), ``x`` and ``residual`` ``(B, H, W, C)``
+    contiguous, in one pass; see :func:`leff_supported` for the shapes it takes."""
     b, h, w, c = x.shape
     hidden = module.linear1[0].out_features
-    x = x.contiguous()
-    residual = residual.contiguous() if residual is not None else None
+    _sizes("leff", a_supported_channel_count=leff_supported(c, hidden) and module.linear2.out_features == c)
     w1, b1, wdw, bdw, w2, b2 = _leff_weights(module)
-    out = torch.empty_like(x)
-    if library().rg_leff(_ptr(x), _ptr(residual) if residual is not None else None, _ptr(out), _ptr(w1), _ptr(b1),
-                         _ptr(wdw), _ptr(bdw), _ptr(w2), _ptr(b2), b, h, w, c, hidden, _threads()):
+    out = torch.empty(b, h, w, c)
+    if _call("rg_leff", _arg("x", x, (b, h, w, c)), _arg("residual", residual, (b, h, w, c), optional=True),
+             _arg("out", out, (b, h, w, c)), _arg("w1", w1, (c * hidden,)), _arg("b1", b1, (hidden,)),
+             _arg("wdw", wdw, (9, hidden)), _arg("bdw", bdw, (hidden,)), _arg("w2", w2, (hidden * c,)),
+             _arg("b2", b2, (c,)), b, h, w, c, hidden, _threads()):
         raise MemoryError("roguenerf.native.leff: out of memory for its row buffers")
     _account("leff", x, residual, out)
     profiling.add_flops(2 * b * h * w * hidden * (2 * c + 9))  # the two linears and the 3 x 3 depthwise conv
@@ -439,16 +528,16 @@ def conv3x3_supported(conv: torch.nn.Conv2d) -> bool:
 
 
 def conv3x3(x: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
-    """``conv2d(x[:, :Cin], weight, bias, padding=1)`` for ``x`` ``(B, Cs, H, W)`` with
-    ``Cs >= Cin`` and ``weight`` ``(Co, Cin, 3, 3)`` -> ``(B, Co, H, W)`` channels-last: the
+    """``conv2d(x[:, :Cin], weight, bias, padding=1)`` for ``x`` ``(B, Cs, H, W)`` channels-last
+    with ``Cs >= Cin`` and ``weight`` ``(Co, Cin, 3, 3)`` -> ``(B, Co, H, W)`` channels-last: the
     channels of ``x`` past ``Cin`` are skipped without a copy. The kernel works in blocks of 8
     output channels: other counts are computed with zero weights up to the next multiple of 8
     and returned as a view of the first ``Co`` (the Uformer's 3-channel output)."""
     b, cs, h, w = x.shape
     co, cin = weight.shape[:2]
     if cin > cs or tuple(weight.shape[2:]) != (3, 3):
-        raise ValueError(f"conv3x3: weight {tuple(weight.shape)} does not fit input {tuple(x.shape)}")
-    x = _channels_last(x)
+        raise NativeArgumentError(f"roguenerf.native.conv3x3: weight {tuple(weight.shape)} does not fit input "
+                                  f"{tuple(x.shape)}")
     weight = weight.detach()
     bias = bias.detach() if bias is not None else None
     padded = -(-co // 8) * 8
@@ -458,8 +547,10 @@ def conv3x3(x: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
     packed = weight.permute(2, 3, 1, 0).contiguous()  # (3, 3, Cin, Co)
     bias = bias.contiguous() if bias is not None else None
     out = torch.empty(b, padded, h, w, memory_format=torch.channels_last)
-    library().rg_conv3x3(_ptr(x), _ptr(packed), _ptr(bias) if bias is not None else None, _ptr(out), b, h, w, cs,
-                         cin, padded, _threads())
+    _call("rg_conv3x3", _arg("x", x, (b, cs, h, w), layout="channels_last"),
+          _arg("weight", packed, (3, 3, cin, padded)),
+          _arg("bias", bias, (padded,), optional=True), _arg("out", out, (b, padded, h, w), layout="channels_last"),
+          b, h, w, cs, cin, padded, _threads())
     _account("conv3x3", x[:, :cin], out)
     profiling.add_flops(2 * 9 * cin * co * b * h * w)
     return out[:, :co] if padded != co else out

@@ -10,7 +10,7 @@ import torch
 from torch import Tensor, nn
 
 from roguenerf import native
-from roguenerf.ops.backend import Body, pick
+from roguenerf.ops.backend import Body, as_channels_last, as_contiguous, pick
 from roguenerf.profiling import stage
 
 
@@ -36,8 +36,9 @@ def attend_pool(pixel_attention: nn.Module, buf: Tensor, term: Tensor, camera: T
     pa = pixel_attention
     if pick(buf) is Body.NATIVE:
         with stage("attention"):
-            return native.attend_pool(pa.neighbour_term(buf), term, pa.net[2], pa.net[1].negative_slope, camera,
-                                      buf, features, pooled, low, spread=spread)
+            return native.attend_pool(as_channels_last(pa.neighbour_term(buf)), as_channels_last(term), pa.net[2],
+                                      pa.net[1].negative_slope, as_contiguous(camera.detach()), as_channels_last(buf),
+                                      features, pooled, low, spread=spread)
     with stage("attention"):
         psi_pix = pa.from_target_term(buf, term)
         # buf first: the product keeps its channels-last layout (same values).

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import enum
 
+import torch
 from torch import Tensor
 
 from roguenerf import native
@@ -50,3 +51,13 @@ def pick(*tensors: Tensor, allow_native: bool = True) -> Body:
     if allow_native and all(native.enabled(t) for t in tensors):
         return Body.NATIVE
     return Body.FAST
+
+
+def as_channels_last(x: Tensor) -> Tensor:
+    """``x`` in the channels-last layout the C kernels read (no copy when it is already)."""
+    return x.contiguous(memory_format=torch.channels_last)
+
+
+def as_contiguous(x: Tensor | None) -> Tensor | None:
+    """``x`` row-major contiguous, as the C kernels read it (None stays None)."""
+    return x.contiguous() if x is not None else None

@@ -12,7 +12,7 @@ from torch import Tensor, nn
 
 from roguenerf import native
 from roguenerf.geometry.sampling import bilinear_sample
-from roguenerf.ops.backend import Body, pick
+from roguenerf.ops.backend import Body, as_channels_last, as_contiguous, pick
 
 STRIDE = 8
 """The flow network's resolution step (the C kernels' pool and upsampling use it)."""
@@ -50,8 +50,8 @@ def upsample_warp(x: Tensor, flow_low: Tensor, *, depth_scale: Tensor | None = N
     finite, else the torch bodies."""
     h, w = x.shape[-2:]
     if pick(x) is Body.NATIVE:
-        warped = native.flow_warp(x, flow_low, depth_scale=depth_scale, depth_channel=depth_channel,
-                                  depth_max=depth_max)
+        warped = native.flow_warp(as_channels_last(x), as_contiguous(flow_low), depth_scale=as_contiguous(depth_scale),
+                                  depth_channel=depth_channel, depth_max=depth_max)
         if warped is not None:  # None: a non-finite flow, which the torch body handles
             return warped, depth_scale is not None
     return warp(x, upsample(flow_low, h, w)), False
@@ -61,7 +61,7 @@ def pool(x: Tensor, channels: int) -> Tensor:
     """``(B, C, H, W)`` -> ``(B, channels, h, w)``: edge-padded to a multiple of 8, averaged,
     first ``channels`` channels."""
     if pick(x) is Body.NATIVE:
-        return native.pool8(x, channels)
+        return native.pool8(as_channels_last(x), channels)
     ph, pw = -x.shape[-2] % STRIDE, -x.shape[-1] % STRIDE
     if ph or pw:
         x = F.pad(x, (0, pw, 0, ph), mode="replicate")

@@ -27,7 +27,7 @@ from torch import Tensor, nn
 
 from roguenerf import native
 from roguenerf.fastpath import layout_enabled
-from roguenerf.ops.backend import Body, pick
+from roguenerf.ops.backend import Body, as_channels_last, pick
 
 __all__ = ["cat_channels", "cat_channels_last", "channels_last", "conv2d", "conv3x3", "conv_act", "linear",
            "linear_add", "mkldnn_fused_available"]
@@ -131,7 +131,7 @@ def conv3x3(x: Tensor, conv: nn.Conv2d, weight: Tensor | None = None, bias: Tens
     else:
         own = False
     if pick(x) is Body.NATIVE and native.conv3x3_supported(conv):
-        return native.conv3x3(x, weight, bias)
+        return native.conv3x3(as_channels_last(x), weight, bias)
     if own:
         return conv(x)
     extra = x.shape[1] - weight.shape[1]

@@ -19,7 +19,7 @@ from torch import Tensor
 from roguenerf import native
 from roguenerf.geometry.depth import MAX_DEPTH, known_depth_mask
 from roguenerf.geometry.sampling import bilinear_sample
-from roguenerf.ops.backend import Body, pick
+from roguenerf.ops.backend import Body, as_channels_last, as_contiguous, pick
 
 
 def known_filled(depth: Tensor, eps: float) -> tuple[Tensor, Tensor]:
@@ -188,7 +188,8 @@ def _reproject_native(dst_depth: Tensor, source: Tensor, src_from_dst64: Tensor,
     """One fused pass: projection, sampling, visibility and masking (same operations)."""
     rows, cols, offset = projection_terms(src_from_dst64, src_K.to(torch.float64), dst_K.to(torch.float64),
                                           tuple(dst_depth.shape[-2:]))
-    packed, coords = native.reproject(dst_depth, rows, cols, offset, source, eps=eps, max_depth=MAX_DEPTH,
+    packed, coords = native.reproject(as_contiguous(dst_depth), as_contiguous(rows), as_contiguous(cols),
+                                      as_contiguous(offset), as_channels_last(source), eps=eps, max_depth=MAX_DEPTH,
                                       leniency=leniency)
     c = channels
     return packed[:, :c], packed[:, c + 1:], packed[:, c:c + 1], coords, packed

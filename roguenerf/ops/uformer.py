@@ -17,7 +17,7 @@ from einops import rearrange
 from torch import Tensor, nn
 
 from roguenerf import native
-from roguenerf.ops.backend import Body, pick
+from roguenerf.ops.backend import Body, as_contiguous, pick
 from roguenerf.ops.fused import conv2d, linear, linear_add
 
 
@@ -27,7 +27,8 @@ def window_attention(attn: nn.Module, x: Tensor, mask: Tensor | None = None) -> 
     qkv = linear(x, attn.to_qkv)
     body = pick(x) if attn.fused else Body.REFERENCE
     if body is Body.NATIVE and native.window_attention_supported(x.shape[1], x.shape[-1] // attn.heads):
-        out = native.window_attention(qkv, attn._cached_bias(None)[0], mask, attn.heads, attn.scale)
+        out = native.window_attention(as_contiguous(qkv), attn._cached_bias(None)[0], as_contiguous(mask), attn.heads,
+                                      attn.scale)
         return linear(out, attn.to_out)
     q, k, v = rearrange(qkv, "b l (three n d) -> three b n l d", three=3, n=attn.heads)
     if body.fast:
@@ -66,7 +67,7 @@ def leff(module: nn.Module, x: Tensor, residual: Tensor | None = None) -> Tensor
     ``(B, H, W, C)``; with ``residual``, ``residual + leff(x)``, the sum fused into the last
     linear or the whole block one C kernel (:func:`roguenerf.native.leff`)."""
     if pick(x) is Body.NATIVE and native.leff_supported(x.shape[-1], module.linear1[0].out_features):
-        return native.leff(x, residual, module)
+        return native.leff(as_contiguous(x), as_contiguous(residual), module)
     x = linear(x, module.linear1[0], "gelu")
     # (B, H, W, C) permuted is a channels-last (B, C, H, W): no copy either way.
     x = conv2d(x.permute(0, 3, 1, 2), module.dwconv[0], "gelu").permute(0, 2, 3, 1)
@@ -93,10 +94,11 @@ def _attention_half_native(block: nn.Module, x: Tensor, win: int, shift: int,
     """The attention half (``x + attention`` and the next LayerNorm of it) in one pass window
     by window, else the norms, roll, window (un)partition and residual in two fused passes
     around the attention. Same function."""
+    x, mask = as_contiguous(x), as_contiguous(mask)
     if block.attn.fused and native.lewin_attention_supported(win, x.shape[-1], block.attn.heads):
         return native.lewin_attention(x, block.norm1, block.attn, mask, block.norm2, shift)
     y = block.attn(native.ln_partition(x, block.norm1, win, shift), mask)
-    return native.merge_ln(x, y, block.norm2, win, shift)
+    return native.merge_ln(x, as_contiguous(y), block.norm2, win, shift)
 
 
 def _lewin_block_torch(block: nn.Module, x: Tensor, win: int, shift: int, mask: Tensor | None) -> Tensor:
