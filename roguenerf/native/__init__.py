@@ -508,11 +508,14 @@ def leff(x: Tensor, residual: Tensor | None, module: torch.nn.Module) -> Tensor:
     contiguous, in one pass; see :func:`leff_supported` for the shapes it takes."""
     b, h, w, c = x.shape
     hidden = module.linear1[0].out_features
+    x_arg, residual_arg = _arg("x", x, (b, h, w, c)), _arg("residual", residual, (b, h, w, c), optional=True)
+    for arg in (x_arg, residual_arg):  # the caller's tensors checked first, then the sizes
+        _pointer("rg_leff", arg)
     _sizes("leff", a_supported_channel_count=leff_supported(c, hidden) and module.linear2.out_features == c)
     w1, b1, wdw, bdw, w2, b2 = _leff_weights(module)
     out = torch.empty(b, h, w, c)
-    if _call("rg_leff", _arg("x", x, (b, h, w, c)), _arg("residual", residual, (b, h, w, c), optional=True),
-             _arg("out", out, (b, h, w, c)), _arg("w1", w1, (c * hidden,)), _arg("b1", b1, (hidden,)),
+    if _call("rg_leff", x_arg, residual_arg, _arg("out", out, (b, h, w, c)), _arg("w1", w1, (c * hidden,)),
+             _arg("b1", b1, (hidden,)),
              _arg("wdw", wdw, (9, hidden)), _arg("bdw", bdw, (hidden,)), _arg("w2", w2, (hidden * c,)),
              _arg("b2", b2, (c,)), b, h, w, c, hidden, _threads()):
         raise MemoryError("roguenerf.native.leff: out of memory for its row buffers")
