@@ -29,6 +29,14 @@ only where the torch fast path would run (no gradient, float32, CPU; never in
 ``reference_mode()`` or :func:`disabled`; :mod:`roguenerf.ops` chooses). Results agree with the
 plain implementation to float32 rounding (``tests/test_native.py``).
 
+Every kernel is called through one door, :func:`_call`: before the ctypes call it checks each
+tensor argument's dtype (float32), device (CPU), layout (row-major, or channels-last where the
+kernel reads NHWC buffers) and shape against what the kernel reads, and that tensors stand
+where the signature table has pointers; a mismatch raises :class:`NativeArgumentError` (an
+:class:`~roguenerf.errors.InputError`) naming the kernel, the argument, what was expected and
+what came, instead of letting the kernel read or write the wrong memory. The wrappers do not
+copy the caller's tensors into shape: :mod:`roguenerf.ops` prepares the layouts.
+
 Nothing is shipped pre-built: the first call compiles ``kernels.c`` with the system C compiler
 (``$CC``, else ``cc``/``gcc``/``clang``; -O3, -march=native and OpenMP where the compiler has
 them) into ``$ROGUENERF_NATIVE_CACHE`` (default ``~/.cache/roguenerf/native``), named by a hash
