@@ -191,10 +191,15 @@ def disabled(off: bool = True):
     return thread_switch("native_off", off)
 
 
+def is_disabled() -> bool:
+    """Inside :func:`disabled` in this thread."""
+    return switched("native_off")
+
+
 def enabled(x: Tensor) -> bool:
     """The kernels apply to ``x``: the torch fast path would run (not reference mode, no
     gradient, float32 CPU), they are not :func:`disabled`, and they are built."""
-    return fast_enabled(x) and not switched("native_off") and library() is not None
+    return fast_enabled(x) and not is_disabled() and library() is not None
 
 
 def _account(name: str, *tensors: Tensor | None) -> None:

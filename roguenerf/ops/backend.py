@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from roguenerf import native
-from roguenerf.fastpath import fast_enabled, in_reference_mode
+from roguenerf.fastpath import in_reference_mode
 
 
 class Body(enum.Enum):
@@ -44,11 +44,16 @@ def pick(*tensors: Tensor, allow_native: bool = True) -> Body:
     (:func:`roguenerf.native.enabled`) and ``allow_native``, else FAST where every tensor
     takes the fast path (:func:`roguenerf.fastpath.fast_enabled`), else TORCH outside
     reference mode, else REFERENCE."""
+    # fast_enabled(t) and native.enabled(t) for every t, with the switches read once (this runs
+    # some 70 times per forward)
     if in_reference_mode():
         return Body.REFERENCE
-    if not all(fast_enabled(t) for t in tensors):
+    if torch.is_grad_enabled():
         return Body.TORCH
-    if allow_native and all(native.enabled(t) for t in tensors):
+    for t in tensors:
+        if t.dtype != torch.float32 or not t.is_cpu:
+            return Body.TORCH
+    if allow_native and not native.is_disabled() and native.library() is not None:
         return Body.NATIVE
     return Body.FAST
 
