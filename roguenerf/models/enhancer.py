@@ -229,27 +229,8 @@ class Enhancer(nn.Module):
               nbrs: NeighbourBatch, depth_scale: Tensor | None) -> list[Tensor]:
         """Align, refine, weigh and max-pool the neighbours: ``[H_pool]``, or with ``pool_spread``
         ``[H_pool, H_spread]``, each ``(B, F, H, W)``."""
-        b, f, h, w = feats.shape
-        n = len(nbrs)
-        if nbrs.sources is not None:
-            for j, source in enumerate(nbrs.sources):
-                _check(source, f"neighbours.sources[{j}]", (b, f + 2, None, None))
-        else:
-            _check(nbrs.features, "neighbours.features", (b, n, f, None, None))
-            _check(nbrs.depth, "neighbours.depth", (b, n, 1, *nbrs.features.shape[-2:]))
-        _check(nbrs.K, "neighbours.K", (b, n, 3, 3))
-        _check(nbrs.world_from_cam, "neighbours.world_from_cam", (b, n, 4, 4))
-        K = K.expand(b, 3, 3) if K.ndim == 2 else _check(K, "K", (b, 3, 3))
-        world_from_cam = (world_from_cam.expand(b, 4, 4) if world_from_cam.ndim == 2
-                          else _check(world_from_cam, "world_from_cam", (b, 4, 4)))
-        # Checked here once for all neighbours, not again per neighbour in reproject (which
-        # would check the target's K and pose N times); check_pose may re-orthonormalise.
-        K, nb_K = check_intrinsics(K, "K"), check_intrinsics(nbrs.K, "neighbours.K")
-        world_from_cam = check_pose(world_from_cam, "world_from_cam")
-        nb_poses = check_pose(nbrs.world_from_cam, "neighbours.world_from_cam")
-        if nb_K is not nbrs.K or nb_poses is not nbrs.world_from_cam:
-            nbrs = dataclasses.replace(nbrs, K=nb_K, world_from_cam=nb_poses)
-
+        K, world_from_cam, nbrs = self._checked_cameras(feats, K, world_from_cam, nbrs)
+        b = feats.shape[0]
         scale = self.depth_scale(depth) if depth_scale is None else depth_scale.to(feats)
         if scale.shape != (b,) or not bool(known_depth_mask(scale).all()):
             raise InputError(f"depth_scale: expected ({b},) known depths (finite, in "
@@ -279,9 +260,44 @@ class Enhancer(nn.Module):
                                    target_low, attention_term)
         if body is ops.Body.TORCH and torch.is_grad_enabled():
             return self._fuse_batched(feats, depth, K, world_from_cam, nbrs, scale_b, target_depth, camera_inputs)
+        return self._fuse_loop(feats, depth, K, world_from_cam, nbrs, scale_b, target_depth, camera_inputs)
+
+    @staticmethod
+    def _checked_cameras(feats: Tensor, K: Tensor, world_from_cam: Tensor,
+                         nbrs: NeighbourBatch) -> tuple[Tensor, Tensor, NeighbourBatch]:
+        """The neighbours' shapes checked, and the target's and neighbours' intrinsics and poses
+        checked once for all (not again per neighbour in reproject, which would check the
+        target's N times; check_pose may re-orthonormalise): ``K`` ``(B, 3, 3)``,
+        ``world_from_cam`` ``(B, 4, 4)`` and the neighbours with checked ``K`` and poses."""
+        b, f = feats.shape[:2]
+        n = len(nbrs)
+        if nbrs.sources is not None:
+            for j, source in enumerate(nbrs.sources):
+                _check(source, f"neighbours.sources[{j}]", (b, f + 2, None, None))
+        else:
+            _check(nbrs.features, "neighbours.features", (b, n, f, None, None))
+            _check(nbrs.depth, "neighbours.depth", (b, n, 1, *nbrs.features.shape[-2:]))
+        _check(nbrs.K, "neighbours.K", (b, n, 3, 3))
+        _check(nbrs.world_from_cam, "neighbours.world_from_cam", (b, n, 4, 4))
+        K = K.expand(b, 3, 3) if K.ndim == 2 else _check(K, "K", (b, 3, 3))
+        world_from_cam = (world_from_cam.expand(b, 4, 4) if world_from_cam.ndim == 2
+                          else _check(world_from_cam, "world_from_cam", (b, 4, 4)))
+        K, nb_K = check_intrinsics(K, "K"), check_intrinsics(nbrs.K, "neighbours.K")
+        world_from_cam = check_pose(world_from_cam, "world_from_cam")
+        nb_poses = check_pose(nbrs.world_from_cam, "neighbours.world_from_cam")
+        if nb_K is not nbrs.K or nb_poses is not nbrs.world_from_cam:
+            nbrs = dataclasses.replace(nbrs, K=nb_K, world_from_cam=nb_poses)
+        return K, world_from_cam, nbrs
+
+    def _fuse_loop(self, feats: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,
+                   nbrs: NeighbourBatch, scale_b: Tensor, target_depth: Tensor,
+                   camera_inputs: Tensor | None) -> list[Tensor]:
+        """:meth:`_fuse` one neighbour at a time, as the paper writes it (the reference, and
+        without gradient off the fast path)."""
+        _, f, h, w = feats.shape
         pooled = low = None
         spread = self.config.pool_spread
-        for j in range(n):
+        for j in range(len(nbrs)):
             src, src_depth = nbrs.feature_map(j), nbrs.depth_map(j)
             source = nbrs.sources[j] if nbrs.sources is not None else None
             with stage("reprojection"):
