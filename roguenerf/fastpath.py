@@ -4,9 +4,10 @@ Fast paths (fused oneDNN kernels, channels-last layouts, gather-based bilinear s
 target work shared across neighbours) are taken only when no gradient is being recorded and
 the tensors are float32 on the CPU; they compute the same function as the plain code to
 float32 rounding. Where it is built, :mod:`roguenerf.native` replaces chains of them with fused
-C kernels (same function; off in both modes below). :func:`reference_mode` turns all of them
-off in the current thread, giving the plain implementation for tests and benchmarks to compare
-against.
+C kernels (same function; off in reference mode and in :func:`roguenerf.native.disabled`).
+:func:`reference_mode` turns all of them off in the current thread, giving the plain
+implementation for tests and benchmarks to compare against. These are the switches;
+:func:`roguenerf.ops.backend.pick` reads them and chooses each operation's body.
 """
 
 from __future__ import annotations
