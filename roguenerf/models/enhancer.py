@@ -406,10 +406,10 @@ class Enhancer(nn.Module):
                         buf[:, f:f + 1] = (buf[:, f:f + 1] / scale_b).clamp(0, MAX_RELATIVE_DEPTH)
                     camera = self.camera_attention(camera_inputs[:, j])
                 pooled, low = ops.attend_pool(self.pixel_attention, buf, attention_term, camera, f, pooled, low,
-                                              spread=spread)
-                continue
-            with stage("fusion"):
-                pooled, low = ops.pool_neighbours(buf[:, :f], pooled, low, spread)
+                                              spread=spread)  # its own stages: attention, fusion
+            else:
+                with stage("fusion"):
+                    pooled, low = ops.pool_neighbours(buf[:, :f], pooled, low, spread)
         if spread:
             with stage("fusion"):
                 low = torch.sub(pooled, low, out=low)  # H_spread, written over the running min
