@@ -1,0 +1,272 @@
+"""A tile-based, differentiable 3D Gaussian splatting rasterizer in plain PyTorch (CPU or any device).
+
+What it computes (the 3DGS image formation, Kerbl et al. 2023, as Inria's CUDA code does):
+
+1. **Projection.** World covariances ``Σ = R S Sᵀ Rᵀ`` (quaternion ``R``, ``S = diag(exp(log_scales))``)
+   are taken to the camera (``W = R_cwᵀ``) and projected with the pinhole's Jacobian at the centre
+   (EWA splatting; the centre's ``x/z``, ``y/z`` clamped to 1.3 × the field of view as 3DGS and
+   gsplat do): ``Σ' = J W Σ Wᵀ Jᵀ + 0.3 I`` (the 0.3 px² low-pass). Centres with camera
+   ``z <= near`` are culled. Colour is the SH seen from the camera centre, ``max(SH + 0.5, 0)``.
+2. **Footprint.** A Gaussian reaches a pixel (centre at ``(u + 0.5, v + 0.5)``) when the pixel lies
+   inside its 3σ ellipse (``dᵀ Σ'⁻¹ d <= 9``) and ``α = min(0.99, o · exp(-½ dᵀ Σ'⁻¹ d)) >= 1/255``.
+   Every such pixel lies in the ellipse's bounding box, so binning Gaussians into 16×16 tiles by
+   that box loses nothing: the result does not depend on the tile size.
+3. **Compositing.** Per pixel, front to back in the order of the centres' camera z:
+   ``w_i = α_i T_i``, ``T_{i+1} = T_i (1 - α_i)``; the Gaussian that would bring ``T`` below
+   1e-4 and all behind it are dropped (Inria's early stop). ``rgb = Σ w_i c_i + T · background``,
+   ``opacity = Σ w_i``, ``depth = Σ w_i z_i / Σ w_i`` where ``opacity >= depth_threshold``, else
+   0 (unknown depth, :mod:`roguenerf.geometry.depth`).
+
+Memory stays bounded: tiles are processed a batch at a time and each tile's depth-sorted list in
+slices of ``slice_size`` Gaussians (``chunk`` pixel × Gaussian evaluations at most at once). The
+whole computation is differentiable (autograd) for fitting, where memory grows with the image.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from roguenerf.errors import InputError
+from roguenerf.splats.gaussians import Gaussians, quat_to_rotmat
+from roguenerf.splats.sh import eval_sh
+
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.99
+T_MIN = 1e-4
+LOW_PASS = 0.3
+SIGMA_CUT = 3.0
+FOV_CLAMP = 1.3
+DEFAULT_DEPTH_THRESHOLD = 0.5
+"""Expected depth is reported where the splats cover at least this share of the pixel."""
+
+
+@dataclass
+class Projected:
+    """Gaussians projected into one camera (all ``(N, ...)``; rows with ``visible`` False are unused)."""
+
+    means2d: Tensor
+    """``(N, 2)`` pixel coordinates ``(u, v)`` of the centres (pixel-centre convention)."""
+    conics: Tensor
+    """``(N, 3)`` the inverse 2D covariance ``(a, b, c)``: ``dᵀ Σ'⁻¹ d = a dx² + 2 b dx dy + c dy²``."""
+    depths: Tensor
+    """``(N,)`` camera z of the centres."""
+    opacities: Tensor
+    """``(N,)`` in (0, 1)."""
+    colours: Tensor
+    """``(N, 3)``."""
+    extents: Tensor
+    """``(N, 2)`` half width and height (px) of the box around the footprint."""
+    visible: Tensor
+    """``(N,)`` bool: in front of the near plane, with a footprint on the image."""
+    cov2d: Tensor
+    """``(N, 3)`` the 2D covariance ``(Σ'xx, Σ'xy, Σ'yy)`` with the low-pass."""
+
+
+def _check_camera(world_from_cam: Tensor, K: Tensor, height: int, width: int) -> tuple[Tensor, Tensor]:
+    world_from_cam = torch.as_tensor(world_from_cam)
+    K = torch.as_tensor(K)
+    if world_from_cam.shape not in ((4, 4), (3, 4)):
+        raise InputError(f"world_from_cam: expected shape (4, 4) or (3, 4), got {tuple(world_from_cam.shape)}")
+    if K.shape != (3, 3):
+        raise InputError(f"K: expected shape (3, 3), got {tuple(K.shape)}")
+    if int(height) < 1 or int(width) < 1:
+        raise InputError(f"height, width: expected >= 1, got {height}x{width}")
+    if not (torch.isfinite(world_from_cam).all() and torch.isfinite(K).all()) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise InputError("world_from_cam and K must be finite, with positive focal lengths")
+    return world_from_cam.to(torch.float64), K.to(torch.float64)
+
+
+def project(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int, width: int, *,
+            near: float = 0.01, sh_degree: int | None = None) -> Projected:
+    """Project ``gaussians`` into the OpenCV camera ``world_from_cam`` ``(4, 4)`` with intrinsics ``K``."""
+    world_from_cam, K = _check_camera(world_from_cam, K, height, width)
+    g = gaussians
+    dtype = g.means.dtype
+    rot = world_from_cam[:3, :3]
+    origin = world_from_cam[:3, 3]
+    # Camera coordinates in float64 first (scenes far from the origin), then the working dtype.
+    cam = ((g.means.to(torch.float64) - origin.to(g.means.device)) @ rot.to(g.means.device)).to(dtype)
+    x, y, z = cam.unbind(-1)
+    fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+    in_front = z > near
+    zs = torch.where(in_front, z, torch.ones_like(z))
+    lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * width / fx, cx / fx + 0.3 * width / fx
+    lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * height / fy, cy / fy + 0.3 * height / fy
+    lim_x_pos, lim_x_neg = max(lim_x_pos, 0.0), max(lim_x_neg, 0.0)
+    tx = zs * (x / zs).clamp(-lim_x_neg, lim_x_pos)
+    ty = zs * (y / zs).clamp(-lim_y_neg, lim_y_pos)
+    zero = torch.zeros_like(zs)
+    J = torch.stack([fx / zs, zero, -fx * tx / (zs * zs), zero, fy / zs, -fy * ty / (zs * zs)], -1).reshape(-1, 2, 3)
+    R = quat_to_rotmat(g.quats)
+    M = R * torch.exp(g.log_scales)[:, None, :]
+    W = rot.T.to(dtype=dtype, device=g.means.device)  # camera_from_world rotation
+    T = J @ (W @ M)  # (N, 2, 3): Σ' = T Tᵀ
+    cov = T @ T.transpose(1, 2)
+    cxx = cov[:, 0, 0] + LOW_PASS
+    cxy = cov[:, 0, 1]
+    cyy = cov[:, 1, 1] + LOW_PASS
+    det = cxx * cyy - cxy * cxy
+    ok = in_front & (det > 0)
+    det_safe = torch.where(ok, det, torch.ones_like(det))
+    conics = torch.stack([cyy / det_safe, -cxy / det_safe, cxx / det_safe], -1)
+    means2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], -1)
+    opac = torch.sigmoid(g.opacity)
+    # Beyond this many σ, α < 1/255 (so no pixel there is drawn): the box may shrink to it.
+    reach = torch.sqrt(torch.clamp(2 * torch.log(torch.clamp(opac.detach() * 255.0, min=1.0)), min=0.0))
+    reach = torch.clamp(reach, max=SIGMA_CUT)
+    ok = ok & (opac.detach() >= ALPHA_MIN)
+    ext = torch.stack([reach * torch.sqrt(cxx.detach().clamp_min(0)), reach * torch.sqrt(cyy.detach().clamp_min(0))], -1)
+    m2 = means2d.detach()
+    on_image = (m2[:, 0] + ext[:, 0] > 0) & (m2[:, 0] - ext[:, 0] < width) & \
+               (m2[:, 1] + ext[:, 1] > 0) & (m2[:, 1] - ext[:, 1] < height)
+    visible = ok & on_image & torch.isfinite(m2).all(-1)
+    dirs = g.means - origin.to(dtype=dtype, device=g.means.device)
+    colours = eval_sh(g.sh, dirs, sh_degree)
+    return Projected(means2d=means2d, conics=conics, depths=z, opacities=opac, colours=colours,
+                     extents=ext, visible=visible, cov2d=torch.stack([cxx, cxy, cyy], -1))
+
+
+def _bin(proj: Projected, height: int, width: int, tile: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(visible index, per-pair Gaussian (into the visible list), per-tile start, per-tile count)."""
+    vis = torch.nonzero(proj.visible).squeeze(1)
+    tiles_x, tiles_y = math.ceil(width / tile), math.ceil(height / tile)
+    n_tiles = tiles_x * tiles_y
+    device = proj.means2d.device
+    if vis.numel() == 0:
+        empty = torch.zeros(0, dtype=torch.long, device=device)
+        return vis, empty, torch.zeros(n_tiles, dtype=torch.long, device=device), \
+            torch.zeros(n_tiles, dtype=torch.long, device=device)
+    m = proj.means2d.detach()[vis].to(torch.float64)
+    e = proj.extents[vis].to(torch.float64) + 1e-3  # conservative: a pixel on the box's edge is kept
+    # Pixel j's centre is j + 0.5; it lies in the box when m - e <= j + 0.5 <= m + e.
+    x0 = torch.floor((m[:, 0] - e[:, 0] - 0.5) / tile).clamp(0, tiles_x - 1).long()
+    x1 = torch.floor((m[:, 0] + e[:, 0] - 0.5) / tile).clamp(0, tiles_x - 1).long()
+    y0 = torch.floor((m[:, 1] - e[:, 1] - 0.5) / tile).clamp(0, tiles_y - 1).long()
+    y1 = torch.floor((m[:, 1] + e[:, 1] - 0.5) / tile).clamp(0, tiles_y - 1).long()
+    wx, wy = x1 - x0 + 1, y1 - y0 + 1
+    counts = wx * wy
+    order = torch.argsort(proj.depths.detach()[vis], stable=True)
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(order.numel(), device=device)
+    gid = torch.repeat_interleave(torch.arange(vis.numel(), device=device), counts)
+    first = torch.cumsum(counts, 0) - counts
+    local = torch.arange(gid.numel(), device=device) - first[gid]
+    tile_id = (y0[gid] + local // wx[gid]) * tiles_x + x0[gid] + local % wx[gid]
+    key = tile_id * vis.numel() + rank[gid]
+    sort = torch.argsort(key)
+    pair_gid = gid[sort]
+    per_tile = torch.bincount(tile_id, minlength=n_tiles)
+    start = torch.cumsum(per_tile, 0) - per_tile
+    return vis, pair_gid, start, per_tile
+
+
+def render(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int, width: int, *,
+           background: Tensor | tuple[float, float, float] | None = None, near: float = 0.01,
+           sh_degree: int | None = None, depth_threshold: float = DEFAULT_DEPTH_THRESHOLD, tile: int = 16,
+           slice_size: int = 128, chunk: int = 1 << 21, progress: bool | Callable[[int, int], None] = False,
+           return_info: bool = False):
+    """Render ``gaussians`` from an OpenCV camera.
+
+    Args:
+        world_from_cam: ``(4, 4)`` (or ``(3, 4)``) OpenCV camera-to-world.
+        K: ``(3, 3)`` intrinsics, pixel-centre convention.
+        background: RGB behind the splats (default black).
+        near: centres with camera z at most this are culled.
+        sh_degree: SH degree to evaluate (default: all the Gaussians hold).
+        depth_threshold: depth is reported where opacity >= this, else 0 (unknown).
+        tile, slice_size, chunk: tile side (px); Gaussians per slice of a tile's list; at most
+            this many pixel × Gaussian evaluations at once (memory bound).
+        progress: True for a tqdm bar over tile batches, or ``callback(done, total)``.
+        return_info: also return a dict with ``means2d`` (``(N, 2)``, its gradient retained when
+            it needs one: the view-space gradient that densification reads), ``visible``,
+            ``extents`` and ``projected``.
+    Returns:
+        ``rgb`` ``(3, H, W)``, ``depth`` ``(1, H, W)`` (z, 0 where unknown), ``opacity`` ``(1, H, W)``
+        (and ``info`` when asked).
+    """
+    if tile < 1 or slice_size < 1 or chunk < 1:
+        raise InputError(f"tile, slice_size, chunk: expected >= 1, got {tile}, {slice_size}, {chunk}")
+    if not (0.0 <= depth_threshold <= 1.0):
+        raise InputError(f"depth_threshold: expected a share in [0, 1], got {depth_threshold}")
+    height, width = int(height), int(width)
+    proj = project(gaussians, world_from_cam, K, height, width, near=near, sh_degree=sh_degree)
+    if proj.means2d.requires_grad:
+        proj.means2d.retain_grad()
+    device, dtype = proj.means2d.device, proj.means2d.dtype
+    bg = torch.zeros(3, dtype=dtype, device=device) if background is None else \
+        torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
+    vis, pair_gid, start, count = _bin(proj, height, width, tile)
+    tiles_x, tiles_y = math.ceil(width / tile), math.ceil(height / tile)
+    n_tiles, tp = tiles_x * tiles_y, tile * tile
+    # Per visible Gaussian: u, v, a, b, c, opacity, z, r, g, b.
+    feat = torch.cat([proj.means2d[vis], proj.conics[vis], proj.opacities[vis, None], proj.depths[vis, None],
+                      proj.colours[vis]], dim=1)
+    busy = torch.nonzero(count > 0).squeeze(1)
+    busy = busy[torch.argsort(count[busy], descending=True, stable=True)]
+    per_batch = max(1, chunk // (tp * slice_size))
+    n_batches = math.ceil(busy.numel() / per_batch)
+    bar = None
+    if progress is True:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n_batches, desc="rasterizing", unit="batch", leave=False, dynamic_ncols=True)
+    offs_v = torch.arange(tp, device=device) // tile
+    offs_u = torch.arange(tp, device=device) % tile
+    col = torch.arange(slice_size, device=device)
+    outputs, tile_ids = [], []
+    for b in range(n_batches):
+        tiles = busy[b * per_batch:(b + 1) * per_batch]
+        lengths, starts = count[tiles], start[tiles]
+        pu = ((tiles % tiles_x)[:, None] * tile + offs_u[None]).to(dtype) + 0.5  # (B, P)
+        pv = ((tiles // tiles_x)[:, None] * tile + offs_v[None]).to(dtype) + 0.5
+        trans = torch.ones(tiles.numel(), tp, dtype=dtype, device=device)
+        rgb = torch.zeros(tiles.numel(), tp, 3, dtype=dtype, device=device)
+        wz = torch.zeros(tiles.numel(), tp, dtype=dtype, device=device)
+        wsum = torch.zeros(tiles.numel(), tp, dtype=dtype, device=device)
+        for s0 in range(0, int(lengths.max()), slice_size):
+            valid = (s0 + col)[None] < lengths[:, None]  # (B, S)
+            idx = torch.where(valid, starts[:, None] + s0 + col[None], torch.zeros_like(valid, dtype=torch.long))
+            f = feat[pair_gid[idx]]  # (B, S, 10)
+            dx = pu[:, :, None] - f[:, None, :, 0]
+            dy = pv[:, :, None] - f[:, None, :, 1]
+            maha = f[:, None, :, 2] * dx * dx + 2 * f[:, None, :, 3] * dx * dy + f[:, None, :, 4] * dy * dy
+            alpha = (f[:, None, :, 5] * torch.exp(-0.5 * maha)).clamp(max=ALPHA_MAX)
+            keep = valid[:, None, :] & (maha <= SIGMA_CUT * SIGMA_CUT) & (alpha >= ALPHA_MIN)
+            alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
+            one_minus = 1.0 - alpha
+            after = trans[:, :, None] * torch.cumprod(one_minus, dim=-1)
+            before = torch.cat([trans[:, :, None], after[:, :, :-1]], dim=-1)
+            w = torch.where(after >= T_MIN, alpha * before, torch.zeros_like(alpha))
+            rgb = rgb + torch.einsum("bps,bsc->bpc", w, f[:, :, 7:10])
+            wz = wz + torch.einsum("bps,bs->bp", w, f[:, :, 6])
+            wsum = wsum + w.sum(-1)
+            trans = after[:, :, -1]
+            if float(trans.detach().max()) < T_MIN:
+                break
+        outputs.append(torch.cat([rgb, wz[..., None], wsum[..., None]], dim=-1))
+        tile_ids.append(tiles)
+        if bar is not None:
+            bar.update(1)
+        elif callable(progress):
+            progress(b + 1, n_batches)
+    if bar is not None:
+        bar.close()
+    full = torch.zeros(n_tiles, tp, 5, dtype=dtype, device=device)
+    if outputs:
+        full = full.index_copy(0, torch.cat(tile_ids), torch.cat(outputs))
+    full = full.reshape(tiles_y, tiles_x, tile, tile, 5).permute(4, 0, 2, 1, 3)
+    full = full.reshape(5, tiles_y * tile, tiles_x * tile)[:, :height, :width]
+    opacity = full[4:5]
+    rgb = full[:3] + (1.0 - opacity) * bg[:, None, None]
+    covered = opacity >= max(depth_threshold, 1e-12)
+    depth = torch.where(covered, full[3:4] / torch.where(covered, opacity, torch.ones_like(opacity)),
+                        torch.zeros_like(opacity))
+    if return_info:
+        info = {"means2d": proj.means2d, "visible": proj.visible, "extents": proj.extents, "projected": proj}
+        return rgb, depth, opacity, info
+    return rgb, depth, opacity
