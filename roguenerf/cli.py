@@ -1,5 +1,5 @@
 """The library's commands: finetune, evaluate, enhance, enhance-path, import-nerfstudio,
-import-gsplat, pretrain (``python -m roguenerf``). The ``roguenerf`` console script
+import-gsplat, import-3dgs, pretrain (``python -m roguenerf``). The ``roguenerf`` console script
 (:mod:`roguecli`) builds on this app and adds ``serve`` and ``make-pairs``.
 
 Errors are one line on stderr and an exit code: 2 for bad input (missing scene, bad
@@ -438,6 +438,50 @@ def import_gsplat(
         test_every = 8
     _import_command("gsplat", dataset, renders, output, depth_type, depth_scale, "dataset", None, background,
                     images=images, test_every=test_every, split_file=split_file)
+
+
+@app.command("import-3dgs")
+def import_3dgs_command(
+    dataset: Annotated[Path, typer.Argument(
+        help="The dataset the splats were trained on: COLMAP (images/ + sparse/0) or transforms.json.")],
+    ply: Annotated[Path, typer.Option("--ply", help="Inria 3DGS point_cloud.ply (point_cloud/iteration_30000/).")],
+    output: Annotated[Path, typer.Option(
+        "--output", help="Scene folder to write (renders, z-depth, opacity, photos).")],
+    path: Annotated[Path | None, typer.Option("--path", help=(
+        "Also render this camera path (camera_path.json or a transforms-style list) into OUTPUT/path "
+        "for enhance-path."))] = None,
+    backend: Annotated[str, typer.Option(
+        "--backend", help="auto (gsplat with CUDA, else CPU), cpu or gsplat.")] = "auto",
+    hold: Annotated[int, typer.Option(
+        "--hold", help="COLMAP: every N-th view (name order) is a test view, as --eval; 0: none.")] = 8,
+    images: Annotated[str, typer.Option(
+        "--images", help="COLMAP: image folder in the dataset (images_2 for half size).")] = "images",
+    dataparser_transforms: Annotated[Path | None, typer.Option("--dataparser-transforms", help=(
+        "splatfacto exports: nerfstudio's dataparser_transforms.json (the .ply is in its model's world)."))] = None,
+    depth_threshold: Annotated[float, typer.Option(
+        "--depth-threshold", help="Depth is known where the splats' opacity reaches this.")] = 0.5,
+) -> None:
+    """Render a trained 3DGS scene's .ply at every dataset view (RGB, z-depth, opacity) into a scene folder."""
+    from roguenerf.splats.importer import PATH_FOLDER, import_3dgs
+
+    with _errors():
+        if not ply.is_file():
+            raise InputError(f"--ply: {ply} does not exist")
+        if path is not None and not path.is_file():
+            raise InputError(f"--path: {path} does not exist")
+        if not 0 <= depth_threshold <= 1:
+            raise InputError(f"--depth-threshold: expected 0..1, got {depth_threshold}")
+        with _progress_bar("rendering splats", "view") as progress:
+            scene = import_3dgs(dataset, ply, output, backend=backend, hold=hold, images=images,
+                                dataparser_transforms=dataparser_transforms, depth_threshold=depth_threshold,
+                                camera_path=path, progress=progress)
+        typer.echo(f"wrote {scene!r}", err=True)
+        if path is not None:
+            frames = output / PATH_FOLDER
+            cams = next(p for p in (frames / "camera_path.json", frames / "transforms.json") if p.is_file())
+            typer.echo(f"next: roguenerf enhance-path {output} --frames {frames} --cameras {cams} --output OUT",
+                       err=True)
+        typer.echo(str(output))
 
 
 @app.command("enhance-path")

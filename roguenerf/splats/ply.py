@@ -103,7 +103,7 @@ def read_ply(path: str | os.PathLike) -> Gaussians:
         if missing:
             raise _fail(path, f"not a 3DGS point cloud: vertex properties {', '.join(missing)} are missing "
                               f"(found {', '.join(names[:12])}{' ...' if len(names) > 12 else ''})")
-        rest = sorted((int(m.group(1)) for n in names if (m := re.fullmatch(r"f_rest_(\d+)", n))))
+        rest = sorted(int(m.group(1)) for n in names if (m := re.fullmatch(r"f_rest_(\d+)", n)))
         if rest != list(range(len(rest))):
             raise _fail(path, f"f_rest_* properties are not numbered 0..{len(rest) - 1}")
         if len(rest) % 3:

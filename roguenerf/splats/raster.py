@@ -120,7 +120,8 @@ def project(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int
     reach = torch.sqrt(torch.clamp(2 * torch.log(torch.clamp(opac.detach() * 255.0, min=1.0)), min=0.0))
     reach = torch.clamp(reach, max=SIGMA_CUT)
     ok = ok & (opac.detach() >= ALPHA_MIN)
-    ext = torch.stack([reach * torch.sqrt(cxx.detach().clamp_min(0)), reach * torch.sqrt(cyy.detach().clamp_min(0))], -1)
+    ext = torch.stack([reach * torch.sqrt(cxx.detach().clamp_min(0)),
+                       reach * torch.sqrt(cyy.detach().clamp_min(0))], -1)
     m2 = means2d.detach()
     on_image = (m2[:, 0] + ext[:, 0] > 0) & (m2[:, 0] - ext[:, 0] < width) & \
                (m2[:, 1] + ext[:, 1] > 0) & (m2[:, 1] - ext[:, 1] < height)

@@ -1,0 +1,278 @@
+"""A trained 3DGS scene in: render every dataset view (RGB, z-depth, opacity) from its ``.ply``
+and write our scene folder with the photos; render a camera path's frames for ``enhance-path``.
+
+Datasets: a COLMAP dataset (``images/`` + ``sparse/0``, :mod:`roguenerf.data.colmap`; every
+``hold``-th view in name order is a test view, the trainers' ``--eval`` split) or anything
+:func:`~roguenerf.data.readers.load_scene` reads with photos (nerfstudio ``transforms.json``,
+LLFF, a scene folder). The ``.ply`` must be in the dataset's world, as Inria's and gsplat's
+trainers write it; nerfstudio's splatfacto exports live in its model's world: give its
+``dataparser_transforms.json`` and the cameras are mapped there and the depth back.
+
+Rendering uses ``gsplat`` when CUDA and gsplat are there (``backend="auto"``), else the CPU
+rasterizer of :mod:`roguenerf.splats.raster`: one image formation either way (3DGS's).
+Outputs are written into a temporary folder beside ``output`` and renamed into place at the end.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from roguenerf.errors import InputError
+from roguenerf.splats.gaussians import Gaussians
+from roguenerf.splats.raster import DEFAULT_DEPTH_THRESHOLD, render
+
+BACKENDS = ("auto", "cpu", "gsplat")
+PATH_FOLDER = "path"
+"""Where ``import_3dgs(..., camera_path=...)`` writes the path's frames inside the scene folder."""
+
+
+@dataclass
+class DatasetView:
+    name: str
+    photo: Path
+    K: Tensor
+    world_from_cam: Tensor
+    width: int
+    height: int
+    split: str
+
+
+def read_dataset_views(dataset: str | Path, *, hold: int = 8, images: str = "images") -> tuple[list[DatasetView], str]:
+    """The posed photos of a dataset and its format (``"colmap"`` or :func:`load_scene`'s)."""
+    from roguenerf.data.colmap import is_colmap_dataset, read_colmap
+    from roguenerf.data.readers import load_scene
+
+    dataset = Path(dataset)
+    if not dataset.exists():
+        raise InputError(f"dataset {dataset} does not exist")
+    if hold < 0:
+        raise InputError(f"hold: expected >= 0 (0: every view is a training view), got {hold}")
+    if is_colmap_dataset(dataset) and not (dataset / "transforms.json").is_file():
+        ds = read_colmap(dataset, images=images)
+        return [DatasetView(name, path, ds.K[i], ds.world_from_cam[i], ds.widths[i], ds.heights[i],
+                            "test" if hold and i % hold == 0 else "train")
+                for i, (name, path) in enumerate(zip(ds.stems, ds.image_paths, strict=True))], "colmap"
+    scene = load_scene(dataset)
+    views = []
+    for f in scene.frames:
+        if f.image_path is None:
+            raise InputError(f"{dataset}: view {f.name} has no photo")
+        views.append(DatasetView(f.name, f.image_path, f.K, f.world_from_cam, f.width, f.height, f.split))
+    return views, str(scene.meta.get("format", "scene"))
+
+
+def pick_backend(backend: str) -> str:
+    if backend not in BACKENDS:
+        raise InputError(f"backend: expected one of {', '.join(BACKENDS)}, got {backend!r}")
+    has_gsplat = importlib.util.find_spec("gsplat") is not None and torch.cuda.is_available()
+    if backend == "gsplat" and not has_gsplat:
+        raise InputError("backend gsplat: needs the gsplat package and a CUDA GPU (use --backend cpu)")
+    if backend == "auto":
+        return "gsplat" if has_gsplat else "cpu"
+    return backend
+
+
+def render_view(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int, width: int, *,
+                backend: str = "cpu", depth_threshold: float = DEFAULT_DEPTH_THRESHOLD,
+                background=None) -> tuple[Tensor, Tensor, Tensor]:
+    """RGB ``(3, H, W)``, z-depth ``(1, H, W)`` (0: unknown) and opacity ``(1, H, W)`` on the CPU."""
+    with torch.no_grad():
+        if backend == "gsplat":
+            return _render_gsplat(gaussians, world_from_cam, K, height, width, depth_threshold, background)
+        rgb, depth, acc = render(gaussians, world_from_cam, K, height, width, background=background,
+                                 depth_threshold=depth_threshold)
+    return rgb.clamp(0, 1), depth, acc.clamp(0, 1)
+
+
+def _render_gsplat(g: Gaussians, world_from_cam, K, height, width, depth_threshold, background):
+    import gsplat  # optional: CUDA only
+
+    dev = torch.device("cuda")
+    cache = getattr(g, "_cuda", None)
+    if cache is None:
+        cache = (g.means.to(dev), g.quats.to(dev), torch.exp(g.log_scales).to(dev),
+                 torch.sigmoid(g.opacity).to(dev), g.sh.to(dev))
+        g._cuda = cache
+    means, quats, scales, opac, sh = cache
+    viewmat = torch.linalg.inv(torch.as_tensor(world_from_cam, dtype=torch.float64)).float().to(dev)
+    bg = torch.zeros(3) if background is None else torch.as_tensor(background, dtype=torch.float32)
+    colours, alphas, _ = gsplat.rasterization(
+        means, quats, scales, opac, sh, viewmat[None], torch.as_tensor(K, dtype=torch.float32).to(dev)[None],
+        int(width), int(height), sh_degree=g.sh_degree, render_mode="RGB+ED", backgrounds=bg.to(dev)[None])
+    rgb = colours[0, ..., :3].permute(2, 0, 1).float().cpu().clamp(0, 1)
+    depth = colours[0, ..., 3:4].permute(2, 0, 1).float().cpu()
+    acc = alphas[0].permute(2, 0, 1).float().cpu().clamp(0, 1)
+    depth = torch.where(acc >= depth_threshold, depth, torch.zeros_like(depth))
+    return rgb, depth, acc
+
+
+def _model_camera(world_from_cam: Tensor, parser) -> Tensor:
+    return world_from_cam if parser is None else parser.to_model(world_from_cam)
+
+
+def _temp_dir(final: Path) -> Path:
+    final.parent.mkdir(parents=True, exist_ok=True)
+    return Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent))
+
+
+def _check_output(final: Path, what: str) -> None:
+    """An existing ``final`` must be a folder this tool wrote (it is replaced) or empty."""
+    if final.exists():
+        if not final.is_dir():
+            raise InputError(f"{what} {final} exists and is not a folder")
+        ours = any((final / name).is_file() for name in ("transforms.json", "camera_path.json"))
+        if any(final.iterdir()) and not ours:
+            raise InputError(f"{what} {final} exists and holds other files: choose a new folder")
+
+
+def _replace_dir(tmp: Path, final: Path, what: str) -> None:
+    """Rename ``tmp`` to ``final`` (see :func:`_check_output`)."""
+    _check_output(final, what)
+    if final.exists():
+        old = final.with_name(f".{final.name}.old")
+        if old.exists():
+            shutil.rmtree(old)
+        final.rename(old)
+        tmp.rename(final)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        tmp.rename(final)
+
+
+def import_3dgs(dataset: str | Path, ply: str | Path, output: str | Path, *, backend: str = "auto",
+                hold: int = 8, images: str = "images", dataparser_transforms: str | Path | None = None,
+                depth_threshold: float = DEFAULT_DEPTH_THRESHOLD, camera_path: str | Path | None = None,
+                progress: Callable[[int, int], None] | None = None):
+    """Render every view of ``dataset`` from the 3DGS ``ply`` and write the scene folder ``output``.
+
+    Args:
+        dataset: COLMAP dataset or a folder :func:`load_scene` reads (with photos).
+        ply: Inria ``point_cloud.ply``.
+        backend: ``"auto"`` (gsplat with CUDA, else the CPU rasterizer), ``"cpu"`` or ``"gsplat"``.
+        hold: COLMAP datasets: every ``hold``-th view is a test view (0: none).
+        images: COLMAP datasets: the image folder (``images_2`` for a half-size training).
+        dataparser_transforms: nerfstudio's file when the ``.ply`` is in its model's world.
+        depth_threshold: depth is known where the opacity reaches this share.
+        camera_path: also render this camera path into ``output/path`` (see :func:`render_camera_path`).
+        progress: ``callback(done, total)`` per view (dataset views, then path frames).
+    Returns:
+        The written scene, loaded.
+    """
+    from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
+    from roguenerf.data.readers import load_scene
+    from roguenerf.geometry.cameras import opencv_to_opengl
+    from roguenerf.imageio import atomic_write, encode_npy, encode_png, read_image_size
+    from roguenerf.splats.ply import read_ply
+
+    backend = pick_backend(backend)
+    _check_output(Path(output), "output")
+    views, fmt = read_dataset_views(dataset, hold=hold, images=images)
+    parser = DataparserTransform.read(dataparser_transforms) if dataparser_transforms is not None else None
+    gaussians = read_ply(ply)
+    output = Path(output)
+    path_cams = None
+    if camera_path is not None:
+        from roguenerf.paths import read_camera_path
+
+        path_cams = read_camera_path(camera_path, dataparser=parser)
+    tmp = _temp_dir(output)
+    try:
+        total = len(views) + (len(path_cams) if path_cams is not None else 0)
+        frames = []
+        for n, view in enumerate(views):
+            width, height = read_image_size(view.photo)
+            if (width, height) != (view.width, view.height):
+                raise InputError(f"{view.photo}: photo is {width}x{height}, its camera says {view.width}x{view.height}")
+            rgb, depth, acc = render_view(gaussians, _model_camera(view.world_from_cam, parser), view.K, height,
+                                          width, backend=backend, depth_threshold=depth_threshold)
+            if parser is not None:
+                depth = depth / parser.scale
+            suffix = view.photo.suffix.lower()
+            photo_rel = f"images/{view.name}{'.jpg' if suffix == '.jpeg' else suffix}"
+            (tmp / "images").mkdir(exist_ok=True)
+            shutil.copyfile(view.photo, tmp / photo_rel)
+            atomic_write(tmp / "renders" / f"{view.name}.png", encode_png(rgb), make_parents=True)
+            atomic_write(tmp / "depths" / f"{view.name}.npy", encode_npy(depth[0].numpy()), make_parents=True)
+            atomic_write(tmp / "acc" / f"{view.name}.png", encode_png(acc), make_parents=True)
+            K = view.K
+            frames.append({
+                "file_path": photo_rel, "render_path": f"renders/{view.name}.png",
+                "depth_path": f"depths/{view.name}.npy", "acc_path": f"acc/{view.name}.png", "split": view.split,
+                "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
+                "w": width, "h": height, "transform_matrix": opencv_to_opengl(view.world_from_cam).tolist(),
+            })
+            if progress is not None:
+                progress(n + 1, total)
+        if parser is not None:
+            atomic_write(tmp / DATAPARSER_FILE, json.dumps(parser.to_json(), indent=2).encode())
+        if path_cams is not None:
+            _render_path_into(gaussians, path_cams, Path(camera_path), tmp / PATH_FOLDER, backend, parser,
+                              depth_threshold, lambda k, _t: progress(len(views) + k, total) if progress else None)
+        doc = {
+            "camera_model": "OPENCV",
+            "depth_definition": "z-depth along the camera's viewing axis, pose units, float32 .npy, HxW",
+            "pixel_convention": "pixel (row v, col u) centre is at image coordinates (u+0.5, v+0.5)",
+            "source": {"tool": "3dgs", "dataset": str(dataset), "dataset_format": fmt, "ply": str(ply),
+                       "gaussians": len(gaussians), "sh_degree": gaussians.sh_degree, "backend": backend,
+                       "depth_threshold": depth_threshold},
+            "frames": frames,
+        }
+        atomic_write(tmp / "transforms.json", json.dumps(doc, indent=1).encode())
+        _replace_dir(tmp, output, "output")
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return load_scene(output)
+
+
+def _render_path_into(gaussians, cams, camera_file: Path, folder: Path, backend, parser, depth_threshold,
+                      progress) -> None:
+    from roguenerf.imageio import atomic_write, encode_npy, encode_png
+
+    digits = max(5, len(str(len(cams))))
+    for t in range(len(cams)):
+        rgb, depth, _ = render_view(gaussians, _model_camera(cams.world_from_cam[t], parser), cams.K[t],
+                                    cams.height, cams.width, backend=backend, depth_threshold=depth_threshold)
+        if parser is not None:
+            depth = depth / parser.scale
+        atomic_write(folder / "rgb" / f"{t:0{digits}d}.png", encode_png(rgb), make_parents=True)
+        atomic_write(folder / "depth" / f"{t:0{digits}d}.npy", encode_npy(depth[0].numpy()), make_parents=True)
+        if progress is not None:
+            progress(t + 1, len(cams))
+    shutil.copyfile(camera_file, folder / ("camera_path.json" if cams.source == "nerfstudio" else "transforms.json"))
+
+
+def render_camera_path(ply: str | Path, camera_path: str | Path, output: str | Path, *, backend: str = "auto",
+                       dataparser_transforms: str | Path | None = None,
+                       depth_threshold: float = DEFAULT_DEPTH_THRESHOLD,
+                       progress: Callable[[int, int], None] | None = None) -> Path:
+    """Render a camera path (nerfstudio ``camera_path.json`` or a transforms-style list, poses in
+    the dataset's world) from ``ply`` into ``output/rgb/NNNNN.png`` + ``output/depth/NNNNN.npy``,
+    with the camera file copied beside them: what ``enhance-path --frames`` reads."""
+    from roguenerf.data.exports import DataparserTransform
+    from roguenerf.paths import read_camera_path
+    from roguenerf.splats.ply import read_ply
+
+    backend = pick_backend(backend)
+    _check_output(Path(output), "path output")
+    parser = DataparserTransform.read(dataparser_transforms) if dataparser_transforms is not None else None
+    cams = read_camera_path(camera_path, dataparser=parser)
+    gaussians = read_ply(ply)
+    output = Path(output)
+    tmp = _temp_dir(output)
+    try:
+        _render_path_into(gaussians, cams, Path(camera_path), tmp, backend, parser, depth_threshold, progress)
+        _replace_dir(tmp, output, "path output")
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return output

@@ -1,0 +1,158 @@
+"""``roguenerf import-3dgs``: a trained 3DGS ``.ply`` + its dataset -> our scene folder (and a
+camera path's frames for ``enhance-path``), on a tiny synthetic splat scene with known answers."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from roguenerf.cli import app
+from roguenerf.data.colmap import write_colmap
+from roguenerf.data.readers import load_scene
+from roguenerf.data.toy import look_at
+from roguenerf.geometry.cameras import opencv_to_opengl
+from roguenerf.imageio import read_image, write_png
+from roguenerf.paths import find_path_frames
+from roguenerf.splats import Gaussians, logit, render, write_ply
+
+runner = CliRunner()
+H, W, VIEWS = 36, 48, 9
+
+
+def splat_scene(n: int = 400, seed: int = 0) -> Gaussians:
+    """A few hundred Gaussians on a textured wall and a box in front of it (degree-1 SH)."""
+    g = torch.Generator().manual_seed(seed)
+    wall = torch.rand(n // 2, 3, generator=g) * torch.tensor([3.0, 0.05, 2.2]) + torch.tensor([-1.5, 1.5, -1.1])
+    box = torch.rand(n - n // 2, 3, generator=g) * torch.tensor([0.8, 0.8, 0.8]) + torch.tensor([-0.4, 0.0, -0.4])
+    means = torch.cat([wall, box])
+    sh = torch.randn(n, 4, 3, generator=g) * 0.15
+    sh[:, 0] = (torch.rand(n, 3, generator=g) - 0.5) * 2.5
+    return Gaussians(means=means, sh=sh, opacity=logit(torch.rand(n, generator=g) * 0.3 + 0.69),
+                     log_scales=torch.log(torch.rand(n, 3, generator=g) * 0.12 + 0.08),
+                     quats=torch.randn(n, 4, generator=g))
+
+
+def cameras(count: int) -> tuple[torch.Tensor, torch.Tensor]:
+    poses = []
+    for i in range(count):
+        a = math.radians(-25 + 50 * i / max(count - 1, 1))
+        eye = torch.tensor([3.0 * math.sin(a), -3.0 * math.cos(a), 0.4], dtype=torch.float64)
+        poses.append(look_at(eye, torch.tensor([0.0, 0.5, 0.0], dtype=torch.float64)))
+    K = torch.tensor([[40.0, 0, W / 2], [0, 40.0, H / 2], [0, 0, 1]], dtype=torch.float64)
+    return torch.stack(poses), K
+
+
+@pytest.fixture(scope="module")
+def splat_data(tmp_path_factory):
+    """A transforms.json dataset whose photos are the splats' renders plus a little noise, and the .ply."""
+    root = tmp_path_factory.mktemp("splat")
+    g = splat_scene()
+    write_ply(root / "point_cloud.ply", g)
+    poses, K = cameras(VIEWS)
+    frames = []
+    noise = torch.Generator().manual_seed(1)
+    for i in range(VIEWS):
+        rgb, _, _ = render(g, poses[i], K, H, W)
+        photo = (rgb + 0.03 * torch.randn(rgb.shape, generator=noise)).clamp(0, 1)
+        (root / "data" / "images").mkdir(parents=True, exist_ok=True)
+        write_png(root / "data" / "images" / f"view_{i:02d}.png", photo)
+        frames.append({"file_path": f"images/view_{i:02d}.png", "transform_matrix": opencv_to_opengl(poses[i]).tolist(),
+                       "split": "test" if i in (2, 6) else "train"})
+    doc = {"fl_x": 40.0, "fl_y": 40.0, "cx": W / 2, "cy": H / 2, "w": W, "h": H, "frames": frames}
+    (root / "data" / "transforms.json").write_text(json.dumps(doc))
+    return root, g, poses, K
+
+
+def test_import_3dgs_renders_every_view_and_evaluate_loads_it(splat_data, tmp_path):
+    root, g, poses, K = splat_data
+    out = tmp_path / "scene"
+    result = runner.invoke(app, ["import-3dgs", str(root / "data"), "--ply", str(root / "point_cloud.ply"),
+                                 "--output", str(out), "--backend", "cpu"])
+    assert result.exit_code == 0, result.output
+    scene = load_scene(out)
+    assert [f.split for f in scene.frames].count("test") == 2 and len(scene.frames) == VIEWS
+    assert not list(tmp_path.glob(".scene.*"))  # the temporary folder was renamed into place
+    for i, frame in enumerate(scene.frames):
+        rgb, depth, acc = render(g, poses[i], K, H, W)
+        assert torch.allclose(frame.world_from_cam, poses[i], atol=1e-12)
+        assert (scene.render(i) - rgb).abs().max() <= 0.5 / 255 + 1e-6
+        got = scene.depth(i)
+        known = acc >= 0.5
+        assert known.float().mean() > 0.3 and (~known).any()
+        assert torch.equal(got > 0, known)  # no splat (or too little of one): unknown depth
+        assert (got - depth).abs().max() < 1e-5
+        assert torch.equal(read_image(frame.image_path), read_image(root / "data" / "images" / f"view_{i:02d}.png"))
+    assert (out / "acc" / "view_00.png").is_file()
+    meta = json.loads((out / "transforms.json").read_text())["source"]
+    assert meta["gaussians"] == 400 and meta["sh_degree"] == 1 and meta["backend"] == "cpu"
+
+    evaluated = runner.invoke(app, ["evaluate", str(out), "--json"])
+    assert evaluated.exit_code == 0, evaluated.output
+    report = json.loads(evaluated.stdout.strip().splitlines()[-1])
+    assert len(report["views"]) == 2 and math.isfinite(report["render"]["psnr"])
+
+
+def test_a_camera_path_goes_to_an_enhanced_mp4_in_two_commands(splat_data, tmp_path):
+    root, g, poses, K = splat_data
+    path_poses, _ = cameras(5)
+    path_poses[:, 2, 3] += 0.2  # novel views: above the dataset's
+    path = tmp_path / "path.json"
+    path.write_text(json.dumps({"fl_x": 40.0, "fl_y": 40.0, "cx": W / 2, "cy": H / 2, "w": W, "h": H,
+                                "frames": [{"transform_matrix": opencv_to_opengl(p).tolist()} for p in path_poses]}))
+    out = tmp_path / "scene"
+    first = runner.invoke(app, ["import-3dgs", str(root / "data"), "--ply", str(root / "point_cloud.ply"),
+                                "--output", str(out), "--path", str(path), "--backend", "cpu"])
+    assert first.exit_code == 0, first.output
+    frames = out / "path"
+    pairs = find_path_frames(frames, 5)
+    rgb, depth, _ = render(g, path_poses[3], K, H, W)
+    assert (read_image(pairs[3][0]) - rgb).abs().max() <= 0.5 / 255 + 1e-6
+    assert np.abs(np.load(pairs[3][1]) - depth[0].numpy()).max() < 1e-5
+    pytest.importorskip("av")
+    second = runner.invoke(app, ["enhance-path", str(out), "--frames", str(frames), "--cameras",
+                                 str(frames / "transforms.json"), "--output", str(tmp_path / "enhanced")])
+    assert second.exit_code == 0, second.output
+    assert (tmp_path / "enhanced" / "enhanced.mp4").stat().st_size > 0
+
+
+def test_import_3dgs_reads_a_colmap_dataset_with_the_trainers_split(splat_data, tmp_path):
+    root, g, poses, K = splat_data
+    data = tmp_path / "colmap"
+    (data / "images").mkdir(parents=True)
+    names = [f"view_{i:02d}.png" for i in range(VIEWS)]
+    for name in names:
+        (data / "images" / name).write_bytes((root / "data" / "images" / name).read_bytes())
+    write_colmap(data / "sparse" / "0", names=names, K=K, world_from_cam=poses, widths=W, heights=H)
+    out = tmp_path / "scene"
+    result = runner.invoke(app, ["import-3dgs", str(data), "--ply", str(root / "point_cloud.ply"),
+                                 "--output", str(out), "--backend", "cpu", "--hold", "4"])
+    assert result.exit_code == 0, result.output
+    scene = load_scene(out)
+    assert [f.name for f in scene.frames if f.split == "test"] == ["view_00", "view_04", "view_08"]
+    rgb, _, _ = render(g, poses[5], K, H, W)
+    assert (scene.render("view_05") - rgb).abs().max() <= 0.5 / 255 + 1e-6
+
+
+def test_import_3dgs_refuses_bad_input(splat_data, tmp_path):
+    root, _, _, _ = splat_data
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
+    result = runner.invoke(app, ["import-3dgs", str(root / "data"), "--ply", str(bad), "--output",
+                                 str(tmp_path / "out"), "--backend", "cpu"])
+    assert result.exit_code == 2 and "binary_little_endian" in result.output
+    assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out.*"))
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "mine.txt").write_text("keep me")
+    result = runner.invoke(app, ["import-3dgs", str(root / "data"), "--ply", str(root / "point_cloud.ply"),
+                                 "--output", str(busy), "--backend", "cpu"])
+    assert result.exit_code == 2 and "other files" in result.output
+    assert (busy / "mine.txt").read_text() == "keep me"
+    result = runner.invoke(app, ["import-3dgs", str(root / "data"), "--ply", str(root / "point_cloud.ply"),
+                                 "--output", str(tmp_path / "o2"), "--backend", "warp"])
+    assert result.exit_code == 2 and "backend" in result.output
