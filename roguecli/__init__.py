@@ -31,8 +31,8 @@ def make_pairs_command(
     output: Annotated[Path, typer.Option(
         "--output", help="Scene folder to write (renders, depths, acc for every view).")] = ...,
     preset: Annotated[str, typer.Option("--preset", help=(
-        "Field preset: blur (64³ RGB grid, half-size render), coarse (96³ RGB grid) or fine "
-        "(160³, view-dependent)."))] = "fine",
+        "Field preset: blur (64³ RGB grid, half-size render), coarse (96³ RGB grid), fine "
+        "(160³, view-dependent) or splat (3D Gaussian splats)."))] = "fine",
     minutes: Annotated[float | None, typer.Option(
         "--minutes", help="Fitting budget in minutes (default: the preset's).")] = None,
     steps: Annotated[int | None, typer.Option(
@@ -68,6 +68,8 @@ def make_pairs_command(
         elif minutes is not None:
             changes.update(minutes=minutes, steps=None)
         if resolution is not None:
+            if not hasattr(config, "resolution"):
+                raise InputError(f"--resolution: the {preset} preset has no grid")
             changes["resolution"] = resolution
         config = dataclasses.replace(config, **changes)
         from tqdm import tqdm
@@ -78,7 +80,8 @@ def make_pairs_command(
 
         def progress(p: dict) -> None:
             done = p["step"] if config.steps is not None else int(100 * p["fraction"])
-            bar.set_postfix(psnr=f"{p['psnr']:.2f}", grid=p["resolution"], refresh=False)
+            size = {"grid": p["resolution"]} if "resolution" in p else {"splats": p.get("gaussians")}
+            bar.set_postfix(psnr=f"{p['psnr']:.2f}", **size, refresh=False)
             bar.update(done - bar.n)
 
         try:

@@ -42,7 +42,7 @@ def manifest_rows(cache: Path) -> list[dict]:
         c, tr, te = report["config"], report["train"], report["test"] or {}
         rows.append({
             "scene": fit_json.parent.parent.name, "fit": fit_json.parent.name,
-            "resolution": c["resolution"], "features": c["features"], "render_scale": c.get("render_scale", 1),
+            "resolution": c.get("resolution", ""), "features": c.get("features", ""), "render_scale": c.get("render_scale", 1),
             "minutes": c["minutes"], "steps": report["steps"], "fit_seconds": report["fit_seconds"],
             "render_seconds": report["render_seconds"],
             "train_views": tr["views"], "train_psnr": round(tr["psnr"], 3), "train_ssim": round(tr["ssim"], 4),
@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
             bar = tqdm(total=100, desc=f"{scene.name}/{preset}", unit="%", file=sys.stderr, mininterval=5)
 
             def progress(p: dict, bar=bar) -> None:
-                bar.set_postfix(psnr=f"{p['psnr']:.2f}", grid=p["resolution"], refresh=False)
+                bar.set_postfix(psnr=f"{p['psnr']:.2f}", size=p.get("resolution", p.get("gaussians")), refresh=False)
                 bar.update(int(100 * p["fraction"]) - bar.n)
 
             bars = [bar]

@@ -22,6 +22,7 @@ from torch import Tensor
 
 from roguefit.field import GridField, scene_frame, seen_by_cameras
 from roguefit.photos import PhotoSet, read_photo_set
+from roguefit.splats import SplatConfig
 from roguenerf.errors import InputError, TrainingCancelled
 from roguenerf.imageio import atomic_write
 
@@ -84,10 +85,12 @@ class FitConfig:
 # (rendered at half size: its voxels span several pixels, so that costs a quarter of the rays and
 # changes little), a 96³ RGB grid, and a view-dependent 160³ field with a longer budget. Budgets
 # are in steps, so the pairs do not depend on how busy the machine was (--minutes overrides).
-PRESETS: dict[str, FitConfig] = {
+PRESETS: dict[str, FitConfig | SplatConfig] = {
     "blur": FitConfig(resolution=64, features=0, minutes=None, steps=250, samples=64, render_scale=2),
     "coarse": FitConfig(resolution=96, features=0, minutes=None, steps=500, samples=64),
     "fine": FitConfig(resolution=160, features=6, minutes=None, steps=1500, samples=80),
+    # 3D Gaussian splats (roguefit.splats), fitted at half the photo size: another kind of field.
+    "splat": SplatConfig(),
 }
 
 
@@ -295,14 +298,20 @@ def _metrics(renders: Tensor, photos: Tensor) -> dict:
             "views": int(renders.shape[0])}
 
 
-def make_pairs(photos_dir: str | Path, output: str | Path, config: FitConfig = FitConfig(), *,
+def make_pairs(photos_dir: str | Path, output: str | Path, config: FitConfig | SplatConfig = FitConfig(), *,
                progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
                render_progress: Callable[[int, int], None] | None = None) -> dict:
     """Fit a field to ``photos_dir``'s training views and write the scene folder ``output``.
 
     Returns the fit report (also written as ``output/fit.json``): configuration, steps, seconds,
-    and the renders' PSNR/SSIM on the training and held-out views.
+    and the renders' PSNR/SSIM on the training and held-out views. A :class:`SplatConfig` fits
+    Gaussian splats instead (:func:`roguefit.splats.make_splat_pairs`).
     """
+    if isinstance(config, SplatConfig):
+        from roguefit.splats import make_splat_pairs
+
+        return make_splat_pairs(photos_dir, output, config, progress=progress, should_stop=should_stop,
+                                render_progress=render_progress)
     from roguenerf.data.writers import write_scene_folder
 
     output = Path(output)

@@ -128,7 +128,7 @@ def test_random_gaussians_match_a_brute_force_renderer(degree):
     assert ((depth.double() == 0) == (ref_depth == 0)).all()
     assert (depth.double() - ref_depth).abs().max() < 1e-4 * float(ref_depth.max())
     # Tile size, slices and chunks change how the work is cut, never the answer.
-    small = render(g, pose, K, 40, 56, background=background, tile=8, slice_size=7, chunk=3000)
+    small = render(g, pose, K, 40, 56, background=background, tile=8, chunk=50)
     for a, b in zip(small, (rgb, depth, acc), strict=True):
         assert (a - b).abs().max() < 2e-6
 

@@ -9,17 +9,19 @@ What it computes (the 3DGS image formation, Kerbl et al. 2023, as Inria's CUDA c
    ``z <= near`` are culled. Colour is the SH seen from the camera centre, ``max(SH + 0.5, 0)``.
 2. **Footprint.** A Gaussian reaches a pixel (centre at ``(u + 0.5, v + 0.5)``) when the pixel lies
    inside its 3σ ellipse (``dᵀ Σ'⁻¹ d <= 9``) and ``α = min(0.99, o · exp(-½ dᵀ Σ'⁻¹ d)) >= 1/255``.
-   Every such pixel lies in the ellipse's bounding box, so binning Gaussians into 16×16 tiles by
-   that box loses nothing: the result does not depend on the tile size.
+   Every such pixel lies in the ellipse's bounding box, so binning Gaussians into tiles by that
+   box loses nothing: the result does not depend on the tile size.
 3. **Compositing.** Per pixel, front to back in the order of the centres' camera z:
    ``w_i = α_i T_i``, ``T_{i+1} = T_i (1 - α_i)``; the Gaussian that would bring ``T`` below
    1e-4 and all behind it are dropped (Inria's early stop). ``rgb = Σ w_i c_i + T · background``,
    ``opacity = Σ w_i``, ``depth = Σ w_i z_i / Σ w_i`` where ``opacity >= depth_threshold``, else
    0 (unknown depth, :mod:`roguenerf.geometry.depth`).
 
-Memory stays bounded: tiles are processed a batch at a time and each tile's depth-sorted list in
-slices of ``slice_size`` Gaussians (``chunk`` pixel × Gaussian evaluations at most at once). The
-whole computation is differentiable (autograd) for fitting, where memory grows with the image.
+Work and memory: Gaussians are binned into square tiles (``tile`` px) by that box; per tile, the
+candidate (pixel, Gaussian) pairs inside each box are tested ``chunk`` at a time, only the pairs
+the rule keeps are sorted (pixel, then depth) and composited, with the transmittance as a
+float64 running sum of ``log(1 - α)``. So the cost follows the splats' real footprints, and
+memory one tile's pairs. Everything is differentiable (autograd) for fitting.
 """
 
 from __future__ import annotations
@@ -166,10 +168,79 @@ def _bin(proj: Projected, height: int, width: int, tile: int) -> tuple[Tensor, T
     return vis, pair_gid, start, per_tile
 
 
+def _tile_pairs(feat: Tensor, gids: Tensor, ext: Tensor, rank: Tensor, x0: int, y0: int, tw: int, th: int,
+                chunk: int) -> tuple[Tensor, Tensor]:
+    """The (Gaussian, pixel) pairs of one tile that the footprint rule keeps, sorted by pixel and
+    then depth: ``(gid (into feat), pixel index in the tile)``."""
+    f = feat.detach()
+    m = f[gids, :2].to(torch.float64)
+    e = ext[gids].to(torch.float64)
+    # Pixel j's centre is j + 0.5: the box [m - e, m + e] holds centres j in [ceil(m-e-0.5), floor(m+e-0.5)].
+    xl = torch.ceil(m[:, 0] - e[:, 0] - 0.5 - 1e-6).clamp(min=x0).long()
+    xh = torch.floor(m[:, 0] + e[:, 0] - 0.5 + 1e-6).clamp(max=x0 + tw - 1).long()
+    yl = torch.ceil(m[:, 1] - e[:, 1] - 0.5 - 1e-6).clamp(min=y0).long()
+    yh = torch.floor(m[:, 1] + e[:, 1] - 0.5 + 1e-6).clamp(max=y0 + th - 1).long()
+    w, h = (xh - xl + 1).clamp_min(0), (yh - yl + 1).clamp_min(0)
+    n = w * h
+    ends = torch.cumsum(n, 0)
+    kept_g, kept_p = [], []
+    g0 = 0
+    while g0 < gids.numel():
+        # As many Gaussians as fit the chunk (at least one).
+        base = int(ends[g0 - 1]) if g0 else 0
+        g1 = max(g0 + 1, int(torch.searchsorted(ends, base + chunk, right=True)))
+        g1 = min(g1, gids.numel())
+        counts = n[g0:g1]
+        local_g = torch.repeat_interleave(torch.arange(g0, g1), counts)
+        first = torch.cumsum(counts, 0) - counts
+        k = torch.arange(local_g.numel()) - first[local_g - g0]
+        px = xl[local_g] + k % w[local_g]
+        py = yl[local_g] + k // w[local_g]
+        gid = gids[local_g]
+        keep = _footprint(f[gid], px, py)[1]
+        kept_g.append(gid[keep])
+        kept_p.append((py[keep] - y0) * tw + (px[keep] - x0))
+        g0 = g1
+    gid = torch.cat(kept_g) if kept_g else gids[:0]
+    pix = torch.cat(kept_p) if kept_p else gids[:0]
+    order = torch.argsort(pix * rank.numel() + rank[gid])
+    return gid[order], pix[order]
+
+
+def _footprint(f: Tensor, px: Tensor, py: Tensor) -> tuple[Tensor, Tensor]:
+    """α of rows ``f`` (u, v, a, b, c, opacity, ...) at integer pixels ``(px, py)``, and where it counts."""
+    dx = (px.to(f.dtype) + 0.5) - f[:, 0]
+    dy = (py.to(f.dtype) + 0.5) - f[:, 1]
+    maha = f[:, 2] * dx * dx + 2 * f[:, 3] * dx * dy + f[:, 4] * dy * dy
+    alpha = (f[:, 5] * torch.exp(-0.5 * maha)).clamp(max=ALPHA_MAX)
+    return alpha, (maha <= SIGMA_CUT * SIGMA_CUT) & (alpha >= ALPHA_MIN)
+
+
+def _composite(feat: Tensor, gid: Tensor, pix: Tensor, tp: int, x0: int, y0: int, tw: int) -> Tensor:
+    """Front-to-back compositing of sorted pairs: ``(tp, 5)`` = rgb, Σ w z, Σ w per tile pixel."""
+    dtype = feat.dtype
+    out = torch.zeros(tp, 5, dtype=dtype)
+    if gid.numel() == 0:
+        return out
+    f = feat[gid]
+    alpha, _ = _footprint(f, pix % tw + x0, pix // tw + y0)
+    # Transmittance before each pair: exp of the sum of log(1 - α) over the pixel's earlier pairs
+    # (float64: a cumulative sum over the whole tile, minus its value where the pixel's run starts).
+    la = torch.log1p(-alpha.to(torch.float64))
+    excl = torch.cumsum(la, 0) - la
+    counts = torch.bincount(pix, minlength=tp)
+    starts = torch.cumsum(counts, 0) - counts
+    before = torch.exp(excl - excl[starts[pix]])
+    after = before * (1.0 - alpha.to(torch.float64))
+    w = torch.where(after >= T_MIN, alpha.to(torch.float64) * before, torch.zeros_like(before)).to(dtype)
+    vals = torch.cat([w[:, None] * f[:, 7:10], (w * f[:, 6])[:, None], w[:, None]], dim=1)
+    return out.index_add(0, pix, vals)
+
+
 def render(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int, width: int, *,
            background: Tensor | tuple[float, float, float] | None = None, near: float = 0.01,
-           sh_degree: int | None = None, depth_threshold: float = DEFAULT_DEPTH_THRESHOLD, tile: int = 16,
-           slice_size: int = 128, chunk: int = 1 << 21, progress: bool | Callable[[int, int], None] = False,
+           sh_degree: int | None = None, depth_threshold: float = DEFAULT_DEPTH_THRESHOLD, tile: int = 32,
+           chunk: int = 1 << 22, progress: bool | Callable[[int, int], None] = False,
            return_info: bool = False):
     """Render ``gaussians`` from an OpenCV camera.
 
@@ -180,9 +251,9 @@ def render(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int,
         near: centres with camera z at most this are culled.
         sh_degree: SH degree to evaluate (default: all the Gaussians hold).
         depth_threshold: depth is reported where opacity >= this, else 0 (unknown).
-        tile, slice_size, chunk: tile side (px); Gaussians per slice of a tile's list; at most
-            this many pixel × Gaussian evaluations at once (memory bound).
-        progress: True for a tqdm bar over tile batches, or ``callback(done, total)``.
+        tile, chunk: tile side (px; one tile's pairs are composited at once); at most this many
+            candidate (pixel, Gaussian) pairs are tested at once (memory bound).
+        progress: True for a tqdm bar over the tiles, or ``callback(done, total)``.
         return_info: also return a dict with ``means2d`` (``(N, 2)``, its gradient retained when
             it needs one: the view-space gradient that densification reads), ``visible``,
             ``extents`` and ``projected``.
@@ -190,8 +261,8 @@ def render(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int,
         ``rgb`` ``(3, H, W)``, ``depth`` ``(1, H, W)`` (z, 0 where unknown), ``opacity`` ``(1, H, W)``
         (and ``info`` when asked).
     """
-    if tile < 1 or slice_size < 1 or chunk < 1:
-        raise InputError(f"tile, slice_size, chunk: expected >= 1, got {tile}, {slice_size}, {chunk}")
+    if tile < 1 or chunk < 1:
+        raise InputError(f"tile, chunk: expected >= 1, got {tile}, {chunk}")
     if not (0.0 <= depth_threshold <= 1.0):
         raise InputError(f"depth_threshold: expected a share in [0, 1], got {depth_threshold}")
     height, width = int(height), int(width)
@@ -199,67 +270,39 @@ def render(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int,
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()
     device, dtype = proj.means2d.device, proj.means2d.dtype
-    bg = torch.zeros(3, dtype=dtype, device=device) if background is None else \
-        torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
+    if device.type != "cpu":
+        raise InputError("render: the rasterizer runs on the CPU (gsplat renders on a GPU)")
+    bg = torch.zeros(3, dtype=dtype) if background is None else torch.as_tensor(background, dtype=dtype).reshape(3)
     vis, pair_gid, start, count = _bin(proj, height, width, tile)
     tiles_x, tiles_y = math.ceil(width / tile), math.ceil(height / tile)
     n_tiles, tp = tiles_x * tiles_y, tile * tile
     # Per visible Gaussian: u, v, a, b, c, opacity, z, r, g, b.
     feat = torch.cat([proj.means2d[vis], proj.conics[vis], proj.opacities[vis, None], proj.depths[vis, None],
                       proj.colours[vis]], dim=1)
-    busy = torch.nonzero(count > 0).squeeze(1)
-    busy = busy[torch.argsort(count[busy], descending=True, stable=True)]
-    per_batch = max(1, chunk // (tp * slice_size))
-    n_batches = math.ceil(busy.numel() / per_batch)
+    ext = proj.extents[vis]
+    rank = torch.empty(vis.numel(), dtype=torch.long)
+    rank[torch.argsort(proj.depths.detach()[vis], stable=True)] = torch.arange(vis.numel())
+    busy = torch.nonzero(count > 0).squeeze(1).tolist()
     bar = None
     if progress is True:
         from tqdm import tqdm
 
-        bar = tqdm(total=n_batches, desc="rasterizing", unit="batch", leave=False, dynamic_ncols=True)
-    offs_v = torch.arange(tp, device=device) // tile
-    offs_u = torch.arange(tp, device=device) % tile
-    col = torch.arange(slice_size, device=device)
-    outputs, tile_ids = [], []
-    for b in range(n_batches):
-        tiles = busy[b * per_batch:(b + 1) * per_batch]
-        lengths, starts = count[tiles], start[tiles]
-        pu = ((tiles % tiles_x)[:, None] * tile + offs_u[None]).to(dtype) + 0.5  # (B, P)
-        pv = ((tiles // tiles_x)[:, None] * tile + offs_v[None]).to(dtype) + 0.5
-        trans = torch.ones(tiles.numel(), tp, dtype=dtype, device=device)
-        rgb = torch.zeros(tiles.numel(), tp, 3, dtype=dtype, device=device)
-        wz = torch.zeros(tiles.numel(), tp, dtype=dtype, device=device)
-        wsum = torch.zeros(tiles.numel(), tp, dtype=dtype, device=device)
-        for s0 in range(0, int(lengths.max()), slice_size):
-            valid = (s0 + col)[None] < lengths[:, None]  # (B, S)
-            idx = torch.where(valid, starts[:, None] + s0 + col[None], torch.zeros_like(valid, dtype=torch.long))
-            f = feat[pair_gid[idx]]  # (B, S, 10)
-            dx = pu[:, :, None] - f[:, None, :, 0]
-            dy = pv[:, :, None] - f[:, None, :, 1]
-            maha = f[:, None, :, 2] * dx * dx + 2 * f[:, None, :, 3] * dx * dy + f[:, None, :, 4] * dy * dy
-            alpha = (f[:, None, :, 5] * torch.exp(-0.5 * maha)).clamp(max=ALPHA_MAX)
-            keep = valid[:, None, :] & (maha <= SIGMA_CUT * SIGMA_CUT) & (alpha >= ALPHA_MIN)
-            alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
-            one_minus = 1.0 - alpha
-            after = trans[:, :, None] * torch.cumprod(one_minus, dim=-1)
-            before = torch.cat([trans[:, :, None], after[:, :, :-1]], dim=-1)
-            w = torch.where(after >= T_MIN, alpha * before, torch.zeros_like(alpha))
-            rgb = rgb + torch.einsum("bps,bsc->bpc", w, f[:, :, 7:10])
-            wz = wz + torch.einsum("bps,bs->bp", w, f[:, :, 6])
-            wsum = wsum + w.sum(-1)
-            trans = after[:, :, -1]
-            if float(trans.detach().max()) < T_MIN:
-                break
-        outputs.append(torch.cat([rgb, wz[..., None], wsum[..., None]], dim=-1))
-        tile_ids.append(tiles)
+        bar = tqdm(total=len(busy), desc="rasterizing", unit="tile", leave=False, dynamic_ncols=True)
+    outputs = []
+    for n, t in enumerate(busy):
+        y0, x0 = (t // tiles_x) * tile, (t % tiles_x) * tile
+        gids = pair_gid[int(start[t]):int(start[t] + count[t])]
+        gid, pix = _tile_pairs(feat, gids, ext, rank, x0, y0, tile, tile, chunk)
+        outputs.append(_composite(feat, gid, pix, tp, x0, y0, tile))
         if bar is not None:
             bar.update(1)
         elif callable(progress):
-            progress(b + 1, n_batches)
+            progress(n + 1, len(busy))
     if bar is not None:
         bar.close()
-    full = torch.zeros(n_tiles, tp, 5, dtype=dtype, device=device)
+    full = torch.zeros(n_tiles, tp, 5, dtype=dtype)
     if outputs:
-        full = full.index_copy(0, torch.cat(tile_ids), torch.cat(outputs))
+        full = full.index_copy(0, torch.tensor(busy, dtype=torch.long), torch.stack(outputs))
     full = full.reshape(tiles_y, tiles_x, tile, tile, 5).permute(4, 0, 2, 1, 3)
     full = full.reshape(5, tiles_y * tile, tiles_x * tile)[:, :height, :width]
     opacity = full[4:5]
