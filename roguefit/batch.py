@@ -42,7 +42,8 @@ def manifest_rows(cache: Path) -> list[dict]:
         c, tr, te = report["config"], report["train"], report["test"] or {}
         rows.append({
             "scene": fit_json.parent.parent.name, "fit": fit_json.parent.name,
-            "resolution": c.get("resolution", ""), "features": c.get("features", ""), "render_scale": c.get("render_scale", 1),
+            "resolution": c.get("resolution", ""), "features": c.get("features", ""),
+            "render_scale": c.get("render_scale", 1),
             "minutes": c["minutes"], "steps": report["steps"], "fit_seconds": report["fit_seconds"],
             "render_seconds": report["render_seconds"],
             "train_views": tr["views"], "train_psnr": round(tr["psnr"], 3), "train_ssim": round(tr["ssim"], 4),
