@@ -462,7 +462,7 @@ def import_3dgs_command(
         "--depth-threshold", help="Depth is known where the splats' opacity reaches this.")] = 0.5,
 ) -> None:
     """Render a trained 3DGS scene's .ply at every dataset view (RGB, z-depth, opacity) into a scene folder."""
-    from roguenerf.splats.importer import PATH_FOLDER, import_3dgs
+    from roguenerf.splats.importer import PATH_CAMERAS, PATH_FOLDER, import_3dgs
 
     with _errors():
         if not ply.is_file():
@@ -478,7 +478,7 @@ def import_3dgs_command(
         typer.echo(f"wrote {scene!r}", err=True)
         if path is not None:
             frames = output / PATH_FOLDER
-            cams = next(p for p in (frames / "camera_path.json", frames / "transforms.json") if p.is_file())
+            cams = frames / PATH_CAMERAS
             typer.echo(f"next: roguenerf enhance-path {output} --frames {frames} --cameras {cams} --output OUT",
                        err=True)
         typer.echo(str(output))

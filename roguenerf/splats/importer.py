@@ -32,6 +32,8 @@ from roguenerf.splats.raster import DEFAULT_DEPTH_THRESHOLD, render
 
 BACKENDS = ("auto", "cpu", "gsplat")
 PATH_FOLDER = "path"
+PATH_CAMERAS = "transforms.json"
+"""The path's cameras as rendered (transforms style, the dataset's world), beside ``rgb/`` and ``depth/``."""
 """Where ``import_3dgs(..., camera_path=...)`` writes the path's frames inside the scene folder."""
 
 
@@ -248,7 +250,17 @@ def _render_path_into(gaussians, cams, camera_file: Path, folder: Path, backend,
         atomic_write(folder / "depth" / f"{t:0{digits}d}.npy", encode_npy(depth[0].numpy()), make_parents=True)
         if progress is not None:
             progress(t + 1, len(cams))
-    shutil.copyfile(camera_file, folder / ("camera_path.json" if cams.source == "nerfstudio" else "transforms.json"))
+    # The cameras as rendered (the dataset's world, whatever file they came from): what
+    # ``enhance-path --cameras`` reads beside the frames.
+    from roguenerf.geometry.cameras import opencv_to_opengl
+    from roguenerf.imageio import atomic_write as write
+
+    doc = {"fps": cams.fps, "source": {"camera_path": str(camera_file), "format": cams.source},
+           "frames": [{"transform_matrix": opencv_to_opengl(cams.world_from_cam[t]).tolist(),
+                       "fl_x": float(cams.K[t, 0, 0]), "fl_y": float(cams.K[t, 1, 1]),
+                       "cx": float(cams.K[t, 0, 2]), "cy": float(cams.K[t, 1, 2]),
+                       "w": cams.width, "h": cams.height} for t in range(len(cams))]}
+    write(folder / PATH_CAMERAS, json.dumps(doc, indent=1).encode())
 
 
 def render_camera_path(ply: str | Path, camera_path: str | Path, output: str | Path, *, backend: str = "auto",
