@@ -169,7 +169,7 @@ def _bin(proj: Projected, height: int, width: int, tile: int) -> tuple[Tensor, T
 
 
 def _tile_pairs(feat: Tensor, gids: Tensor, ext: Tensor, rank: Tensor, x0: int, y0: int, tw: int, th: int,
-                chunk: int) -> tuple[Tensor, Tensor]:
+                chunk: int, width: int, height: int) -> tuple[Tensor, Tensor]:
     """The (Gaussian, pixel) pairs of one tile that the footprint rule keeps, sorted by pixel and
     then depth: ``(gid (into feat), pixel index in the tile)``."""
     f = feat.detach()
@@ -177,9 +177,9 @@ def _tile_pairs(feat: Tensor, gids: Tensor, ext: Tensor, rank: Tensor, x0: int, 
     e = ext[gids].to(torch.float64)
     # Pixel j's centre is j + 0.5: the box [m - e, m + e] holds centres j in [ceil(m-e-0.5), floor(m+e-0.5)].
     xl = torch.ceil(m[:, 0] - e[:, 0] - 0.5 - 1e-6).clamp(min=x0).long()
-    xh = torch.floor(m[:, 0] + e[:, 0] - 0.5 + 1e-6).clamp(max=x0 + tw - 1).long()
+    xh = torch.floor(m[:, 0] + e[:, 0] - 0.5 + 1e-6).clamp(max=min(x0 + tw, width) - 1).long()
     yl = torch.ceil(m[:, 1] - e[:, 1] - 0.5 - 1e-6).clamp(min=y0).long()
-    yh = torch.floor(m[:, 1] + e[:, 1] - 0.5 + 1e-6).clamp(max=y0 + th - 1).long()
+    yh = torch.floor(m[:, 1] + e[:, 1] - 0.5 + 1e-6).clamp(max=min(y0 + th, height) - 1).long()
     w, h = (xh - xl + 1).clamp_min(0), (yh - yl + 1).clamp_min(0)
     n = w * h
     ends = torch.cumsum(n, 0)
@@ -292,7 +292,7 @@ def render(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int,
     for n, t in enumerate(busy):
         y0, x0 = (t // tiles_x) * tile, (t % tiles_x) * tile
         gids = pair_gid[int(start[t]):int(start[t] + count[t])]
-        gid, pix = _tile_pairs(feat, gids, ext, rank, x0, y0, tile, tile, chunk)
+        gid, pix = _tile_pairs(feat, gids, ext, rank, x0, y0, tile, tile, chunk, width, height)
         outputs.append(_composite(feat, gid, pix, tp, x0, y0, tile))
         if bar is not None:
             bar.update(1)
