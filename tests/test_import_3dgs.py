@@ -156,3 +156,38 @@ def test_import_3dgs_refuses_bad_input(splat_data, tmp_path):
     result = runner.invoke(app, ["import-3dgs", str(root / "data"), "--ply", str(root / "point_cloud.ply"),
                                  "--output", str(tmp_path / "o2"), "--backend", "warp"])
     assert result.exit_code == 2 and "backend" in result.output
+
+
+def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+
+
+def test_a_splatfacto_export_in_the_model_world_renders_the_dataset_views(splat_data, tmp_path):
+    """nerfstudio's model world: x' = s (R_T x + t_T). The same splats moved there, with the
+    dataparser file, give the dataset-world renders and depths in the dataset's units."""
+    root, g, poses, K = splat_data
+    g0 = Gaussians(g.means, g.sh[:, :1].clone(), g.opacity, g.log_scales, g.quats)  # degree 0: no SH rotation
+    theta, s = 0.7, 0.37
+    R_T = torch.tensor([[math.cos(theta), -math.sin(theta), 0], [math.sin(theta), math.cos(theta), 0], [0, 0, 1]])
+    t_T = torch.tensor([0.3, -1.2, 0.5])
+    q_T = torch.tensor([math.cos(theta / 2), 0, 0, math.sin(theta / 2)])
+    moved = Gaussians(means=s * (g0.means @ R_T.T + t_T), sh=g0.sh, opacity=g0.opacity,
+                      log_scales=g0.log_scales + math.log(s), quats=quat_mul(q_T.expand_as(g0.quats), g0.quats))
+    write_ply(tmp_path / "splat.ply", moved)
+    parser = tmp_path / "dataparser_transforms.json"
+    parser.write_text(json.dumps({"transform": torch.cat([R_T, t_T[:, None]], 1).tolist(), "scale": s}))
+    out = tmp_path / "scene"
+    result = runner.invoke(app, ["import-3dgs", str(root / "data"), "--ply", str(tmp_path / "splat.ply"),
+                                 "--output", str(out), "--backend", "cpu", "--dataparser-transforms", str(parser)])
+    assert result.exit_code == 0, result.output
+    scene = load_scene(out)
+    assert (out / "dataparser_transforms.json").is_file()
+    for i in (0, 4):
+        rgb, depth, _ = render(g0, poses[i], K, H, W)
+        assert (scene.render(i) - rgb).abs().max() <= 0.5 / 255 + 2e-4
+        got = scene.depth(i)
+        assert torch.equal(got > 0, depth > 0)
+        assert ((got - depth).abs() / depth.clamp_min(1e-6)).max() < 1e-4
