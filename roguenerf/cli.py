@@ -448,8 +448,8 @@ def import_3dgs_command(
     output: Annotated[Path, typer.Option(
         "--output", help="Scene folder to write (renders, z-depth, opacity, photos).")],
     path: Annotated[Path | None, typer.Option("--path", help=(
-        "Also render this camera path (camera_path.json or a transforms-style list) into OUTPUT/path "
-        "for enhance-path."))] = None,
+        "Also render this camera path (any enhance-path --cameras format: camera_path.json, transforms-style, "
+        "cameras.json, COLMAP images.txt) into OUTPUT/path for enhance-path."))] = None,
     backend: Annotated[str, typer.Option(
         "--backend", help="auto (gsplat with CUDA, else CPU), cpu or gsplat.")] = "auto",
     hold: Annotated[int, typer.Option(
