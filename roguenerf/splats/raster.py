@@ -17,11 +17,13 @@ What it computes (the 3DGS image formation, Kerbl et al. 2023, as Inria's CUDA c
    ``opacity = Σ w_i``, ``depth = Σ w_i z_i / Σ w_i`` where ``opacity >= depth_threshold``, else
    0 (unknown depth, :mod:`roguenerf.geometry.depth`).
 
-Work and memory: Gaussians are binned into square tiles (``tile`` px) by that box; per tile, the
-candidate (pixel, Gaussian) pairs inside each box are tested ``chunk`` at a time, only the pairs
-the rule keeps are sorted (pixel, then depth) and composited, with the transmittance as a
-float64 running sum of ``log(1 - α)``. So the cost follows the splats' real footprints, and
-memory one tile's pairs. Everything is differentiable (autograd) for fitting.
+Work and memory: Gaussians are binned into square tiles (``tile`` px) by that box. Per tile they
+are taken front to back in groups (``group`` Gaussians, ``chunk`` candidate pairs at most): the
+candidate (pixel, Gaussian) pairs inside each box are tested, only those the rule keeps are
+sorted (pixel, then depth) and composited, the transmittance a float64 running sum of
+``log(1 - α)`` carried from group to group; a tile whose pixels are all below 1e-4 stops. So the
+cost follows the splats' real footprints up to saturation, and memory one group's pairs.
+Everything is differentiable (autograd) for fitting.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from roguenerf.splats.sh import eval_sh
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
+LOG_T_MIN = math.log(T_MIN)
 LOW_PASS = 0.3
 SIGMA_CUT = 3.0
 FOV_CLAMP = 1.3
@@ -168,45 +171,6 @@ def _bin(proj: Projected, height: int, width: int, tile: int) -> tuple[Tensor, T
     return vis, pair_gid, start, per_tile
 
 
-def _tile_pairs(feat: Tensor, gids: Tensor, ext: Tensor, rank: Tensor, x0: int, y0: int, tw: int, th: int,
-                chunk: int, width: int, height: int) -> tuple[Tensor, Tensor]:
-    """The (Gaussian, pixel) pairs of one tile that the footprint rule keeps, sorted by pixel and
-    then depth: ``(gid (into feat), pixel index in the tile)``."""
-    f = feat.detach()
-    m = f[gids, :2].to(torch.float64)
-    e = ext[gids].to(torch.float64)
-    # Pixel j's centre is j + 0.5: the box [m - e, m + e] holds centres j in [ceil(m-e-0.5), floor(m+e-0.5)].
-    xl = torch.ceil(m[:, 0] - e[:, 0] - 0.5 - 1e-6).clamp(min=x0).long()
-    xh = torch.floor(m[:, 0] + e[:, 0] - 0.5 + 1e-6).clamp(max=min(x0 + tw, width) - 1).long()
-    yl = torch.ceil(m[:, 1] - e[:, 1] - 0.5 - 1e-6).clamp(min=y0).long()
-    yh = torch.floor(m[:, 1] + e[:, 1] - 0.5 + 1e-6).clamp(max=min(y0 + th, height) - 1).long()
-    w, h = (xh - xl + 1).clamp_min(0), (yh - yl + 1).clamp_min(0)
-    n = w * h
-    ends = torch.cumsum(n, 0)
-    kept_g, kept_p = [], []
-    g0 = 0
-    while g0 < gids.numel():
-        # As many Gaussians as fit the chunk (at least one).
-        base = int(ends[g0 - 1]) if g0 else 0
-        g1 = max(g0 + 1, int(torch.searchsorted(ends, base + chunk, right=True)))
-        g1 = min(g1, gids.numel())
-        counts = n[g0:g1]
-        local_g = torch.repeat_interleave(torch.arange(g0, g1), counts)
-        first = torch.cumsum(counts, 0) - counts
-        k = torch.arange(local_g.numel()) - first[local_g - g0]
-        px = xl[local_g] + k % w[local_g]
-        py = yl[local_g] + k // w[local_g]
-        gid = gids[local_g]
-        keep = _footprint(f[gid], px, py)[1]
-        kept_g.append(gid[keep])
-        kept_p.append((py[keep] - y0) * tw + (px[keep] - x0))
-        g0 = g1
-    gid = torch.cat(kept_g) if kept_g else gids[:0]
-    pix = torch.cat(kept_p) if kept_p else gids[:0]
-    order = torch.argsort(pix * rank.numel() + rank[gid])
-    return gid[order], pix[order]
-
-
 def _footprint(f: Tensor, px: Tensor, py: Tensor) -> tuple[Tensor, Tensor]:
     """α of rows ``f`` (u, v, a, b, c, opacity, ...) at integer pixels ``(px, py)``, and where it counts."""
     dx = (px.to(f.dtype) + 0.5) - f[:, 0]
@@ -216,31 +180,73 @@ def _footprint(f: Tensor, px: Tensor, py: Tensor) -> tuple[Tensor, Tensor]:
     return alpha, (maha <= SIGMA_CUT * SIGMA_CUT) & (alpha >= ALPHA_MIN)
 
 
-def _composite(feat: Tensor, gid: Tensor, pix: Tensor, tp: int, x0: int, y0: int, tw: int) -> Tensor:
-    """Front-to-back compositing of sorted pairs: ``(tp, 5)`` = rgb, Σ w z, Σ w per tile pixel."""
-    dtype = feat.dtype
+def _render_tile(feat: Tensor, gids: Tensor, ext: Tensor, rank: Tensor, x0: int, y0: int, tile: int,
+                 chunk: int, group: int, width: int, height: int) -> Tensor:
+    """One tile: ``(tile², 5)`` = rgb, Σ w z, Σ w per pixel. ``gids`` (into ``feat``) are in depth order.
+
+    The Gaussians are taken front to back in groups (at most ``group`` of them and ``chunk``
+    candidate pairs); each group's pairs inside the boxes are tested, the kept ones sorted by
+    (pixel, depth) and composited onto the transmittance the earlier groups left (a float64 log,
+    per pixel); once every pixel of the tile is below 1e-4 the rest cannot count and is skipped.
+    """
+    dtype, tp = feat.dtype, tile * tile
+    f_det = feat.detach()
+    m = f_det[gids, :2].to(torch.float64)
+    e = ext[gids].to(torch.float64)
+    # Pixel j's centre is j + 0.5: the box [m - e, m + e] holds centres j in [ceil(m-e-0.5), floor(m+e-0.5)].
+    xl = torch.ceil(m[:, 0] - e[:, 0] - 0.5 - 1e-6).clamp(min=x0).long()
+    xh = torch.floor(m[:, 0] + e[:, 0] - 0.5 + 1e-6).clamp(max=min(x0 + tile, width) - 1).long()
+    yl = torch.ceil(m[:, 1] - e[:, 1] - 0.5 - 1e-6).clamp(min=y0).long()
+    yh = torch.floor(m[:, 1] + e[:, 1] - 0.5 + 1e-6).clamp(max=min(y0 + tile, height) - 1).long()
+    w, h = (xh - xl + 1).clamp_min(0), (yh - yl + 1).clamp_min(0)
+    n = w * h
+    ends = torch.cumsum(n, 0)
+    inside = ((torch.arange(tp) // tile + y0) < height) & ((torch.arange(tp) % tile + x0) < width)
     out = torch.zeros(tp, 5, dtype=dtype)
-    if gid.numel() == 0:
-        return out
-    f = feat[gid]
-    alpha, _ = _footprint(f, pix % tw + x0, pix // tw + y0)
-    # Transmittance before each pair: exp of the sum of log(1 - α) over the pixel's earlier pairs
-    # (float64: a cumulative sum over the whole tile, minus its value where the pixel's run starts).
-    la = torch.log1p(-alpha.to(torch.float64))
-    excl = torch.cumsum(la, 0) - la
-    counts = torch.bincount(pix, minlength=tp)
-    starts = torch.cumsum(counts, 0) - counts
-    before = torch.exp(excl - excl[starts[pix]])
-    after = before * (1.0 - alpha.to(torch.float64))
-    w = torch.where(after >= T_MIN, alpha.to(torch.float64) * before, torch.zeros_like(before)).to(dtype)
-    vals = torch.cat([w[:, None] * f[:, 7:10], (w * f[:, 6])[:, None], w[:, None]], dim=1)
-    return out.index_add(0, pix, vals)
+    log_t = torch.zeros(tp, dtype=torch.float64)  # transmittance left by the groups so far
+    g0, total = 0, gids.numel()
+    while g0 < total:
+        base = int(ends[g0 - 1]) if g0 else 0
+        g1 = min(max(g0 + 1, int(torch.searchsorted(ends, base + chunk, right=True))), g0 + group, total)
+        counts = n[g0:g1]
+        local_g = torch.repeat_interleave(torch.arange(g0, g1), counts)
+        first = torch.cumsum(counts, 0) - counts
+        k = torch.arange(local_g.numel()) - first[local_g - g0]
+        px = xl[local_g] + k % w[local_g]
+        py = yl[local_g] + k // w[local_g]
+        gid = gids[local_g]
+        keep = _footprint(f_det[gid], px, py)[1]
+        gid, pix = gid[keep], (py[keep] - y0) * tile + (px[keep] - x0)
+        g0 = g1
+        if gid.numel() == 0:
+            continue
+        order = torch.argsort(pix * rank.numel() + rank[gid])
+        gid, pix = gid[order], pix[order]
+        f = feat[gid]
+        alpha, _ = _footprint(f, pix % tile + x0, pix // tile + y0)
+        alpha64 = alpha.to(torch.float64)
+        # Transmittance before each pair: what earlier groups left times the product of (1 - α)
+        # over the pixel's earlier pairs in this group (a running sum of logs over the group,
+        # minus its value where the pixel's run starts).
+        la = torch.log1p(-alpha64)
+        excl = torch.cumsum(la, 0) - la
+        runs = torch.bincount(pix, minlength=tp)
+        starts = torch.cumsum(runs, 0) - runs
+        before = torch.exp(log_t[pix] + excl - excl[starts[pix]])
+        after = before * (1.0 - alpha64)
+        wgt = torch.where(after >= T_MIN, alpha64 * before, torch.zeros_like(before)).to(dtype)
+        vals = torch.cat([wgt[:, None] * f[:, 7:10], (wgt * f[:, 6])[:, None], wgt[:, None]], dim=1)
+        out = out.index_add(0, pix, vals)
+        log_t = log_t.index_add(0, pix, la)
+        if float(log_t.detach()[inside].max()) < LOG_T_MIN:
+            break
+    return out
 
 
 def render(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int, width: int, *,
            background: Tensor | tuple[float, float, float] | None = None, near: float = 0.01,
            sh_degree: int | None = None, depth_threshold: float = DEFAULT_DEPTH_THRESHOLD, tile: int = 32,
-           chunk: int = 1 << 22, progress: bool | Callable[[int, int], None] = False,
+           chunk: int = 1 << 22, group: int = 1024, progress: bool | Callable[[int, int], None] = False,
            return_info: bool = False):
     """Render ``gaussians`` from an OpenCV camera.
 
@@ -251,8 +257,9 @@ def render(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int,
         near: centres with camera z at most this are culled.
         sh_degree: SH degree to evaluate (default: all the Gaussians hold).
         depth_threshold: depth is reported where opacity >= this, else 0 (unknown).
-        tile, chunk: tile side (px; one tile's pairs are composited at once); at most this many
-            candidate (pixel, Gaussian) pairs are tested at once (memory bound).
+        tile, chunk, group: tile side (px); a tile's Gaussians are composited front to back in
+            groups of at most ``group`` Gaussians and ``chunk`` candidate (pixel, Gaussian) pairs
+            (memory bound); a tile stops once all its pixels are saturated.
         progress: True for a tqdm bar over the tiles, or ``callback(done, total)``.
         return_info: also return a dict with ``means2d`` (``(N, 2)``, its gradient retained when
             it needs one: the view-space gradient that densification reads), ``visible``,
@@ -261,8 +268,8 @@ def render(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int,
         ``rgb`` ``(3, H, W)``, ``depth`` ``(1, H, W)`` (z, 0 where unknown), ``opacity`` ``(1, H, W)``
         (and ``info`` when asked).
     """
-    if tile < 1 or chunk < 1:
-        raise InputError(f"tile, chunk: expected >= 1, got {tile}, {chunk}")
+    if tile < 1 or chunk < 1 or group < 1:
+        raise InputError(f"tile, chunk, group: expected >= 1, got {tile}, {chunk}, {group}")
     if not (0.0 <= depth_threshold <= 1.0):
         raise InputError(f"depth_threshold: expected a share in [0, 1], got {depth_threshold}")
     height, width = int(height), int(width)
@@ -292,8 +299,7 @@ def render(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int,
     for n, t in enumerate(busy):
         y0, x0 = (t // tiles_x) * tile, (t % tiles_x) * tile
         gids = pair_gid[int(start[t]):int(start[t] + count[t])]
-        gid, pix = _tile_pairs(feat, gids, ext, rank, x0, y0, tile, tile, chunk, width, height)
-        outputs.append(_composite(feat, gid, pix, tp, x0, y0, tile))
+        outputs.append(_render_tile(feat, gids, ext, rank, x0, y0, tile, chunk, group, width, height))
         if bar is not None:
             bar.update(1)
         elif callable(progress):
