@@ -10,9 +10,9 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
+from roguecli import app
 from roguefit import PRESETS, SplatConfig, make_pairs, read_photo_set
 from roguefit.splats import PLY_FILE, STATE_FILE
-from roguenerf.cli import app
 from roguenerf.data.readers import load_scene
 from roguenerf.errors import InputError, TrainingCancelled
 from roguenerf.splats import read_ply, render
