@@ -384,7 +384,7 @@ def test_console_script_is_the_top_level_cli_with_every_command():
     assert "roguecli*" in project["tool"]["setuptools"]["packages"]["find"]["include"]
     names = [c.name or c.callback.__name__.replace("_", "-") for c in app.registered_commands]
     assert names == ["finetune", "pretrain", "make-pairs", "evaluate", "enhance", "import-nerfstudio",
-                     "import-gsplat", "enhance-path", "serve"]
+                     "import-gsplat", "import-3dgs", "enhance-path", "serve"]
     library = {c.name or c.callback.__name__.replace("_", "-") for c in library_app.registered_commands}
     assert library == set(names) - {"serve", "make-pairs"}
     # --help names no module above the library and loads none of them.
