@@ -129,10 +129,11 @@ def starting_checkpoint(explicit: Path | None, scratch: bool) -> Path | None:
 
 
 def scene_metrics(report: dict) -> dict:
-    """Flatten an evaluate() report into CSV columns (PSNR gain = enhanced - render)."""
+    """Flatten an evaluate() report into CSV columns (PSNR gain = enhanced - render; FLIP: lower is better)."""
     r, e = report["render"], report["enhanced"]
     return {"views": len(report["views"]),
             "render_psnr": round(r["psnr"], 4), "enhanced_psnr": round(e["psnr"], 4),
             "gain_db": round(e["psnr"] - r["psnr"], 4),
             "render_ssim": round(r["ssim"], 5), "enhanced_ssim": round(e["ssim"], 5),
+            "render_flip": round(r["flip"], 5), "enhanced_flip": round(e["flip"], 5),
             "latency_s_per_view": round(report["seconds_per_view"], 4)}

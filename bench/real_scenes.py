@@ -3,7 +3,7 @@
 For every scene folder given (made by ``python -m roguefit.batch`` from ``../shared/data/real``;
 the held-out scenes are never pre-trained on, and only their training views are fine-tuned on):
 
-- the renders' PSNR/SSIM on the held-out (test) views;
+- the renders' PSNR/SSIM/FLIP on the held-out (test) views;
 - zero-shot: the old and the new default checkpoint, no fine-tuning;
 - after ``finetune --minutes M`` for each M in ``--minutes`` (1, 3, 10), from the new checkpoint,
   evaluated after each budget: a fresh run per budget when the plan's learning rate follows a
@@ -104,7 +104,8 @@ def parse_args(argv=None):
 
 
 def summarise(report: dict) -> dict:
-    """Mean render/enhanced PSNR and SSIM, gain, the worst view's gain, and every view's gain
+    """Mean render/enhanced PSNR, SSIM and FLIP (lower is better; ``views_flip_better`` counts the
+    views whose FLIP fell), gain, the worst view's gain, and every view's gain
     (``view_gains_db``: ``name:gain`` pairs joined by spaces, in the report's order)."""
     gains = [v["enhanced"]["psnr"] - v["render"]["psnr"] for v in report["views"]]
     worst = min(range(len(gains)), key=gains.__getitem__)
@@ -112,6 +113,9 @@ def summarise(report: dict) -> dict:
     return {"views": len(gains), "render_psnr": round(r["psnr"], 4), "enhanced_psnr": round(e["psnr"], 4),
             "gain_db": round(e["psnr"] - r["psnr"], 4), "render_ssim": round(r["ssim"], 5),
             "enhanced_ssim": round(e["ssim"], 5), "ssim_gain": round(e["ssim"] - r["ssim"], 5),
+            "render_flip": round(r["flip"], 5), "enhanced_flip": round(e["flip"], 5),
+            "flip_change": round(e["flip"] - r["flip"], 5),
+            "views_flip_better": sum(v["enhanced"]["flip"] < v["render"]["flip"] for v in report["views"]),
             "worst_view": report["views"][worst]["name"], "worst_view_gain_db": round(gains[worst], 4),
             "view_gains_db": " ".join(f"{v['name']}:{g:+.3f}" for v, g in zip(report["views"], gains))}
 

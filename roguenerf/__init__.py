@@ -46,6 +46,7 @@ _LAZY = {
     "default_checkpoint_path": "roguenerf.checkpoint",
     "psnr": "roguenerf.metrics",
     "ssim": "roguenerf.metrics",
+    "flip": "roguenerf.metrics",
     # inference and training
     "SceneEnhancer": "roguenerf.inference",
     "EnhanceResult": "roguenerf.inference",

@@ -300,7 +300,7 @@ def evaluate(
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object and nothing else.")] = False,
     neighbours: NeighboursOpt = None,
 ) -> None:
-    """PSNR/SSIM of renders and enhanced renders against the photos, per view and mean."""
+    """PSNR/SSIM/FLIP of renders and enhanced renders against the photos, per view and mean (FLIP: lower is better)."""
     from roguenerf.training import evaluate as run_evaluate
 
     with _errors():
@@ -315,12 +315,15 @@ def evaluate(
 
         typer.echo(json.dumps(finite_for_json(report)))
         return
-    typer.echo(f"{'view':<24} {'render PSNR':>12} {'SSIM':>7} {'enhanced PSNR':>14} {'SSIM':>7}")
+    typer.echo(f"{'view':<24} {'render PSNR':>12} {'SSIM':>7} {'FLIP':>7} {'enhanced PSNR':>14} {'SSIM':>7} {'FLIP':>7}")
+
+    def row(name: str, r: dict, e: dict) -> str:
+        return (f"{name:<24} {r['psnr']:>12.2f} {r['ssim']:>7.4f} {r['flip']:>7.4f} "
+                f"{e['psnr']:>14.2f} {e['ssim']:>7.4f} {e['flip']:>7.4f}")
+
     for v in report["views"]:
-        typer.echo(f"{v['name']:<24} {v['render']['psnr']:>12.2f} {v['render']['ssim']:>7.4f} "
-                   f"{v['enhanced']['psnr']:>14.2f} {v['enhanced']['ssim']:>7.4f}")
-    r, e = report["render"], report["enhanced"]
-    typer.echo(f"{'mean':<24} {r['psnr']:>12.2f} {r['ssim']:>7.4f} {e['psnr']:>14.2f} {e['ssim']:>7.4f}")
+        typer.echo(row(v["name"], v["render"], v["enhanced"]))
+    typer.echo(row("mean", report["render"], report["enhanced"]))
 
 
 @app.command()

@@ -9,6 +9,10 @@
   shrinks to ``min(window_size, 2 m - 1)`` taps (the largest odd window the reflect padding
   allows; sigma stays 1.5), so 1x1 images compare single pixels (window 1: the luminance
   term). Images of 6 x 6 and more are unaffected.
+* :func:`flip`: NVIDIA's LDR-FLIP (Andersson et al. 2020, package ``flip-evaluator``): the mean
+  of its per-pixel error map, the error a viewer sees when flipping between the two images
+  (0 identical, 1 the largest; lower is better). No learned weights; the package's viewing
+  condition (about 67 pixels per degree) unless ``ppd`` is given.
 * :func:`lpips`: LPIPS (AlexNet variant, Zhang et al. 2018) from **local** weights only.
   Nothing is downloaded: without a weights file, :func:`lpips_available` is False and
   :func:`lpips` raises :class:`LPIPSUnavailableError` saying what file to supply.
@@ -24,6 +28,7 @@ import os
 from pathlib import Path
 
 import kornia
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -84,6 +89,63 @@ def ssim(a: Tensor, b: Tensor, *, window_size: int = 11, max_val: float = 1.0) -
         raise InputError(f"ssim: window_size must be an odd integer >= 1, got {window_size!r}")
     window = ssim_window(window_size, a.shape[-2], a.shape[-1])
     return kornia.metrics.ssim(a, b, window_size=window, max_val=max_val).flatten(1).mean(dim=1)
+
+
+# -- FLIP ---------------------------------------------------------------------------------
+
+class FLIPUnavailableError(InputError):
+    """The ``flip-evaluator`` package is not installed."""
+
+
+def _flip_module():
+    try:
+        import flip_evaluator
+    except ImportError:
+        raise FLIPUnavailableError(
+            "FLIP is unavailable: the flip-evaluator package is not installed "
+            "(pip install flip-evaluator, a dependency of roguenerf)") from None
+    return flip_evaluator
+
+
+def flip_available() -> bool:
+    """True when the ``flip-evaluator`` package can be imported."""
+    try:
+        _flip_module()
+    except FLIPUnavailableError:
+        return False
+    return True
+
+
+def flip(a: Tensor, b: Tensor, *, ppd: float | None = None) -> Tensor:
+    """Mean LDR-FLIP error of each image pair (lower is better): ``a`` the test image (a render,
+    an enhanced render), ``b`` the reference (the photo). Not symmetric.
+
+    Args:
+        a, b: ``(B, 3, H, W)`` (or ``(3, H, W)``) sRGB in [0, 1]; values outside are clamped.
+        ppd: viewing condition in pixels per degree of visual angle; None: the package's default
+            (about 67: a 0.7 m wide 4K monitor seen from 0.7 m).
+    Returns:
+        ``(B,)`` float32 in [0, 1]; 0 for identical images. Raises
+        :class:`FLIPUnavailableError` without the ``flip-evaluator`` package.
+    """
+    a, b = _pair(a, b, "flip")
+    if a.shape[1] != 3:
+        raise InputError(f"flip: expected RGB images (B, 3, H, W), got {tuple(a.shape)}")
+    if ppd is not None and not (isinstance(ppd, (int, float)) and not isinstance(ppd, bool)
+                                and 0 < ppd < float("inf")):
+        raise InputError(f"flip: ppd must be a positive number of pixels per degree, got {ppd!r}")
+    parameters = {} if ppd is None else {"ppd": float(ppd)}
+    module = _flip_module()
+
+    def hwc(x: Tensor) -> np.ndarray:
+        return np.ascontiguousarray(x.detach().to("cpu", torch.float32).clamp(0, 1).permute(1, 2, 0).numpy())
+
+    out = []
+    for test, ref in zip(a, b):
+        _, mean, _ = module.evaluate(hwc(ref), hwc(test), "LDR", applyMagma=False, computeMeanError=True,
+                                     parameters=parameters)
+        out.append(float(mean))
+    return torch.tensor(out, dtype=torch.float32)
 
 
 # -- LPIPS --------------------------------------------------------------------------------

@@ -94,11 +94,13 @@ class ViewList(BaseModel):
 
 
 class ImageScore(BaseModel):
-    """An image compared with a view's photo (the library's ``psnr`` and ``ssim``)."""
+    """An image compared with a view's photo (the library's ``psnr``, ``ssim`` and ``flip``)."""
 
     psnr: float | None
     """dB; null when the image equals the photo (infinite PSNR)."""
     ssim: float
+    flip: float
+    """Mean LDR-FLIP error (NVIDIA's perceptual error of rendered images), 0 to 1, lower is better."""
 
 
 class JobCreate(BaseModel):

@@ -53,13 +53,23 @@ def test_evaluate_json_is_one_object_matching_the_library(scene_dir, checkpoint)
     report = json.loads(result.stdout)
     assert set(report) >= {"views", "render", "enhanced"}
     assert [v["name"] for v in report["views"]] == ["test_000", "test_001"]
-    assert set(report["render"]) >= {"psnr", "ssim"}
+    assert set(report["render"]) >= {"psnr", "ssim", "flip"} and set(report["enhanced"]) >= {"psnr", "ssim", "flip"}
+    assert all(0.0 <= v[k]["flip"] <= 1.0 for v in report["views"] for k in ("render", "enhanced"))
     from roguenerf.data.readers import load_scene
 
     model, _ = load_checkpoint(checkpoint)
     direct = evaluate(load_scene(scene_dir), model)
     assert report["render"]["psnr"] == pytest.approx(direct["render"]["psnr"], abs=1e-6)
     assert report["enhanced"]["psnr"] == pytest.approx(direct["enhanced"]["psnr"], abs=1e-4)
+    assert report["render"]["flip"] == pytest.approx(direct["render"]["flip"], abs=1e-6)
+    mean_flip = sum(v["render"]["flip"] for v in report["views"]) / len(report["views"])
+    assert report["render"]["flip"] == pytest.approx(mean_flip, abs=1e-6)
+    from roguenerf.metrics import flip
+
+    scene = load_scene(scene_dir)
+    first = scene.index(report["views"][0]["name"])
+    assert report["views"][0]["render"]["flip"] == pytest.approx(
+        float(flip(scene.render(first), scene.photo(first))[0]), abs=1e-6)
 
 
 def test_evaluate_table(scene_dir, checkpoint):
@@ -67,6 +77,8 @@ def test_evaluate_table(scene_dir, checkpoint):
     assert result.exit_code == 0, result.output
     lines = result.stdout.strip().splitlines()
     assert len(lines) == 1 + 5 + 1 and lines[-1].startswith("mean")
+    assert lines[0].split()[1:] == ["render", "PSNR", "SSIM", "FLIP", "enhanced", "PSNR", "SSIM", "FLIP"]
+    assert len(lines[-1].split()) == 7
 
 
 def test_bad_scene_dir_exits_2_naming_the_path(tmp_path, checkpoint):

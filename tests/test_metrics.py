@@ -1,4 +1,5 @@
-"""Metrics: per-image PSNR/SSIM with known answers, lego's published numbers, LPIPS from local weights."""
+"""Metrics: per-image PSNR/SSIM with known answers, lego's published numbers, FLIP against the
+``flip-evaluator`` package, LPIPS from local weights."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from safetensors.torch import save_file
 
 from roguenerf.data.readers import load_scene
 from roguenerf.errors import InputError
-from roguenerf.metrics import LPIPSUnavailableError, lpips, lpips_available, psnr, ssim
+from roguenerf.metrics import FLIPUnavailableError, LPIPSUnavailableError, flip, lpips, lpips_available, psnr, ssim
 from tests.conftest import SHARED_DATA
 
 LEGO = SHARED_DATA / "lego"
@@ -160,3 +161,75 @@ def test_lpips_from_local_files(tmp_path):
     assert out[1].item() > 1e-3
     with pytest.raises(InputError, match=r"missing \['lin0.model.1.weight'"):
         lpips(x, y, weights=[tmp_path / "alexnet.safetensors"])
+
+
+# -- FLIP ---------------------------------------------------------------------------------
+
+
+def _flip_direct(test: torch.Tensor, reference: torch.Tensor) -> float:
+    """The package called as its README shows: HxWxC float arrays in [0, 1], reference first."""
+    import flip_evaluator
+
+    def hwc(x):
+        return np.ascontiguousarray(x.permute(1, 2, 0).numpy().astype(np.float32))
+
+    _, mean, _ = flip_evaluator.evaluate(hwc(reference), hwc(test), "LDR")
+    return float(mean)
+
+
+def test_flip_of_identical_images_is_zero_and_a_uniform_pair_is_the_packages_answer():
+    g = torch.Generator().manual_seed(5)
+    a = torch.rand(2, 3, 20, 24, generator=g)
+    out = flip(a, a)
+    assert out.shape == (2,) and out.tolist() == [0.0, 0.0]
+    black, white = torch.zeros(1, 3, 16, 16), torch.ones(1, 3, 16, 16)
+    # Uniform images have no edge or point features: only the colour term, near its maximum.
+    assert flip(black, white).item() == pytest.approx(0.9674, abs=5e-4)
+    assert flip(black, white).item() == pytest.approx(_flip_direct(black[0], white[0]), abs=1e-6)
+
+
+def test_flip_per_image_equals_the_package_on_a_lego_view_and_on_noise():
+    scene = load_scene(LEGO)
+    i = scene.index("test_r_0")
+    render, photo = scene.render(i), scene.photo(i)
+    g = torch.Generator().manual_seed(6)
+    ref = torch.rand(3, 30, 40, generator=g)
+    noisy = (ref + 0.1 * torch.randn(3, 30, 40, generator=g)).clamp(0, 1)
+    assert flip(render, photo).item() == pytest.approx(_flip_direct(render, photo), abs=1e-6)
+    assert 0.02 < flip(render, photo).item() < 0.3
+    # A batch gives each image's own value; the order is (test, reference): not symmetric.
+    pair = flip(torch.stack([noisy, ref]), torch.stack([ref, noisy]))
+    assert pair[0].item() == pytest.approx(_flip_direct(noisy, ref), abs=1e-6)
+    assert pair[1].item() == pytest.approx(_flip_direct(ref, noisy), abs=1e-6)
+    assert flip(noisy, ref, ppd=30.0).item() != pytest.approx(pair[0].item(), abs=1e-4)  # the viewing condition counts
+
+
+def test_flip_grows_with_blur():
+    from kornia.filters import gaussian_blur2d
+
+    scene = load_scene(LEGO)
+    photo = scene.photo(scene.index("test_r_0"))[None]
+    photo = photo[..., photo.shape[-2] // 4:, photo.shape[-1] // 4:][..., :96, :96]  # the model's edges
+    errors = [flip(gaussian_blur2d(photo, 13, (s, s)), photo).item() for s in (0.5, 1.0, 2.0)]
+    assert 0.0 < errors[0] < errors[1] < errors[2], errors
+
+
+def test_flip_refuses_integers_other_channels_and_bad_viewing_conditions():
+    with pytest.raises(InputError, match=r"flip: first image.*uint8"):
+        flip(torch.zeros(1, 3, 4, 4, dtype=torch.uint8), torch.zeros(1, 3, 4, 4))
+    with pytest.raises(InputError, match=r"RGB"):
+        flip(torch.zeros(1, 1, 4, 4), torch.zeros(1, 1, 4, 4))
+    for bad in (0, -1.0, float("inf"), True):
+        with pytest.raises(InputError, match="ppd"):
+            flip(torch.zeros(1, 3, 4, 4), torch.zeros(1, 3, 4, 4), ppd=bad)
+
+
+def test_flip_without_the_package_is_a_clear_error(monkeypatch):
+    import sys
+
+    from roguenerf.metrics import flip_available
+
+    monkeypatch.setitem(sys.modules, "flip_evaluator", None)  # import raises ImportError
+    assert not flip_available()
+    with pytest.raises(FLIPUnavailableError, match="pip install flip-evaluator"):
+        flip(torch.zeros(1, 3, 4, 4), torch.zeros(1, 3, 4, 4))

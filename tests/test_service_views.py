@@ -148,7 +148,7 @@ def test_view_files_are_the_scene_pixels(client, toy, scene_id):
 
 
 def test_score_is_the_library_metrics_against_the_photo(client, toy, scene_id):
-    from roguenerf import psnr, ssim
+    from roguenerf import flip, psnr, ssim
     from roguenerf.imageio import encode_png
 
     scene = toy["scene"]
@@ -157,10 +157,12 @@ def test_score_is_the_library_metrics_against_the_photo(client, toy, scene_id):
     photo = scene.photo(7)[None]
     assert got["psnr"] == pytest.approx(float(psnr(scene.render(7)[None], photo)[0]), abs=1e-9)
     assert got["ssim"] == pytest.approx(float(ssim(scene.render(7)[None], photo)[0]), abs=1e-9)
-    assert 5 < got["psnr"] < 60 and 0 < got["ssim"] < 1
+    assert got["flip"] == pytest.approx(float(flip(scene.render(7)[None], photo)[0]), abs=1e-6)
+    assert 5 < got["psnr"] < 60 and 0 < got["ssim"] < 1 and 0 < got["flip"] < 1
     same = client.post(f"/scenes/{scene_id}/views/7/score",
                        files={"image": ("p.png", encode_png(scene.photo(7)), "image/png")}).json()
     assert same["psnr"] is None and same["ssim"] == pytest.approx(1.0, abs=1e-6)  # identical: infinite PSNR
+    assert same["flip"] == 0.0
     assert not math.isclose(got["ssim"], same["ssim"])
 
 

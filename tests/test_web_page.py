@@ -181,7 +181,7 @@ def test_2_one_step_finetune_runs_to_the_end(session, site):
 def test_3_compare_shows_what_enhance_returned_and_the_slider_moves(session, site, toy):
     from PIL import Image
 
-    from roguenerf import psnr, ssim
+    from roguenerf import flip, psnr, ssim
     from roguenerf.imageio import read_image
 
     page, sid, api = session["page"], session["scene_id"], site["api"]
@@ -222,6 +222,8 @@ def test_3_compare_shows_what_enhance_returned_and_the_slider_moves(session, sit
     assert _text(page, "#m-enhanced-ssim") == f"{float(ssim(enh, photo)[0]):.4f}"
     assert _text(page, "#m-render-psnr") == f"{float(psnr(scene.render(t0)[None], photo)[0]):.2f}"
     assert _text(page, "#m-render-ssim") == f"{float(ssim(scene.render(t0)[None], photo)[0]):.4f}"
+    assert _text(page, "#m-enhanced-flip") == f"{float(flip(enh, photo)[0]):.4f}"
+    assert _text(page, "#m-render-flip") == f"{float(flip(scene.render(t0)[None], photo)[0]):.4f}"
     assert _text(page, "#cmp-neighbours") == answer["headers"]["x-neighbours"].replace(",", ", ")
     assert len(answer["headers"]["x-neighbours"].split(",")) == 2
     assert _text(page, "#cmp-version") == "v2" == "v" + answer["headers"]["x-checkpoint-version"]

@@ -1,4 +1,4 @@
-"""Per-view and mean PSNR/SSIM of renders and enhanced images against the photos."""
+"""Per-view and mean PSNR/SSIM/FLIP of renders and enhanced images against the photos."""
 
 from __future__ import annotations
 
@@ -14,7 +14,8 @@ def _metrics_of(image, photo) -> dict:
     from roguenerf import metrics
 
     a, b = image[None].clamp(0, 1), photo[None]
-    out = {"psnr": float(metrics.psnr(a, b)[0]), "ssim": float(metrics.ssim(a, b)[0])}
+    out = {"psnr": float(metrics.psnr(a, b)[0]), "ssim": float(metrics.ssim(a, b)[0]),
+           "flip": float(metrics.flip(a, b)[0])}
     available = getattr(metrics, "lpips_available", None)
     if callable(available) and available():
         out["lpips"] = float(metrics.lpips(a, b)[0])
@@ -43,9 +44,10 @@ def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = 
         max_views: evaluate only the first views of the split (quick benchmarks).
         progress: called as ``progress(done, total)`` before the first view and after each.
     Returns:
-        ``{"split", "views": [{"name", "render": {"psnr", "ssim"}, "enhanced": {...},
-        "neighbours", "seconds"}], "render": {mean psnr, ssim}, "enhanced": {...},
-        "seconds_per_view"}`` (plus "lpips" wherever LPIPS weights are available).
+        ``{"split", "views": [{"name", "render": {"psnr", "ssim", "flip"}, "enhanced": {...},
+        "neighbours", "seconds"}], "render": {mean psnr, ssim, flip}, "enhanced": {...},
+        "seconds_per_view"}`` (plus "lpips" wherever LPIPS weights are available). "flip" is
+        the mean LDR-FLIP error (:func:`roguenerf.metrics.flip`, lower is better).
     """
     from roguenerf.inference import SceneEnhancer
 

@@ -4,7 +4,7 @@ What a client (the web page included) needs to send a scene's own view to ``POST
 and to judge the answer: ``GET /scenes/{id}/views`` gives each view's camera in the form
 ``/enhance`` takes; ``.../render`` and ``.../depth`` are the other two fields; ``.../photo``
 is the ground truth; ``POST .../score`` compares any image with the photo using the
-library's ``psnr`` and ``ssim``. Everything is read with the library's ``load_scene``.
+library's ``psnr``, ``ssim`` and ``flip``. Everything is read with the library's ``load_scene``.
 """
 
 from __future__ import annotations
@@ -129,7 +129,7 @@ def read_depth(scene_id: str, index: int, services: ServicesDep) -> Response:
 def _score(services: Services, scene_id: str, index: int, data: bytes) -> ImageScore:
     import math
 
-    from roguenerf import psnr, ssim
+    from roguenerf import flip, psnr, ssim
     from roguenerf.imageio import read_image
 
     scene = _scene(services, scene_id)
@@ -143,9 +143,10 @@ def _score(services: Services, scene_id: str, index: int, data: bytes) -> ImageS
         photo = scene.photo(index)
         p = float(psnr(image[None], photo[None])[0])
         s = float(ssim(image[None], photo[None])[0])
+        f = float(flip(image[None], photo[None])[0])
     except RoGUENeRFError as exc:
         raise library_error(exc) from None
-    return ImageScore(psnr=p if math.isfinite(p) else None, ssim=s)
+    return ImageScore(psnr=p if math.isfinite(p) else None, ssim=s, flip=f)
 
 
 @router.post("/{scene_id}/views/{index}/score", response_model=ImageScore,
