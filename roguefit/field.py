@@ -135,6 +135,16 @@ class GridField(nn.Module):
             logit = logit + self.mlp(torch.cat([feat, _dir_encoding(dirs)], dim=-1))
         return torch.sigmoid(logit)
 
+    def _sigma_of(self, u: Tensor, keep: Tensor) -> Tensor:
+        """:meth:`sigma` of the samples ``u[keep]`` (``u`` ``(..., 3)``, ``keep`` bool ``(...)``);
+        a field may keep what it computed there for :meth:`_rgb_of` of the same ``u``."""
+        return self.sigma(u[keep])
+
+    def _rgb_of(self, u: Tensor, shade: Tensor, unit: Tensor) -> Tensor:
+        """:meth:`rgb` of the samples ``u[shade]`` seen along ``unit[shade]`` (``shade`` is a
+        subset of the last :meth:`_sigma_of`'s ``keep`` on this ``u``)."""
+        return self.rgb(u[shade], unit[shade])
+
     # -- rendering -------------------------------------------------------------------------
     def render(self, origins: Tensor, dirs: Tensor, near: Tensor, far: Tensor, samples: int,
                generator: torch.Generator | None = None, background: Tensor | None = None) -> dict[str, Tensor]:
@@ -160,7 +170,7 @@ class GridField(nn.Module):
         keep = self.occupied(u)
         sigma = torch.zeros(b, samples, dtype=origins.dtype)
         if keep.any():
-            sigma = sigma.masked_scatter(keep, self.sigma(u[keep]))
+            sigma = sigma.masked_scatter(keep, self._sigma_of(u, keep))
         alpha = 1.0 - torch.exp(-sigma * delta)
         # The last sample (at the far bound) takes whatever light is left, as NeRF's open last
         # interval does, with a background colour (random in training): a colour per ray from the
@@ -174,7 +184,7 @@ class GridField(nn.Module):
         colour = torch.zeros(b, samples, 3, dtype=origins.dtype)
         if shade.any():
             unit = F.normalize(dirs, dim=-1)[:, None, :].expand(b, samples, 3)
-            colour = colour.masked_scatter(shade[..., None], self.rgb(u[shade], unit[shade]))
+            colour = colour.masked_scatter(shade[..., None], self._rgb_of(u, shade, unit))
         rgb = (weights[:, :-1, None] * colour[:, :-1]).sum(dim=1) + weights[:, -1:] * (
             background if background is not None else torch.full((b, 3), BACKGROUND))
         # Median depth (where the accumulated weight passes 1/2): a surface's depth, never a mix
@@ -227,7 +237,7 @@ class GridField(nn.Module):
             keep = self.occupied(u)
             sigma = torch.zeros(a, k)
             if keep.any():
-                sigma[keep] = self.sigma(u[keep])
+                sigma[keep] = self._sigma_of(u, keep)
             alpha = 1.0 - torch.exp(-sigma * ds)
             last = stop == samples
             if last:
@@ -241,7 +251,7 @@ class GridField(nn.Module):
                 rgb[active] += weights[:, -1:] * BACKGROUND
             if shade.any():
                 colour = torch.zeros(a, k, 3)
-                colour[shade] = self.rgb(u[shade], unit[active, None, :].expand(a, k, 3)[shade])
+                colour[shade] = self._rgb_of(u, shade, unit[active, None, :].expand(a, k, 3))
                 rgb[active] += (weights[..., None] * colour).sum(dim=1)
             run = cum[active, None] + torch.cumsum(weights, dim=1)
             crossed = (run >= 0.5) & ~found[active, None]

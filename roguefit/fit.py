@@ -28,6 +28,8 @@ from roguenerf.imageio import atomic_write
 
 log = logging.getLogger("roguefit")
 
+FIELD_KINDS = ("grid", "hash")
+HASH_KEYS = ("hash_levels", "hash_log2_table", "hash_features", "hash_base", "sh_degree")
 STATE_DIR = ".fit"
 FIT_FILE = "fit.json"
 FORMAT_VERSION = 1
@@ -62,10 +64,28 @@ class FitConfig:
     hold: int = 8
     checkpoint_every_s: float = 60.0
     render_scale: int = 1
+    kind: str = "grid"
+    """"grid": :class:`GridField` (dense grids); "hash": :class:`~roguefit.hashfield.HashField`
+    (Instant-NGP's multi-resolution hash encoding, ``resolution`` its finest level, with the
+    ``hash_*`` sizes and spherical harmonics of ``sh_degree``; ``features`` and ``grow_at``
+    unused)."""
+    hash_levels: int = 12
+    hash_log2_table: int = 16
+    hash_features: int = 2
+    hash_base: int = 16
+    sh_degree: int = 3
 
     def __post_init__(self) -> None:
         if self.render_scale < 1:
             raise InputError(f"render_scale: expected an integer >= 1, got {self.render_scale}")
+        if self.kind not in FIELD_KINDS:
+            raise InputError(f"kind: expected one of {', '.join(FIELD_KINDS)}, got {self.kind!r}")
+        if self.kind == "hash":
+            if not (1 <= self.hash_levels <= 32 and 4 <= self.hash_log2_table <= 24 and self.hash_features >= 1
+                    and 1 <= self.hash_base <= self.resolution and 0 <= self.sh_degree <= 3):
+                raise InputError(f"hash field: bad sizes (levels {self.hash_levels}, log2 table "
+                                 f"{self.hash_log2_table}, features {self.hash_features}, base {self.hash_base}, "
+                                 f"finest {self.resolution}, SH degree {self.sh_degree})")
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -78,6 +98,9 @@ class FitConfig:
         d.pop("checkpoint_every_s")
         if d["render_scale"] == 1:  # fits made before the option existed stay complete
             d.pop("render_scale")
+        if d["kind"] == "grid":  # likewise: grid fits carry no hash keys
+            for key in ("kind", *HASH_KEYS):
+                d.pop(key)
         return d
 
 
@@ -91,6 +114,10 @@ PRESETS: dict[str, FitConfig | SplatConfig] = {
     "fine": FitConfig(resolution=160, features=6, minutes=None, steps=1500, samples=80),
     # 3D Gaussian splats (roguefit.splats), fitted at half the photo size: another kind of field.
     "splat": SplatConfig(),
+    # Another kind of field (issue 35): Instant-NGP's hash encoding, finest level 512 over the
+    # contracted cube, SH-degree-3 view dependence; its own learning rates (Instant-NGP: 1e-2).
+    "hash": FitConfig(kind="hash", resolution=512, features=0, minutes=None, steps=1500, samples=64,
+                      lr_grid=1e-2, lr_mlp=1e-2, tv_weight=0.0, grow_at=(), prune_every=100),
 }
 
 
@@ -125,7 +152,14 @@ class _Fitter:
         self.far = (ps.far * 1.2).to(torch.float32)
         centre, radius = scene_frame(pose, ps.near[self.train])
         self.levels = _grow_plan(config)
-        self.field = GridField(centre, radius, self.levels[0], features=config.features)
+        if config.kind == "hash":
+            from roguefit.hashfield import HashField
+
+            self.field = HashField(centre, radius, levels=config.hash_levels, log2_table=config.hash_log2_table,
+                                   features=config.hash_features, base=config.hash_base, finest=config.resolution,
+                                   sh_degree=config.sh_degree)
+        else:
+            self.field = GridField(centre, radius, self.levels[0], features=config.features)
         self.seen = seen_by_cameras(self.field, pose, ps.K[self.train], self.near[self.train],
                                     self.far[self.train], ps.height, ps.width)
         self.field.occupancy = self.seen.clone()
@@ -137,9 +171,12 @@ class _Fitter:
         self._make_optimizer()
 
     def _make_optimizer(self) -> None:
-        groups = [{"params": [self.field.density, self.field.colour], "lr": self.config.lr_grid}]
-        if self.field.mlp is not None:
-            groups.append({"params": list(self.field.mlp.parameters()), "lr": self.config.lr_mlp})
+        if hasattr(self.field, "param_groups"):
+            groups = self.field.param_groups(self.config.lr_grid, self.config.lr_mlp)
+        else:
+            groups = [{"params": [self.field.density, self.field.colour], "lr": self.config.lr_grid}]
+            if self.field.mlp is not None:
+                groups.append({"params": list(self.field.mlp.parameters()), "lr": self.config.lr_mlp})
         self.optimizer = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
 
     # -- resume ------------------------------------------------------------------------------
