@@ -286,7 +286,8 @@ def warp_renders(render: Tensor, depth: Tensor, max_shift: float, generator: tor
 
 def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding: str = "window",
                   margin: int = 0, use_neighbours: bool = True,
-                  augment: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]] | None = None) -> StepBatch:
+                  augment: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]] | None = None,
+                  pose_noise: Callable[[Tensor], Tensor] | None = None) -> StepBatch:
     """Everything one step needs but the model: crops, and the neighbour photos or windows to encode.
 
     Args:
@@ -300,6 +301,9 @@ def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding
         augment: ``(render, depth) -> (render, depth)`` applied to the target crops before the
             neighbour windows are bounded, so the windows hold what the changed depth reads
             (:func:`warp_renders`, :func:`blur_renders`).
+        pose_noise: ``(B, N, 4, 4) -> (B, N, 4, 4)`` float64, the neighbours' poses as the model
+            gets them (``TrainConfig.neighbour_pose_noise``); the windows are bounded with these
+            (what the model reads), the photos and depths are the neighbours' own.
     """
     cached = getattr(data, "features", None)
     if cached is not None:
@@ -316,12 +320,16 @@ def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding
         return batch
     b, n = lists.shape
     used, slot = torch.unique(lists, return_inverse=True)
+    nb_pose = data.poses[lists]
+    if pose_noise is not None:
+        nb_pose = pose_noise(nb_pose)
     if encoding == "window":
-        bounds = neighbour_windows(depth, K, batch.pose, data.K[lists], data.poses[lists],
+        bounds = neighbour_windows(depth, K, batch.pose, data.K[lists], nb_pose,
                                    (data.height, data.width), margin)
         order, corner, sizes = place_windows(bounds, (data.height, data.width))
         if b * int((sizes[:, 0] * sizes[:, 1]).sum()) < len(used) * data.height * data.width:
             lists = torch.gather(lists, 1, order)
+            nb_pose = torch.gather(nb_pose, 1, order[..., None, None].expand(-1, -1, 4, 4))
             photos, depths = [], []
             images = data.photos if cached is None else cached
             for j, (h, w) in enumerate(sizes.tolist()):  # one conv_H batch per slot (N, not B x N)
@@ -336,7 +344,7 @@ def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding
             else:
                 batch.neighbour_features = photos
             batch.neighbour_depth, batch.neighbour_K = depths, nb_K
-            batch.neighbour_pose = data.poses[lists]
+            batch.neighbour_pose = nb_pose
             batch.windows = torch.cat([corner, sizes.expand(b, n, 2)], dim=-1)
             batch.neighbours, batch.encoding = lists, "window"
             return batch
@@ -347,7 +355,7 @@ def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding
     batch.neighbour_slot = slot
     batch.neighbour_depth = data.depths[lists]
     batch.neighbour_K = data.K[lists]
-    batch.neighbour_pose = data.poses[lists]
+    batch.neighbour_pose = nb_pose
     batch.neighbours, batch.encoding = lists, "whole"
     return batch
 

@@ -58,6 +58,10 @@ default: in one sitting, 3-minute fine-tunes with 4 px gained more on the four u
 fits (dtu_scan37 coarse +0.12 dB, fine +0.10; mary_rose +0.01, +0.02) but 0.17 dB less on lego,
 whose field renders its novel views about as well as its training views (README, Results)."""
 MAX_RENDER_WARP = 32.0
+MAX_POSE_NOISE_DEG = 10.0
+MAX_POSE_NOISE_SHARE = 1.0
+"""Bounds of :attr:`TrainConfig.neighbour_pose_noise` (a pose error past these is no longer
+"a little wrong")."""
 GPU_MINUTES = 60.0
 """The paper fine-tunes for one hour per scene on GPUs."""
 CPU_PLAN_WHY = ("CPU defaults chosen by measured gain after 1, 3 and 10 min on unseen real scenes and lego, "
@@ -155,6 +159,12 @@ class TrainConfig:
     target render and depth of half of the crops (:func:`~roguenerf.training.batches.warp_renders`):
     the large-scale errors a field's novel views have and its training views lack. 0: none.
     None: the plan's (RENDER_WARP); pre-training: 0."""
+    neighbour_pose_noise: tuple[float, float] | None = None
+    """``(degrees, share)``: every neighbour of every training target gets its own random pose
+    error (:func:`~roguenerf.geometry.noise.perturb_poses`: a rotation of RMS ``degrees`` about
+    its centre and a displacement of RMS ``share`` of the scene's camera spread), so the model
+    learns that a reprojection can be off, as a user's poses are. None (or zeros): the poses as
+    they are, and the batches are those of a run without the option."""
     neighbour_encoding: str = "window"
     """"window": conv_H encodes only the window of each neighbour photo that a target crop can
     see; "whole": every neighbour photo whole (the former path, kept for comparison). Same
@@ -181,6 +191,12 @@ class TrainConfig:
             raise InputError(f"num_neighbours: expected >= 0, got {self.num_neighbours}")
         if self.lr_schedule is not None and self.lr_schedule not in LR_SCHEDULES:
             raise InputError(f"lr_schedule: expected one of {', '.join(LR_SCHEDULES)}, got {self.lr_schedule!r}")
+        if self.neighbour_pose_noise is not None:
+            noise = tuple(self.neighbour_pose_noise)
+            if (len(noise) != 2 or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in noise)
+                    or not 0.0 <= noise[0] <= MAX_POSE_NOISE_DEG or not 0.0 <= noise[1] <= MAX_POSE_NOISE_SHARE):
+                raise InputError(f"neighbour_pose_noise: expected (degrees in [0, {MAX_POSE_NOISE_DEG:g}], share of "
+                                 f"the camera spread in [0, {MAX_POSE_NOISE_SHARE:g}]), got {self.neighbour_pose_noise!r}")
         if self.neighbour_encoding not in NEIGHBOUR_ENCODINGS:
             raise InputError(f"neighbour_encoding: expected one of {', '.join(NEIGHBOUR_ENCODINGS)}, "
                              f"got {self.neighbour_encoding!r}")
@@ -249,16 +265,20 @@ class TrainPlan:
     threads: int = 0
     held_out_share: float = 0.0
     """Pre-training: the share of held-out views among the targets of ``held_out_scenes``."""
+    neighbour_pose_noise: tuple[float, float] | None = None
+    """:attr:`TrainConfig.neighbour_pose_noise` (None: off)."""
 
     # The saved plan's key order (JSON in the state and the checkpoint's meta).
     _ORDER = ("device", "variant", "crop", "crop_used", "batch", "lr", "lr_schedule", "num_neighbours",
               "steps", "minutes", "without", "seed", "neighbour_encoding", "freeze_neighbour_encoder",
-              "render_blur", "render_warp", "why", "threads", "held_out_share")
+              "render_blur", "render_warp", "why", "threads", "held_out_share", "neighbour_pose_noise")
 
     def to_dict(self) -> dict:
         """JSON-able, as saved (``without`` a list)."""
         out = {key: getattr(self, key) for key in self._ORDER}
         out["without"] = list(self.without)
+        if self.neighbour_pose_noise is not None:
+            out["neighbour_pose_noise"] = list(self.neighbour_pose_noise)
         return out
 
     @classmethod
@@ -268,6 +288,8 @@ class TrainPlan:
         known = {f.name for f in dataclasses.fields(cls)}
         values = {key: value for key, value in data.items() if key in known}
         values["without"] = tuple(values.get("without", ()))
+        if values.get("neighbour_pose_noise") is not None:
+            values["neighbour_pose_noise"] = tuple(values["neighbour_pose_noise"])
         return cls(**values)
 
     def replace(self, **changes) -> TrainPlan:
@@ -372,6 +394,9 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
         without=tuple(config.without),
         seed=int(config.seed),
         neighbour_encoding=config.neighbour_encoding,
+        neighbour_pose_noise=(tuple(float(x) for x in config.neighbour_pose_noise)
+                              if config.neighbour_pose_noise is not None and any(config.neighbour_pose_noise)
+                              else None),
         freeze_neighbour_encoder=bool(freeze),
         **augment,
         why=GPU_PLAN_WHY if on_gpu else CPU_PLAN_WHY,
@@ -390,6 +415,9 @@ def describe_plan(plan: TrainPlan | Mapping) -> str:
         without += f", half the target renders blurred (sigma up to {plan.render_blur:g} px)"
     if plan.render_warp:
         without += f", half the target renders warped (up to {plan.render_warp:g} px)"
+    if plan.neighbour_pose_noise:
+        deg, share = plan.neighbour_pose_noise
+        without += f", neighbour poses perturbed ({deg:g} deg, {share:.0%} of the camera spread RMS)"
     if plan.held_out_share:
         without += f", held-out views {plan.held_out_share:.0%} of their scenes' targets"
     return (f"plan: {plan.device} ({plan.threads} threads), variant {plan.variant}, "

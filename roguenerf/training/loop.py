@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from roguenerf.errors import InputError, TrainingCancelled, TrainingDivergedError
+from roguenerf.geometry.noise import camera_spread, perturb_poses
 from roguenerf.models.layers import receptive_radius
 from roguenerf.training.batches import (
     Prefetcher,
@@ -102,6 +103,9 @@ class SceneData:
         lists = [select_neighbours(self.poses[k], train_poses, n, exclude=k if k < m else None)
                  for k in range(len(views))]
         self.neighbours = torch.stack(lists) if n > 0 else torch.zeros(len(views), 0, dtype=torch.int64)
+        self.spread = camera_spread(train_poses)
+        """The training cameras' spread (:func:`~roguenerf.geometry.noise.camera_spread`), the unit
+        of ``TrainConfig.neighbour_pose_noise``'s translation."""
         self.features: Tensor | None = None
         """``(len(train), F, H, W)`` conv_H features of the training photos when conv_H is frozen
         (:meth:`cache_features`); batches then cut windows of these instead of photos."""
@@ -308,7 +312,8 @@ def _initial_model(checkpoint, config: TrainConfig, plan_variant: str | None):
 
 
 RESUMED_KEYS = ("variant", "crop", "crop_used", "batch", "lr", "num_neighbours", "without", "seed",
-                "lr_schedule", "freeze_neighbour_encoder", "held_out_share", "render_blur", "render_warp")
+                "lr_schedule", "freeze_neighbour_encoder", "held_out_share", "render_blur", "render_warp",
+                "neighbour_pose_noise")
 """What a resumed run keeps of its saved plan whatever the new wishes (a run saved before a field
 existed keeps TrainPlan's default: no schedule, no freezing, no held-out views, no augmentation)."""
 
@@ -393,9 +398,15 @@ class _Run:
         d = self.datasets[index]
         targets = d.draw_targets(plan.batch, generator, plan.held_out_share)
         origins = sample_crops(d, plan.batch, plan.crop, generator)
+        noise = plan.neighbour_pose_noise
+
+        def noisy(poses: Tensor) -> Tensor:  # TrainConfig.neighbour_pose_noise: each (target, neighbour) its own
+            return perturb_poses(poses, noise[0], noise[1] * d.spread, generator)
+
         batch = prepare_batch(d, targets, origins, plan.crop, encoding=self.encoding, margin=self.margin,
                               use_neighbours=self.model.config.use_neighbours,
-                              augment=self.augment if plan.render_warp or plan.render_blur else None)
+                              augment=self.augment if plan.render_warp or plan.render_blur else None,
+                              pose_noise=noisy if noise else None)
         batch.dataset, batch.sampler_state = index, generator.get_state()
         return batch
 
