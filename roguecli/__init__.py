@@ -32,7 +32,7 @@ def make_pairs_command(
         "--output", help="Scene folder to write (renders, depths, acc for every view).")] = ...,
     preset: Annotated[str, typer.Option("--preset", help=(
         "Field preset: blur (64³ RGB grid, half-size render), coarse (96³ RGB grid), fine "
-        "(160³, view-dependent) or splat (3D Gaussian splats)."))] = "fine",
+        "(160³, view-dependent), hash (Instant-NGP hash grid, SH colour) or splat (3D Gaussian splats)."))] = "fine",
     minutes: Annotated[float | None, typer.Option(
         "--minutes", help="Fitting budget in minutes (default: the preset's).")] = None,
     steps: Annotated[int | None, typer.Option(

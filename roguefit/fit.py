@@ -155,9 +155,11 @@ class _Fitter:
         if config.kind == "hash":
             from roguefit.hashfield import HashField
 
-            self.field = HashField(centre, radius, levels=config.hash_levels, log2_table=config.hash_log2_table,
-                                   features=config.hash_features, base=config.hash_base, finest=config.resolution,
-                                   sh_degree=config.sh_degree)
+            with torch.random.fork_rng(devices=[]):  # random initial weights from the config's seed alone
+                torch.manual_seed(config.seed)
+                self.field = HashField(centre, radius, levels=config.hash_levels,
+                                       log2_table=config.hash_log2_table, features=config.hash_features,
+                                       base=config.hash_base, finest=config.resolution, sh_degree=config.sh_degree)
         else:
             self.field = GridField(centre, radius, self.levels[0], features=config.features)
         self.seen = seen_by_cameras(self.field, pose, ps.K[self.train], self.near[self.train],

@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from roguefit.field import DENSITY_SHIFT, GridField
@@ -108,7 +109,9 @@ class HashEncoding(nn.Module):
             rows = rows.reshape(p, 8) + level * t
             wa = [torch.stack([1.0 - frac[:, a], frac[:, a]], dim=1) for a in range(3)]
             w = (wa[0].view(p, 1, 1, 2) * wa[1].view(p, 1, 2, 1) * wa[2].view(p, 2, 1, 1)).reshape(p, 8)
-            out.append(torch.einsum("pcf,pc->pf", flat[rows], w))                   # (P, F)
+            # F.embedding: a gather whose CPU backward sums duplicate rows in a fixed order
+            # (indexing's scatter-add is threaded and not), so a resumed fit equals an unbroken one.
+            out.append((F.embedding(rows, flat) * w[..., None]).sum(dim=1))          # (P, F)
         return torch.cat(out, dim=-1)
 
 

@@ -221,6 +221,9 @@ def pretrain(
         "--pool-spread/--no-pool-spread", help="Give the merge the neighbours' spread (max - min) next to their "
         "max-pool (not in the paper); from a checkpoint without it, the new inputs start at zero weight. "
         "Default: the checkpoint's.")] = None,
+    neighbour_pose_noise: Annotated[str | None, typer.Option(
+        "--neighbour-pose-noise", metavar="DEG,SHARE", help="Perturb each neighbour's pose per sample: rotation "
+        "RMS in degrees, translation RMS as a share of the cameras' spread (e.g. 0.5,0.05).")] = None,
 ) -> None:
     """Pre-train across scene folders and/or generated toy scenes."""
     from roguenerf.training import pretrain as run_pretrain
@@ -229,10 +232,17 @@ def pretrain(
     with _errors():
         if toy < 0:
             raise InputError(f"--toy: expected >= 0, got {toy}")
+        noise = None
+        if neighbour_pose_noise is not None:
+            try:
+                noise = tuple(float(x) for x in neighbour_pose_noise.split(","))
+            except ValueError:
+                raise InputError("--neighbour-pose-noise: expected DEG,SHARE numbers, "
+                                 f"got {neighbour_pose_noise!r}") from None
         config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
                                vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, lr=lr,
                                lr_schedule=lr_schedule, evaluate=False, held_out_share=held_out_share,
-                               pool_spread=pool_spread)
+                               pool_spread=pool_spread, neighbour_pose_noise=noise)
         dirs = list(scene_dirs or [])
         position = {}  # resolved folder -> its first position in dirs
         for k, d in enumerate(dirs):
@@ -315,7 +325,8 @@ def evaluate(
 
         typer.echo(json.dumps(finite_for_json(report)))
         return
-    typer.echo(f"{'view':<24} {'render PSNR':>12} {'SSIM':>7} {'FLIP':>7} {'enhanced PSNR':>14} {'SSIM':>7} {'FLIP':>7}")
+    typer.echo(f"{'view':<24} {'render PSNR':>12} {'SSIM':>7} {'FLIP':>7} "
+               f"{'enhanced PSNR':>14} {'SSIM':>7} {'FLIP':>7}")
 
     def row(name: str, r: dict, e: dict) -> str:
         return (f"{name:<24} {r['psnr']:>12.2f} {r['ssim']:>7.4f} {r['flip']:>7.4f} "

@@ -141,7 +141,7 @@ def flip(a: Tensor, b: Tensor, *, ppd: float | None = None) -> Tensor:
         return np.ascontiguousarray(x.detach().to("cpu", torch.float32).clamp(0, 1).permute(1, 2, 0).numpy())
 
     out = []
-    for test, ref in zip(a, b):
+    for test, ref in zip(a, b, strict=True):
         _, mean, _ = module.evaluate(hwc(ref), hwc(test), "LDR", applyMagma=False, computeMeanError=True,
                                      parameters=parameters)
         out.append(float(mean))

@@ -91,7 +91,7 @@ def test_off_by_default_reproduces_the_batches_and_on_perturbs_each_neighbour(sc
         assert torch.equal(plain.neighbour_pose, data.poses[plain.neighbours])
         g = torch.Generator().manual_seed(0)
         noisy = prepare_batch(data, targets, origins, CROP, encoding=encoding, margin=4,
-                              pose_noise=lambda p: perturb_poses(p, 0.5, 0.05 * data.spread, g))
+                              pose_noise=lambda p, g=g: perturb_poses(p, 0.5, 0.05 * data.spread, g))
         assert noisy.neighbour_pose.dtype == torch.float64
         assert torch.equal(noisy.render, plain.render) and torch.equal(noisy.photo, plain.photo)
         moved = (noisy.neighbour_pose - data.poses[noisy.neighbours])[..., :3, 3].norm(dim=-1)
@@ -125,7 +125,7 @@ def test_finetune_with_noise_off_draws_todays_batches_and_on_moves_only_neighbou
     plain = _plan_batches(scene, tmp_path / "a", TrainConfig(**base))
     zero = _plan_batches(scene, tmp_path / "b", TrainConfig(**base, neighbour_pose_noise=(0.0, 0.0)))
     noisy = _plan_batches(scene, tmp_path / "c", TrainConfig(**base, neighbour_pose_noise=(1.0, 0.1)))
-    for a, b in zip(plain, zero):
+    for a, b in zip(plain, zero, strict=True):
         assert torch.equal(a.targets, b.targets) and torch.equal(a.origins, b.origins)
         assert torch.equal(a.neighbour_pose, b.neighbour_pose)
     a, c = plain[0], noisy[0]
@@ -137,3 +137,21 @@ def test_finetune_with_noise_off_draws_todays_batches_and_on_moves_only_neighbou
     plan = plan_training(scene, TrainConfig(**base, neighbour_pose_noise=(1.0, 0.1)))
     assert plan.neighbour_pose_noise == (1.0, 0.1) and plan.to_dict()["neighbour_pose_noise"] == [1.0, 0.1]
     assert plan_training(scene, TrainConfig(**base)).neighbour_pose_noise is None
+
+
+def test_pretrain_cli_takes_the_noise_and_refuses_bad_values(tmp_path):
+    from typer.testing import CliRunner
+
+    from roguenerf.cli import app
+
+    runner = CliRunner()
+    bad = runner.invoke(app, ["pretrain", "--toy", "1", "--steps", "1", "--output", str(tmp_path / "a"),
+                              "--neighbour-pose-noise", "0.5"])
+    assert bad.exit_code == 2 and "neighbour_pose_noise" in bad.stderr, bad.output
+    bad = runner.invoke(app, ["pretrain", "--toy", "1", "--steps", "1", "--output", str(tmp_path / "a"),
+                              "--neighbour-pose-noise", "x,y"])
+    assert bad.exit_code == 2 and "--neighbour-pose-noise" in bad.stderr, bad.output
+    ok = runner.invoke(app, ["pretrain", "--toy", "1", "--steps", "1", "--output", str(tmp_path / "b"),
+                             "--variant", "micro", "--crop", "24", "--neighbour-pose-noise", "0.5,0.05"])
+    assert ok.exit_code == 0, ok.output
+    assert "neighbour poses perturbed (0.5 deg, 5% of the camera spread RMS)" in ok.stderr, ok.stderr

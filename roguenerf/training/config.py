@@ -195,8 +195,9 @@ class TrainConfig:
             noise = tuple(self.neighbour_pose_noise)
             if (len(noise) != 2 or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in noise)
                     or not 0.0 <= noise[0] <= MAX_POSE_NOISE_DEG or not 0.0 <= noise[1] <= MAX_POSE_NOISE_SHARE):
-                raise InputError(f"neighbour_pose_noise: expected (degrees in [0, {MAX_POSE_NOISE_DEG:g}], share of "
-                                 f"the camera spread in [0, {MAX_POSE_NOISE_SHARE:g}]), got {self.neighbour_pose_noise!r}")
+                raise InputError(f"neighbour_pose_noise: expected (degrees in [0, {MAX_POSE_NOISE_DEG:g}], share "
+                                 f"of the camera spread in [0, {MAX_POSE_NOISE_SHARE:g}]), "
+                                 f"got {self.neighbour_pose_noise!r}")
         if self.neighbour_encoding not in NEIGHBOUR_ENCODINGS:
             raise InputError(f"neighbour_encoding: expected one of {', '.join(NEIGHBOUR_ENCODINGS)}, "
                              f"got {self.neighbour_encoding!r}")
