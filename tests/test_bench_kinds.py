@@ -1,0 +1,52 @@
+"""bench/kinds.py's pieces with known answers: the downscaled photo set, the noisy scene (training
+poses only), the per-condition summary."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+from PIL import Image
+
+from bench import kinds
+from roguenerf.data.toy import make_toy_scene
+from roguenerf.geometry.noise import camera_spread
+from tests.test_fit import write_photo_set
+
+
+def test_downscaled_photo_set_scales_images_and_intrinsics(tmp_path):
+    write_photo_set(tmp_path / "src", views=4)
+    out = kinds.downscaled_photo_set(tmp_path / "src", tmp_path / "half", 2)
+    src, half = (json.loads((p / "transforms.json").read_text()) for p in (tmp_path / "src", out))
+    assert (half["w"], half["h"]) == (20, 15)
+    assert half["fl_x"] == pytest.approx(src["fl_x"] / 2) and half["cy"] == pytest.approx(src["cy"] / 2)
+    assert [f["transform_matrix"] for f in half["frames"]] == [f["transform_matrix"] for f in src["frames"]]
+    assert Image.open(out / half["frames"][0]["file_path"]).size == (20, 15)
+    assert kinds.downscaled_photo_set(tmp_path / "src", tmp_path / "same", 1) == tmp_path / "src"
+
+
+def test_noisy_scene_moves_only_the_training_poses(tmp_path):
+    scene = make_toy_scene(tmp_path / "toy", seed=1, n_train=6, n_test=2, height=24, width=32)
+    noisy = kinds.noisy_scene(scene, 1.0, 0.1, seed=3)
+    train, test = scene.indices("train"), scene.indices("test")
+    assert torch.equal(noisy.poses(test), scene.poses(test))
+    moved = (noisy.poses(train)[:, :3, 3] - scene.poses(train)[:, :3, 3]).norm(dim=-1)
+    assert (moved > 0).all() and float(moved.max()) < 0.1 * camera_spread(scene.poses(train)) * 5
+    assert torch.equal(noisy.render(train[0]), scene.render(train[0]))
+    again = kinds.noisy_scene(scene, 1.0, 0.1, seed=3)
+    assert torch.equal(again.poses(), noisy.poses())  # one fixed draw per seed
+
+
+def test_summary_means_worst_view_and_flip_counts():
+    def row(view, gain, flip_change, stage="zero-shot", deg=0.0):
+        return {"scene": "s", "kind": "hash", "stage": stage, "minutes": 0.0, "noise_deg": deg, "noise_share": 0.0,
+                "view": view, "render_psnr": 20.0, "gain_db": gain, "render_flip": 0.2, "flip_change": flip_change}
+
+    rows = [row("a", 1.0, -0.01), row("b", -0.5, 0.02), row("a", 0.2, -0.03, deg=0.5)]
+    out = kinds.summary(rows)
+    assert len(out) == 2
+    assert out[0]["gain_db"] == pytest.approx(0.25) and out[0]["worst_view_gain_db"] == -0.5
+    assert out[0]["views_flip_better"] == 1 and out[0]["flip_change"] == pytest.approx(0.005)
+    assert out[1]["noise_deg"] == 0.5 and out[1]["views"] == 1 and not math.isnan(out[1]["gain_db"])
