@@ -7,7 +7,8 @@ transforms-style list) plus, in a folder, each frame's render and depth. :func:`
 enhances the frames one by one with one :class:`~roguenerf.inference.SceneEnhancer` (each
 training photo's features are computed once for the whole path), writes each enhanced frame
 atomically as it is done (an interrupted run resumes after the last written frame), then
-encodes ``enhanced.mp4`` and ``side_by_side.mp4`` (render | enhanced) frame by frame.
+encodes ``enhanced.mp4`` and ``side_by_side.mp4`` (render | enhanced, each half labelled)
+frame by frame.
 
 **Flicker** (:func:`pair_flicker`): for consecutive frames t, t+1, frame t is reprojected into
 t+1 with t+1's depth, t's depth (visibility) and both poses (:func:`~roguenerf.geometry.reproject`,
@@ -55,6 +56,11 @@ class CameraPath:
     source: str = "transforms"
     """``"nerfstudio"`` (camera_path.json), ``"transforms"``, ``"inria"`` (3DGS ``cameras.json``)
     or ``"colmap"`` (``images.txt`` / ``images.bin`` with the cameras file beside it)."""
+    labels: list[str] = field(default_factory=list)
+    """How messages name each camera: ``camera_path[3]`` or ``frames[3] (NAME)``."""
+
+    def label(self, t: int) -> str:
+        return self.labels[t] if t < len(self.labels) else f"camera {t}"
 
     def __len__(self) -> int:
         return int(self.world_from_cam.shape[0])
@@ -90,7 +96,7 @@ def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
     Poses of these two are in the dataset's own units, as the scene imported from it.
     Every error names the file and the camera's position in it.
     """
-    from roguenerf.geometry.cameras import check_intrinsics, check_pose, opengl_to_opencv
+    from roguenerf.geometry.cameras import check_intrinsics
 
     path = Path(path)
     if path.suffix.lower() in (".txt", ".bin"):
@@ -103,7 +109,7 @@ def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
         raise _fail(path, f"cannot read the camera path ({exc})") from None
     if _is_inria_cameras(data):
         return _read_inria_cameras(path, data)
-    poses, Ks = [], []
+    poses, Ks, labels = [], [], []
     if isinstance(data, dict) and "camera_path" in data:
         source = "nerfstudio"
         cams = data["camera_path"]
@@ -114,15 +120,18 @@ def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
         if not isinstance(cams, list) or not cams:
             raise _fail(path, "camera_path: expected a non-empty list of cameras")
         for n, cam in enumerate(cams):
+            label = _camera_label("camera_path", n, cam)
             try:
-                c2w = torch.tensor(cam["camera_to_world"], dtype=torch.float64).reshape(4, 4)
+                c2w = torch.tensor(cam["camera_to_world"], dtype=torch.float64)
+                c2w = c2w.reshape(-1, 4) if c2w.numel() in (12, 16) else c2w
                 fov = float(cam["fov"])
             except (KeyError, TypeError, ValueError, RuntimeError):
-                raise _fail(path, f"camera_path[{n}]: expected camera_to_world (16 numbers) and fov") from None
+                raise _fail(path, f"{label}: expected camera_to_world (16 numbers) and fov") from None
             if not 0 < fov < 180:
-                raise _fail(path, f"camera_path[{n}].fov: expected degrees in (0, 180), got {fov}")
+                raise _fail(path, f"{label}.fov: expected degrees in (0, 180), got {fov}")
             focal = height / 2 / math.tan(math.radians(fov) / 2)
-            poses.append(c2w)
+            poses.append(_camera_pose(path, c2w, label))
+            labels.append(label)
             Ks.append(torch.tensor([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1]], dtype=torch.float64))
         fps = float(data.get("fps", 24.0) or 24.0)
     else:
@@ -135,18 +144,18 @@ def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
         for n, fr in enumerate(frames):
             if not isinstance(fr, dict):
                 raise _fail(path, f"frames[{n}]: expected an object")
+            label = _camera_label("frames", n, fr)
             try:
                 c2w = torch.tensor(fr["transform_matrix"], dtype=torch.float64)
-                if c2w.shape == (3, 4):
-                    c2w = torch.cat([c2w, torch.tensor([[0, 0, 0, 1]], dtype=torch.float64)])
                 get = {k: fr.get(k, top.get(k)) for k in ("fl_x", "fl_y", "cx", "cy", "w", "h")}
                 if get["fl_y"] is None:
                     get["fl_y"] = get["fl_x"]
                 fx, fy, cx, cy = (float(get[k]) for k in ("fl_x", "fl_y", "cx", "cy"))
                 sizes.add((int(get["w"]), int(get["h"])))
             except (KeyError, TypeError, ValueError, RuntimeError):
-                raise _fail(path, f"frames[{n}]: expected transform_matrix (4x4) and fl_x, fl_y, cx, cy, w, h") from None
-            poses.append(c2w)
+                raise _fail(path, f"{label}: expected transform_matrix (4x4) and fl_x, fl_y, cx, cy, w, h") from None
+            poses.append(_camera_pose(path, c2w, label))
+            labels.append(label)
             Ks.append(torch.tensor([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=torch.float64))
         if len(sizes) != 1:
             raise _fail(path, f"all frames of a path must have one size, got {sorted(sizes)}")
@@ -154,19 +163,41 @@ def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
         fps = float(top.get("fps", 24.0) or 24.0)
     if width < 1 or height < 1:
         raise _fail(path, f"render size must be positive, got {width}x{height}")
-    gl = torch.stack(poses)
-    if gl.shape[1:] != (4, 4):
-        raise _fail(path, f"poses: expected 4x4 matrices, got {tuple(gl.shape[1:])}")
-    try:
-        world_from_cam = check_pose(opengl_to_opencv(gl), f"{path.name} poses")
-        K = check_intrinsics(torch.stack(Ks), f"{path.name} intrinsics")
-    except InputError as exc:
-        raise _fail(path, str(exc)) from None
+    world_from_cam = torch.stack(poses)
+    for n, (K, label) in enumerate(zip(Ks, labels)):
+        try:
+            check_intrinsics(K, f"{label} intrinsics")
+        except InputError as exc:
+            raise _fail(path, str(exc)) from None
+    K = torch.stack(Ks)
     if dataparser is not None:
         world_from_cam = dataparser.to_dataset(world_from_cam)
     if not (math.isfinite(fps) and 0 < fps <= 240):
         raise _fail(path, f"fps: expected a number in (0, 240], got {fps}")
-    return CameraPath(world_from_cam=world_from_cam, K=K, width=width, height=height, fps=fps, source=source)
+    return CameraPath(world_from_cam=world_from_cam, K=K, width=width, height=height, fps=fps, source=source,
+                      labels=labels)
+
+
+def _camera_label(key: str, n: int, entry) -> str:
+    """``camera_path[3]`` or ``frames[3] (frame_00004.png)``: how errors name a path camera."""
+    name = None
+    if isinstance(entry, dict):
+        for k in ("name", "file_path", "image_path"):
+            if isinstance(entry.get(k), str) and entry[k]:
+                name = entry[k]
+                break
+    return f"{key}[{n}]" + (f" ({name})" if name else "")
+
+
+def _camera_pose(path: Path, gl: Tensor, label: str) -> Tensor:
+    """One path camera's OpenGL 4x4 / 3x4 pose -> validated OpenCV 4x4 (errors name the camera)."""
+    from roguenerf.geometry.cameras import as_world_from_cam, opengl_to_opencv
+
+    try:
+        pose = as_world_from_cam(gl, label)
+        return opengl_to_opencv(pose)
+    except InputError as exc:
+        raise _fail(path, str(exc)) from None
 
 
 def _is_inria_cameras(data) -> bool:
@@ -177,7 +208,7 @@ def _is_inria_cameras(data) -> bool:
 def _checked_path(path: Path, poses: list[Tensor], Ks: list[Tensor], sizes: list[tuple[int, int]],
                   labels: list[str], source: str) -> CameraPath:
     """One size, proper rotations, valid intrinsics; errors name the camera (``labels``)."""
-    from roguenerf.geometry.cameras import check_intrinsics, check_pose
+    from roguenerf.geometry.cameras import as_world_from_cam, check_intrinsics
 
     if len(set(sizes)) != 1:
         first = sizes[0]
@@ -187,7 +218,7 @@ def _checked_path(path: Path, poses: list[Tensor], Ks: list[Tensor], sizes: list
     checked = []
     for n, (pose, K) in enumerate(zip(poses, Ks, strict=True)):
         try:
-            checked.append(check_pose(pose, f"{labels[n]} pose"))
+            checked.append(as_world_from_cam(pose, f"{labels[n]} pose"))
             check_intrinsics(K, f"{labels[n]} intrinsics")
         except InputError as exc:
             raise _fail(path, str(exc)) from None
@@ -195,7 +226,7 @@ def _checked_path(path: Path, poses: list[Tensor], Ks: list[Tensor], sizes: list
     if width < 1 or height < 1:
         raise _fail(path, f"render size must be positive, got {width}x{height}")
     return CameraPath(world_from_cam=torch.stack(checked), K=torch.stack(Ks), width=width, height=height,
-                      fps=24.0, source=source)
+                      fps=24.0, source=source, labels=list(labels))
 
 
 def _read_inria_cameras(path: Path, data: list) -> CameraPath:
@@ -437,7 +468,7 @@ def enhance_path(
     from roguenerf.geometry.cameras import ray_to_z_depth
     from roguenerf.imageio import atomic_write, finite_for_json, read_depth, read_image, write_png
     from roguenerf.metrics import psnr
-    from roguenerf.video import Mp4Writer, check_quality, require_av
+    from roguenerf.video import Mp4Writer, check_quality, require_av, side_by_side
 
     start = time.perf_counter()
     if depth_type not in ("z", "ray"):
@@ -530,7 +561,7 @@ def enhance_path(
                 enhanced = read_image(frame_dir / f"{t:05d}.png")
                 render = read_image(pairs[t][0])
                 enhanced_video.write(enhanced)
-                side_video.write(torch.cat([render, enhanced], dim=2))
+                side_video.write(side_by_side(render, enhanced))
     return PathResult(output=output, frames=total, enhanced_now=done_now, seconds=time.perf_counter() - start,
                       video=video_path, side_by_side=sbs_path, flicker=report, cached_views=enhancer.cached_views())
 
@@ -558,7 +589,9 @@ def summarise_flicker(per_pair: list[dict], per_frame: list[dict]) -> dict:
 
 
 def smooth_path(key_poses: Tensor, steps: int, *, closed: bool = False) -> Tensor:
-    """A smooth camera path through ``key_poses`` ``(M, 4, 4)`` (camera-to-world): ``steps``
+    """A smooth camera path through ``key_poses`` ``(M, 4, 4)`` or ``(M, 3, 4)`` (camera-to-world,
+    validated by :func:`~roguenerf.geometry.cameras.as_world_from_cam`: non-finite, reflected or
+    scaled rotations are refused naming the key): ``steps``
     frames per segment, positions on a Catmull-Rom spline, rotations by quaternion slerp. Frame
     ``k * steps`` is key pose ``k`` exactly (those frames have the key views' photos).
 
@@ -566,9 +599,14 @@ def smooth_path(key_poses: Tensor, steps: int, *, closed: bool = False) -> Tenso
     """
     from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_matrix_to_quaternion
 
-    if steps < 1:
-        raise InputError(f"steps: expected >= 1, got {steps}")
-    key = key_poses.to(torch.float64)
+    from roguenerf.geometry.cameras import as_world_from_cam
+
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise InputError(f"steps: expected an integer >= 1, got {steps!r}")
+    key = torch.as_tensor(key_poses)
+    if key.ndim != 3:
+        raise InputError(f"key_poses: expected shape (M, 4, 4) or (M, 3, 4), got {tuple(key.shape)}")
+    key = as_world_from_cam(key.to(torch.float64) if key.is_floating_point() else key, "key_poses")
     m = key.shape[0]
     if m < 2:
         raise InputError(f"key_poses: expected at least 2 poses, got {m}")

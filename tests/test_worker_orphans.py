@@ -1,0 +1,112 @@
+"""No orphaned embedded worker (issue 38, finding 6): `roguenerf serve` stopped by SIGTERM at any
+moment of its start-up leaves no worker behind, and a worker whose server is already gone exits
+at once instead of taking init for its parent. Real processes, a temp data dir, free ports.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.service_helpers import free_port, wait_until
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _workers_of(parents: set[int]) -> list[int]:
+    """PIDs of live `python -m workers` processes started with --parent-pid in ``parents``
+    (a /proc scan: the worker runs in its own session, so process groups do not find it)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            args = (entry / "cmdline").read_bytes().split(b"\0")
+            state = (entry / "stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if state == "Z" or b"workers" not in args or b"--parent-pid" not in args:
+            continue
+        k = args.index(b"--parent-pid")
+        if k + 1 < len(args) and args[k + 1].isdigit() and int(args[k + 1]) in parents:
+            found.append(int(entry.name))
+    return found
+
+
+def _env(data_dir: Path) -> dict:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("ROGUENERF_")}
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH")) if p)
+    env["ROGUENERF_DATA_DIR"] = str(data_dir)
+    return env
+
+
+def _serve(tmp_path: Path, k: int) -> subprocess.Popen:
+    data = tmp_path / f"data{k}"
+    log = open(tmp_path / f"serve{k}.log", "wb")  # noqa: SIM115 - closed with the process
+    return subprocess.Popen([sys.executable, "-m", "roguenerf.cli", "serve", "--port", str(free_port()),
+                             "--data-dir", str(data)], env=_env(data), cwd=ROOT, stdout=log,
+                            stderr=subprocess.STDOUT)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="scans /proc")
+def test_a_worker_whose_server_is_already_gone_exits_at_once(tmp_path):
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()  # a PID that is no longer our parent (nor anyone's, for a while)
+    t = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "workers", "--exit-with-parent", "--parent-pid", str(gone.pid)],
+                          env=_env(tmp_path / "data"), cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr and "worker ready" not in proc.stderr
+    assert time.perf_counter() - t < 15  # before torch and the queue: nothing was started
+    assert not (tmp_path / "data").exists()  # it exited before touching the data dir
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="scans /proc")
+def test_serve_stopped_at_random_moments_of_its_start_leaves_no_worker(tmp_path):
+    rng = random.Random(38)
+    parents: set[int] = set()
+    spawned = 0
+    for k in range(20):
+        serve = _serve(tmp_path, k)
+        parents.add(serve.pid)
+        # Random moments over the start-up: before the worker is spawned, while it imports,
+        # after the server is ready; spread so every phase is hit on a loaded machine too.
+        time.sleep(rng.uniform(0.05, 3.5))
+        spawned += bool(_workers_of({serve.pid}))
+        serve.send_signal(signal.SIGTERM)
+        try:
+            serve.wait(30)
+        except subprocess.TimeoutExpired:
+            serve.kill()
+            serve.wait()
+    assert spawned >= 3, "the stops never came after the worker started: the test did not test anything"
+    try:
+        wait_until(lambda: not _workers_of(parents), timeout=45, what="every embedded worker to exit")
+    finally:
+        for pid in _workers_of(parents):  # never leave one behind, even when the test fails
+            os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="scans /proc")
+def test_serve_killed_outright_takes_its_worker_with_it(tmp_path):
+    serve = _serve(tmp_path, 0)
+    try:
+        wait_until(lambda: _workers_of({serve.pid}), timeout=60, what="the embedded worker to start")
+        time.sleep(0.5)
+        serve.kill()  # SIGKILL: no handler runs in the server; the kernel tells the worker
+        serve.wait()
+        wait_until(lambda: not _workers_of({serve.pid}), timeout=30, what="the worker to exit")
+    finally:
+        if serve.poll() is None:
+            serve.kill()
+        for pid in _workers_of({serve.pid}):
+            os.kill(pid, signal.SIGKILL)
