@@ -503,6 +503,10 @@ def enhance_path_command(
         "Maps a nerfstudio camera path (model world) to the scene's poses; default: the scene folder's "
         "dataparser_transforms.json when there is one."))] = None,
     no_video: Annotated[bool, typer.Option("--no-video", help="Write the frames and flicker.json only.")] = False,
+    force: Annotated[bool, typer.Option("--force", help=(
+        "Enhance the path even when its cameras do not fit the scene (far from its cameras, or seeing none "
+        "of its training photos: another coordinate space, missing dataparser transforms, OpenGL vs OpenCV); "
+        "the problem is printed as a warning."))] = False,
 ) -> None:
     """Enhance every frame of a camera path; write the frames, an MP4, a side-by-side MP4 and the flicker.
 
@@ -546,7 +550,9 @@ def enhance_path_command(
             result = enhance_path(scene, enhancer, camera_path, frames, output, depth_type=depth_type,
                                   depth_scale=depth_scale, background=background, video=not no_video,
                                   quality=quality, fps=fps, checkpoint_id=f"{ckpt.resolve()}:{stat.st_size}:{stat.st_mtime_ns}",
-                                  progress=progress)
+                                  progress=progress, force=force)
+        for warning in result.warnings:
+            typer.echo(f"warning: {warning}", err=True)
         f, p = result.flicker["flicker"], result.flicker["psnr"]
         resumed = result.frames - result.enhanced_now
         typer.echo(f"enhanced {result.enhanced_now} frames in {result.seconds:.1f} s"

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import math
 import re
 import time
@@ -31,6 +32,8 @@ import torch
 from torch import Tensor
 
 from roguenerf.errors import InputError, PathCancelled
+
+log = logging.getLogger("roguenerf.paths")
 
 FRAME_FOLDER = "frames"
 STATE_FILE = "path_state.json"
@@ -398,6 +401,188 @@ def _match_views(scene, camera_path: CameraPath) -> list[int | None]:
     return out
 
 
+FAR_FACTOR = 3.0
+"""A path camera farther than this many scene sizes from every scene camera is "far" (scene
+size: the larger of the cameras' spread and their median known depth)."""
+MIN_SEEN = 0.25
+"""A path camera "sees" the scene when at least this share of its probed known-depth pixels land,
+at the depth they have there, in a training photo it would use (a right path: ~all of them on the
+toy scenes; one in the model's world without its dataparser transform: ~9 %; flipped axes: 0)."""
+DEPTH_AGREEMENT = 0.05
+"""A training view sees a path pixel's surface point when its own depth there agrees to this
+(relative): a path in the wrong space puts its points in free space or behind surfaces."""
+CHECK_FRAMES = 12
+"""How many path cameras (evenly spread, first and last included) :func:`check_camera_path` probes."""
+CHECK_PIXELS = 64 * 64
+"""Pixels probed per path camera (a regular subsample of its depth)."""
+
+
+@dataclass
+class PathCheck:
+    """What :func:`check_camera_path` found; ``problem`` is None when the path looks right."""
+
+    checked: list[int]
+    seen: dict[int, float]
+    """Path camera -> share of its probed pixels seen consistently by a training photo (None: no known depth)."""
+    distance: dict[int, float]
+    """Path camera -> distance to the nearest scene camera, in scene sizes."""
+    lost: list[int]
+    far: list[int]
+    worst: int | None
+    problem: str | None = None
+    warning: str | None = None
+
+
+def _probe(depth: Tensor, K: Tensor, pixels: int = CHECK_PIXELS) -> tuple[Tensor, Tensor]:
+    """A regular subsample of ``depth`` ``(1, H, W)`` and its intrinsics (pixel-centre exact)."""
+    h, w = depth.shape[-2:]
+    step = max(1, int((h * w / pixels) ** 0.5))
+    sub = depth[..., ::step, ::step]
+    K_sub = K.to(torch.float64).clone()
+    K_sub[:2] /= step
+    K_sub[0, 2] += 0.5 - 0.5 / step
+    K_sub[1, 2] += 0.5 - 0.5 / step
+    return sub, K_sub
+
+
+def _consistent(points: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor, tol: float) -> Tensor:
+    """Which world ``points`` ``(N, 3)`` float64 a view sees where its own depth says a surface is:
+    in front, inside the image, ``|z - depth| <= tol * depth`` at the nearest pixel."""
+    from roguenerf.geometry import known_depth_mask
+
+    pose = world_from_cam.to(torch.float64)
+    cam = (points - pose[:3, 3]) @ pose[:3, :3]
+    z = cam[:, 2]
+    front = z > 1e-9
+    zs = torch.where(front, z, torch.ones_like(z))
+    K = K.to(torch.float64)
+    u = K[0, 0] * cam[:, 0] / zs + K[0, 1] * cam[:, 1] / zs + K[0, 2]
+    v = K[1, 1] * cam[:, 1] / zs + K[1, 2]
+    h, w = depth.shape[-2:]
+    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    col = u.clamp(0, w - 1).floor().long()
+    row = v.clamp(0, h - 1).floor().long()
+    d = depth.reshape(h, w).to(torch.float64)[row, col]
+    known = known_depth_mask(d)
+    return inside & known & ((z - d).abs() <= tol * d.abs())
+
+
+def _seen_share(scene, train: list[int], train_depths: dict, depth: Tensor, K: Tensor, pose: Tensor,
+                neighbours: int) -> float | None:
+    """Share of the probed known-depth pixels of one camera whose surface point some chosen
+    training view sees at its own depth (within :data:`DEPTH_AGREEMENT`)."""
+    from roguenerf.geometry import known_depth_mask, select_neighbours
+
+    sub, K_sub = _probe(depth, K)
+    z = sub.reshape(-1).to(torch.float64)
+    known = known_depth_mask(z)
+    if not bool(known.any()):
+        return None
+    h, w = sub.shape[-2:]
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64) + 0.5, torch.arange(w, dtype=torch.float64) + 0.5,
+                          indexing="ij")
+    y = (v.reshape(-1) - K_sub[1, 2]) / K_sub[1, 1]
+    x = (u.reshape(-1) - K_sub[0, 2] - K_sub[0, 1] * y) / K_sub[0, 0]
+    cam = torch.stack([x, y, torch.ones_like(x)], -1)[known] * z[known, None]
+    pose = pose.to(torch.float64)
+    points = cam @ pose[:3, :3].T + pose[:3, 3]
+    poses = scene.poses(train).to(torch.float64)
+    picked = select_neighbours(pose, poses, min(neighbours, len(train)), candidates=max(8, neighbours))
+    seen = torch.zeros(points.shape[0], dtype=torch.bool)
+    for p in picked.tolist():
+        i = train[p]
+        if i not in train_depths:
+            train_depths[i] = scene.depth(i).float()
+        seen |= _consistent(points, train_depths[i], scene.frames[i].K, poses[p], DEPTH_AGREEMENT)
+    return float(seen.sum()) / float(known.sum())
+
+
+def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: int = 4,
+                      frames: int = CHECK_FRAMES) -> PathCheck:
+    """Does the path live in the scene's world? A cheap check before any enhancement.
+
+    A path in another coordinate space (a nerfstudio ``camera_path.json`` in the model's world
+    read without the model's ``dataparser_transforms.json``, OpenGL axes read as OpenCV or the
+    reverse, other units) enhances nothing and says nothing: its cameras see none of the training
+    photos. For up to ``frames`` path cameras (evenly spread) this measures the distance to the
+    nearest scene camera and which share of ~:data:`CHECK_PIXELS` pixels of the frame's depth
+    (``depth_of(t) -> (1, H, W)`` z-depth) the training photos the enhancer would pick see
+    at their own depth.
+
+    ``problem`` is set when a checked camera is farther than :data:`FAR_FACTOR` scene sizes from
+    every scene camera, or when at least half of the checked cameras with known depth see less
+    than :data:`MIN_SEEN` of their pixels; ``warning`` when fewer do. Both name the worst camera
+    (index and label) and the likely cause.
+    """
+    from roguenerf.geometry import known_depth_mask
+    from roguenerf.geometry.cameras import opengl_to_opencv
+
+    train = scene.indices("train")
+    if not train:
+        raise InputError("the scene has no training views: a camera path has nothing to be enhanced with")
+    T = len(camera_path)
+    n = max(1, min(frames, T))
+    checked = sorted({round(k * (T - 1) / max(n - 1, 1)) for k in range(n)})
+    positions = scene.poses().to(torch.float64)[:, :3, 3]
+    spread = float((positions - positions.mean(0)).norm(dim=-1).max())
+    train_depths: dict[int, Tensor] = {}
+    medians = []
+    for i in train[:: max(1, len(train) // 8)][:8]:
+        train_depths[i] = scene.depth(i).float()
+        d = train_depths[i][known_depth_mask(train_depths[i])]
+        if d.numel():
+            medians.append(float(d.median()))
+    size = max(spread, sorted(medians)[len(medians) // 2] if medians else 0.0) or 1.0
+    seen: dict[int, float | None] = {}
+    distance: dict[int, float] = {}
+    depths = {}
+    for t in checked:
+        pose = camera_path.world_from_cam[t]
+        distance[t] = float((positions - pose[:3, 3]).norm(dim=-1).min()) / size
+        depths[t] = depth_of(t)
+        seen[t] = _seen_share(scene, train, train_depths, depths[t], camera_path.K[t], pose, neighbours)
+    far = [t for t in checked if distance[t] > FAR_FACTOR]
+    with_depth = [t for t in checked if seen[t] is not None]
+    lost = [t for t in with_depth if seen[t] < MIN_SEEN]
+    worst = None
+    if far:
+        worst = max(far, key=lambda t: distance[t])
+    elif lost:
+        worst = min(lost, key=lambda t: (seen[t], -distance[t]))
+    result = PathCheck(checked=checked, seen=seen, distance=distance, lost=lost, far=far, worst=worst)
+    if worst is None:
+        return result
+    what = (f"camera {worst} ({camera_path.label(worst)}) lies {distance[worst]:.1f} scene sizes from the "
+            f"nearest scene camera" if far else
+            f"camera {worst} ({camera_path.label(worst)}) sees almost none of the training photos (only "
+            f"{100 * seen[worst]:.1f}% of its pixels land at their depth in the photos nearest it)")
+    summary = (f"{len(far)} of {len(checked)} checked cameras are far from the scene's cameras" if far else
+               f"{len(lost)} of {len(with_depth)} checked cameras see almost none of the training photos")
+    causes = []
+    if camera_path.source == "nerfstudio":
+        causes.append("a nerfstudio camera_path.json is in the model's world: it needs the trained model's "
+                      "dataparser_transforms.json (--dataparser-transforms, or put it in the scene folder)")
+    # Would the other axis convention fit? Then say so first.
+    flipped = opengl_to_opencv(camera_path.world_from_cam[worst])
+    share = _seen_share(scene, train, train_depths, depths[worst], camera_path.K[worst], flipped, neighbours)
+    axes = ("OpenGL vs OpenCV axes: with the y and z axes flipped this camera sees "
+            f"{100 * (share or 0):.0f}% of its pixels; camera paths and transforms-style lists are read "
+            "as OpenGL (nerfstudio, Blender): convert OpenCV poses (columns 1 and 2 negated)")
+    if share is not None and share >= max(2 * MIN_SEEN, 2 * seen.get(worst) or 0.0):
+        causes.insert(0, axes)
+    else:
+        causes.append("OpenGL vs OpenCV axes (camera paths are read as OpenGL, as nerfstudio and Blender write them)")
+    causes.append("another coordinate space or unit than the scene's poses (e.g. the path of another "
+                  "export, or depth in other units: --depth-scale)")
+    message = (f"the camera path does not fit the scene: {summary}; worst: {what}. Likely causes: "
+               + "; ".join(causes))
+    if far or len(lost) * 2 >= max(len(with_depth), 1):
+        result.problem = message
+    else:
+        result.warning = message
+    return result
+
+
 @dataclass
 class PathResult:
     output: Path
@@ -410,6 +595,8 @@ class PathResult:
     flicker: dict = field(default_factory=dict)
     """What :data:`FLICKER_FILE` holds: per-pair and mean flicker, per-frame PSNR where photos exist."""
     cached_views: int = 0
+    warnings: list[str] = field(default_factory=list)
+    """What went on with ``force=True`` (:func:`check_camera_path`'s message)."""
 
 
 def _fingerprint(camera_path: CameraPath, pairs: list[tuple[Path, Path]], checkpoint_id: str, options: dict) -> str:
@@ -441,6 +628,7 @@ def enhance_path(
     checkpoint_id: str = "",
     progress=None,
     should_stop=None,
+    force: bool = False,
 ) -> PathResult:
     """Enhance every frame of a camera path; write frames, MP4s and the flicker report.
 
@@ -463,6 +651,9 @@ def enhance_path(
         progress: ``callback(done, total)`` per frame.
         should_stop: ``() -> bool`` polled between frames; True raises
             :class:`~roguenerf.errors.PathCancelled` (frames written so far are kept).
+        force: go on when :func:`check_camera_path` finds that the path does not fit the scene
+            (its message is logged and kept in ``PathResult.warnings``); otherwise that is an
+            :class:`~roguenerf.errors.InputError`, before any frame is enhanced.
     """
     from roguenerf.data.exports import background_to_unknown
     from roguenerf.geometry.cameras import ray_to_z_depth
@@ -480,23 +671,6 @@ def enhance_path(
         require_av()
     fps = camera_path.fps if fps is None else fps
     pairs = find_path_frames(frames, len(camera_path))
-    output = Path(output)
-    frame_dir = output / FRAME_FOLDER
-    frame_dir.mkdir(parents=True, exist_ok=True)
-    options = {"depth_type": depth_type, "depth_scale": depth_scale, "background": background,
-               "neighbours": enhancer.num_neighbours}
-    fingerprint = _fingerprint(camera_path, pairs, checkpoint_id, options)
-    state_path = output / STATE_FILE
-    if state_path.is_file():
-        try:
-            previous = json.loads(state_path.read_text()).get("fingerprint")
-        except (OSError, json.JSONDecodeError):
-            previous = None
-        if previous != fingerprint:
-            raise InputError(f"{output} holds the frames of another path, model or setting; "
-                             "choose another output folder or delete it")
-    else:
-        atomic_write(state_path, json.dumps({"fingerprint": fingerprint, "frames": len(pairs)}).encode())
     matches = _match_views(scene, camera_path)
     total = len(pairs)
 
@@ -515,6 +689,33 @@ def enhance_path(
             depth = ray_to_z_depth(depth.double(), camera_path.K[t]).float()
         return render, depth
 
+    warnings: list[str] = []
+    check = check_camera_path(scene, camera_path, lambda t: load_frame(t)[1],
+                              neighbours=max(1, enhancer.num_neighbours or 1))
+    if check.problem is not None and not force:
+        raise InputError(f"{check.problem}. To enhance it anyway: --force (force=True)")
+    for message in (check.problem, check.warning):
+        if message is not None:
+            log.warning("camera path: %s", message)
+            warnings.append(message)
+
+    output = Path(output)
+    frame_dir = output / FRAME_FOLDER
+    frame_dir.mkdir(parents=True, exist_ok=True)
+    options = {"depth_type": depth_type, "depth_scale": depth_scale, "background": background,
+               "neighbours": enhancer.num_neighbours}
+    fingerprint = _fingerprint(camera_path, pairs, checkpoint_id, options)
+    state_path = output / STATE_FILE
+    if state_path.is_file():
+        try:
+            previous = json.loads(state_path.read_text()).get("fingerprint")
+        except (OSError, json.JSONDecodeError):
+            previous = None
+        if previous != fingerprint:
+            raise InputError(f"{output} holds the frames of another path, model or setting; "
+                             "choose another output folder or delete it")
+    else:
+        atomic_write(state_path, json.dumps({"fingerprint": fingerprint, "frames": len(pairs)}).encode())
     per_pair, per_frame = [], []
     prev = None
     done_now = 0
@@ -563,7 +764,8 @@ def enhance_path(
                 enhanced_video.write(enhanced)
                 side_video.write(side_by_side(render, enhanced))
     return PathResult(output=output, frames=total, enhanced_now=done_now, seconds=time.perf_counter() - start,
-                      video=video_path, side_by_side=sbs_path, flicker=report, cached_views=enhancer.cached_views())
+                      video=video_path, side_by_side=sbs_path, flicker=report, cached_views=enhancer.cached_views(),
+                      warnings=warnings)
 
 
 def summarise_flicker(per_pair: list[dict], per_frame: list[dict]) -> dict:
