@@ -357,7 +357,8 @@ def enhance(
 
 
 def _import_command(tool: str, dataset: Path, renders: Path, output: Path, depth_type, depth_scale: float,
-                    depth_units: str, dataparser_transforms, background, **split) -> None:
+                    depth_units: str, dataparser_transforms, background, skip_missing: bool = False,
+                    force: bool = False, **split) -> None:
     from roguenerf.data.exports import import_renders
 
     with _errors():
@@ -377,7 +378,12 @@ def _import_command(tool: str, dataset: Path, renders: Path, output: Path, depth
             scene = import_renders(dataset, renders, output, tool=tool, depth_type=depth_type,
                                    depth_scale=depth_scale, depth_units=depth_units,
                                    dataparser_transforms=dataparser_transforms, background=background,
-                                   progress=progress, **split)
+                                   progress=progress, skip_missing=skip_missing, check_depth=not force,
+                                   **split)
+        skipped = scene.meta.get("skipped_views") or []
+        if skipped:
+            typer.echo(f"warning: skipped {len(skipped)} views without a render or depth: {', '.join(skipped)}",
+                       err=True)
         typer.echo(f"wrote {scene!r}", err=True)
         typer.echo(str(output))
 
@@ -388,6 +394,12 @@ DepthTypeOpt = Annotated[str | None, typer.Option("--depth-type", help=(
 DepthScaleOpt = Annotated[float, typer.Option("--depth-scale", help="Multiply stored depth by this (0.001 for millimetre PNGs).")]
 BackgroundOpt = Annotated[str | None, typer.Option("--background", help=(
     "What no-surface pixels hold: zero, or max (the map's maximum; gsplat's default). Made unknown."))]
+SkipMissingOpt = Annotated[bool, typer.Option("--skip-missing", help=(
+    "Import the views that have both a render and a depth, skipping (with a warning) those missing one; "
+    "without it a missing file is an error naming it."))]
+ImportForceOpt = Annotated[bool, typer.Option("--force", help=(
+    "Import with the --depth-type given even when the depths of neighbouring views disagree under it "
+    "and agree under the other type (checked by reprojecting a few hundred pixels)."))]
 DataparserOpt = Annotated[Path | None, typer.Option("--dataparser-transforms", help=(
     "The trained model's dataparser_transforms.json: kept in the scene for camera paths from nerfstudio's viewer."))]
 
@@ -404,10 +416,12 @@ def import_nerfstudio(
         "model: in the model's world (divided by the scale here)."))] = "dataset",
     dataparser_transforms: DataparserOpt = None,
     background: BackgroundOpt = None,
+    skip_missing: SkipMissingOpt = False,
+    force: ImportForceOpt = False,
 ) -> None:
     """Turn a nerfstudio dataset plus `ns-render dataset` output into a scene folder (z-depth, pose units)."""
     _import_command("nerfstudio", dataset, renders, output, depth_type, depth_scale, depth_units,
-                    dataparser_transforms, background)
+                    dataparser_transforms, background, skip_missing, force)
 
 
 @app.command("import-gsplat")
@@ -432,12 +446,14 @@ def import_gsplat(
     split_file: Annotated[Path | None, typer.Option("--split-file", help=(
         'Test views by name: JSON {"train": [...], "test": [...]} or one name per line '
         "(Inria's sparse/0/test.txt). Overrides --eval and --test-every."))] = None,
+    skip_missing: SkipMissingOpt = False,
+    force: ImportForceOpt = False,
 ) -> None:
     """Turn gsplat renders + expected depth (and the dataset's poses) into a scene folder."""
     if test_every is None and eval_split:
         test_every = 8
     _import_command("gsplat", dataset, renders, output, depth_type, depth_scale, "dataset", None, background,
-                    images=images, test_every=test_every, split_file=split_file)
+                    skip_missing, force, images=images, test_every=test_every, split_file=split_file)
 
 
 @app.command("import-3dgs")

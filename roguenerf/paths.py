@@ -167,7 +167,7 @@ def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
     if width < 1 or height < 1:
         raise _fail(path, f"render size must be positive, got {width}x{height}")
     world_from_cam = torch.stack(poses)
-    for n, (K, label) in enumerate(zip(Ks, labels)):
+    for K, label in zip(Ks, labels, strict=True):
         try:
             check_intrinsics(K, f"{label} intrinsics")
         except InputError as exc:

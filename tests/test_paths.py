@@ -14,8 +14,17 @@ from typer.testing import CliRunner
 
 from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
 from roguenerf.cli import app
-from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform, write_depth_like
-from roguenerf.data.toy import make_toy_scene, make_toy_world, render_toy_view, toy_camera_path
+from roguenerf.data.exports import (
+    DATAPARSER_FILE,
+    DataparserTransform,
+    write_depth_like,
+)
+from roguenerf.data.toy import (
+    make_toy_scene,
+    make_toy_world,
+    render_toy_view,
+    toy_camera_path,
+)
 from roguenerf.errors import InputError, PathCancelled
 from roguenerf.geometry import opencv_to_opengl
 from roguenerf.imageio import write_png
@@ -203,9 +212,9 @@ def _transforms_path(file, poses_gl, K, names=None):
 
 
 def test_the_right_path_fits_the_scene(toy_path, enhancer):
-    from roguenerf.paths import check_camera_path, find_path_frames
-    from roguenerf.imageio import read_depth
     from roguenerf.geometry import ray_to_z_depth
+    from roguenerf.imageio import read_depth
+    from roguenerf.paths import check_camera_path, find_path_frames
 
     root, scene = toy_path["root"], toy_path["scene"]
     cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
