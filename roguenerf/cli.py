@@ -26,7 +26,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
                   rich_markup_mode=None, help="RoGUENeRF: enhance radiance-field renders with geometry-aligned training photos.")
 
 CheckpointOpt = Annotated[Path | None, typer.Option(
-    "--checkpoint", help="Enhancer .safetensors; default: the shipped default checkpoint.")]
+    "--checkpoint", help="Enhancer .safetensors, or the folder a fine-tune wrote (its model.safetensors); "
+                         "default: the shipped default checkpoint.")]
 DEFAULT_MINUTES_CPU, DEFAULT_MINUTES_GPU = 10, 60
 """The library's default budget (roguenerf.training.config CPU_MINUTES / GPU_MINUTES; a test
 checks they agree). Not imported from there: that module loads torch, and --help should not."""
@@ -92,13 +93,27 @@ def _load_scene(scene_dir: Path):
         raise InputError(f"scene directory {scene_dir} does not exist")
     if not scene_dir.is_dir():
         raise InputError(f"scene directory {scene_dir} is not a directory")
-    return load_scene(scene_dir)
+    scene = load_scene(scene_dir)
+    _warn_unusable(scene)
+    return scene
+
+
+def _warn_unusable(scene) -> None:
+    """One warning line listing the views that cannot serve (e.g. a depth map of zeros)."""
+    from roguenerf.data.scene import unusable_views
+
+    bad = unusable_views(scene)
+    if bad:
+        typer.echo(f"warning: {len(bad)} of {len(scene.frames)} views of {scene.root} are unusable and "
+                   f"contribute nothing: {'; '.join(str(v) for v in bad)}", err=True)
 
 
 def _checkpoint_path(checkpoint: Path | None) -> Path:
     from roguenerf.checkpoint import default_checkpoint_path
 
     if checkpoint is not None:
+        if checkpoint.is_dir():
+            return _checkpoint_in(checkpoint)
         if not checkpoint.is_file():
             raise InputError(f"checkpoint {checkpoint} does not exist")
         return checkpoint
@@ -107,6 +122,25 @@ def _checkpoint_path(checkpoint: Path | None) -> Path:
         raise InputError(f"no --checkpoint given and the default checkpoint {path} does not exist yet "
                          "(train one with `roguenerf pretrain`, or pass --scratch to fine-tune from scratch)")
     return path
+
+
+def _checkpoint_in(folder: Path) -> Path:
+    """The final checkpoint in a folder `roguenerf finetune` / `pretrain` wrote (its --output)."""
+    from roguenerf.training.loop import MODEL_FILE, STATE_FILE
+
+    model = folder / MODEL_FILE
+    if model.is_file():
+        return model
+    if (folder / STATE_FILE).is_file():
+        raise InputError(f"checkpoint folder {folder} holds no finished checkpoint ({MODEL_FILE}), only the "
+                         f"resume state of an unfinished run ({STATE_FILE}): run the same fine-tune again to "
+                         "finish it")
+    found = sorted(p.name for p in folder.glob("*.safetensors"))
+    if len(found) == 1:
+        return folder / found[0]
+    raise InputError(f"checkpoint folder {folder} holds no checkpoint: expected {MODEL_FILE} (what "
+                     "`roguenerf finetune --output` writes)"
+                     + (f"; it holds {', '.join(found)}: pass one of them" if found else ""))
 
 
 def _load_model(checkpoint: Path | None):
@@ -248,8 +282,8 @@ def pretrain(
         scenes += make_toy_scenes(output / "toy", toy, seed=seed)
         if not scenes:
             raise InputError("no scenes to pre-train on: give SCENE_DIR arguments and/or --toy N")
-        if checkpoint is not None and not checkpoint.is_file():
-            raise InputError(f"checkpoint {checkpoint} does not exist")
+        if checkpoint is not None:
+            checkpoint = _checkpoint_path(checkpoint)  # a file, or the folder a run wrote
         result = run_pretrain(scenes, output, checkpoint=checkpoint, config=config, held_out_scenes=held)
         _report_training(result)
         typer.echo(str(result.checkpoint))
@@ -385,6 +419,7 @@ def _import_command(tool: str, dataset: Path, renders: Path, output: Path, depth
             typer.echo(f"warning: skipped {len(skipped)} views without a render or depth: {', '.join(skipped)}",
                        err=True)
         typer.echo(f"wrote {scene!r}", err=True)
+        _warn_unusable(scene)
         typer.echo(str(output))
 
 
