@@ -497,6 +497,27 @@ def _seen_share(scene, train: list[int], train_depths: dict, depth: Tensor, K: T
     return float(seen.sum()) / float(known.sum())
 
 
+def _depth_type_problem(scene, camera_path: CameraPath, raw_of, given: str, frames: int = 4) -> str | None:
+    """:func:`~roguenerf.data.exports.check_depth_type` for a path: a few frames' stored depth
+    against the z-depth of the training view nearest each (the scene's depth is z already)."""
+    from roguenerf.data.exports import check_depth_type, depth_type_problem
+
+    train = scene.indices("train")
+    T = len(camera_path)
+    if not train or T == 0:
+        return None
+    poses = scene.poses(train).to(torch.float64)
+    pairs = []
+    for t in sorted({round(k * (T - 1) / max(frames - 1, 1)) for k in range(min(frames, T))}):
+        pose = camera_path.world_from_cam[t].to(torch.float64)
+        near = int((poses[:, :3, 3] - pose[:3, 3]).norm(dim=-1).argmin())
+        i = train[near]
+        pairs.append(((raw_of(t).double(), camera_path.K[t], pose),
+                      (scene.depth(i).double(), scene.frames[i].K, poses[near])))
+    check = check_depth_type(pairs, b_is_z=True)
+    return depth_type_problem(check, given, "the path's depths", "its frames and the nearest training views")
+
+
 def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: int = 4,
                       frames: int = CHECK_FRAMES) -> PathCheck:
     """Does the path live in the scene's world? A cheap check before any enhancement.
@@ -674,7 +695,7 @@ def enhance_path(
     matches = _match_views(scene, camera_path)
     total = len(pairs)
 
-    def load_frame(t: int) -> tuple[Tensor, Tensor]:
+    def load_frame(t: int, *, raw: bool = False) -> tuple[Tensor, Tensor]:
         rgb_path, depth_path = pairs[t]
         render = read_image(rgb_path)
         if render.shape[1:] != (camera_path.height, camera_path.width):
@@ -685,11 +706,17 @@ def enhance_path(
             raise InputError(f"{depth_path}: depth is {depth.shape[2]}x{depth.shape[1]}, its render "
                              f"{render.shape[2]}x{render.shape[1]}")
         depth = background_to_unknown(depth, background)
-        if depth_type == "ray":
+        if depth_type == "ray" and not raw:
             depth = ray_to_z_depth(depth.double(), camera_path.K[t]).float()
         return render, depth
 
     warnings: list[str] = []
+    problem = _depth_type_problem(scene, camera_path, lambda t: load_frame(t, raw=True)[1], depth_type)
+    if problem is not None and not force:
+        raise InputError(f"{problem}. To enhance it anyway: --force (force=True)")
+    if problem is not None:
+        log.warning("camera path: %s", problem)
+        warnings.append(problem)
     check = check_camera_path(scene, camera_path, lambda t: load_frame(t)[1],
                               neighbours=max(1, enhancer.num_neighbours or 1))
     if check.problem is not None and not force:

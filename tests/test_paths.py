@@ -153,7 +153,7 @@ def test_enhance_path_writes_video_flicker_and_resumes(toy_path, enhancer, tmp_p
     assert again.flicker["flicker"] == pytest.approx(report["flicker"])
     # Another setting into the same folder is refused instead of mixing frames.
     with pytest.raises(InputError, match="another path"):
-        enhance_path(scene, enhancer, cp, root / "frames", out, depth_type="z", video=False)
+        enhance_path(scene, enhancer, cp, root / "frames", out, depth_type="ray", background="max", video=False)
 
 
 def test_enhance_path_cli(toy_path, tmp_path):
@@ -379,3 +379,27 @@ def test_the_video_writer_follows_the_image_dtype_rule(tmp_path, frame, message)
             video.write(torch.rand(3, 8, 8))
             video.write(frame)
     assert not path.exists() and not list(tmp_path.iterdir())  # atomic: nothing left behind
+
+
+@pytest.mark.parametrize("given, stored, frames", [("z", "ray", "frames"), ("ray", "z", "zframes")])
+def test_a_path_depth_type_that_disagrees_with_the_scene_is_refused(toy_path, enhancer, tmp_path, given, stored,
+                                                                    frames):
+    """The frames' depth against the scene's own z-depth, reprojected: the wrong type is found."""
+    root, scene = toy_path["root"], toy_path["scene"]
+    if frames == "zframes":  # the same frames with z-depth stored
+        (tmp_path / "zframes" / "depth").mkdir(parents=True)
+        for t, pose in enumerate(toy_path["poses"]):
+            _, z = render_toy_view(make_toy_world(SEED), pose, scene.frames[0].K, H, W)
+            write_depth_like(tmp_path / "zframes" / "depth" / f"frame_{t}.npy", z[0].numpy(), kind="npy")
+        import shutil
+
+        shutil.copytree(root / "frames" / "rgb", tmp_path / "zframes" / "rgb")
+        folder = tmp_path / "zframes"
+    else:
+        folder = root / "frames"
+    cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
+    with pytest.raises(InputError, match=rf"look like .* not --depth-type {given}.*Likely fix: --depth-type {stored}"):
+        enhance_path(scene, enhancer, cp, folder, tmp_path / "out", depth_type=given, video=False)
+    assert not (tmp_path / "out").exists()
+    ok = enhance_path(scene, enhancer, cp, folder, tmp_path / "ok", depth_type=stored, video=False)
+    assert ok.warnings == [] and ok.frames == len(cp)

@@ -421,17 +421,10 @@ def import_renders(
                     ", ".join(name for name, _ in missing))
     if check_depth:
         # Multi-view consistency: the depth type given must make neighbouring views agree.
-        given = depth_type
         check = check_depth_type(_depth_type_views(source, frames, found, depth_scale, background))
-        if check.likely is not None and check.likely != given:
-            other = check.likely
-            looks = "z-depth (along the optical axis)" if other == "z" else "distance along the ray"
-            raise InputError(
-                f"the depths look like {looks}"
-                f", not --depth-type {given}: reprojected between neighbouring views they disagree by a median "
-                f"{100 * check.errors[given]:.2f}% as {given}, {100 * check.errors[other]:.3f}% as {other} "
-                f"({check.pixels} pixels). Likely fix: --depth-type {other} (depth_type={other!r}); to import "
-                "them as given anyway: --force (check_depth=False)")
+        problem = depth_type_problem(check, depth_type, "the depths", "neighbouring views")
+        if problem is not None:
+            raise InputError(f"{problem}; to import them as given anyway: --force (check_depth=False)")
     final = Path(output)
     _check_output(final)
     # Built in a temporary sibling folder and renamed at the end: a failed import (a bad depth
@@ -483,42 +476,55 @@ def _sample_depth(depth: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
     return out[0], out[1] > 1 - 1e-9
 
 
-def _pair_errors(raw_a: Tensor, K_a: Tensor, pose_a: Tensor, raw_b: Tensor, K_b: Tensor, pose_b: Tensor,
-                 generator: torch.Generator, pixels: int) -> dict[str, Tensor]:
-    """Relative disagreements of view a's depth reprojected into view b, under each hypothesis."""
-    from roguenerf.geometry import known_depth_mask
-    from roguenerf.geometry.cameras import ray_to_z_depth
-
-    out = {}
-    known = known_depth_mask(raw_a[0]).reshape(-1).nonzero()[:, 0]
-    if known.numel() == 0:
-        return {"z": torch.empty(0), "ray": torch.empty(0)}
-    pick = known[torch.randperm(known.numel(), generator=generator)[:pixels]]
-    h, w = raw_a.shape[-2:]
-    v = (pick // w).to(torch.float64) + 0.5
-    u = (pick % w).to(torch.float64) + 0.5
+def depth_disagreement(z_a: Tensor, K_a: Tensor, pose_a: Tensor, z_b: Tensor, K_b: Tensor, pose_b: Tensor,
+                       pick: Tensor) -> Tensor:
+    """Relative disagreements ``|z - z_b(u', v')| / z_b`` of view a's pixels ``pick`` (flat indices)
+    lifted with z-depth ``z_a`` ``(1, H, W)`` and projected into view b, where b's z-depth
+    (bilinear, all four taps known) is known and the point lands inside b, in front."""
     K_a, K_b = K_a.to(torch.float64), K_b.to(torch.float64)
     pose_a, pose_b = pose_a.to(torch.float64), pose_b.to(torch.float64)
+    w = z_a.shape[-1]
+    v = (pick // w).to(torch.float64) + 0.5
+    u = (pick % w).to(torch.float64) + 0.5
     y = (v - K_a[1, 2]) / K_a[1, 1]
     x = (u - K_a[0, 2] - K_a[0, 1] * y) / K_a[0, 0]
     rays = torch.stack([x, y, torch.ones_like(x)], -1)
+    points = (rays * z_a.double().reshape(-1)[pick, None]) @ pose_a[:3, :3].T + pose_a[:3, 3]
+    cam = (points - pose_b[:3, 3]) @ pose_b[:3, :3]
+    z = cam[:, 2]
+    front = z > 1e-9
+    zs = torch.where(front, z, torch.ones_like(z))
+    ub = K_b[0, 0] * cam[:, 0] / zs + K_b[0, 1] * cam[:, 1] / zs + K_b[0, 2]
+    vb = K_b[1, 1] * cam[:, 1] / zs + K_b[1, 2]
+    hb, wb = z_b.shape[-2:]
+    d, ok = _sample_depth(z_b.reshape(hb, wb), ub, vb)
+    ok = ok & front & (ub >= 0.5) & (ub <= wb - 0.5) & (vb >= 0.5) & (vb <= hb - 0.5)
+    return ((z - d).abs() / d.clamp_min(1e-12))[ok]
+
+
+def _known_pick(depth: Tensor, generator: torch.Generator, pixels: int) -> Tensor:
+    from roguenerf.geometry import known_depth_mask
+
+    known = known_depth_mask(depth).reshape(-1).nonzero()[:, 0]
+    return known[torch.randperm(known.numel(), generator=generator)[:pixels]]
+
+
+def _pair_errors(raw_a: Tensor, K_a: Tensor, pose_a: Tensor, raw_b: Tensor, K_b: Tensor, pose_b: Tensor,
+                 generator: torch.Generator, pixels: int, *, b_is_z: bool = False) -> dict[str, Tensor]:
+    """Relative disagreements of view a's depth reprojected into view b, under each hypothesis
+    (``b_is_z``: view b's depth is z-depth whatever a's is, e.g. a scene's training view)."""
+    from roguenerf.geometry.cameras import ray_to_z_depth
+
+    pick = _known_pick(raw_a, generator, pixels)
+    out = {}
     for kind in ("z", "ray"):
         za = raw_a.double() if kind == "z" else ray_to_z_depth(raw_a.double(), K_a)
-        zb = raw_b.double() if kind == "z" else ray_to_z_depth(raw_b.double(), K_b)
-        points = (rays * za.reshape(-1)[pick, None]) @ pose_a[:3, :3].T + pose_a[:3, 3]
-        cam = (points - pose_b[:3, 3]) @ pose_b[:3, :3]
-        z = cam[:, 2]
-        front = z > 1e-9
-        zs = torch.where(front, z, torch.ones_like(z))
-        ub = K_b[0, 0] * cam[:, 0] / zs + K_b[0, 1] * cam[:, 1] / zs + K_b[0, 2]
-        vb = K_b[1, 1] * cam[:, 1] / zs + K_b[1, 2]
-        d, ok = _sample_depth(zb[0], ub, vb)
-        ok = ok & front & (ub >= 0.5) & (ub <= w - 0.5) & (vb >= 0.5) & (vb <= zb.shape[-2] - 0.5)
-        out[kind] = ((z - d).abs() / d.clamp_min(1e-12))[ok]
+        zb = raw_b.double() if kind == "z" or b_is_z else ray_to_z_depth(raw_b.double(), K_b)
+        out[kind] = depth_disagreement(za, K_a, pose_a, zb, K_b, pose_b, pick)
     return out
 
 
-def check_depth_type(views, *, pixels: int = DEPTH_TYPE_PIXELS, seed: int = 0) -> DepthTypeCheck:
+def check_depth_type(views, *, pixels: int = DEPTH_TYPE_PIXELS, seed: int = 0, b_is_z: bool = False) -> DepthTypeCheck:
     """Which depth type (z along the optical axis, or distance along the ray) makes the depths of
     neighbouring views agree? A cheap multi-view test: a few hundred pixels of each view are
     lifted to 3-D with its depth under each hypothesis and projected into the neighbour, whose
@@ -529,6 +535,8 @@ def check_depth_type(views, *, pixels: int = DEPTH_TYPE_PIXELS, seed: int = 0) -
         views: pairs ``((raw_a, K_a, pose_a), (raw_b, K_b, pose_b))``: stored depth ``(1, H, W)``
             (unknown where :func:`~roguenerf.geometry.known_depth_mask` says so), ``(3, 3)``
             intrinsics, ``(4, 4)`` OpenCV camera-to-world.
+        b_is_z: the second view of each pair holds z-depth whatever the hypothesis (a scene's
+            training view, against which a camera path's frames are checked).
     Returns:
         :class:`DepthTypeCheck`: ``likely`` is set when one hypothesis' median disagreement is
         under a third of the other's and the other's exceeds 0.3 %.
@@ -536,7 +544,7 @@ def check_depth_type(views, *, pixels: int = DEPTH_TYPE_PIXELS, seed: int = 0) -
     generator = torch.Generator().manual_seed(seed)
     errors: dict[str, list[Tensor]] = {"z": [], "ray": []}
     for a, b in views:
-        pair = _pair_errors(*a, *b, generator, pixels)
+        pair = _pair_errors(*a, *b, generator, pixels, b_is_z=b_is_z)
         for kind in errors:
             errors[kind].append(pair[kind])
     med = {}
@@ -552,6 +560,17 @@ def check_depth_type(views, *, pixels: int = DEPTH_TYPE_PIXELS, seed: int = 0) -
         elif med["ray"] * 3 < med["z"] and med["z"] > 3e-3:
             likely = "ray"
     return DepthTypeCheck(errors=med, pixels=count, likely=likely)
+
+
+def depth_type_problem(check: DepthTypeCheck, given: str, what: str, between: str) -> str | None:
+    """The message for a ``given`` depth type that :func:`check_depth_type` finds wrong, else None."""
+    if check.likely is None or check.likely == given:
+        return None
+    other = check.likely
+    looks = "z-depth (along the optical axis)" if other == "z" else "distance along the ray"
+    return (f"{what} look like {looks}, not --depth-type {given}: reprojected between {between} they "
+            f"disagree by a median {100 * check.errors[given]:.2f}% as {given}, {100 * check.errors[other]:.3f}% "
+            f"as {other} ({check.pixels} pixels). Likely fix: --depth-type {other} (depth_type={other!r})")
 
 
 def _depth_type_views(source, frames, found, depth_scale: float, background: str, count: int = DEPTH_TYPE_VIEWS):
