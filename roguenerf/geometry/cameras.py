@@ -174,8 +174,8 @@ def as_world_from_cam(x, name: str = "world_from_cam", tol: float = ORTHONORMAL_
     float64; integer tensors too). Refuses, with :class:`~roguenerf.errors.InputError` naming
     ``name`` and the index of the first bad pose in a batch: bool/complex dtypes, other shapes,
     non-finite values, a bottom row other than ``0 0 0 1``, a reflection (det -1: mixed-up axis
-    convention) and a scaled or sheared rotation (``max|R^T R - I| > tol``). Rotations within ``tol`` are re-orthonormalised
-    (:func:`check_pose`); float64 stays float64.
+    convention) and a scaled or sheared rotation (``max|R^T R - I| > tol``). Rotations within
+    ``tol`` are re-orthonormalised (:func:`check_pose`); float64 stays float64.
     """
     if not isinstance(x, Tensor):
         try:
