@@ -134,3 +134,16 @@ def test_a_nan_budget_is_answered_as_not_a_finite_number(client, folder):
         assert "minutes" in message and "finite number" in message and "greater than 0" not in message
     r = client.post(f"/scenes/{scene_id}/finetune", json={"minutes": -1})
     assert r.status_code == 422 and "greater than 0" in r.json()["error"]["message"]
+
+
+def test_utf8_names_without_the_zip_utf8_flag_are_decoded_again():
+    from service.storage import _member_parts
+
+    info = zipfile.ZipInfo("scene/images/x.png")
+    # What zipfile reads from an older archiver: UTF-8 bytes, no flag 0x800, decoded as cp437.
+    info.filename = "scene/images/phöto.png".encode().decode("cp437")
+    info.flag_bits = 0
+    assert _member_parts(info) == ["scene", "images", "phöto.png"]
+    nfd = zipfile.ZipInfo(unicodedata.normalize("NFD", "scene/images/phöto.png"))
+    nfd.flag_bits = 0x800
+    assert _member_parts(nfd) == ["scene", "images", "phöto.png"]  # NFC
