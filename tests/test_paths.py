@@ -403,3 +403,26 @@ def test_a_path_depth_type_that_disagrees_with_the_scene_is_refused(toy_path, en
     assert not (tmp_path / "out").exists()
     ok = enhance_path(scene, enhancer, cp, folder, tmp_path / "ok", depth_type=stored, video=False)
     assert ok.warnings == [] and ok.frames == len(cp)
+
+
+@pytest.mark.parametrize("scale, shift", [(0.3, (0.5, -0.2, 0.1)), (0.8, (0.0, 0.0, 0.0)), (0.5, (1.0, 0.0, 0.0))])
+def test_a_scaled_and_shifted_path_is_refused(toy_path, enhancer, tmp_path, scale, shift):
+    """nerfstudio's usual dataparser transform (no rotation: scale + translation) applied to the
+    path's cameras, the frames rendered where the scene's cameras are: refused, every time."""
+    root, scene = toy_path["root"], toy_path["scene"]
+    parser = DataparserTransform(transform=torch.tensor(
+        [[1.0, 0.0, 0.0, shift[0]], [0.0, 1.0, 0.0, shift[1]], [0.0, 0.0, 1.0, shift[2]]], dtype=torch.float64),
+        scale=scale)
+    K = scene.frames[0].K
+    fov = math.degrees(2 * math.atan(H / 2 / float(K[1, 1])))
+    cams = [{"camera_to_world": parser.to_model(opencv_to_opengl(p)).flatten().tolist(), "fov": fov}
+            for p in toy_path["poses"]]
+    (tmp_path / "cp.json").write_text(json.dumps({"render_height": H, "render_width": W, "camera_path": cams}))
+    with pytest.raises(InputError, match="does not fit the scene.*dataparser_transforms.json"):
+        enhance_path(scene, enhancer, read_camera_path(tmp_path / "cp.json"), root / "frames", tmp_path / "out",
+                     depth_type="ray", video=False)
+    # With the transform, the same file is the right path.
+    right = read_camera_path(tmp_path / "cp.json", dataparser=parser)
+    torch.testing.assert_close(right.world_from_cam, toy_path["poses"], rtol=0, atol=1e-9)
+    ok = enhance_path(scene, enhancer, right, root / "frames", tmp_path / "ok", depth_type="ray", video=False)
+    assert ok.warnings == []
