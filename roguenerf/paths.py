@@ -531,7 +531,7 @@ def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: i
     at their own depth.
 
     ``problem`` is set when a checked camera is farther than :data:`FAR_FACTOR` scene sizes from
-    every scene camera, or when at least half of the checked cameras with known depth see less
+    every scene camera and does not see the photos (or has no known depth to tell), or when at least half of the checked cameras with known depth see less
     than :data:`MIN_SEEN` of their pixels; ``warning`` when fewer do. Both name the worst camera
     (index and label) and the likely cause.
     """
@@ -562,7 +562,9 @@ def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: i
         distance[t] = float((positions - pose[:3, 3]).norm(dim=-1).min()) / size
         depths[t] = depth_of(t)
         seen[t] = _seen_share(scene, train, train_depths, depths[t], camera_path.K[t], pose, neighbours)
-    far = [t for t in checked if distance[t] > FAR_FACTOR]
+    # Far and not seeing the scene (or without depth to tell): a camera that is far but sees the
+    # training photos at their depth is a wide shot of the right world.
+    far = [t for t in checked if distance[t] > FAR_FACTOR and (seen[t] is None or seen[t] < MIN_SEEN)]
     with_depth = [t for t in checked if seen[t] is not None]
     lost = [t for t in with_depth if seen[t] < MIN_SEEN]
     worst = None
@@ -589,7 +591,7 @@ def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: i
     axes = ("OpenGL vs OpenCV axes: with the y and z axes flipped this camera sees "
             f"{100 * (share or 0):.0f}% of its pixels; camera paths and transforms-style lists are read "
             "as OpenGL (nerfstudio, Blender): convert OpenCV poses (columns 1 and 2 negated)")
-    if share is not None and share >= max(2 * MIN_SEEN, 2 * seen.get(worst) or 0.0):
+    if share is not None and share >= max(2 * MIN_SEEN, 2 * (seen.get(worst) or 0.0)):
         causes.insert(0, axes)
     else:
         causes.append("OpenGL vs OpenCV axes (camera paths are read as OpenGL, as nerfstudio and Blender write them)")

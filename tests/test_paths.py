@@ -426,3 +426,19 @@ def test_a_scaled_and_shifted_path_is_refused(toy_path, enhancer, tmp_path, scal
     torch.testing.assert_close(right.world_from_cam, toy_path["poses"], rtol=0, atol=1e-9)
     ok = enhance_path(scene, enhancer, right, root / "frames", tmp_path / "ok", depth_type="ray", video=False)
     assert ok.warnings == []
+
+
+def test_a_far_path_without_depth_to_tell_is_refused_naming_the_camera(toy_path):
+    from roguenerf.paths import FAR_FACTOR, check_camera_path
+
+    scene = toy_path["scene"]
+    poses = toy_path["poses"].clone()
+    poses[4:, :3, 3] += torch.tensor([100.0, 0.0, 0.0], dtype=torch.float64)  # the last three cameras
+    cp = read_camera_path(toy_path["root"] / "camera_path.json", dataparser=PARSER)
+    cp.world_from_cam = poses
+    empty = torch.zeros(1, H, W)  # no known depth: only the distance can tell
+    check = check_camera_path(scene, cp, lambda t: empty)
+    assert check.far == [4, 5, 6] and check.worst == 6 and check.lost == []
+    assert all(check.distance[t] > FAR_FACTOR for t in check.far)
+    assert check.problem.startswith("the camera path does not fit the scene: 3 of 7 checked cameras are far")
+    assert "worst: camera 6 (camera_path[6]) lies" in check.problem
