@@ -110,3 +110,12 @@ def test_serve_killed_outright_takes_its_worker_with_it(tmp_path):
             serve.kill()
         for pid in _workers_of({serve.pid}):
             os.kill(pid, signal.SIGKILL)
+
+
+def test_the_worker_entry_point_is_light_until_its_handlers_are_in():
+    """Signal handling and the parent check come before torch, huey and the job table load."""
+    code = ("import sys, workers.__main__; "
+            "print(sorted(m for m in ('torch', 'huey', 'sqlalchemy', 'roguenerf', 'pydantic') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
