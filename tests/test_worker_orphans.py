@@ -20,9 +20,10 @@ from tests.service_helpers import free_port, wait_until
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _workers_of(parents: set[int]) -> list[int]:
-    """PIDs of live `python -m workers` processes started with --parent-pid in ``parents``
-    (a /proc scan: the worker runs in its own session, so process groups do not find it)."""
+def _workers_of(parents: set[int], data_root: Path | None = None) -> list[int]:
+    """PIDs of live `python -m workers` processes started with --parent-pid in ``parents``, or
+    whose data dir (ROGUENERF_DATA_DIR in their environment) lies under ``data_root`` (a /proc
+    scan: the worker runs in its own session, so process groups do not find it)."""
     found = []
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
@@ -30,12 +31,17 @@ def _workers_of(parents: set[int]) -> list[int]:
         try:
             args = (entry / "cmdline").read_bytes().split(b"\0")
             state = (entry / "stat").read_text().rsplit(")", 1)[1].split()[0]
+            environ = (entry / "environ").read_bytes().split(b"\0") if data_root is not None else []
         except OSError:
             continue
-        if state == "Z" or b"workers" not in args or b"--parent-pid" not in args:
+        if state == "Z" or b"workers" not in args:
             continue
-        k = args.index(b"--parent-pid")
-        if k + 1 < len(args) and args[k + 1].isdigit() and int(args[k + 1]) in parents:
+        ours = False
+        if b"--parent-pid" in args:
+            k = args.index(b"--parent-pid")
+            ours = k + 1 < len(args) and args[k + 1].isdigit() and int(args[k + 1]) in parents
+        prefix = f"ROGUENERF_DATA_DIR={data_root}".encode() if data_root is not None else None
+        if ours or (prefix is not None and any(v.startswith(prefix) for v in environ)):
             found.append(int(entry.name))
     return found
 
@@ -74,25 +80,37 @@ def test_a_worker_whose_server_is_already_gone_exits_at_once(tmp_path):
 def test_serve_stopped_at_random_moments_of_its_start_leaves_no_worker(tmp_path):
     rng = random.Random(38)
     parents: set[int] = set()
+    # How long this machine (loaded or not) takes to spawn the worker: the stops are drawn around
+    # that moment, where the race was (the server gone before the worker's parent check).
+    calibration = _serve(tmp_path, 99)
+    parents.add(calibration.pid)
+    t0 = time.monotonic()
+    try:
+        wait_until(lambda: _workers_of({calibration.pid}, tmp_path / "data99"), timeout=60, interval=0.02,
+                   what="the worker to start")
+        spawn_s = time.monotonic() - t0
+    finally:
+        calibration.send_signal(signal.SIGTERM)
+        calibration.wait(30)
     spawned = 0
     for k in range(20):
         serve = _serve(tmp_path, k)
         parents.add(serve.pid)
-        # Random moments over the start-up: before the worker is spawned, while it imports,
-        # after the server is ready; spread so every phase is hit on a loaded machine too.
-        time.sleep(rng.uniform(0.05, 3.5))
-        spawned += bool(_workers_of({serve.pid}))
+        # Random moments of the start-up: before the worker is spawned, just after (while it
+        # imports, before uvicorn has its handlers), after the server is ready.
+        time.sleep(rng.uniform(0.5 * spawn_s, spawn_s + 1.5))
+        spawned += bool(_workers_of({serve.pid}, tmp_path / f"data{k}"))
         serve.send_signal(signal.SIGTERM)
         try:
             serve.wait(30)
         except subprocess.TimeoutExpired:
             serve.kill()
             serve.wait()
-    assert spawned >= 3, "the stops never came after the worker started: the test did not test anything"
+    assert spawned >= 5, f"only {spawned} stops came after the worker started: the test tested too little"
     try:
-        wait_until(lambda: not _workers_of(parents), timeout=45, what="every embedded worker to exit")
+        wait_until(lambda: not _workers_of(parents, tmp_path), timeout=45, what="every embedded worker to exit")
     finally:
-        for pid in _workers_of(parents):  # never leave one behind, even when the test fails
+        for pid in _workers_of(parents, tmp_path):  # never leave one behind, even when the test fails
             os.kill(pid, signal.SIGKILL)
 
 
