@@ -280,6 +280,7 @@ def test_a_depth_type_that_disagrees_with_the_scene_is_found_by_multi_view_consi
     check = check_depth_type(_depth_type_views(source, source.frames, found, 1.0, "zero"))
     assert check.likely == stored and check.pixels > 1000
     assert check.errors[stored] < 1e-3 and check.errors[given] > 5e-3
+    assert abs(check.beta - (0.0 if stored == "z" else 1.0)) < 0.25 and check.beta_se < 0.05
     with pytest.raises(InputError, match=rf"not --depth-type {given}.*Likely fix: --depth-type {stored}"):
         import_renders(tmp_path / "ds", tmp_path / "renders", tmp_path / "out", depth_type=given)
     assert not (tmp_path / "out").exists()
@@ -293,3 +294,35 @@ def test_a_depth_type_that_disagrees_with_the_scene_is_found_by_multi_view_consi
     forced = CliRunner().invoke(app, [*args, given, "--force"])  # replaces the earlier import, as told
     assert forced.exit_code == 0, forced.output
     assert not torch.allclose(load_scene(tmp_path / "cli").depth(0), ours.depth(0), rtol=1e-3)
+
+
+def test_the_depth_type_check_on_a_real_fields_depth(lego_dir):
+    """lego's grid-field z-depth (2 % noise, 40 deg field of view): stored as ray distance it is
+    found (the fit of the ray-distance signature); its true z-depth is left undecided, never
+    called ray (undecided never refuses)."""
+    from roguenerf.data.exports import check_depth_type
+    from roguenerf.geometry import ray_to_z_depth
+
+    scene = load_scene(lego_dir)
+    train = scene.indices("train")
+    positions = scene.poses(train)[:, :3, 3]
+
+    def pairs(kind):
+        out = []
+        for p in range(0, 6 * 17, 17):
+            d = (positions - positions[p]).norm(dim=-1)
+            d[p] = float("inf")
+            q = int(d.argmin())
+            views = []
+            for k in (p, q):
+                frame = scene.frames[train[k]]
+                z = scene.depth(train[k]).double()
+                n = 1 / ray_to_z_depth(torch.ones_like(z), frame.K)  # the ray-length factor
+                views.append((z if kind == "z" else z * n, frame.K, frame.world_from_cam))
+            out.append(tuple(views))
+        return out
+
+    as_ray = check_depth_type(pairs("ray"))
+    assert as_ray.likely == "ray" and abs(as_ray.beta - 1) < 0.3, as_ray
+    as_z = check_depth_type(pairs("z"))
+    assert as_z.likely != "ray", as_z
