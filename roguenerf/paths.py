@@ -531,8 +531,9 @@ def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: i
     at their own depth.
 
     ``problem`` is set when a checked camera is farther than :data:`FAR_FACTOR` scene sizes from
-    every scene camera and does not see the photos (or has no known depth to tell), or when at least half of the checked cameras with known depth see less
-    than :data:`MIN_SEEN` of their pixels; ``warning`` when fewer do. Both name the worst camera
+    every scene camera and does not see the photos (or has no known depth to tell), or when at
+    least half of the checked cameras with known depth see less than :data:`MIN_SEEN` of their
+    pixels; ``warning`` when fewer do. Both name the worst camera
     (index and label) and the likely cause.
     """
     from roguenerf.geometry import known_depth_mask
