@@ -56,7 +56,7 @@ def _env(data_dir: Path) -> dict:
 def _serve(tmp_path: Path, k: int) -> subprocess.Popen:
     data = tmp_path / f"data{k}"
     log = open(tmp_path / f"serve{k}.log", "wb")  # noqa: SIM115 - closed with the process
-    return subprocess.Popen([sys.executable, "-m", "roguenerf.cli", "serve", "--port", str(free_port()),
+    return subprocess.Popen([sys.executable, "-m", "roguecli", "serve", "--port", str(free_port()),
                              "--data-dir", str(data)], env=_env(data), cwd=ROOT, stdout=log,
                             stderr=subprocess.STDOUT)
 
