@@ -187,7 +187,8 @@ def as_world_from_cam(x, name: str = "world_from_cam", tol: float = ORTHONORMAL_
     if not x.is_floating_point():
         x = x.to(torch.float64)  # integer poses (an identity written as ints) are exact
     if x.ndim < 2 or x.shape[-1] != 4 or x.shape[-2] not in (3, 4):
-        raise InputError(f"{name}: expected shape (..., 4, 4) or (..., 3, 4), got {tuple(x.shape)}")
+        raise InputError(f"{name}: expected a 4x4 or 3x4 camera-to-world matrix, shape (..., 4, 4) or "
+                         f"(..., 3, 4), got {tuple(x.shape)}")
     if x.shape[-2] == 3:
         bottom = x.new_tensor((0.0, 0.0, 0.0, 1.0)).expand(*x.shape[:-2], 1, 4)
         x = torch.cat([x, bottom], dim=-2)
