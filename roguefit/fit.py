@@ -23,7 +23,7 @@ from torch import Tensor
 from roguefit.field import GridField, scene_frame, seen_by_cameras
 from roguefit.photos import PhotoSet, read_photo_set
 from roguefit.splats import SplatConfig
-from roguenerf.errors import InputError, TrainingCancelled
+from roguenerf.errors import InputError, TrainingCancelled, TrainingDivergedError
 from roguenerf.imageio import atomic_write
 
 log = logging.getLogger("roguefit")
@@ -76,14 +76,55 @@ class FitConfig:
     sh_degree: int = 3
 
     def __post_init__(self) -> None:
-        if self.render_scale < 1:
-            raise InputError(f"render_scale: expected an integer >= 1, got {self.render_scale}")
+        """The one validation of a fit's configuration, before any work (also on
+        ``dataclasses.replace``): :class:`InputError` naming the field, never an error from deep
+        inside torch, nor a NaN budget that fits 0 steps and writes the scene anyway."""
+
+        def integer(name: str, low: int) -> None:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise InputError(f"FitConfig.{name}: expected an integer >= {low}, got {value!r}")
+
+        def number(name: str, *, positive: bool, optional: bool = False) -> None:
+            value = getattr(self, name)
+            if value is None and optional:
+                return
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            if not ok or (value <= 0 if positive else value < 0):
+                want = "a finite number > 0" if positive else "a finite number >= 0"
+                raise InputError(f"FitConfig.{name}: expected {want}, got {value!r}")
+
+        integer("resolution", 4)
+        integer("features", 0)
+        integer("rays", 1)
+        integer("samples", 2)
+        integer("prune_every", 1)
+        integer("hold", 2)
+        integer("render_scale", 1)
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
+            raise InputError(f"FitConfig.seed: expected an integer, got {self.seed!r}")
+        if self.steps is not None:
+            integer("steps", 1)
+        number("minutes", positive=True, optional=True)
+        if self.minutes is None and self.steps is None:
+            raise InputError("FitConfig: expected a budget, minutes or steps (both are None)")
+        number("lr_grid", positive=True)
+        number("lr_mlp", positive=True)
+        number("tv_weight", positive=False)
+        number("distortion_weight", positive=False)
+        number("checkpoint_every_s", positive=True)
+        try:
+            grow = [float(g) for g in self.grow_at]
+        except (TypeError, ValueError):
+            raise InputError(f"FitConfig.grow_at: expected fractions of the budget, got {self.grow_at!r}") from None
+        if any(not (0 < g < 1) for g in grow) or grow != sorted(grow):
+            raise InputError(f"FitConfig.grow_at: expected increasing fractions in (0, 1), got {self.grow_at!r}")
         if self.kind not in FIELD_KINDS:
-            raise InputError(f"kind: expected one of {', '.join(FIELD_KINDS)}, got {self.kind!r}")
+            raise InputError(f"FitConfig.kind: expected one of {', '.join(FIELD_KINDS)}, got {self.kind!r}")
         if self.kind == "hash":
             if not (1 <= self.hash_levels <= 32 and 4 <= self.hash_log2_table <= 24 and self.hash_features >= 1
                     and 1 <= self.hash_base <= self.resolution and 0 <= self.sh_degree <= 3):
-                raise InputError(f"hash field: bad sizes (levels {self.hash_levels}, log2 table "
+                raise InputError(f"FitConfig.hash_*: bad sizes (levels {self.hash_levels}, log2 table "
                                  f"{self.hash_log2_table}, features {self.hash_features}, base {self.hash_base}, "
                                  f"finest {self.resolution}, SH degree {self.sh_degree})")
 
@@ -283,8 +324,8 @@ class _Fitter:
                 self.field.prune(self.seen)
             self.elapsed += time.perf_counter() - t0
             mse_avg = mse if mse_avg is None else 0.95 * mse_avg + 0.05 * mse
-            if not math.isfinite(mse):
-                raise RuntimeError(f"the fit diverged at step {self.step} (loss {mse})")
+            if not math.isfinite(mse):  # the configuration was checked: this is real divergence
+                raise TrainingDivergedError(self.step, mse)
             if progress is not None:
                 progress({"step": self.step, "fraction": min(self.fraction(), 1.0),
                           "psnr": -10 * math.log10(max(mse_avg, 1e-10)), "resolution": self.field.resolution,

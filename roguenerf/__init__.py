@@ -38,6 +38,7 @@ _LAZY = {
     "Scene": "roguenerf.data.scene",
     "Frame": "roguenerf.data.scene",
     "load_scene": "roguenerf.data.readers",
+    "unusable_views": "roguenerf.data.scene",
     "write_scene_folder": "roguenerf.data.writers",
     "make_toy_scene": "roguenerf.data.toy",
     # checkpoints and metrics

@@ -26,7 +26,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
                   rich_markup_mode=None, help="RoGUENeRF: enhance radiance-field renders with geometry-aligned training photos.")
 
 CheckpointOpt = Annotated[Path | None, typer.Option(
-    "--checkpoint", help="Enhancer .safetensors; default: the shipped default checkpoint.")]
+    "--checkpoint", help="Enhancer .safetensors, or the folder a fine-tune wrote (its model.safetensors); "
+                         "default: the shipped default checkpoint.")]
 DEFAULT_MINUTES_CPU, DEFAULT_MINUTES_GPU = 10, 60
 """The library's default budget (roguenerf.training.config CPU_MINUTES / GPU_MINUTES; a test
 checks they agree). Not imported from there: that module loads torch, and --help should not."""
@@ -92,13 +93,27 @@ def _load_scene(scene_dir: Path):
         raise InputError(f"scene directory {scene_dir} does not exist")
     if not scene_dir.is_dir():
         raise InputError(f"scene directory {scene_dir} is not a directory")
-    return load_scene(scene_dir)
+    scene = load_scene(scene_dir)
+    _warn_unusable(scene)
+    return scene
+
+
+def _warn_unusable(scene) -> None:
+    """One warning line listing the views that cannot serve (e.g. a depth map of zeros)."""
+    from roguenerf.data.scene import unusable_views
+
+    bad = unusable_views(scene)
+    if bad:
+        typer.echo(f"warning: {len(bad)} of {len(scene.frames)} views of {scene.root} are unusable and "
+                   f"contribute nothing: {'; '.join(str(v) for v in bad)}", err=True)
 
 
 def _checkpoint_path(checkpoint: Path | None) -> Path:
     from roguenerf.checkpoint import default_checkpoint_path
 
     if checkpoint is not None:
+        if checkpoint.is_dir():
+            return _checkpoint_in(checkpoint)
         if not checkpoint.is_file():
             raise InputError(f"checkpoint {checkpoint} does not exist")
         return checkpoint
@@ -107,6 +122,25 @@ def _checkpoint_path(checkpoint: Path | None) -> Path:
         raise InputError(f"no --checkpoint given and the default checkpoint {path} does not exist yet "
                          "(train one with `roguenerf pretrain`, or pass --scratch to fine-tune from scratch)")
     return path
+
+
+def _checkpoint_in(folder: Path) -> Path:
+    """The final checkpoint in a folder `roguenerf finetune` / `pretrain` wrote (its --output)."""
+    from roguenerf.training.loop import MODEL_FILE, STATE_FILE
+
+    model = folder / MODEL_FILE
+    if model.is_file():
+        return model
+    if (folder / STATE_FILE).is_file():
+        raise InputError(f"checkpoint folder {folder} holds no finished checkpoint ({MODEL_FILE}), only the "
+                         f"resume state of an unfinished run ({STATE_FILE}): run the same fine-tune again to "
+                         "finish it")
+    found = sorted(p.name for p in folder.glob("*.safetensors"))
+    if len(found) == 1:
+        return folder / found[0]
+    raise InputError(f"checkpoint folder {folder} holds no checkpoint: expected {MODEL_FILE} (what "
+                     "`roguenerf finetune --output` writes)"
+                     + (f"; it holds {', '.join(found)}: pass one of them" if found else ""))
 
 
 def _load_model(checkpoint: Path | None):
@@ -258,8 +292,8 @@ def pretrain(
         scenes += make_toy_scenes(output / "toy", toy, seed=seed)
         if not scenes:
             raise InputError("no scenes to pre-train on: give SCENE_DIR arguments and/or --toy N")
-        if checkpoint is not None and not checkpoint.is_file():
-            raise InputError(f"checkpoint {checkpoint} does not exist")
+        if checkpoint is not None:
+            checkpoint = _checkpoint_path(checkpoint)  # a file, or the folder a run wrote
         result = run_pretrain(scenes, output, checkpoint=checkpoint, config=config, held_out_scenes=held)
         _report_training(result)
         typer.echo(str(result.checkpoint))
@@ -371,7 +405,8 @@ def enhance(
 
 
 def _import_command(tool: str, dataset: Path, renders: Path, output: Path, depth_type, depth_scale: float,
-                    depth_units: str, dataparser_transforms, background, **split) -> None:
+                    depth_units: str, dataparser_transforms, background, skip_missing: bool = False,
+                    force: bool = False, **split) -> None:
     from roguenerf.data.exports import import_renders
 
     with _errors():
@@ -391,8 +426,14 @@ def _import_command(tool: str, dataset: Path, renders: Path, output: Path, depth
             scene = import_renders(dataset, renders, output, tool=tool, depth_type=depth_type,
                                    depth_scale=depth_scale, depth_units=depth_units,
                                    dataparser_transforms=dataparser_transforms, background=background,
-                                   progress=progress, **split)
+                                   progress=progress, skip_missing=skip_missing, check_depth=not force,
+                                   **split)
+        skipped = scene.meta.get("skipped_views") or []
+        if skipped:
+            typer.echo(f"warning: skipped {len(skipped)} views without a render or depth: {', '.join(skipped)}",
+                       err=True)
         typer.echo(f"wrote {scene!r}", err=True)
+        _warn_unusable(scene)
         typer.echo(str(output))
 
 
@@ -402,6 +443,12 @@ DepthTypeOpt = Annotated[str | None, typer.Option("--depth-type", help=(
 DepthScaleOpt = Annotated[float, typer.Option("--depth-scale", help="Multiply stored depth by this (0.001 for millimetre PNGs).")]
 BackgroundOpt = Annotated[str | None, typer.Option("--background", help=(
     "What no-surface pixels hold: zero, or max (the map's maximum; gsplat's default). Made unknown."))]
+SkipMissingOpt = Annotated[bool, typer.Option("--skip-missing", help=(
+    "Import the views that have both a render and a depth, skipping (with a warning) those missing one; "
+    "without it a missing file is an error naming it."))]
+ImportForceOpt = Annotated[bool, typer.Option("--force", help=(
+    "Import with the --depth-type given even when the depths of neighbouring views disagree under it "
+    "and agree under the other type (checked by reprojecting a few hundred pixels)."))]
 DataparserOpt = Annotated[Path | None, typer.Option("--dataparser-transforms", help=(
     "The trained model's dataparser_transforms.json: kept in the scene for camera paths from nerfstudio's viewer."))]
 
@@ -418,10 +465,12 @@ def import_nerfstudio(
         "model: in the model's world (divided by the scale here)."))] = "dataset",
     dataparser_transforms: DataparserOpt = None,
     background: BackgroundOpt = None,
+    skip_missing: SkipMissingOpt = False,
+    force: ImportForceOpt = False,
 ) -> None:
     """Turn a nerfstudio dataset plus `ns-render dataset` output into a scene folder (z-depth, pose units)."""
     _import_command("nerfstudio", dataset, renders, output, depth_type, depth_scale, depth_units,
-                    dataparser_transforms, background)
+                    dataparser_transforms, background, skip_missing, force)
 
 
 @app.command("import-gsplat")
@@ -446,12 +495,14 @@ def import_gsplat(
     split_file: Annotated[Path | None, typer.Option("--split-file", help=(
         'Test views by name: JSON {"train": [...], "test": [...]} or one name per line '
         "(Inria's sparse/0/test.txt). Overrides --eval and --test-every."))] = None,
+    skip_missing: SkipMissingOpt = False,
+    force: ImportForceOpt = False,
 ) -> None:
     """Turn gsplat renders + expected depth (and the dataset's poses) into a scene folder."""
     if test_every is None and eval_split:
         test_every = 8
     _import_command("gsplat", dataset, renders, output, depth_type, depth_scale, "dataset", None, background,
-                    images=images, test_every=test_every, split_file=split_file)
+                    skip_missing, force, images=images, test_every=test_every, split_file=split_file)
 
 
 @app.command("import-3dgs")
@@ -517,6 +568,10 @@ def enhance_path_command(
         "Maps a nerfstudio camera path (model world) to the scene's poses; default: the scene folder's "
         "dataparser_transforms.json when there is one."))] = None,
     no_video: Annotated[bool, typer.Option("--no-video", help="Write the frames and flicker.json only.")] = False,
+    force: Annotated[bool, typer.Option("--force", help=(
+        "Enhance the path even when its cameras do not fit the scene (far from its cameras, or seeing none "
+        "of its training photos: another coordinate space, missing dataparser transforms, OpenGL vs OpenCV); "
+        "the problem is printed as a warning."))] = False,
 ) -> None:
     """Enhance every frame of a camera path; write the frames, an MP4, a side-by-side MP4 and the flicker.
 
@@ -560,7 +615,9 @@ def enhance_path_command(
             result = enhance_path(scene, enhancer, camera_path, frames, output, depth_type=depth_type,
                                   depth_scale=depth_scale, background=background, video=not no_video,
                                   quality=quality, fps=fps, checkpoint_id=f"{ckpt.resolve()}:{stat.st_size}:{stat.st_mtime_ns}",
-                                  progress=progress)
+                                  progress=progress, force=force)
+        for warning in result.warnings:
+            typer.echo(f"warning: {warning}", err=True)
         f, p = result.flicker["flicker"], result.flicker["psnr"]
         resumed = result.frames - result.enhanced_now
         typer.echo(f"enhanced {result.enhanced_now} frames in {result.seconds:.1f} s"

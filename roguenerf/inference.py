@@ -250,7 +250,7 @@ class SceneEnhancer:
             :class:`EnhanceResult`; raises :class:`~roguenerf.errors.RoGUENeRFError` instead of
             returning a non-finite image.
         """
-        from roguenerf.geometry import check_intrinsics, check_pose
+        from roguenerf.geometry import as_world_from_cam, check_intrinsics
         from roguenerf.models import NeighbourBatch
 
         start = time.perf_counter()
@@ -262,7 +262,10 @@ class SceneEnhancer:
         if not torch.isfinite(render).all():
             raise InputError("render: contains NaN or infinite values")
         K = check_intrinsics(torch.as_tensor(K).to(torch.float32), "K")
-        world_from_cam = check_pose(torch.as_tensor(world_from_cam).to(torch.float64), "world_from_cam")
+        world_from_cam = torch.as_tensor(world_from_cam)
+        if world_from_cam.is_floating_point():
+            world_from_cam = world_from_cam.to(torch.float64)
+        world_from_cam = as_world_from_cam(world_from_cam, "world_from_cam")  # 3x4 padded
         if K.shape != (3, 3) or world_from_cam.shape != (4, 4):
             raise InputError(f"K, world_from_cam: expected (3, 3) and (4, 4) or (3, 4), got "
                              f"{tuple(K.shape)} and {tuple(world_from_cam.shape)}")

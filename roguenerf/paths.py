@@ -7,7 +7,8 @@ transforms-style list) plus, in a folder, each frame's render and depth. :func:`
 enhances the frames one by one with one :class:`~roguenerf.inference.SceneEnhancer` (each
 training photo's features are computed once for the whole path), writes each enhanced frame
 atomically as it is done (an interrupted run resumes after the last written frame), then
-encodes ``enhanced.mp4`` and ``side_by_side.mp4`` (render | enhanced) frame by frame.
+encodes ``enhanced.mp4`` and ``side_by_side.mp4`` (render | enhanced, each half labelled)
+frame by frame.
 
 **Flicker** (:func:`pair_flicker`): for consecutive frames t, t+1, frame t is reprojected into
 t+1 with t+1's depth, t's depth (visibility) and both poses (:func:`~roguenerf.geometry.reproject`,
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import math
 import re
 import time
@@ -30,6 +32,8 @@ import torch
 from torch import Tensor
 
 from roguenerf.errors import InputError, PathCancelled
+
+log = logging.getLogger("roguenerf.paths")
 
 FRAME_FOLDER = "frames"
 STATE_FILE = "path_state.json"
@@ -55,6 +59,11 @@ class CameraPath:
     source: str = "transforms"
     """``"nerfstudio"`` (camera_path.json), ``"transforms"``, ``"inria"`` (3DGS ``cameras.json``)
     or ``"colmap"`` (``images.txt`` / ``images.bin`` with the cameras file beside it)."""
+    labels: list[str] = field(default_factory=list)
+    """How messages name each camera: ``camera_path[3]`` or ``frames[3] (NAME)``."""
+
+    def label(self, t: int) -> str:
+        return self.labels[t] if t < len(self.labels) else f"camera {t}"
 
     def __len__(self) -> int:
         return int(self.world_from_cam.shape[0])
@@ -90,7 +99,7 @@ def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
     Poses of these two are in the dataset's own units, as the scene imported from it.
     Every error names the file and the camera's position in it.
     """
-    from roguenerf.geometry.cameras import check_intrinsics, check_pose, opengl_to_opencv
+    from roguenerf.geometry.cameras import check_intrinsics
 
     path = Path(path)
     if path.suffix.lower() in (".txt", ".bin"):
@@ -103,7 +112,7 @@ def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
         raise _fail(path, f"cannot read the camera path ({exc})") from None
     if _is_inria_cameras(data):
         return _read_inria_cameras(path, data)
-    poses, Ks = [], []
+    poses, Ks, labels = [], [], []
     if isinstance(data, dict) and "camera_path" in data:
         source = "nerfstudio"
         cams = data["camera_path"]
@@ -114,15 +123,18 @@ def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
         if not isinstance(cams, list) or not cams:
             raise _fail(path, "camera_path: expected a non-empty list of cameras")
         for n, cam in enumerate(cams):
+            label = _camera_label("camera_path", n, cam)
             try:
-                c2w = torch.tensor(cam["camera_to_world"], dtype=torch.float64).reshape(4, 4)
+                c2w = torch.tensor(cam["camera_to_world"], dtype=torch.float64)
+                c2w = c2w.reshape(-1, 4) if c2w.numel() in (12, 16) else c2w
                 fov = float(cam["fov"])
             except (KeyError, TypeError, ValueError, RuntimeError):
-                raise _fail(path, f"camera_path[{n}]: expected camera_to_world (16 numbers) and fov") from None
+                raise _fail(path, f"{label}: expected camera_to_world (16 numbers) and fov") from None
             if not 0 < fov < 180:
-                raise _fail(path, f"camera_path[{n}].fov: expected degrees in (0, 180), got {fov}")
+                raise _fail(path, f"{label}.fov: expected degrees in (0, 180), got {fov}")
             focal = height / 2 / math.tan(math.radians(fov) / 2)
-            poses.append(c2w)
+            poses.append(_camera_pose(path, c2w, label))
+            labels.append(label)
             Ks.append(torch.tensor([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1]], dtype=torch.float64))
         fps = float(data.get("fps", 24.0) or 24.0)
     else:
@@ -135,18 +147,18 @@ def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
         for n, fr in enumerate(frames):
             if not isinstance(fr, dict):
                 raise _fail(path, f"frames[{n}]: expected an object")
+            label = _camera_label("frames", n, fr)
             try:
                 c2w = torch.tensor(fr["transform_matrix"], dtype=torch.float64)
-                if c2w.shape == (3, 4):
-                    c2w = torch.cat([c2w, torch.tensor([[0, 0, 0, 1]], dtype=torch.float64)])
                 get = {k: fr.get(k, top.get(k)) for k in ("fl_x", "fl_y", "cx", "cy", "w", "h")}
                 if get["fl_y"] is None:
                     get["fl_y"] = get["fl_x"]
                 fx, fy, cx, cy = (float(get[k]) for k in ("fl_x", "fl_y", "cx", "cy"))
                 sizes.add((int(get["w"]), int(get["h"])))
             except (KeyError, TypeError, ValueError, RuntimeError):
-                raise _fail(path, f"frames[{n}]: expected transform_matrix (4x4) and fl_x, fl_y, cx, cy, w, h") from None
-            poses.append(c2w)
+                raise _fail(path, f"{label}: expected transform_matrix (4x4) and fl_x, fl_y, cx, cy, w, h") from None
+            poses.append(_camera_pose(path, c2w, label))
+            labels.append(label)
             Ks.append(torch.tensor([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=torch.float64))
         if len(sizes) != 1:
             raise _fail(path, f"all frames of a path must have one size, got {sorted(sizes)}")
@@ -154,19 +166,41 @@ def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
         fps = float(top.get("fps", 24.0) or 24.0)
     if width < 1 or height < 1:
         raise _fail(path, f"render size must be positive, got {width}x{height}")
-    gl = torch.stack(poses)
-    if gl.shape[1:] != (4, 4):
-        raise _fail(path, f"poses: expected 4x4 matrices, got {tuple(gl.shape[1:])}")
-    try:
-        world_from_cam = check_pose(opengl_to_opencv(gl), f"{path.name} poses")
-        K = check_intrinsics(torch.stack(Ks), f"{path.name} intrinsics")
-    except InputError as exc:
-        raise _fail(path, str(exc)) from None
+    world_from_cam = torch.stack(poses)
+    for K, label in zip(Ks, labels, strict=True):
+        try:
+            check_intrinsics(K, f"{label} intrinsics")
+        except InputError as exc:
+            raise _fail(path, str(exc)) from None
+    K = torch.stack(Ks)
     if dataparser is not None:
         world_from_cam = dataparser.to_dataset(world_from_cam)
     if not (math.isfinite(fps) and 0 < fps <= 240):
         raise _fail(path, f"fps: expected a number in (0, 240], got {fps}")
-    return CameraPath(world_from_cam=world_from_cam, K=K, width=width, height=height, fps=fps, source=source)
+    return CameraPath(world_from_cam=world_from_cam, K=K, width=width, height=height, fps=fps, source=source,
+                      labels=labels)
+
+
+def _camera_label(key: str, n: int, entry) -> str:
+    """``camera_path[3]`` or ``frames[3] (frame_00004.png)``: how errors name a path camera."""
+    name = None
+    if isinstance(entry, dict):
+        for k in ("name", "file_path", "image_path"):
+            if isinstance(entry.get(k), str) and entry[k]:
+                name = entry[k]
+                break
+    return f"{key}[{n}]" + (f" ({name})" if name else "")
+
+
+def _camera_pose(path: Path, gl: Tensor, label: str) -> Tensor:
+    """One path camera's OpenGL 4x4 / 3x4 pose -> validated OpenCV 4x4 (errors name the camera)."""
+    from roguenerf.geometry.cameras import as_world_from_cam, opengl_to_opencv
+
+    try:
+        pose = as_world_from_cam(gl, label)
+        return opengl_to_opencv(pose)
+    except InputError as exc:
+        raise _fail(path, str(exc)) from None
 
 
 def _is_inria_cameras(data) -> bool:
@@ -177,7 +211,7 @@ def _is_inria_cameras(data) -> bool:
 def _checked_path(path: Path, poses: list[Tensor], Ks: list[Tensor], sizes: list[tuple[int, int]],
                   labels: list[str], source: str) -> CameraPath:
     """One size, proper rotations, valid intrinsics; errors name the camera (``labels``)."""
-    from roguenerf.geometry.cameras import check_intrinsics, check_pose
+    from roguenerf.geometry.cameras import as_world_from_cam, check_intrinsics
 
     if len(set(sizes)) != 1:
         first = sizes[0]
@@ -187,7 +221,7 @@ def _checked_path(path: Path, poses: list[Tensor], Ks: list[Tensor], sizes: list
     checked = []
     for n, (pose, K) in enumerate(zip(poses, Ks, strict=True)):
         try:
-            checked.append(check_pose(pose, f"{labels[n]} pose"))
+            checked.append(as_world_from_cam(pose, f"{labels[n]} pose"))
             check_intrinsics(K, f"{labels[n]} intrinsics")
         except InputError as exc:
             raise _fail(path, str(exc)) from None
@@ -195,7 +229,7 @@ def _checked_path(path: Path, poses: list[Tensor], Ks: list[Tensor], sizes: list
     if width < 1 or height < 1:
         raise _fail(path, f"render size must be positive, got {width}x{height}")
     return CameraPath(world_from_cam=torch.stack(checked), K=torch.stack(Ks), width=width, height=height,
-                      fps=24.0, source=source)
+                      fps=24.0, source=source, labels=list(labels))
 
 
 def _read_inria_cameras(path: Path, data: list) -> CameraPath:
@@ -367,6 +401,212 @@ def _match_views(scene, camera_path: CameraPath) -> list[int | None]:
     return out
 
 
+FAR_FACTOR = 3.0
+"""A path camera farther than this many scene sizes from every scene camera is "far" (scene
+size: the larger of the cameras' spread and their median known depth)."""
+MIN_SEEN = 0.25
+"""A path camera "sees" the scene when at least this share of its probed known-depth pixels land,
+at the depth they have there, in a training photo it would use (a right path: ~all of them on the
+toy scenes; one in the model's world without its dataparser transform: ~9 %; flipped axes: 0)."""
+DEPTH_AGREEMENT = 0.05
+"""A training view sees a path pixel's surface point when its own depth there agrees to this
+(relative): a path in the wrong space puts its points in free space or behind surfaces."""
+CHECK_FRAMES = 12
+"""How many path cameras (evenly spread, first and last included) :func:`check_camera_path` probes."""
+CHECK_PIXELS = 64 * 64
+"""Pixels probed per path camera (a regular subsample of its depth)."""
+
+
+@dataclass
+class PathCheck:
+    """What :func:`check_camera_path` found; ``problem`` is None when the path looks right."""
+
+    checked: list[int]
+    seen: dict[int, float]
+    """Path camera -> share of its probed pixels seen consistently by a training photo (None: no known depth)."""
+    distance: dict[int, float]
+    """Path camera -> distance to the nearest scene camera, in scene sizes."""
+    lost: list[int]
+    far: list[int]
+    worst: int | None
+    problem: str | None = None
+    warning: str | None = None
+
+
+def _probe(depth: Tensor, K: Tensor, pixels: int = CHECK_PIXELS) -> tuple[Tensor, Tensor]:
+    """A regular subsample of ``depth`` ``(1, H, W)`` and its intrinsics (pixel-centre exact)."""
+    h, w = depth.shape[-2:]
+    step = max(1, int((h * w / pixels) ** 0.5))
+    sub = depth[..., ::step, ::step]
+    K_sub = K.to(torch.float64).clone()
+    K_sub[:2] /= step
+    K_sub[0, 2] += 0.5 - 0.5 / step
+    K_sub[1, 2] += 0.5 - 0.5 / step
+    return sub, K_sub
+
+
+def _consistent(points: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor, tol: float) -> Tensor:
+    """Which world ``points`` ``(N, 3)`` float64 a view sees where its own depth says a surface is:
+    in front, inside the image, ``|z - depth| <= tol * depth`` at the nearest pixel."""
+    from roguenerf.geometry import known_depth_mask
+
+    pose = world_from_cam.to(torch.float64)
+    cam = (points - pose[:3, 3]) @ pose[:3, :3]
+    z = cam[:, 2]
+    front = z > 1e-9
+    zs = torch.where(front, z, torch.ones_like(z))
+    K = K.to(torch.float64)
+    u = K[0, 0] * cam[:, 0] / zs + K[0, 1] * cam[:, 1] / zs + K[0, 2]
+    v = K[1, 1] * cam[:, 1] / zs + K[1, 2]
+    h, w = depth.shape[-2:]
+    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    col = u.clamp(0, w - 1).floor().long()
+    row = v.clamp(0, h - 1).floor().long()
+    d = depth.reshape(h, w).to(torch.float64)[row, col]
+    known = known_depth_mask(d)
+    return inside & known & ((z - d).abs() <= tol * d.abs())
+
+
+def _seen_share(scene, train: list[int], train_depths: dict, depth: Tensor, K: Tensor, pose: Tensor,
+                neighbours: int) -> float | None:
+    """Share of the probed known-depth pixels of one camera whose surface point some chosen
+    training view sees at its own depth (within :data:`DEPTH_AGREEMENT`)."""
+    from roguenerf.geometry import known_depth_mask, select_neighbours
+
+    sub, K_sub = _probe(depth, K)
+    z = sub.reshape(-1).to(torch.float64)
+    known = known_depth_mask(z)
+    if not bool(known.any()):
+        return None
+    h, w = sub.shape[-2:]
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64) + 0.5, torch.arange(w, dtype=torch.float64) + 0.5,
+                          indexing="ij")
+    y = (v.reshape(-1) - K_sub[1, 2]) / K_sub[1, 1]
+    x = (u.reshape(-1) - K_sub[0, 2] - K_sub[0, 1] * y) / K_sub[0, 0]
+    cam = torch.stack([x, y, torch.ones_like(x)], -1)[known] * z[known, None]
+    pose = pose.to(torch.float64)
+    points = cam @ pose[:3, :3].T + pose[:3, 3]
+    poses = scene.poses(train).to(torch.float64)
+    picked = select_neighbours(pose, poses, min(neighbours, len(train)), candidates=max(8, neighbours))
+    seen = torch.zeros(points.shape[0], dtype=torch.bool)
+    for p in picked.tolist():
+        i = train[p]
+        if i not in train_depths:
+            train_depths[i] = scene.depth(i).float()
+        seen |= _consistent(points, train_depths[i], scene.frames[i].K, poses[p], DEPTH_AGREEMENT)
+    return float(seen.sum()) / float(known.sum())
+
+
+def _depth_type_problem(scene, camera_path: CameraPath, raw_of, given: str, frames: int = 4) -> str | None:
+    """:func:`~roguenerf.data.exports.check_depth_type` for a path: a few frames' stored depth
+    against the z-depth of the training view nearest each (the scene's depth is z already)."""
+    from roguenerf.data.exports import check_depth_type, depth_type_problem
+
+    train = scene.indices("train")
+    T = len(camera_path)
+    if not train or T == 0:
+        return None
+    poses = scene.poses(train).to(torch.float64)
+    pairs = []
+    for t in sorted({round(k * (T - 1) / max(frames - 1, 1)) for k in range(min(frames, T))}):
+        pose = camera_path.world_from_cam[t].to(torch.float64)
+        near = int((poses[:, :3, 3] - pose[:3, 3]).norm(dim=-1).argmin())
+        i = train[near]
+        pairs.append(((raw_of(t).double(), camera_path.K[t], pose),
+                      (scene.depth(i).double(), scene.frames[i].K, poses[near])))
+    check = check_depth_type(pairs, b_is_z=True)
+    return depth_type_problem(check, given, "the path's depths", "its frames and the nearest training views")
+
+
+def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: int = 4,
+                      frames: int = CHECK_FRAMES) -> PathCheck:
+    """Does the path live in the scene's world? A cheap check before any enhancement.
+
+    A path in another coordinate space (a nerfstudio ``camera_path.json`` in the model's world
+    read without the model's ``dataparser_transforms.json``, OpenGL axes read as OpenCV or the
+    reverse, other units) enhances nothing and says nothing: its cameras see none of the training
+    photos. For up to ``frames`` path cameras (evenly spread) this measures the distance to the
+    nearest scene camera and which share of ~:data:`CHECK_PIXELS` pixels of the frame's depth
+    (``depth_of(t) -> (1, H, W)`` z-depth) the training photos the enhancer would pick see
+    at their own depth.
+
+    ``problem`` is set when a checked camera is farther than :data:`FAR_FACTOR` scene sizes from
+    every scene camera and does not see the photos (or has no known depth to tell), or when at
+    least half of the checked cameras with known depth see less than :data:`MIN_SEEN` of their
+    pixels; ``warning`` when fewer do. Both name the worst camera
+    (index and label) and the likely cause.
+    """
+    from roguenerf.geometry import known_depth_mask
+    from roguenerf.geometry.cameras import opengl_to_opencv
+
+    train = scene.indices("train")
+    if not train:
+        raise InputError("the scene has no training views: a camera path has nothing to be enhanced with")
+    T = len(camera_path)
+    n = max(1, min(frames, T))
+    checked = sorted({round(k * (T - 1) / max(n - 1, 1)) for k in range(n)})
+    positions = scene.poses().to(torch.float64)[:, :3, 3]
+    spread = float((positions - positions.mean(0)).norm(dim=-1).max())
+    train_depths: dict[int, Tensor] = {}
+    medians = []
+    for i in train[:: max(1, len(train) // 8)][:8]:
+        train_depths[i] = scene.depth(i).float()
+        d = train_depths[i][known_depth_mask(train_depths[i])]
+        if d.numel():
+            medians.append(float(d.median()))
+    size = max(spread, sorted(medians)[len(medians) // 2] if medians else 0.0) or 1.0
+    seen: dict[int, float | None] = {}
+    distance: dict[int, float] = {}
+    depths = {}
+    for t in checked:
+        pose = camera_path.world_from_cam[t]
+        distance[t] = float((positions - pose[:3, 3]).norm(dim=-1).min()) / size
+        depths[t] = depth_of(t)
+        seen[t] = _seen_share(scene, train, train_depths, depths[t], camera_path.K[t], pose, neighbours)
+    # Far and not seeing the scene (or without depth to tell): a camera that is far but sees the
+    # training photos at their depth is a wide shot of the right world.
+    far = [t for t in checked if distance[t] > FAR_FACTOR and (seen[t] is None or seen[t] < MIN_SEEN)]
+    with_depth = [t for t in checked if seen[t] is not None]
+    lost = [t for t in with_depth if seen[t] < MIN_SEEN]
+    worst = None
+    if far:
+        worst = max(far, key=lambda t: distance[t])
+    elif lost:
+        worst = min(lost, key=lambda t: (seen[t], -distance[t]))
+    result = PathCheck(checked=checked, seen=seen, distance=distance, lost=lost, far=far, worst=worst)
+    if worst is None:
+        return result
+    what = (f"camera {worst} ({camera_path.label(worst)}) lies {distance[worst]:.1f} scene sizes from the "
+            f"nearest scene camera" if far else
+            f"camera {worst} ({camera_path.label(worst)}) sees almost none of the training photos (only "
+            f"{100 * seen[worst]:.1f}% of its pixels land at their depth in the photos nearest it)")
+    summary = (f"{len(far)} of {len(checked)} checked cameras are far from the scene's cameras" if far else
+               f"{len(lost)} of {len(with_depth)} checked cameras see almost none of the training photos")
+    causes = []
+    if camera_path.source == "nerfstudio":
+        causes.append("a nerfstudio camera_path.json is in the model's world: it needs the trained model's "
+                      "dataparser_transforms.json (--dataparser-transforms, or put it in the scene folder)")
+    # Would the other axis convention fit? Then say so first.
+    flipped = opengl_to_opencv(camera_path.world_from_cam[worst])
+    share = _seen_share(scene, train, train_depths, depths[worst], camera_path.K[worst], flipped, neighbours)
+    axes = ("OpenGL vs OpenCV axes: with the y and z axes flipped this camera sees "
+            f"{100 * (share or 0):.0f}% of its pixels; camera paths and transforms-style lists are read "
+            "as OpenGL (nerfstudio, Blender): convert OpenCV poses (columns 1 and 2 negated)")
+    if share is not None and share >= max(2 * MIN_SEEN, 2 * (seen.get(worst) or 0.0)):
+        causes.insert(0, axes)
+    else:
+        causes.append("OpenGL vs OpenCV axes (camera paths are read as OpenGL, as nerfstudio and Blender write them)")
+    causes.append("another coordinate space or unit than the scene's poses (e.g. the path of another "
+                  "export, or depth in other units: --depth-scale)")
+    message = (f"the camera path does not fit the scene: {summary}; worst: {what}. Likely causes: "
+               + "; ".join(causes))
+    if far or len(lost) * 2 >= max(len(with_depth), 1):
+        result.problem = message
+    else:
+        result.warning = message
+    return result
+
+
 @dataclass
 class PathResult:
     output: Path
@@ -379,6 +619,8 @@ class PathResult:
     flicker: dict = field(default_factory=dict)
     """What :data:`FLICKER_FILE` holds: per-pair and mean flicker, per-frame PSNR where photos exist."""
     cached_views: int = 0
+    warnings: list[str] = field(default_factory=list)
+    """What went on with ``force=True`` (:func:`check_camera_path`'s message)."""
 
 
 def _fingerprint(camera_path: CameraPath, pairs: list[tuple[Path, Path]], checkpoint_id: str, options: dict) -> str:
@@ -410,6 +652,7 @@ def enhance_path(
     checkpoint_id: str = "",
     progress=None,
     should_stop=None,
+    force: bool = False,
 ) -> PathResult:
     """Enhance every frame of a camera path; write frames, MP4s and the flicker report.
 
@@ -432,12 +675,15 @@ def enhance_path(
         progress: ``callback(done, total)`` per frame.
         should_stop: ``() -> bool`` polled between frames; True raises
             :class:`~roguenerf.errors.PathCancelled` (frames written so far are kept).
+        force: go on when :func:`check_camera_path` finds that the path does not fit the scene
+            (its message is logged and kept in ``PathResult.warnings``); otherwise that is an
+            :class:`~roguenerf.errors.InputError`, before any frame is enhanced.
     """
     from roguenerf.data.exports import background_to_unknown
     from roguenerf.geometry.cameras import ray_to_z_depth
     from roguenerf.imageio import atomic_write, finite_for_json, read_depth, read_image, write_png
     from roguenerf.metrics import psnr
-    from roguenerf.video import Mp4Writer, check_quality, require_av
+    from roguenerf.video import Mp4Writer, check_quality, require_av, side_by_side
 
     start = time.perf_counter()
     if depth_type not in ("z", "ray"):
@@ -449,6 +695,40 @@ def enhance_path(
         require_av()
     fps = camera_path.fps if fps is None else fps
     pairs = find_path_frames(frames, len(camera_path))
+    matches = _match_views(scene, camera_path)
+    total = len(pairs)
+
+    def load_frame(t: int, *, raw: bool = False) -> tuple[Tensor, Tensor]:
+        rgb_path, depth_path = pairs[t]
+        render = read_image(rgb_path)
+        if render.shape[1:] != (camera_path.height, camera_path.width):
+            raise InputError(f"{rgb_path}: render is {render.shape[2]}x{render.shape[1]}, the camera path says "
+                             f"{camera_path.width}x{camera_path.height}")
+        depth = read_depth(depth_path, scale=float(depth_scale))
+        if depth.shape[1:] != render.shape[1:]:
+            raise InputError(f"{depth_path}: depth is {depth.shape[2]}x{depth.shape[1]}, its render "
+                             f"{render.shape[2]}x{render.shape[1]}")
+        depth = background_to_unknown(depth, background)
+        if depth_type == "ray" and not raw:
+            depth = ray_to_z_depth(depth.double(), camera_path.K[t]).float()
+        return render, depth
+
+    warnings: list[str] = []
+    problem = _depth_type_problem(scene, camera_path, lambda t: load_frame(t, raw=True)[1], depth_type)
+    if problem is not None and not force:
+        raise InputError(f"{problem}. To enhance it anyway: --force (force=True)")
+    if problem is not None:
+        log.warning("camera path: %s", problem)
+        warnings.append(problem)
+    check = check_camera_path(scene, camera_path, lambda t: load_frame(t)[1],
+                              neighbours=max(1, enhancer.num_neighbours or 1))
+    if check.problem is not None and not force:
+        raise InputError(f"{check.problem}. To enhance it anyway: --force (force=True)")
+    for message in (check.problem, check.warning):
+        if message is not None:
+            log.warning("camera path: %s", message)
+            warnings.append(message)
+
     output = Path(output)
     frame_dir = output / FRAME_FOLDER
     frame_dir.mkdir(parents=True, exist_ok=True)
@@ -466,24 +746,6 @@ def enhance_path(
                              "choose another output folder or delete it")
     else:
         atomic_write(state_path, json.dumps({"fingerprint": fingerprint, "frames": len(pairs)}).encode())
-    matches = _match_views(scene, camera_path)
-    total = len(pairs)
-
-    def load_frame(t: int) -> tuple[Tensor, Tensor]:
-        rgb_path, depth_path = pairs[t]
-        render = read_image(rgb_path)
-        if render.shape[1:] != (camera_path.height, camera_path.width):
-            raise InputError(f"{rgb_path}: render is {render.shape[2]}x{render.shape[1]}, the camera path says "
-                             f"{camera_path.width}x{camera_path.height}")
-        depth = read_depth(depth_path, scale=float(depth_scale))
-        if depth.shape[1:] != render.shape[1:]:
-            raise InputError(f"{depth_path}: depth is {depth.shape[2]}x{depth.shape[1]}, its render "
-                             f"{render.shape[2]}x{render.shape[1]}")
-        depth = background_to_unknown(depth, background)
-        if depth_type == "ray":
-            depth = ray_to_z_depth(depth.double(), camera_path.K[t]).float()
-        return render, depth
-
     per_pair, per_frame = [], []
     prev = None
     done_now = 0
@@ -530,9 +792,10 @@ def enhance_path(
                 enhanced = read_image(frame_dir / f"{t:05d}.png")
                 render = read_image(pairs[t][0])
                 enhanced_video.write(enhanced)
-                side_video.write(torch.cat([render, enhanced], dim=2))
+                side_video.write(side_by_side(render, enhanced))
     return PathResult(output=output, frames=total, enhanced_now=done_now, seconds=time.perf_counter() - start,
-                      video=video_path, side_by_side=sbs_path, flicker=report, cached_views=enhancer.cached_views())
+                      video=video_path, side_by_side=sbs_path, flicker=report, cached_views=enhancer.cached_views(),
+                      warnings=warnings)
 
 
 def summarise_flicker(per_pair: list[dict], per_frame: list[dict]) -> dict:
@@ -558,7 +821,9 @@ def summarise_flicker(per_pair: list[dict], per_frame: list[dict]) -> dict:
 
 
 def smooth_path(key_poses: Tensor, steps: int, *, closed: bool = False) -> Tensor:
-    """A smooth camera path through ``key_poses`` ``(M, 4, 4)`` (camera-to-world): ``steps``
+    """A smooth camera path through ``key_poses`` ``(M, 4, 4)`` or ``(M, 3, 4)`` (camera-to-world,
+    validated by :func:`~roguenerf.geometry.cameras.as_world_from_cam`: non-finite, reflected or
+    scaled rotations are refused naming the key): ``steps``
     frames per segment, positions on a Catmull-Rom spline, rotations by quaternion slerp. Frame
     ``k * steps`` is key pose ``k`` exactly (those frames have the key views' photos).
 
@@ -566,9 +831,14 @@ def smooth_path(key_poses: Tensor, steps: int, *, closed: bool = False) -> Tenso
     """
     from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_matrix_to_quaternion
 
-    if steps < 1:
-        raise InputError(f"steps: expected >= 1, got {steps}")
-    key = key_poses.to(torch.float64)
+    from roguenerf.geometry.cameras import as_world_from_cam
+
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise InputError(f"steps: expected an integer >= 1, got {steps!r}")
+    key = torch.as_tensor(key_poses)
+    if key.ndim != 3:
+        raise InputError(f"key_poses: expected shape (M, 4, 4) or (M, 3, 4), got {tuple(key.shape)}")
+    key = as_world_from_cam(key.to(torch.float64) if key.is_floating_point() else key, "key_poses")
     m = key.shape[0]
     if m < 2:
         raise InputError(f"key_poses: expected at least 2 poses, got {m}")

@@ -34,16 +34,59 @@ def check_quality(crf: int) -> int:
     return crf
 
 
-def _as_uint8(frame: Tensor | np.ndarray) -> np.ndarray:
-    """``(3, H, W)`` float [0, 1] tensor or ``(H, W, 3)`` uint8 array -> ``(H, W, 3)`` uint8."""
-    if isinstance(frame, Tensor):
-        frame = (frame.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
-    if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
-        raise InputError(f"video frame: expected (3, H, W) float or (H, W, 3) uint8, got {frame.dtype} {frame.shape}")
+def _as_uint8(frame, name: str = "frame") -> np.ndarray:
+    """``(3, H, W)`` float tensor in [0, 1] -> ``(H, W, 3)`` uint8 (even sides, edge-padded).
+
+    The image-dtype rule (:func:`roguenerf.images.check_float_image`): integer and bool frames
+    are refused naming the conversion, never rescaled; NaN / inf pixels are refused, never
+    encoded as black; finite values outside [0, 1] are clamped.
+    """
+    from roguenerf.images import check_float_image
+
+    if isinstance(frame, np.ndarray):
+        raise InputError(f"{name}: expected a (3, H, W) float torch.Tensor in [0, 1], got a NumPy array "
+                         f"{frame.dtype} {frame.shape}; e.g. torch.from_numpy(x).permute(2, 0, 1).float() / 255 "
+                         "for an (H, W, 3) uint8 array")
+    check_float_image(frame, name)
+    if frame.ndim != 3 or frame.shape[0] != 3 or frame.shape[1] < 1 or frame.shape[2] < 1:
+        raise InputError(f"{name}: expected shape (3, H, W) (RGB, channels first), got {tuple(frame.shape)}")
+    finite = torch.isfinite(frame)
+    if not bool(finite.all()):
+        bad = int((~finite).sum())
+        raise InputError(f"{name}: {bad} non-finite (NaN or inf) values; a video frame must be finite "
+                         "(they are never encoded as black)")
+    frame = (frame.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
     h, w = frame.shape[:2]
     if h % 2 or w % 2:
         frame = np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
     return np.ascontiguousarray(frame)
+
+
+def label_image(image: Tensor, text: str) -> Tensor:
+    """``image`` ``(3, H, W)`` float in [0, 1] with ``text`` drawn in its top-left corner (white on
+    a dark box, PIL's default font); the side-by-side video's "render" | "enhanced" labels."""
+    from PIL import Image, ImageDraw
+
+    from roguenerf.images import check_float_image
+
+    check_float_image(image, "image")
+    array = (image.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+    picture = Image.fromarray(np.ascontiguousarray(array))
+    draw = ImageDraw.Draw(picture)
+    left, top, right, bottom = draw.textbbox((3, 2), text)
+    draw.rectangle((0, 0, right + 3, bottom + 2), fill=(0, 0, 0))
+    draw.text((3, 2), text, fill=(255, 255, 255))
+    labelled = torch.from_numpy(np.asarray(picture).copy()).permute(2, 0, 1).float() / 255
+    # Only the label's box changes: the pixels outside keep their values (no 8-bit rounding).
+    out = image.detach().to(torch.float32).clone()
+    h, w = min(bottom + 3, out.shape[1]), min(right + 4, out.shape[2])
+    out[:, :h, :w] = labelled[:, :h, :w]
+    return out
+
+
+def side_by_side(render: Tensor, enhanced: Tensor, labels: tuple[str, str] = ("render", "enhanced")) -> Tensor:
+    """``render | enhanced`` side by side, each half labelled (``(3, H, 2W)``)."""
+    return torch.cat([label_image(render, labels[0]), label_image(enhanced, labels[1])], dim=2)
 
 
 class Mp4Writer:
@@ -65,10 +108,11 @@ class Mp4Writer:
     def __enter__(self) -> Mp4Writer:
         return self
 
-    def write(self, frame: Tensor | np.ndarray) -> None:
+    def write(self, frame: Tensor) -> None:
+        """Encode ``frame`` ``(3, H, W)`` float in [0, 1] (see :func:`_as_uint8` for what is refused)."""
         from fractions import Fraction
 
-        image = _as_uint8(frame)
+        image = _as_uint8(frame, f"video frame {self.frames}")
         if self.container is None:
             self.container = self.av.open(str(self.tmp), mode="w", format="mp4")
             rate = Fraction(self.fps).limit_denominator(1001)

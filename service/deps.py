@@ -15,8 +15,10 @@ def scene_or_404(services: Services, scene_id: str) -> dict:
     return row
 
 
-def scene_public(services: Services, row: dict, *, active_job: str | None | bool = False) -> ScenePublic:
-    """The public view of a scene row (``active_job``: its active job's id when already known)."""
+def scene_public(services: Services, row: dict, *, active_job: str | None | bool = False,
+                 warnings: list[str] | None = None) -> ScenePublic:
+    """The public view of a scene row (``active_job``: its active job's id when already known;
+    ``warnings``: the registration's, e.g. unusable views)."""
     if active_job is False:
         active = services.store.active_job(row["id"])
         active_job = active["id"] if active else None
@@ -25,5 +27,5 @@ def scene_public(services: Services, row: dict, *, active_job: str | None | bool
         test_views=row["test_views"],
         width=row["width"], height=row["height"], created_at=iso(row["created_at"]),
         active_version=row["active_version"], checkpoint_versions=services.layout.versions(row["id"]),
-        active_job=active_job,
+        active_job=active_job, warnings=warnings or [],
     )

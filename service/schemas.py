@@ -43,6 +43,9 @@ class ScenePublic(BaseModel):
     """Every stored version (older ones are kept)."""
     active_job: str | None
     """Id of the queued or running fine-tuning job, if any."""
+    warnings: list[str] = []
+    """Only in the registration's answer: problems that did not stop it, e.g. each unusable view
+    ("NAME (train): depth has no usable values (all zeros ...)")."""
 
 
 class SceneUpdate(BaseModel):

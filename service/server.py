@@ -42,7 +42,10 @@ class EmbeddedWorker:
     def _spawn(self) -> None:
         # Own session: a terminal's Ctrl-C reaches only the API, which then sends the worker
         # exactly one SIGINT (a second one would make Huey abandon the drain).
-        self.proc = subprocess.Popen([sys.executable, "-m", "workers", "--exit-with-parent"],
+        # --parent-pid: the worker exits with this process even when it dies before the worker
+        # reached its parent check (PR_SET_PDEATHSIG on Linux; workers/__main__.py).
+        self.proc = subprocess.Popen([sys.executable, "-m", "workers", "--exit-with-parent",
+                                      "--parent-pid", str(os.getpid())],
                                      env=self._env(), start_new_session=True)
         log.info("embedded worker started (pid %s)", self.proc.pid)
 
@@ -51,6 +54,17 @@ class EmbeddedWorker:
         self._thread.start()
 
     def _supervise(self) -> None:
+        try:
+            self._restart_loop()
+        finally:
+            # The kernel's parent-death signal follows the *thread* that forked the worker: a
+            # worker restarted from here must not get it (a second SIGINT: an abandoned drain)
+            # while stop() drains it, so this thread outlives the worker it started.
+            proc = self.proc
+            if proc is not None:
+                proc.wait()
+
+    def _restart_loop(self) -> None:
         while not self._stopping.is_set():
             code = self.proc.poll()
             if code is not None and not self._stopping.is_set():

@@ -2,7 +2,9 @@
 
 A zip from a client is hostile until proven otherwise. Every member name is checked
 (relative, no ``..``, no absolute or drive paths, no backslashes, no symlinks, no
-encryption, a conservative character set) before anything is written; member count and
+encryption, a conservative character set: letters and digits of any script after NFC
+normalisation, combining marks and ``_.+@=, -``; a refused name is answered with a safe name to
+rename it to) before anything is written; member count and
 total uncompressed size are limited, and the bytes actually inflated are counted as well
 (a zip can lie about its sizes). Files land in a temporary directory; only after
 ``load_scene`` accepted it is the directory renamed into ``scenes/<id>``, so a rejected
@@ -15,6 +17,7 @@ import os
 import re
 import shutil
 import stat
+import unicodedata
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -25,6 +28,12 @@ from service.errors import ApiError
 
 _PART_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.+@=, -]{0,254}$")
 """A path component: starts with a letter, digit or underscore (so never '.', '..' or hidden)."""
+_PUNCTUATION = "_.+@=, -"
+"""Besides letters, digits and combining marks (any script), the characters a name may hold."""
+_SAFE_CATEGORIES = ("Lu", "Ll", "Lt", "Lm", "Lo", "Nd", "Mn", "Mc")
+"""Unicode letters, decimal digits and the combining marks that belong to them: safe in a file
+name. Never accepted: controls and invisible format characters (bidi overrides, zero-width
+joiners), separators other than the ASCII space, symbols, private-use and unassigned code points."""
 MAX_DEPTH = 8
 SKIPPED_PREFIXES = ("__MACOSX",)
 """Archiver droppings that are silently left out (never written)."""
@@ -41,9 +50,50 @@ def _reject(message: str) -> ApiError:
     return ApiError(422, "invalid_archive", message)
 
 
-def _member_parts(info: zipfile.ZipInfo) -> list[str] | None:
-    """Validated path components of a member, or None for a member that is skipped."""
+def _zip_name(info: zipfile.ZipInfo) -> str:
+    """The member's name as its archiver meant it: UTF-8 names written without the UTF-8 flag
+    (older archivers) come out of zipfile decoded as cp437 and are decoded again."""
     name = info.filename
+    if not info.flag_bits & 0x800 and not name.isascii():
+        try:
+            name = name.encode("cp437").decode("utf-8")
+        except (UnicodeEncodeError, UnicodeDecodeError):
+            pass
+    return name
+
+
+def _safe_part(part: str) -> bool:
+    """A path component of letters and digits of any script (NFC), marks and :data:`_PUNCTUATION`,
+    starting with a letter, digit or '_' (so never '.', '..' or hidden), at most 255 characters."""
+    if _PART_RE.match(part):
+        return True
+    if not 0 < len(part.encode("utf-8")) <= 255:
+        return False
+    first = unicodedata.category(part[0])
+    if not (first in ("Lu", "Ll", "Lt", "Lm", "Lo", "Nd") or part[0] == "_"):
+        return False
+    return all(c in _PUNCTUATION or unicodedata.category(c) in _SAFE_CATEGORIES for c in part)
+
+
+def _rename_hint(part: str) -> str:
+    """What is wrong with an unsafe component and a safe name to rename it to."""
+    bad = []
+    for c in part:
+        if not (c in _PUNCTUATION or unicodedata.category(c) in _SAFE_CATEGORIES) and c not in bad:
+            bad.append(c)
+    described = ", ".join(f"U+{ord(c):04X} {unicodedata.name(c, 'unnamed')}" for c in bad[:4])
+    suggestion = "".join(c if c in _PUNCTUATION or unicodedata.category(c) in _SAFE_CATEGORIES else "_"
+                         for c in part).strip(" ")
+    if not suggestion or not _safe_part(suggestion):
+        suggestion = "_" + suggestion.lstrip(".-+@=, ")
+    why = f"it holds {described}" if bad else "it must start with a letter, digit or '_'"
+    return (f"{why}; names may use letters and digits of any script, combining marks and "
+            f"'{_PUNCTUATION}': rename it, e.g. to {suggestion!r} (and the same in transforms.json)")
+
+
+def _member_parts(info: zipfile.ZipInfo) -> list[str] | None:
+    """Validated path components of a member (NFC-normalised), or None for a member that is skipped."""
+    name = unicodedata.normalize("NFC", _zip_name(info))
     if "\\" in name or "\x00" in name:
         raise _reject(f"archive member {name!r}: backslashes and NUL are not allowed in names")
     if name.startswith("/") or re.match(r"^[A-Za-z]:", name):
@@ -56,11 +106,9 @@ def _member_parts(info: zipfile.ZipInfo) -> list[str] | None:
     for part in parts:
         if part == "..":
             raise _reject(f"archive member {name!r}: '..' is not allowed")
-        if not _PART_RE.match(part):
-            raise _reject(
-                f"archive member {name!r}: component {part!r} has characters outside "
-                "[A-Za-z0-9_.+@=, -] or does not start with a letter, digit or '_'"
-            )
+        if not _safe_part(part):
+            raise _reject(f"archive member {name!r}: component {part!r} is not a safe file name: "
+                          + _rename_hint(part))
     if len(parts) > MAX_DEPTH:
         raise _reject(f"archive member {name!r}: nested deeper than {MAX_DEPTH} folders")
     # Unix file type bits live in the high half of external_attr; 0 means "not recorded"
@@ -96,7 +144,7 @@ def extract_scene_zip(source: BinaryIO, dest: Path, limits: ZipLimits) -> Path:
             parts = _member_parts(info)
             if parts is None:
                 continue
-            key = "/".join(parts).lower()
+            key = "/".join(parts).casefold()
             if key in seen:
                 raise _reject(f"archive member {info.filename!r}: duplicate name")
             seen.add(key)

@@ -252,6 +252,7 @@ def test_serve_sets_passive_openmp_wait_before_torch_loads(env, expected):
     (["--minutes", "0"], "--minutes: expected a number > 0, got 0"),
     (["--minutes", "-1"], "--minutes: expected a number > 0"),
     (["--steps", "0"], "--steps: expected > 0, got 0"),
+    (["--minutes", "nan"], "--minutes must be a finite number > 0, got nan"),
 ])
 def test_finetune_refuses_an_empty_budget(scene_dir, tmp_path, budget, message):
     out = tmp_path / "ft"
@@ -416,3 +417,70 @@ def test_library_module_says_where_the_commands_above_it_are(command):
     proc = subprocess.run([sys.executable, "-m", "roguecli", command, "--help"], capture_output=True, text=True,
                           timeout=120)
     assert proc.returncode == 0 and f"Usage: python -m roguecli {command}" in proc.stdout, proc.stderr
+
+
+# --- issue 38 ---------------------------------------------------------------------------------------
+
+
+def test_evaluate_takes_the_folder_a_finetune_wrote(scene_dir, checkpoint, tmp_path):
+    out = tmp_path / "ft"
+    trained = _run("finetune", scene_dir, "--checkpoint", checkpoint, "--steps", "1", "--output", out,
+                   "--no-eval", *FAST)
+    assert trained.exit_code == 0, trained.output
+    by_folder = _run("evaluate", scene_dir, "--checkpoint", out, "--json")
+    by_file = _run("evaluate", scene_dir, "--checkpoint", out / "model.safetensors", "--json")
+    assert by_folder.exit_code == 0, by_folder.output
+    folder_report, file_report = json.loads(by_folder.stdout), json.loads(by_file.stdout)
+    for report in (folder_report, file_report):  # timings differ; the figures do not
+        report.pop("seconds_per_view", None)
+        for view in report["views"]:
+            view.pop("seconds", None)
+    assert folder_report == file_report
+    # A folder without a finished checkpoint says so (and what to do), in one line.
+    (out / "model.safetensors").unlink()
+    unfinished = _run("evaluate", scene_dir, "--checkpoint", out)
+    assert unfinished.exit_code == 2 and "no finished checkpoint (model.safetensors)" in unfinished.stderr
+    assert "run the same fine-tune again" in unfinished.stderr
+    (tmp_path / "empty").mkdir()
+    empty = _run("evaluate", scene_dir, "--checkpoint", tmp_path / "empty")
+    assert empty.exit_code == 2 and "holds no checkpoint: expected model.safetensors" in empty.stderr
+    assert "Traceback" not in empty.output
+
+
+def test_a_nan_budget_is_refused_by_the_library_with_a_clear_message():
+    from roguenerf.errors import InputError
+    from roguenerf.training import TrainConfig
+
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(InputError, match=r"minutes must be a finite number >= 0, got"):
+            TrainConfig(minutes=bad).validate()
+    with pytest.raises(InputError, match=r"minutes: expected a number >= 0, got -1"):
+        TrainConfig(minutes=-1.0).validate()
+    assert TrainConfig(minutes=0.5).validate().minutes == 0.5
+
+
+def test_a_view_with_unusable_depth_is_loaded_with_a_warning_naming_it(scene_dir, checkpoint, tmp_path):
+    import shutil
+
+    import numpy as np
+
+    from roguenerf.data.readers import load_scene
+    from roguenerf.data.scene import unusable_views
+
+    copy = tmp_path / "scene"
+    shutil.copytree(scene_dir, copy)
+    scene = load_scene(copy)
+    assert unusable_views(scene) == []
+    bad = scene.indices("train")[1]
+    frame = scene.frames[bad]
+    depth = np.load(frame.depth_path)
+    np.save(frame.depth_path, np.zeros_like(depth))  # what the user had: one training depth all zeros
+    found = unusable_views(load_scene(copy))
+    assert [(v.index, v.name, v.split) for v in found] == [(bad, frame.name, "train")]
+    assert "depth has no usable values (all zeros" in found[0].reason
+    result = _run("evaluate", copy, "--checkpoint", checkpoint)
+    assert result.exit_code == 0, result.output
+    assert f"warning: 1 of {len(scene.frames)} views of {copy} are unusable" in result.stderr
+    assert f"{frame.name} (train): depth has no usable values (all zeros" in result.stderr
+    clean = _run("evaluate", scene_dir, "--checkpoint", checkpoint)
+    assert "warning" not in clean.stderr

@@ -6,6 +6,7 @@ import gzip
 import io
 import json
 import math
+import re
 import shutil
 
 import numpy as np
@@ -13,6 +14,7 @@ import pytest
 import torch
 
 from roguenerf.data.exports import DataparserTransform, import_renders, write_depth_like
+from roguenerf.data.readers import load_scene
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.errors import InputError, SceneFormatError
 from roguenerf.geometry import opencv_to_opengl, reproject
@@ -201,3 +203,126 @@ def test_import_cli(ours, tmp_path):
     bad = runner.invoke(app, ["import-nerfstudio", str(tmp_path / "ds"), "--renders", str(tmp_path / "renders"),
                               "--output", str(tmp_path / "o3"), "--depth-type", "zz"])
     assert bad.exit_code == 2 and "--depth-type" in bad.output
+
+
+# --- issue 38: missing files, atomic imports, the depth type checked by multi-view consistency --------
+
+
+def test_a_missing_depth_file_is_refused_with_its_name(ours, tmp_path):
+    from typer.testing import CliRunner
+
+    from roguenerf.cli import app
+
+    _nerfstudio_dataset(tmp_path / "ds", ours)
+    _ns_render(tmp_path / "renders", ours)
+    gone = ours.frames[2]
+    missing = tmp_path / "renders" / gone.split / "raw-depth" / f"{gone.name}.npy.gz"
+    missing.unlink()
+    expected = rf"1 of 5 views .*lack a file: missing {gone.name}: {re.escape(str(missing))}"
+    with pytest.raises(InputError, match=expected):
+        import_renders(tmp_path / "ds", tmp_path / "renders", tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+    args = ["import-nerfstudio", str(tmp_path / "ds"), "--renders", str(tmp_path / "renders"),
+            "--output", str(tmp_path / "cli")]
+    refused = CliRunner().invoke(app, args)
+    assert refused.exit_code == 2 and f"{gone.name}.npy.gz" in refused.output and "--skip-missing" in refused.output
+    assert not (tmp_path / "cli").exists()
+    # --skip-missing imports the others and says which it skipped.
+    done = CliRunner().invoke(app, [*args, "--skip-missing"])
+    assert done.exit_code == 0, done.output
+    assert f"warning: skipped 1 views without a render or depth: {gone.name}" in done.output
+    scene = load_scene(tmp_path / "cli")
+    assert [f.name for f in scene.frames] == [f.name for f in ours.frames if f.name != gone.name]
+    assert json.loads((tmp_path / "cli" / "transforms.json").read_text())["source"]["skipped"] == [gone.name]
+
+
+def test_a_failed_import_leaves_no_folder_and_keeps_an_earlier_import(ours, tmp_path):
+    _nerfstudio_dataset(tmp_path / "ds", ours)
+    _ns_render(tmp_path / "renders", ours)
+    last = ours.frames[-1]
+    bad = tmp_path / "renders" / last.split / "raw-depth" / f"{last.name}.npy.gz"
+    good = bad.read_bytes()
+    transposed = read_depth(bad)[0].numpy().T.copy()
+    write_depth_like(bad, transposed, kind="npy.gz")  # the user's transposed depth, last view
+    for check_depth in (True, False):  # refused up front, or half-way through the views
+        with pytest.raises(InputError, match=rf"depth is {H}x{W}, its render .* is {W}x{H}"):
+            import_renders(tmp_path / "ds", tmp_path / "renders", tmp_path / "out", check_depth=check_depth)
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["ds", "renders"]  # no folder, no temp folder
+    # An earlier import is replaced only by a finished one.
+    bad.write_bytes(good)
+    import_renders(tmp_path / "ds", tmp_path / "renders", tmp_path / "out")
+    before = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "out").rglob("*")}
+    write_depth_like(bad, transposed, kind="npy.gz")
+    with pytest.raises(InputError):
+        import_renders(tmp_path / "ds", tmp_path / "renders", tmp_path / "out", check_depth=False)
+    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "out").rglob("*")} == before
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match="not empty"):
+        import_renders(tmp_path / "ds", tmp_path / "renders", tmp_path / "other")
+    assert (tmp_path / "other" / "notes.txt").read_text() == "mine"
+
+
+@pytest.mark.parametrize("stored, given", [("z", "ray"), ("ray", "z")])
+def test_a_depth_type_that_disagrees_with_the_scene_is_found_by_multi_view_consistency(ours, tmp_path, stored,
+                                                                                        given):
+    from typer.testing import CliRunner
+
+    from roguenerf.cli import app
+    from roguenerf.data.exports import _depth_type_views, _render_inventory, check_depth_type
+
+    _nerfstudio_dataset(tmp_path / "ds", ours)
+    _ns_render(tmp_path / "renders", ours, depth_type=stored)
+    # Known answers on exact toy depth: the stored type agrees to resampling error, the other
+    # is off by the ray-length factor's change between neighbouring views (~1 %).
+    found = _render_inventory(tmp_path / "renders")[0]
+    source = load_scene(tmp_path / "ds", check_files=False)
+    check = check_depth_type(_depth_type_views(source, source.frames, found, 1.0, "zero"))
+    assert check.likely == stored and check.pixels > 1000
+    assert check.errors[stored] < 1e-3 and check.errors[given] > 5e-3
+    assert abs(check.beta - (0.0 if stored == "z" else 1.0)) < 0.25 and check.beta_se < 0.05
+    with pytest.raises(InputError, match=rf"not --depth-type {given}.*Likely fix: --depth-type {stored}"):
+        import_renders(tmp_path / "ds", tmp_path / "renders", tmp_path / "out", depth_type=given)
+    assert not (tmp_path / "out").exists()
+    args = ["import-nerfstudio", str(tmp_path / "ds"), "--renders", str(tmp_path / "renders"), "--output",
+            str(tmp_path / "cli"), "--depth-type"]
+    refused = CliRunner().invoke(app, [*args, given])
+    assert refused.exit_code == 2 and f"--depth-type {stored}" in refused.output
+    assert CliRunner().invoke(app, [*args, stored]).exit_code == 0
+    scene = load_scene(tmp_path / "cli")
+    torch.testing.assert_close(scene.depth(0), ours.depth(0), rtol=2e-6, atol=1e-6)
+    forced = CliRunner().invoke(app, [*args, given, "--force"])  # replaces the earlier import, as told
+    assert forced.exit_code == 0, forced.output
+    assert not torch.allclose(load_scene(tmp_path / "cli").depth(0), ours.depth(0), rtol=1e-3)
+
+
+def test_the_depth_type_check_on_a_real_fields_depth(lego_dir):
+    """lego's grid-field z-depth (2 % noise, 40 deg field of view): stored as ray distance it is
+    found (the fit of the ray-distance signature); its true z-depth is left undecided, never
+    called ray (undecided never refuses)."""
+    from roguenerf.data.exports import check_depth_type
+    from roguenerf.geometry import ray_to_z_depth
+
+    scene = load_scene(lego_dir)
+    train = scene.indices("train")
+    positions = scene.poses(train)[:, :3, 3]
+
+    def pairs(kind):
+        out = []
+        for p in range(0, 6 * 17, 17):
+            d = (positions - positions[p]).norm(dim=-1)
+            d[p] = float("inf")
+            q = int(d.argmin())
+            views = []
+            for k in (p, q):
+                frame = scene.frames[train[k]]
+                z = scene.depth(train[k]).double()
+                n = 1 / ray_to_z_depth(torch.ones_like(z), frame.K)  # the ray-length factor
+                views.append((z if kind == "z" else z * n, frame.K, frame.world_from_cam))
+            out.append(tuple(views))
+        return out
+
+    as_ray = check_depth_type(pairs("ray"))
+    assert as_ray.likely == "ray" and abs(as_ray.beta - 1) < 0.3, as_ray
+    as_z = check_depth_type(pairs("z"))
+    assert as_z.likely != "ray", as_z

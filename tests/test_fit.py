@@ -414,3 +414,40 @@ def test_real_scenes_blends_span_the_start_and_the_fine_tuned_weights(lego_dir, 
     refused = subprocess.run([sys.executable, str(repo / "bench" / "real_scenes.py"), str(lego_dir), "--blends", "1.5",
                               "--output", str(tmp_path / "refused")], capture_output=True, text=True, timeout=120)
     assert refused.returncode == 2 and "--blends" in refused.stderr and not (tmp_path / "refused.csv").exists()
+
+
+# --- issue 38: one validation of fit configurations, before any work -------------------------------
+
+
+@pytest.mark.parametrize("field, value", [
+    ("resolution", 0), ("resolution", -8), ("samples", 0), ("samples", -1), ("rays", 0), ("rays", -1024),
+    ("features", -1), ("steps", 0), ("steps", -5), ("minutes", float("nan")), ("minutes", float("inf")),
+    ("minutes", 0.0), ("minutes", -1.0), ("lr_grid", float("nan")), ("lr_mlp", 0.0), ("tv_weight", -1.0),
+    ("resolution", 40.5), ("rays", True), ("prune_every", 0), ("checkpoint_every_s", float("nan")),
+    ("grow_at", (0.5, 0.2)), ("grow_at", (1.5,)),
+])
+def test_a_bad_fit_configuration_is_refused_naming_the_field(field, value):
+    changes = {field: value}
+    if field == "minutes":
+        changes["steps"] = None
+    with pytest.raises(InputError, match=rf"FitConfig\.{field}: expected"):
+        dataclasses.replace(SMALL, **changes)  # at construction: before make_pairs does any work
+
+
+def test_a_fit_config_needs_a_budget_and_a_good_one_passes():
+    with pytest.raises(InputError, match="budget"):
+        FitConfig(minutes=None, steps=None)
+    assert FitConfig(minutes=0.5).minutes == 0.5 and SMALL.steps == 240
+    assert dataclasses.replace(SMALL, features=0, resolution=4, samples=2, rays=1).rays == 1
+
+
+def test_real_divergence_is_called_divergence(tmp_path, monkeypatch):
+    from roguefit import fit as fit_module
+    from roguenerf.errors import TrainingDivergedError
+
+    root = tmp_path / "photos"
+    write_photo_set(root, views=5)
+    monkeypatch.setattr(fit_module._Fitter, "train_step", lambda self: float("nan"))
+    with pytest.raises(TrainingDivergedError, match="non-finite training loss"):
+        make_pairs(root, tmp_path / "out", dataclasses.replace(SMALL, steps=3))
+    assert not (tmp_path / "out" / "transforms.json").exists()

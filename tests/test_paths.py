@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -13,8 +14,17 @@ from typer.testing import CliRunner
 
 from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
 from roguenerf.cli import app
-from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform, write_depth_like
-from roguenerf.data.toy import make_toy_scene, make_toy_world, render_toy_view, toy_camera_path
+from roguenerf.data.exports import (
+    DATAPARSER_FILE,
+    DataparserTransform,
+    write_depth_like,
+)
+from roguenerf.data.toy import (
+    make_toy_scene,
+    make_toy_world,
+    render_toy_view,
+    toy_camera_path,
+)
 from roguenerf.errors import InputError, PathCancelled
 from roguenerf.geometry import opencv_to_opengl
 from roguenerf.imageio import write_png
@@ -143,7 +153,7 @@ def test_enhance_path_writes_video_flicker_and_resumes(toy_path, enhancer, tmp_p
     assert again.flicker["flicker"] == pytest.approx(report["flicker"])
     # Another setting into the same folder is refused instead of mixing frames.
     with pytest.raises(InputError, match="another path"):
-        enhance_path(scene, enhancer, cp, root / "frames", out, depth_type="z", video=False)
+        enhance_path(scene, enhancer, cp, root / "frames", out, depth_type="ray", background="max", video=False)
 
 
 def test_enhance_path_cli(toy_path, tmp_path):
@@ -188,3 +198,247 @@ def test_paths_and_exports_import_no_service_stack_no_fitter_no_av():
             "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+# --- issue 38: a path in another space is refused, naming the camera and the likely cause ------------
+
+
+def _transforms_path(file, poses_gl, K, names=None):
+    frames = [{"transform_matrix": p.tolist(), **({"file_path": names[t]} if names else {})}
+              for t, p in enumerate(poses_gl)]
+    file.write_text(json.dumps({"fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]),
+                                "cy": float(K[1, 2]), "w": W, "h": H, "fps": 12, "frames": frames}))
+    return read_camera_path(file)
+
+
+def test_the_right_path_fits_the_scene(toy_path, enhancer):
+    from roguenerf.geometry import ray_to_z_depth
+    from roguenerf.imageio import read_depth
+    from roguenerf.paths import check_camera_path, find_path_frames
+
+    root, scene = toy_path["root"], toy_path["scene"]
+    cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
+    pairs = find_path_frames(root / "frames", len(cp))
+
+    def depth_of(t):
+        return ray_to_z_depth(read_depth(pairs[t][1]).double(), cp.K[t]).float()
+
+    check = check_camera_path(scene, cp, depth_of)
+    assert check.problem is None and check.warning is None and check.lost == [] and check.far == []
+    assert min(check.seen.values()) > 0.3 and check.checked == list(range(len(cp)))
+
+
+def test_a_model_world_path_without_dataparser_transforms_is_refused(toy_path, enhancer, tmp_path):
+    # What the user hit: nerfstudio's camera_path.json (model world: rotated, scaled by 0.5 and
+    # translated) read without dataparser_transforms.json. It used to exit 0 and write the MP4.
+    root, scene = toy_path["root"], toy_path["scene"]
+    cp = read_camera_path(root / "camera_path.json")  # no dataparser
+    with pytest.raises(InputError) as err:
+        enhance_path(scene, enhancer, cp, root / "frames", tmp_path / "out", depth_type="ray", video=False)
+    message = str(err.value)
+    assert "does not fit the scene" in message and "dataparser_transforms.json" in message
+    assert "OpenGL vs OpenCV" in message and "--force" in message
+    assert re.search(r"worst: camera \d+ \(camera_path\[\d+\]\)", message)
+    assert not (tmp_path / "out").exists()  # refused before anything was written
+    # --force goes on, with the problem as a warning.
+    result = enhance_path(scene, enhancer, cp, root / "frames", tmp_path / "out", depth_type="ray", video=False,
+                          force=True)
+    assert result.frames == len(cp) and len(result.warnings) == 1 and "dataparser" in result.warnings[0]
+
+
+def test_a_path_with_opencv_axes_read_as_opengl_is_refused_and_names_the_axes(toy_path, enhancer, tmp_path):
+    root, scene = toy_path["root"], toy_path["scene"]
+    K = scene.frames[0].K
+    names = [f"frame_{t}.png" for t in range(len(toy_path["poses"]))]
+    right = _transforms_path(tmp_path / "right.json", opencv_to_opengl(toy_path["poses"]), K, names)
+    result = enhance_path(scene, enhancer, right, root / "frames", tmp_path / "ok", depth_type="ray", video=False)
+    assert result.warnings == []
+    wrong = _transforms_path(tmp_path / "wrong.json", toy_path["poses"], K, names)  # OpenCV written as-is
+    with pytest.raises(InputError, match=r"worst: camera \d+ \(frames\[\d+\] \(frame_\d+\.png\)\)") as err:
+        enhance_path(scene, enhancer, wrong, root / "frames", tmp_path / "bad", depth_type="ray", video=False)
+    # The flipped hypothesis fits, so the axes come first among the causes.
+    assert "Likely causes: OpenGL vs OpenCV axes: with the y and z axes flipped" in str(err.value)
+
+
+def test_enhance_path_cli_refuses_a_wrong_space_path_and_force_goes_on(toy_path, tmp_path):
+    root = toy_path["root"]
+    K = toy_path["scene"].frames[0].K
+    _transforms_path(tmp_path / "wrong.json", toy_path["poses"], K)
+    args = ["enhance-path", str(root / "scene"), "--frames", str(root / "frames"), "--cameras",
+            str(tmp_path / "wrong.json"), "--output", str(tmp_path / "cli"), "--depth-type", "ray", "--no-video"]
+    refused = CliRunner().invoke(app, args)
+    assert refused.exit_code == 2 and "does not fit the scene" in refused.output
+    assert "Traceback" not in refused.output
+    forced = CliRunner().invoke(app, [*args, "--force"])
+    assert forced.exit_code == 0, forced.output
+    assert "warning: " in forced.output and "OpenGL vs OpenCV" in forced.output
+
+
+# --- issue 38: one pose validation (smooth_path, camera paths) ------------------------------------
+
+
+def _key_poses():
+    keys = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+    keys[:, 0, 3] = torch.tensor([0.0, 1.0, 2.0])
+    return keys
+
+
+@pytest.mark.parametrize("breakage, message", [
+    ("nan", r"key_poses\[1\]: expected a finite"),
+    ("inf", r"key_poses\[1\]: expected a finite"),
+    ("reflected", r"key_poses\[1\]: expected a proper rotation \(det \+1\), got det -1"),
+    ("scaled", r"key_poses\[1\]: expected an orthonormal rotation .*scaled"),
+    ("bottom", r"key_poses\[1\]: expected bottom row"),
+])
+def test_smooth_path_refuses_bad_key_poses(breakage, message):
+    keys = _key_poses()
+    if breakage == "nan":
+        keys[1, 0, 0] = float("nan")
+    elif breakage == "inf":
+        keys[1, 2, 3] = float("inf")
+    elif breakage == "reflected":
+        keys[1, :3, 2] *= -1
+    elif breakage == "scaled":
+        keys[1, :3, :3] *= 2.0
+    else:
+        keys[1, 3, 0] = 0.5
+    with pytest.raises(InputError, match=message):
+        smooth_path(keys, 4)
+
+
+def test_smooth_path_takes_3x4_keys_like_4x4():
+    keys = _key_poses()
+    torch.testing.assert_close(smooth_path(keys[:, :3], 4), smooth_path(keys, 4), rtol=0, atol=0)
+    out = smooth_path(keys[:, :3].float(), 2)
+    assert out.shape == (5, 4, 4) and out.dtype == torch.float64
+    torch.testing.assert_close(out[2, :3, 3], torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+    with pytest.raises(InputError, match="steps"):
+        smooth_path(keys, 0)
+
+
+def test_camera_path_errors_name_the_camera(tmp_path):
+    good = np.eye(4)
+    bad = np.eye(4)
+    bad[:3, 0] *= -1  # a reflection
+    file = tmp_path / "t.json"
+    file.write_text(json.dumps({"fl_x": 10, "cx": 2, "cy": 2, "w": 4, "h": 4, "frames": [
+        {"file_path": "a.png", "transform_matrix": good.tolist()},
+        {"file_path": "b.png", "transform_matrix": bad.tolist()}]}))
+    with pytest.raises(InputError, match=r"frames\[1\] \(b\.png\): expected a proper rotation"):
+        read_camera_path(file)
+    nan = np.eye(4)
+    nan[0, 3] = np.nan
+    ns = tmp_path / "c.json"
+    cams = [{"camera_to_world": good.flatten().tolist(), "fov": 50},
+            {"camera_to_world": good.flatten().tolist(), "fov": 50},
+            {"camera_to_world": [x if x == x else "NaN" for x in nan.flatten().tolist()], "fov": 50}]
+    ns.write_text(json.dumps({"render_height": 4, "render_width": 4, "camera_path": cams}))
+    with pytest.raises(InputError, match=r"camera_path\[2\]"):
+        read_camera_path(ns)
+    cams[2] = {"camera_to_world": good.flatten().tolist(), "fov": 200}
+    ns.write_text(json.dumps({"render_height": 4, "render_width": 4, "camera_path": cams}))
+    with pytest.raises(InputError, match=r"camera_path\[2\]\.fov"):
+        read_camera_path(ns)
+    # 3x4 (12 numbers) is a camera too.
+    cams[2] = {"camera_to_world": good[:3].flatten().tolist(), "fov": 50}
+    ns.write_text(json.dumps({"render_height": 4, "render_width": 4, "camera_path": cams}))
+    assert len(read_camera_path(ns)) == 3
+
+
+def test_side_by_side_halves_are_labelled():
+    from roguenerf.video import label_image, side_by_side
+
+    render = torch.full((3, 40, 80), 0.5)
+    enhanced = torch.full((3, 40, 80), 0.25)
+    labelled = label_image(render, "render")
+    box = (labelled - render).abs().amax(0) > 0
+    assert bool(box[:12, :40].any()) and not bool(box[20:].any()) and not bool(box[:, 60:].any())
+    # white text on a dark box: both extremes appear where the label is
+    assert float(labelled[:, :12, :40].max()) > 0.9 and float(labelled[:, :12, :40].min()) == 0.0
+    both = side_by_side(render, enhanced)
+    assert both.shape == (3, 40, 160)
+    torch.testing.assert_close(both[:, :, :80], labelled)
+    torch.testing.assert_close(both[:, :, 80:], label_image(enhanced, "enhanced"))
+    assert not torch.equal(label_image(enhanced, "enhanced")[:, :12, :40], label_image(enhanced, "render")[:, :12, :40])
+
+
+@pytest.mark.parametrize("frame, message", [
+    (torch.full((3, 8, 8), float("nan")), "non-finite"),
+    (torch.zeros(3, 8, 8, dtype=torch.uint8), r"dtype torch.uint8.*x.float\(\) / 255"),
+    (torch.zeros(3, 8, 8, dtype=torch.bool), r"dtype torch.bool"),
+    (torch.zeros(3, 8, 8, dtype=torch.int16), r"dtype torch.int16"),
+    (torch.zeros(8, 8), r"expected shape \(3, H, W\)"),
+    (np.zeros((8, 8, 3), np.uint8), "NumPy array"),
+])
+def test_the_video_writer_follows_the_image_dtype_rule(tmp_path, frame, message):
+    from roguenerf.video import Mp4Writer
+
+    path = tmp_path / "v.mp4"
+    with pytest.raises(InputError, match=message):
+        with Mp4Writer(path, fps=4) as video:
+            video.write(torch.rand(3, 8, 8))
+            video.write(frame)
+    assert not path.exists() and not list(tmp_path.iterdir())  # atomic: nothing left behind
+
+
+@pytest.mark.parametrize("given, stored, frames", [("z", "ray", "frames"), ("ray", "z", "zframes")])
+def test_a_path_depth_type_that_disagrees_with_the_scene_is_refused(toy_path, enhancer, tmp_path, given, stored,
+                                                                    frames):
+    """The frames' depth against the scene's own z-depth, reprojected: the wrong type is found."""
+    root, scene = toy_path["root"], toy_path["scene"]
+    if frames == "zframes":  # the same frames with z-depth stored
+        (tmp_path / "zframes" / "depth").mkdir(parents=True)
+        for t, pose in enumerate(toy_path["poses"]):
+            _, z = render_toy_view(make_toy_world(SEED), pose, scene.frames[0].K, H, W)
+            write_depth_like(tmp_path / "zframes" / "depth" / f"frame_{t}.npy", z[0].numpy(), kind="npy")
+        import shutil
+
+        shutil.copytree(root / "frames" / "rgb", tmp_path / "zframes" / "rgb")
+        folder = tmp_path / "zframes"
+    else:
+        folder = root / "frames"
+    cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
+    with pytest.raises(InputError, match=rf"look like .* not --depth-type {given}.*Likely fix: --depth-type {stored}"):
+        enhance_path(scene, enhancer, cp, folder, tmp_path / "out", depth_type=given, video=False)
+    assert not (tmp_path / "out").exists()
+    ok = enhance_path(scene, enhancer, cp, folder, tmp_path / "ok", depth_type=stored, video=False)
+    assert ok.warnings == [] and ok.frames == len(cp)
+
+
+@pytest.mark.parametrize("scale, shift", [(0.3, (0.5, -0.2, 0.1)), (0.8, (0.0, 0.0, 0.0)), (0.5, (1.0, 0.0, 0.0))])
+def test_a_scaled_and_shifted_path_is_refused(toy_path, enhancer, tmp_path, scale, shift):
+    """nerfstudio's usual dataparser transform (no rotation: scale + translation) applied to the
+    path's cameras, the frames rendered where the scene's cameras are: refused, every time."""
+    root, scene = toy_path["root"], toy_path["scene"]
+    parser = DataparserTransform(transform=torch.tensor(
+        [[1.0, 0.0, 0.0, shift[0]], [0.0, 1.0, 0.0, shift[1]], [0.0, 0.0, 1.0, shift[2]]], dtype=torch.float64),
+        scale=scale)
+    K = scene.frames[0].K
+    fov = math.degrees(2 * math.atan(H / 2 / float(K[1, 1])))
+    cams = [{"camera_to_world": parser.to_model(opencv_to_opengl(p)).flatten().tolist(), "fov": fov}
+            for p in toy_path["poses"]]
+    (tmp_path / "cp.json").write_text(json.dumps({"render_height": H, "render_width": W, "camera_path": cams}))
+    with pytest.raises(InputError, match="does not fit the scene.*dataparser_transforms.json"):
+        enhance_path(scene, enhancer, read_camera_path(tmp_path / "cp.json"), root / "frames", tmp_path / "out",
+                     depth_type="ray", video=False)
+    # With the transform, the same file is the right path.
+    right = read_camera_path(tmp_path / "cp.json", dataparser=parser)
+    torch.testing.assert_close(right.world_from_cam, toy_path["poses"], rtol=0, atol=1e-9)
+    ok = enhance_path(scene, enhancer, right, root / "frames", tmp_path / "ok", depth_type="ray", video=False)
+    assert ok.warnings == []
+
+
+def test_a_far_path_without_depth_to_tell_is_refused_naming_the_camera(toy_path):
+    from roguenerf.paths import FAR_FACTOR, check_camera_path
+
+    scene = toy_path["scene"]
+    poses = toy_path["poses"].clone()
+    poses[4:, :3, 3] += torch.tensor([100.0, 0.0, 0.0], dtype=torch.float64)  # the last three cameras
+    cp = read_camera_path(toy_path["root"] / "camera_path.json", dataparser=PARSER)
+    cp.world_from_cam = poses
+    empty = torch.zeros(1, H, W)  # no known depth: only the distance can tell
+    check = check_camera_path(scene, cp, lambda t: empty)
+    assert check.far == [4, 5, 6] and check.worst == 6 and check.lost == []
+    assert all(check.distance[t] > FAR_FACTOR for t in check.far)
+    assert check.problem.startswith("the camera path does not fit the scene: 3 of 7 checked cameras are far")
+    assert "worst: camera 6 (camera_path[6]) lies" in check.problem

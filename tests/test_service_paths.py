@@ -45,7 +45,8 @@ def setup(tmp_path_factory):
                    "data": settings.data_dir}
 
 
-def path_zip(scene, *, frames_per_segment=2, drop_camera=False, drop_frame=False) -> tuple[bytes, int]:
+def path_zip(scene, *, frames_per_segment=2, drop_camera=False, drop_frame=False,
+             opencv_axes=False) -> tuple[bytes, int]:
     """A nerfstudio camera_path.json through three scene views plus rgb/ and depth/ per frame."""
     world = make_toy_world(SEED)
     poses = smooth_path(scene.poses([0, 1, 2]), frames_per_segment)
@@ -59,7 +60,8 @@ def path_zip(scene, *, frames_per_segment=2, drop_camera=False, drop_frame=False
             if not (drop_frame and t == 1):
                 zf.writestr(f"rgb/{t:04d}.png", encode_png((rgb * 0.9).clamp(0, 1)))
             zf.writestr(f"depth/{t:04d}.npy", encode_npy(depth[0].numpy()))
-            cams.append({"camera_to_world": opencv_to_opengl(pose).flatten().tolist(), "fov": fov, "aspect": W / H})
+            gl = pose if opencv_axes else opencv_to_opengl(pose)  # opencv_axes: the user's axis mix-up
+            cams.append({"camera_to_world": gl.flatten().tolist(), "fov": fov, "aspect": W / H})
         if not drop_camera:
             zf.writestr("camera_path.json", json.dumps({"render_height": H, "render_width": W, "fps": 10,
                                                         "camera_path": cams}))
@@ -109,6 +111,19 @@ def test_path_job_round_trip(setup, tmp_path):
     report = client.get(f"/jobs/{job['id']}/result", params={"what": "flicker"}).json()
     assert len(report["per_pair"]) == frames - 1
     assert client.get(f"/jobs/{job['id']}/result", params={"what": "nope"}).status_code == 422
+
+
+def test_a_path_job_in_the_wrong_axes_fails_saying_why(setup):
+    """The library's camera-path check reaches the service's path jobs (issue 38)."""
+    client, scene_id = setup["client"], setup["scene_id"]
+    archive, _frames = path_zip(setup["scene"], opencv_axes=True)
+    r = post_path(client, scene_id, archive)
+    assert r.status_code == 202, r.text
+    assert run_job(setup["ctx"], r.json()["id"]) == "failed"
+    job = client.get(f"/jobs/{r.json()['id']}").json()
+    assert job["error"]["code"] == "invalid_input", job
+    assert "does not fit the scene" in job["error"]["message"] and "OpenGL vs OpenCV" in job["error"]["message"]
+    assert "worst: camera" in job["error"]["message"]
 
 
 @pytest.mark.parametrize("case", ["no_camera", "missing_frame", "not_zip", "bad_quality", "unknown_scene"])

@@ -27,7 +27,9 @@ time (bounded memory), ``transforms.json`` last.
 from __future__ import annotations
 
 import json
+import logging
 import math
+import os
 import re
 import shutil
 from dataclasses import dataclass
@@ -45,6 +47,7 @@ RGB_FOLDERS = ("rgb", "renders", "render")
 DEPTH_FOLDERS = ("raw-depth", "depth", "depths", "raw-expected_depth", "expected_depth")
 SPLIT_FOLDERS = {"train": "train", "test": "test", "val": "test", "eval": "test"}
 TOOLS = ("nerfstudio", "gsplat")
+log = logging.getLogger("roguenerf.exports")
 DATAPARSER_FILE = "dataparser_transforms.json"
 """Name of nerfstudio's dataparser file, next to the checkpoint and in our scene folder."""
 
@@ -153,6 +156,13 @@ def find_render_files(renders: str | Path) -> dict[str, tuple[Path, Path, str | 
     Layouts: nerfstudio's ``<split>/rgb/`` + ``<split>/raw-depth/`` (split from the folder,
     ``val`` counts as test), or flat ``rgb/`` + ``depth/`` (split from the dataset).
     """
+    return _render_inventory(renders)[0]
+
+
+def _render_inventory(renders: str | Path) -> tuple[dict[str, tuple[Path, Path, str | None]],
+                                                     dict[str, tuple[Path, Path]], list[Path]]:
+    """``(complete, half, depth_dirs)``: views with both files; views with only one of them
+    (name -> (the file found, where the missing one was expected)); the depth folders searched."""
     renders = Path(renders)
     if not renders.is_dir():
         raise InputError(f"renders folder {renders} does not exist or is not a folder")
@@ -163,6 +173,8 @@ def find_render_files(renders: str | Path) -> dict[str, tuple[Path, Path, str | 
     if not groups:
         groups = [(renders, None)]
     out: dict[str, tuple[Path, Path, str | None]] = {}
+    half: dict[str, tuple[Path, Path]] = {}
+    depth_dirs = []
     for folder, split in groups:
         rgb_dir, depth_dir = _pick(folder, RGB_FOLDERS), _pick(folder, DEPTH_FOLDERS)
         if rgb_dir is None or depth_dir is None:
@@ -170,11 +182,20 @@ def find_render_files(renders: str | Path) -> dict[str, tuple[Path, Path, str | 
                 f"{folder}: expected a render folder ({' / '.join(RGB_FOLDERS)}) and a depth folder "
                 f"({' / '.join(DEPTH_FOLDERS)}), e.g. from `ns-render dataset --rendered-output-names "
                 "rgb raw-depth`")
+        depth_dirs.append(depth_dir)
         rgbs, depths = _index(rgb_dir, IMAGE_SUFFIXES), _index(depth_dir, DEPTH_SUFFIXES)
+        depth_suffix = next((_file_key(p)[1] for p in depths.values()), ".npy.gz")
         for stem, rgb in rgbs.items():
             if stem in depths:
                 out.setdefault(stem, (rgb, depths[stem], split))
-    return out
+            else:
+                half.setdefault(stem, (rgb, depth_dir / f"{stem}{depth_suffix}"))
+        for stem, depth in depths.items():
+            if stem not in rgbs:
+                half.setdefault(stem, (depth, rgb_dir / f"{stem}.png"))
+    for stem in out:
+        half.pop(stem, None)
+    return out, half, depth_dirs
 
 
 INRIA_ITERATION = re.compile(r"^ours_(\d+)$")
@@ -292,6 +313,8 @@ def import_renders(
     test_every: int | None = None,
     split_file: str | Path | None = None,
     progress=None,
+    skip_missing: bool = False,
+    check_depth: bool = True,
 ):
     """Write a scene folder from a dataset (poses + photos) and a tool's renders.
 
@@ -302,7 +325,9 @@ def import_renders(
         renders: the tool's output: named by view (see :func:`find_render_files`), or Inria's
             numbered ``<split>/ours_<iter>/renders/`` with a depth folder beside it (see
             :func:`find_indexed_renders`).
-        output: the scene folder to write (created; files of the same name are replaced).
+        output: the scene folder to write: new, empty, or an earlier import (replaced whole).
+            Written atomically: built in a temporary sibling folder, renamed at the end; a failed
+            import leaves no folder.
         tool: ``"nerfstudio"`` or ``"gsplat"``; picks the defaults below.
         depth_type: ``"ray"`` (nerfacto, gsplat ``ED``) or ``"z"`` (splatfacto, gsplat
             ``RGB+ED``); default ray for nerfstudio, z for gsplat.
@@ -322,12 +347,15 @@ def import_renders(
         split_file: test-view names (JSON ``{"train": [...], "test": [...]}`` or one name per
             line, as Inria's ``sparse/0/test.txt``); wins over ``test_every``.
         progress: ``callback(done, total)`` per view.
+        skip_missing: import the views that have both files and skip (with a warning) those
+            missing their render or depth; otherwise a missing file is an InputError naming it.
+        check_depth: refuse a ``depth_type`` that disagrees with the depths themselves
+            (:func:`check_depth_type`: neighbouring views' depths must agree under it).
     Returns:
-        The written scene, loaded (:func:`~roguenerf.data.readers.load_scene`).
+        The written scene, loaded (:func:`~roguenerf.data.readers.load_scene`);
+        ``scene.meta["skipped_views"]`` lists the views skipped.
     """
     from roguenerf.data.readers import load_scene
-    from roguenerf.geometry.cameras import opencv_to_opengl, ray_to_z_depth, scale_intrinsics
-    from roguenerf.imageio import atomic_write, encode_npy, read_depth, read_image_size
 
     if tool not in TOOLS:
         raise InputError(f"tool: expected one of {', '.join(TOOLS)}, got {tool!r}")
@@ -366,15 +394,329 @@ def import_renders(
                                                             split_file=split_file), strict=True):
             frame.split = split
     if indexed is not None:
-        found = _match_indexed(indexed, source, renders)
+        found, half = _match_indexed(indexed, source, renders), {}
     else:
-        found = find_render_files(renders)
+        found, half, _ = _render_inventory(renders)
     frames = [f for f in source.frames if f.name in found]
     if not frames:
         some = ", ".join(sorted(found)[:3]) or "none"
         raise InputError(f"no render of {renders} matches a view of {dataset} by name "
                          f"(views: {', '.join(f.name for f in source.frames[:3])}, ...; renders: {some})")
-    output = Path(output)
+    missing = []  # (view, what is missing)
+    for f in source.frames:
+        if f.name in found:
+            continue
+        if f.name in half:
+            missing.append((f.name, str(half[f.name][1])))
+        else:
+            missing.append((f.name, f"its render and depth (no {f.name}.* under {renders})"))
+    if missing and not skip_missing:
+        listed = "; ".join(f"{name}: {what}" for name, what in missing[:5])
+        more = f" (and {len(missing) - 5} more)" if len(missing) > 5 else ""
+        raise InputError(f"{len(missing)} of {len(source.frames)} views of {dataset} lack a file: missing "
+                         f"{listed}{more}. Render them, or pass --skip-missing (skip_missing=True) to "
+                         "import the others without them")
+    if missing:
+        log.warning("skipped %d views without a render or depth: %s", len(missing),
+                    ", ".join(name for name, _ in missing))
+    if check_depth:
+        # Multi-view consistency: the depth type given must make neighbouring views agree.
+        check = check_depth_type(_depth_type_views(source, frames, found, depth_scale, background))
+        problem = depth_type_problem(check, depth_type, "the depths", "neighbouring views")
+        if problem is not None:
+            raise InputError(f"{problem}; to import them as given anyway: --force (check_depth=False)")
+    final = Path(output)
+    _check_output(final)
+    # Built in a temporary sibling folder and renamed at the end: a failed import (a bad depth
+    # file half-way) leaves no half-written scene folder behind.
+    output = final.parent / f".{final.name}.importing-{os.getpid()}"
+    shutil.rmtree(output, ignore_errors=True)
+    try:
+        scene = _write_import(source, frames, found, output, tool=tool, dataset=dataset, renders=renders,
+                              depth_type=depth_type, depth_scale=depth_scale, background=background,
+                              parser=parser, skipped=[name for name, _ in missing], progress=progress)
+        _replace_folder(output, final)
+    except BaseException:
+        shutil.rmtree(output, ignore_errors=True)
+        raise
+    scene = load_scene(final)
+    scene.meta["skipped_views"] = [name for name, _ in missing]
+    return scene
+
+
+DEPTH_TYPE_PIXELS = 4000
+"""Pixels per view that :func:`check_depth_type` reprojects into the view's neighbour."""
+DEPTH_TYPE_VIEWS = 6
+"""Views (each paired with its nearest view by position) :func:`check_depth_type` looks at."""
+
+
+@dataclass
+class DepthTypeCheck:
+    """Multi-view consistency of a depth type (:func:`check_depth_type`)."""
+
+    errors: dict
+    """``{"z": e_z, "ray": e_ray}``: median ``|z_reprojected - z_neighbour| / z_neighbour``."""
+    pixels: int
+    likely: str | None
+    """``"z"`` / ``"ray"`` when the data clearly side with one hypothesis, else None (inconclusive)."""
+    beta: float = float("nan")
+    """The fitted share of the predicted ray-distance error in the z hypothesis' residuals: ~0 for
+    z-depth, ~1 for ray distance (see :func:`check_depth_type`)."""
+    beta_se: float = float("nan")
+    """Its standard error."""
+
+
+def _sample_depth(depth: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    """Bilinear depth at continuous pixel coordinates (pixel centres at +0.5) and whether all four
+    taps are known."""
+    from roguenerf.geometry import known_depth_mask
+
+    h, w = depth.shape[-2:]
+    known = known_depth_mask(depth).to(torch.float64)
+    d = torch.where(known > 0, depth.to(torch.float64), 0.0)
+    grid = torch.stack([2 * u / w - 1, 2 * v / h - 1], -1)[None, None]
+    stack = torch.cat([d.reshape(1, 1, h, w), known.reshape(1, 1, h, w)], 1)
+    out = torch.nn.functional.grid_sample(stack, grid, mode="bilinear", padding_mode="zeros",
+                                          align_corners=False)[0, :, 0]
+    return out[0], out[1] > 1 - 1e-9
+
+
+def depth_residuals(z_a: Tensor, K_a: Tensor, pose_a: Tensor, z_b: Tensor, K_b: Tensor, pose_b: Tensor,
+                    pick: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Signed relative residuals ``(z - z_b(u', v')) / z_b`` of view a's pixels ``pick`` (flat
+    indices) lifted with z-depth ``z_a`` ``(1, H, W)`` and projected into view b, where they are
+    valid (in front, inside b, b's bilinear z-depth known at all four taps), the points' depth
+    ``z`` in b and the ray-length factor ``sqrt(1 + x^2 + y^2)`` of b at ``(u', v')``."""
+    K_a, K_b = K_a.to(torch.float64), K_b.to(torch.float64)
+    pose_a, pose_b = pose_a.to(torch.float64), pose_b.to(torch.float64)
+    w = z_a.shape[-1]
+    v = (pick // w).to(torch.float64) + 0.5
+    u = (pick % w).to(torch.float64) + 0.5
+    y = (v - K_a[1, 2]) / K_a[1, 1]
+    x = (u - K_a[0, 2] - K_a[0, 1] * y) / K_a[0, 0]
+    rays = torch.stack([x, y, torch.ones_like(x)], -1)
+    points = (rays * z_a.double().reshape(-1)[pick, None]) @ pose_a[:3, :3].T + pose_a[:3, 3]
+    cam = (points - pose_b[:3, 3]) @ pose_b[:3, :3]
+    z = cam[:, 2]
+    front = z > 1e-9
+    zs = torch.where(front, z, torch.ones_like(z))
+    ub = K_b[0, 0] * cam[:, 0] / zs + K_b[0, 1] * cam[:, 1] / zs + K_b[0, 2]
+    vb = K_b[1, 1] * cam[:, 1] / zs + K_b[1, 2]
+    hb, wb = z_b.shape[-2:]
+    d, ok = _sample_depth(z_b.reshape(hb, wb), ub, vb)
+    ok = ok & front & (ub >= 0.5) & (ub <= wb - 0.5) & (vb >= 0.5) & (vb <= hb - 0.5)
+    yb = (vb - K_b[1, 2]) / K_b[1, 1]
+    xb = (ub - K_b[0, 2] - K_b[0, 1] * yb) / K_b[0, 0]
+    return (z - d) / torch.where(ok, d, torch.ones_like(d)), ok, z, torch.sqrt(xb * xb + yb * yb + 1)
+
+
+def _ray_factor(K: Tensor, pick: Tensor, w: int) -> Tensor:
+    K = K.to(torch.float64)
+    y = ((pick // w).to(torch.float64) + 0.5 - K[1, 2]) / K[1, 1]
+    x = ((pick % w).to(torch.float64) + 0.5 - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    return torch.sqrt(x * x + y * y + 1)
+
+
+def _known_pick(depth: Tensor, generator: torch.Generator, pixels: int) -> Tensor:
+    from roguenerf.geometry import known_depth_mask
+
+    known = known_depth_mask(depth).reshape(-1).nonzero()[:, 0]
+    return known[torch.randperm(known.numel(), generator=generator)[:pixels]]
+
+
+def _pair_residuals(raw_a: Tensor, K_a: Tensor, pose_a: Tensor, raw_b: Tensor, K_b: Tensor, pose_b: Tensor,
+                    generator: torch.Generator, pixels: int, *,
+                    b_is_z: bool = False) -> tuple[Tensor, Tensor, Tensor]:
+    """Paired residuals ``(r_z, r_ray)`` of view a's depth reprojected into view b, on the pixels
+    valid under both hypotheses (``b_is_z``: view b holds z-depth whatever a holds), and ``g``:
+    what ``r_z`` would be for noise-free ray distances (``n_a / n_b - 1``, or ``n_a - 1`` with
+    ``b_is_z``; ``n`` the ray-length factor at the pixel in each view; 0 for z-depth)."""
+    from roguenerf.geometry.cameras import ray_to_z_depth
+
+    pick = _known_pick(raw_a, generator, pixels)
+    out, valid = [], None
+    for kind in ("z", "ray"):
+        za = raw_a.double() if kind == "z" else ray_to_z_depth(raw_a.double(), K_a)
+        zb = raw_b.double() if kind == "z" or b_is_z else ray_to_z_depth(raw_b.double(), K_b)
+        r, ok, z_in_b, n_b = depth_residuals(za, K_a, pose_a, zb, K_b, pose_b, pick)
+        out.append(r)
+        valid = ok if valid is None else valid & ok
+    # Ray distances taken as z put each point n_a times as far from camera a: its depth in b
+    # becomes c + n_a (z_in_b - c), c = camera a's own depth in b; b's stored value is
+    # n_b z_in_b (ray) or z_in_b (b_is_z). n_b from the ray hypothesis (the last one); z_in_b
+    # replaced by its median, so that no pixel's depth noise enters the prediction (it would
+    # correlate with that pixel's residual and bias the fit).
+    pose_a, pose_b = pose_a.to(torch.float64), pose_b.to(torch.float64)
+    c = float(((pose_a[:3, 3] - pose_b[:3, 3]) @ pose_b[:3, :3])[2])
+    n_a = _ray_factor(K_a, pick, raw_a.shape[-1])
+    z_typ = float(z_in_b[valid].median()) if bool(valid.any()) else 1.0
+    g = (c + n_a * (z_typ - c)) / ((1.0 if b_is_z else n_b) * z_typ) - 1
+    return out[0][valid], out[1][valid], g[valid]
+
+
+DEPTH_TYPE_OUTLIER = 0.1
+"""Pixels whose residual exceeds this (relative) under either hypothesis are left out of the fit
+(occlusions, depth edges, floaters)."""
+
+
+def check_depth_type(views, *, pixels: int = DEPTH_TYPE_PIXELS, seed: int = 0, b_is_z: bool = False) -> DepthTypeCheck:
+    """Which depth type (z along the optical axis, or distance along the ray) makes the depths of
+    neighbouring views agree? A cheap multi-view test: a few hundred pixels of each view are
+    lifted to 3-D with its depth under each hypothesis and projected into the neighbour, whose
+    depth (same hypothesis) must agree.
+
+    Two tests. The medians of ``|r_z|`` and ``|r_ray|`` (relative residuals): the right type
+    agrees to the depth's own accuracy, the wrong one is off by the change of the ray-length
+    factor ``n = sqrt(1 + x^2 + y^2)`` between the views. Where depth noise hides that in the
+    medians, its signature still shows: ray distances read as z would give each pixel the residual
+    ``g`` (from ``n`` in both views and the baseline alone, no depth noise), so the z hypothesis'
+    residuals are fitted as ``r_z = c + beta * g + noise`` (least squares, outliers beyond
+    :data:`DEPTH_TYPE_OUTLIER` left out): ``beta`` is ~0 for z-depth and ~1 for ray distance, with a
+    standard error that shrinks with the pixels.
+
+    Args:
+        views: pairs ``((raw_a, K_a, pose_a), (raw_b, K_b, pose_b))``: stored depth ``(1, H, W)``
+            (unknown where :func:`~roguenerf.geometry.known_depth_mask` says so), ``(3, 3)``
+            intrinsics, ``(4, 4)`` OpenCV camera-to-world.
+        b_is_z: the second view of each pair holds z-depth whatever the hypothesis (a scene's
+            training view, against which a camera path's frames are checked).
+    Returns:
+        :class:`DepthTypeCheck`: ``likely`` is set when ``beta`` is within 0.3 of one answer,
+        at least 0.7 from the other, with a standard error under 0.1, or when one hypothesis'
+        median ``|r|`` is under a third of the other's (which exceeds 0.3 %), and the two tests do
+        not disagree (at least 50 pixels). On the toy scenes (exact depth, 58 deg field of view)
+        both tests decide; on ``../shared/data/lego`` (a grid field's depth, 2 % noise, 40 deg) the
+        fit finds ray distances (beta 0.87 +- 0.10) and leaves its true z-depth undecided (beta
+        -2.2: the field's position-dependent depth error is as large as the z-vs-ray difference);
+        undecided never refuses.
+    """
+    generator = torch.Generator().manual_seed(seed)
+    rz, rr, gs = [], [], []
+    for a, b in views:
+        z_res, ray_res, g = _pair_residuals(*a, *b, generator, pixels, b_is_z=b_is_z)
+        rz.append(z_res)
+        rr.append(ray_res)
+        gs.append(g)
+    empty = torch.empty(0, dtype=torch.float64)
+    r_z = torch.cat(rz) if rz else empty
+    r_ray = torch.cat(rr) if rr else empty
+    g_all = torch.cat(gs) if gs else empty
+    errors = {"z": float(r_z.abs().median()) if r_z.numel() else float("nan"),
+              "ray": float(r_ray.abs().median()) if r_ray.numel() else float("nan")}
+    inliers = (r_z.abs() < DEPTH_TYPE_OUTLIER) & (r_ray.abs() < DEPTH_TYPE_OUTLIER)
+    r, pred = r_z[inliers], g_all[inliers]
+    n = int(r.numel())
+    beta = se = float("nan")
+    if n >= 50:
+        dc = pred - pred.mean()
+        sxx = float((dc * dc).sum())
+        if sxx > 0:
+            beta = float((dc * (r - r.mean())).sum()) / sxx
+            resid = (r - r.mean()) - beta * dc
+            se = math.sqrt(float((resid * resid).sum()) / max(n - 2, 1) / sxx)
+    by_fit = None
+    if math.isfinite(beta) and math.isfinite(se) and se < 0.1:
+        if abs(beta) < 0.3 and abs(beta - 1) > 0.7:
+            by_fit = "z"
+        elif abs(beta - 1) < 0.3 and abs(beta) > 0.7:
+            by_fit = "ray"
+    by_median = None
+    if n >= 50 and all(math.isfinite(e) for e in errors.values()):
+        if errors["z"] * 3 < errors["ray"] and errors["ray"] > 3e-3:
+            by_median = "z"
+        elif errors["ray"] * 3 < errors["z"] and errors["z"] > 3e-3:
+            by_median = "ray"
+    # Either test may decide (the medians where the depth is accurate, the fit where noise hides
+    # the difference in the medians); when they disagree, nothing is concluded.
+    votes = {v for v in (by_fit, by_median) if v is not None}
+    likely = votes.pop() if len(votes) == 1 else None
+    return DepthTypeCheck(errors=errors, pixels=n, likely=likely, beta=beta, beta_se=se)
+
+
+def depth_type_problem(check: DepthTypeCheck, given: str, what: str, between: str) -> str | None:
+    """The message for a ``given`` depth type that :func:`check_depth_type` finds wrong, else None."""
+    if check.likely is None or check.likely == given:
+        return None
+    other = check.likely
+    looks = "z-depth (along the optical axis)" if other == "z" else "distance along the ray"
+    return (f"{what} look like {looks}, not --depth-type {given}: reprojected between {between} they "
+            f"disagree by a median {100 * check.errors[given]:.2f}% as {given}, {100 * check.errors[other]:.2f}% "
+            f"as {other} (fit of the ray-distance signature {check.beta:+.2f} +- {check.beta_se:.2f}: 0 for z, "
+            f"1 for ray; {check.pixels} pixels). Likely fix: --depth-type {other} (depth_type={other!r})")
+
+
+def _depth_type_views(source, frames, found, depth_scale: float, background: str, count: int = DEPTH_TYPE_VIEWS):
+    """Pairs for :func:`check_depth_type`: up to ``count`` views, each with its nearest by position."""
+    from roguenerf.geometry.cameras import scale_intrinsics
+    from roguenerf.imageio import read_depth, read_image_size
+
+    cache: dict[str, tuple[Tensor, Tensor, Tensor]] = {}
+
+    def view(frame):
+        if frame.name not in cache:
+            rgb_path, depth_path, _ = found[frame.name]
+            width, height = read_image_size(rgb_path)
+            K = scale_intrinsics(frame.K, width / frame.width, height / frame.height)
+            depth = read_depth(depth_path, scale=float(depth_scale)).double()
+            if tuple(depth.shape[1:]) != (height, width):
+                raise SceneFormatError(depth_path, f"depth is {depth.shape[2]}x{depth.shape[1]}, its render "
+                                                   f"{rgb_path.name} is {width}x{height}")
+            cache[frame.name] = (background_to_unknown(depth, background), K, frame.world_from_cam)
+        return cache[frame.name]
+
+    if len(frames) < 2:
+        return []
+    positions = torch.stack([f.world_from_cam[:3, 3].to(torch.float64) for f in frames])
+    chosen = sorted({round(k * (len(frames) - 1) / max(count - 1, 1)) for k in range(min(count, len(frames)))})
+    pairs = []
+    for i in chosen:
+        dist = (positions - positions[i]).norm(dim=-1)
+        dist[i] = float("inf")
+        j = int(dist.argmin())
+        pairs.append((view(frames[i]), view(frames[j])))
+    return pairs
+
+
+def _check_output(final: Path) -> None:
+    """The output may be new, empty, or an earlier import (replaced whole); nothing else."""
+    if not final.exists():
+        final.parent.mkdir(parents=True, exist_ok=True)
+        return
+    if not final.is_dir():
+        raise InputError(f"output: {final} exists and is not a folder")
+    if any(final.iterdir()) and not _is_import(final):
+        raise InputError(f"output: {final} exists and is not empty (nor an earlier import, which would be "
+                         "replaced): choose a new folder")
+
+
+def _is_import(folder: Path) -> bool:
+    try:
+        doc = json.loads((folder / "transforms.json").read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return False
+    return isinstance(doc, dict) and isinstance(doc.get("source"), dict) and doc["source"].get("tool") in TOOLS
+
+
+def _replace_folder(new: Path, final: Path) -> None:
+    """Rename ``new`` to ``final``; an earlier import there is swapped out, then deleted."""
+    if final.is_dir() and not any(final.iterdir()):
+        final.rmdir()
+    if final.exists():
+        old = final.parent / f".{final.name}.replaced-{os.getpid()}"
+        os.replace(final, old)
+        os.replace(new, final)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(new, final)
+
+
+def _write_import(source, frames, found, output: Path, *, tool, dataset, renders, depth_type, depth_scale,
+                  background, parser, skipped, progress):
+    """Write the scene folder ``output`` (the temporary one) view by view, transforms.json last."""
+    from roguenerf.data.readers import load_scene
+    from roguenerf.geometry.cameras import opencv_to_opengl, ray_to_z_depth, scale_intrinsics
+    from roguenerf.imageio import atomic_write, encode_npy, read_depth, read_image_size
+
     for sub in ("images", "renders", "depths"):
         (output / sub).mkdir(parents=True, exist_ok=True)
     dataset_root = source.root
@@ -413,11 +755,11 @@ def import_renders(
     doc = {
         "camera_model": "OPENCV",
         "source": {"tool": tool, "dataset": str(dataset), "renders": str(renders), "depth_type": depth_type,
-                   "background": background, "skipped_views": len(source.frames) - len(frames)},
+                   "background": background, "skipped_views": len(skipped), "skipped": skipped},
         "frames": out_frames,
     }
     atomic_write(output / "transforms.json", json.dumps(doc, indent=1).encode())
-    return load_scene(output)
+    return load_scene(output)  # it loads (every file is there and readable) before it is renamed
 
 
 def _match_indexed(indexed: dict[str, list[tuple[Path, Path]]], source, renders) -> dict:

@@ -241,7 +241,17 @@ def _int(json_path: Path, value, where: str) -> int:
 
 def _resolve_path(root: Path, relative: str) -> Path:
     path = Path(relative)
-    return path if path.is_absolute() else root / path
+    path = path if path.is_absolute() else root / path
+    if not path.exists():
+        # A name written decomposed (NFD: macOS) whose file was stored composed (NFC: what the
+        # service's upload writes), or the reverse.
+        import unicodedata
+
+        for form in ("NFC", "NFD"):
+            other = Path(unicodedata.normalize(form, str(path)))
+            if other != path and other.exists():
+                return other
+    return path
 
 
 def _pose(json_path: Path, fj: dict, where: str) -> torch.Tensor:

@@ -274,3 +274,56 @@ def _problem(exc: Exception, path: Path) -> str:
     message = str(exc)
     prefix = f"{path}: "
     return message[len(prefix):] if message.startswith(prefix) else message
+
+
+MIN_KNOWN_DEPTH = 0.01
+"""A view whose depth map has fewer known pixels than this share (the library's one rule,
+:func:`~roguenerf.geometry.depth.known_depth_mask`) is unusable: nothing reprojects from it."""
+
+
+@dataclass(frozen=True)
+class UnusableView:
+    index: int
+    name: str
+    split: str
+    reason: str
+
+    def __str__(self) -> str:
+        return f"{self.name} ({self.split}): {self.reason}"
+
+
+def unusable_views(scene: Scene, *, min_known_depth: float = MIN_KNOWN_DEPTH, progress=None) -> list[UnusableView]:
+    """The views of ``scene`` that cannot serve: a depth map with (almost) no known pixel (all
+    zeros, NaN, negative ...), a blank photo or render (one value everywhere), a file that cannot
+    be read. Training views among them are useless as neighbours and as training targets; test
+    views cannot be enhanced or measured. Reads every view's files once (not cached).
+
+    Returns them in view order (empty when every view is usable); ``progress(done, total)``.
+    """
+    from roguenerf.geometry.depth import known_depth_mask
+
+    out = []
+    for i, frame in enumerate(scene.frames):
+        reasons = []
+        for kind, path in (("depth", frame.depth_path), ("photo", frame.image_path), ("render", frame.render_path)):
+            if path is None:
+                continue
+            try:
+                value = (Scene._load_depth if kind == "depth" else Scene._load_image)(frame, path)
+            except InputError as exc:
+                reasons.append(f"{kind} {path.name} cannot be read ({_problem(exc, path)})")
+                continue
+            if kind == "depth":
+                known = float(known_depth_mask(value).float().mean()) if value.numel() else 0.0
+                if known < min_known_depth:
+                    values = value[torch.isfinite(value)]
+                    what = ("all zeros" if values.numel() == value.numel() and bool((values == 0).all())
+                            else f"{100 * known:.2f}% known pixels")
+                    reasons.append(f"depth has no usable values ({what}; known: finite, > 1e-6 and < 1e10)")
+            elif value.numel() and float(value.amax() - value.amin()) < 1 / 255:
+                reasons.append(f"{kind} is blank (one value everywhere)")
+        if reasons:
+            out.append(UnusableView(index=i, name=frame.name, split=frame.split, reason="; ".join(reasons)))
+        if progress is not None:
+            progress(i + 1, len(scene.frames))
+    return out

@@ -15,6 +15,7 @@ Conventions used everywhere in the library:
 """
 
 from roguenerf.geometry.cameras import (
+    as_world_from_cam,
     check_intrinsics,
     check_pose,
     intrinsics_matrix,
@@ -35,6 +36,7 @@ __all__ = [
     "MAX_DEPTH",
     "Reprojection",
     "angular_distance",
+    "as_world_from_cam",
     "check_intrinsics",
     "check_pose",
     "euler_angles",

@@ -166,6 +166,65 @@ def check_pose(world_from_cam: Tensor, name: str = "pose", tol: float = ORTHONOR
     return out
 
 
+def as_world_from_cam(x, name: str = "world_from_cam", tol: float = ORTHONORMAL_TOL) -> Tensor:
+    """The one validation of camera-to-world poses for every entry that takes them.
+
+    Accepts ``(4, 4)`` / ``(..., 4, 4)`` and ``(3, 4)`` / ``(..., 3, 4)`` (padded with the row
+    ``0 0 0 1``), as a tensor or anything :func:`torch.as_tensor` takes (lists, NumPy; made
+    float64; integer tensors too). Refuses, with :class:`~roguenerf.errors.InputError` naming
+    ``name`` and the index of the first bad pose in a batch: bool/complex dtypes, other shapes,
+    non-finite values, a bottom row other than ``0 0 0 1``, a reflection (det -1: mixed-up axis
+    convention) and a scaled or sheared rotation (``max|R^T R - I| > tol``). Rotations within
+    ``tol`` are re-orthonormalised (:func:`check_pose`); float64 stays float64.
+    """
+    if not isinstance(x, Tensor):
+        try:
+            x = torch.as_tensor(x, dtype=torch.float64)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise InputError(f"{name}: expected a 4x4 or 3x4 matrix of numbers ({exc})") from None
+    if x.dtype == torch.bool or x.is_complex():
+        raise InputError(f"{name}: expected a real-valued pose, got dtype {x.dtype}")
+    if not x.is_floating_point():
+        x = x.to(torch.float64)  # integer poses (an identity written as ints) are exact
+    if x.ndim < 2 or x.shape[-1] != 4 or x.shape[-2] not in (3, 4):
+        raise InputError(f"{name}: expected a 4x4 or 3x4 camera-to-world matrix, shape (..., 4, 4) or "
+                         f"(..., 3, 4), got {tuple(x.shape)}")
+    if x.shape[-2] == 3:
+        bottom = x.new_tensor((0.0, 0.0, 0.0, 1.0)).expand(*x.shape[:-2], 1, 4)
+        x = torch.cat([x, bottom], dim=-2)
+    flat = x.reshape(-1, 4, 4)
+    batched = x.ndim > 2
+
+    def where(i: int) -> str:
+        return f"{name}[{i}]" if batched else name
+
+    finite = torch.isfinite(flat).flatten(1).all(dim=1)
+    if not bool(finite.all()):
+        i = int((~finite).nonzero()[0])
+        raise InputError(f"{where(i)}: expected a finite camera-to-world matrix, got non-finite values (NaN or inf)")
+    last = flat[:, 3, :]
+    bad = (last - last.new_tensor((0.0, 0.0, 0.0, 1.0))).abs().amax(dim=1) > 1e-6
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0])
+        raise InputError(f"{where(i)}: expected bottom row (0, 0, 0, 1), got {flat[i, 3].tolist()}")
+    R = flat[:, :3, :3].double()
+    det = torch.linalg.det(R)
+    err = (R.transpose(-1, -2) @ R - torch.eye(3, dtype=R.dtype)).abs().amax(dim=(-2, -1))
+    bad = det <= 0
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0])
+        raise InputError(f"{where(i)}: expected a proper rotation (det +1), got det {float(det[i]):.3g}: a "
+                         "reflection (mixed-up axis convention, e.g. OpenGL vs OpenCV with one axis flipped)")
+    bad = err > tol
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0])
+        scale = float(det[i]) ** (1 / 3)
+        raise InputError(f"{where(i)}: expected an orthonormal rotation (max|R^T R - I| <= {tol:g}), got "
+                         f"{float(err[i]):.3g} (det {float(det[i]):.3g}: a scaled or sheared rotation; "
+                         f"scale {scale:.3g} belongs in the translation and depth, not in R)")
+    return check_pose(x, name, tol)
+
+
 def relative_pose(world_from_a: Tensor, world_from_b: Tensor) -> Tensor:
     """``a_from_b = C_a^-1 C_b`` of two rigid camera-to-world poses, formed in **float64**.
 

@@ -18,7 +18,7 @@ from service.schemas import JobCreate, JobPublic, ScenePage, ScenePublic, SceneU
 from service.state import Services, ServicesDep
 from service.storage import ZipLimits, discard, extract_scene_zip, place, save_upload
 from workers.jobs import ActiveJobExists, IdempotencyMismatch, QueueFull, SceneBusy
-from workers.layout import new_id
+from workers.layout import new_id, public_message
 from workers.queue import QueueUnavailable
 
 log = logging.getLogger("roguenerf.service")
@@ -76,6 +76,10 @@ def _register(services: Services, archive: UploadFile, checkpoint: UploadFile | 
         train = len(scene.indices("train"))
         if train == 0:
             raise ApiError(422, "invalid_scene", "scene has no 'train' views: neighbours come from them")
+        from roguenerf import unusable_views
+
+        warnings = [public_message(f"unusable view {v}", root=tmp / "scene", data_dir=settings.data_dir)
+                    for v in unusable_views(scene)]
         version = 0
         if checkpoint is not None:
             (tmp / "checkpoints").mkdir()
@@ -101,7 +105,9 @@ def _register(services: Services, archive: UploadFile, checkpoint: UploadFile | 
         layout.remove_tree(layout.scene_dir(scene_id))
         raise
     log.info("scene %s (%r) registered: %d views, checkpoint v%d", scene_id, name, len(scene.frames), version)
-    return scene_public(services, row)
+    for warning in warnings:
+        log.warning("scene %s: %s", scene_id, warning)
+    return scene_public(services, row, warnings=warnings)
 
 
 @router.post("", status_code=201, response_model=ScenePublic, summary="Register a zipped scene folder",
