@@ -122,11 +122,13 @@ class FitConfig:
         if self.kind not in FIELD_KINDS:
             raise InputError(f"FitConfig.kind: expected one of {', '.join(FIELD_KINDS)}, got {self.kind!r}")
         if self.kind == "hash":
-            if not (1 <= self.hash_levels <= 32 and 4 <= self.hash_log2_table <= 24 and self.hash_features >= 1
-                    and 1 <= self.hash_base <= self.resolution and 0 <= self.sh_degree <= 3):
-                raise InputError(f"FitConfig.hash_*: bad sizes (levels {self.hash_levels}, log2 table "
-                                 f"{self.hash_log2_table}, features {self.hash_features}, base {self.hash_base}, "
-                                 f"finest {self.resolution}, SH degree {self.sh_degree})")
+            bounds = {"hash_levels": (1, 32), "hash_log2_table": (4, 24), "hash_features": (1, 64),
+                      "hash_base": (1, self.resolution), "sh_degree": (0, 3)}
+            for name, (low, high) in bounds.items():
+                value = getattr(self, name)
+                if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+                    raise InputError(f"FitConfig.{name}: the hash field expects an integer in "
+                                     f"[{low}, {high}], got {value!r}")
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)

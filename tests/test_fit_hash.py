@@ -116,8 +116,10 @@ def test_hash_config_is_checked_and_grid_identities_are_unchanged():
     assert PRESETS["hash"].identity()["kind"] == "hash"
     with pytest.raises(InputError, match="kind"):
         FitConfig(kind="voxels")
-    with pytest.raises(InputError, match="hash field"):
+    with pytest.raises(InputError, match="hash_log2_table.*hash field.*40"):
         FitConfig(kind="hash", hash_log2_table=40)
+    with pytest.raises(InputError, match="hash_base"):
+        FitConfig(kind="hash", resolution=32, hash_base=64)
 
 
 @pytest.fixture(scope="module")
