@@ -1,7 +1,7 @@
 """Time the enhancement of two checkouts of the code alternately, run by run, in one session.
 
     git worktree add /tmp/base <commit>
-    python bench/ab_trees.py /tmp/base . --variant micro --size 378x504 --repeats 15 \
+    python -m bench.ab_trees /tmp/base . --variant micro --size 378x504 --repeats 15 \
         --output bench/results/ab.json
 
 On a shared machine the load drifts between two separate ``bench/stages.py`` runs; here each
@@ -107,5 +107,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     main()

@@ -12,20 +12,17 @@ Rows (each fine-tuned for the same --minutes on lego's training views, evaluated
 Writes CSV + JSON + a markdown table (date, machine, commit; PSNR/SSIM, gain, steps, steps/s
 and inference latency per view side by side).
 
-    .venv/bin/python bench/ablation.py --minutes 10     # about an hour on 2 CPU cores
-    .venv/bin/python bench/ablation.py --quick          # 2 steps per row, 2 test views
+    .venv/bin/python -m bench.ablation --minutes 10     # about an hour on 2 CPU cores
+    .venv/bin/python -m bench.ablation --quick          # 2 steps per row, 2 test views
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench.common import LEGO, RESULTS, scene_metrics, stamp, starting_checkpoint, write_csv, write_json  # noqa: E402
+from bench.common import LEGO, RESULTS, scene_metrics, stamp, starting_checkpoint, write_csv, write_json
 
 ROWS = [
     ("UF", ("neighbours", "alignment", "refinement", "attention"), False),

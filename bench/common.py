@@ -13,7 +13,6 @@ import platform
 import subprocess
 from pathlib import Path
 
-import roguenerf  # noqa: F401  (first: OpenMP's wait policy is set before torch loads)
 import torch
 
 REPO = Path(__file__).resolve().parents[1]

@@ -1,7 +1,7 @@
 """Where a windowed fine-tuning step's time goes: forward + backward of the enhancer with each
 neighbour component switched off in turn, on the same prepared batches, alternating, in one run.
 
-    .venv/bin/python bench/finetune_parts.py --output bench/results/finetune_parts.json [--toy 378x504]
+    .venv/bin/python -m bench.finetune_parts --output bench/results/finetune_parts.json [--toy 378x504]
 
 A toy scene (``make_toy_scene``, forward-facing, 12 training views) at ``--toy`` size; micro,
 64 px crops, batch 4, 5 neighbours, ``neighbour_encoding="window"`` batches (three, reused).
@@ -17,16 +17,13 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench.common import stamp, write_json  # noqa: E402
+from bench.common import stamp, write_json
 
 
 def main(argv=None) -> int:

@@ -1,18 +1,18 @@
 """Fine-tuning throughput on the CPU: training steps/s and target pixels/s against crop and batch,
 for the two ways of encoding the neighbour photos, on one or more scenes, in one run.
 
-    .venv/bin/python bench/finetune_throughput.py --output bench/results/finetune_throughput.csv \
+    .venv/bin/python -m bench.finetune_throughput --output bench/results/finetune_throughput.csv \
         --skip 'T@256x8'
 
     # issue 12: old (whole photos, per-neighbour fusion) vs new (crop windows, batched fusion)
     # at 504x378 and 200x200, one run
-    .venv/bin/python bench/finetune_throughput.py --output bench/results/finetune_batched.csv \
+    .venv/bin/python -m bench.finetune_throughput --output bench/results/finetune_batched.csv \
         --toy 378x504 --toy 200x200 --variants micro --crops 64 --batches 4 --neighbours 5 \
         --encodings whole-loop,whole,window --steps 6 --warmup 1 --rounds 2 --max-seconds 60 \
         --reference toy-200x200
 
     # issue 12, first step (crop windows only): the run of bench/results/finetune_windows.csv
-    .venv/bin/python bench/finetune_throughput.py --output bench/results/finetune_windows.csv \
+    .venv/bin/python -m bench.finetune_throughput --output bench/results/finetune_windows.csv \
         --toy 378x504 --toy 200x200 --scene ../shared/data/lego --variants micro --crops 64 \
         --batches 4 --neighbours 5 --steps 8 --reference toy-200x200
 
@@ -82,12 +82,9 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import roguenerf  # noqa: E402,F401  (first: OpenMP's wait policy is set before torch loads)
-import torch  # noqa: E402
+import torch
 
-from bench.common import LEGO, save_figure, scene_label, stamp, write_csv  # noqa: E402
-
+from bench.common import LEGO, save_figure, scene_label, stamp, write_csv
 
 ENCODINGS = ("whole-loop", "whole", "window", "frozen")
 """Bench labels: ``whole`` and ``window`` are ``TrainConfig.neighbour_encoding``; ``whole-loop``

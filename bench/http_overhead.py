@@ -1,6 +1,6 @@
 """What HTTP ``POST /enhance`` adds to the library call, for one 504 x 378 render.
 
-    python bench/http_overhead.py --output bench/results/http_overhead.csv [--repeats 15]
+    python -m bench.http_overhead --output bench/results/http_overhead.csv [--repeats 15]
                                   [--warmup 2] [--checkpoint PATH] [--no-breakdown]
 
 Writes ``http_overhead.csv`` (one row per quantity: median, quartiles, min, max), ``.json``
@@ -92,12 +92,9 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import torch
 
-import roguenerf  # noqa: E402,F401  (first: OpenMP's wait policy is set before torch loads)
-import torch  # noqa: E402
-
-from bench.common import REPO, RESULTS, stamp, write_csv, write_json  # noqa: E402
+from bench.common import REPO, RESULTS, stamp, write_csv, write_json
 
 HEIGHT, WIDTH = 378, 504
 SCENE_SEED = 3

@@ -1,6 +1,6 @@
 """Does TorchInductor's C++ backend (``torch.compile``) beat the hand-tuned fast path at inference?
 
-    python bench/inductor.py --output bench/results/inductor.csv [--variant micro] [--size 378x504]
+    python -m bench.inductor --output bench/results/inductor.csv [--variant micro] [--size 378x504]
                              [--repeats 7]
 
 Issue 12 asks for the whole enhancement 2x faster without changing its outputs, and
@@ -35,22 +35,18 @@ import argparse
 import contextlib
 import shutil
 import statistics
-import sys
 import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import roguenerf  # noqa: E402,F401  (first: OpenMP's wait policy is set before torch loads)
-import torch  # noqa: E402
+import torch
 
-from bench.common import RESULTS, stamp, write_csv, write_json  # noqa: E402
-from bench.stages import make_inputs, randomise_zero_layers  # noqa: E402
-from roguenerf import runtime  # noqa: E402
-from roguenerf.fastpath import reference_mode  # noqa: E402
-from roguenerf.models import build_enhancer  # noqa: E402
-
+from bench.common import RESULTS, stamp, write_csv, write_json
+from bench.stages import make_inputs, randomise_zero_layers
+from roguenerf import runtime
+from roguenerf.fastpath import reference_mode
+from roguenerf.models import build_enhancer
 
 CONFIGS = ("eager fast", "eager reference", "compiled uformer", "compiled whole", "compiled uformer + freezing",
            "compiled whole + freezing", "onnxruntime uformer")

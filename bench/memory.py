@@ -1,6 +1,6 @@
 """Peak memory (RSS) of enhancing one view, from 504x378 up to 4096x3072.
 
-    python bench/memory.py --output bench/results/memory.csv [--sizes 378x504,1024x1024,3072x4096]
+    python -m bench.memory --output bench/results/memory.csv [--sizes 378x504,1024x1024,3072x4096]
                            [--variants micro,T] [--limit-gb 8]
 
 For each size a toy scene (6 training views, 1 test view; exact geometry) is written to a
@@ -24,9 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench.common import stamp, write_csv  # noqa: E402
+from bench.common import stamp, write_csv
 
 CHILD = r"""
 import json, resource, sys, time

@@ -18,24 +18,20 @@ what a user could measure on their own scene before choosing ``n``).
 Writes ``OUTPUT.csv`` (one row per view and rule, then per scene and ``n``; date, machine and
 commit on every row) and ``OUTPUT.png`` (per scene: mean gain of each rule).
 
-    .venv/bin/python bench/neighbour_choice.py ~/.cache/roguenerf/pairs/mary_rose/coarse \\
+    .venv/bin/python -m bench.neighbour_choice ~/.cache/roguenerf/pairs/mary_rose/coarse \\
         ~/.cache/roguenerf/pairs/dtu_scan37/coarse --output bench/results/neighbour_choice
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import torch
+import torch.nn.functional as F
 
-import roguenerf  # noqa: E402,F401  (first: OpenMP's wait policy is set before torch loads)
-import torch  # noqa: E402
-import torch.nn.functional as F  # noqa: E402
-
-from bench.common import RESULTS, scene_label, stamp, write_outputs  # noqa: E402
-from roguenerf.metrics import psnr  # noqa: E402
+from bench.common import RESULTS, scene_label, stamp, write_outputs
+from roguenerf.metrics import psnr
 
 RULES = ("pair", "pair_agreement", "best_single", "oracle")
 

@@ -10,8 +10,8 @@ have photos (their PSNR gain is a novel-view figure), the frames between them we
 photo. The field (``roguefit.GridField``) renders each frame's RGB and z-depth at the scene's
 downscaled size. Everything is cached in ``--work``: a second run resumes.
 
-    nice -n 15 .venv/bin/python bench/paths.py            # 5 keys x 15 steps = 61 frames
-    nice -n 15 .venv/bin/python bench/paths.py --quick    # 3 keys x 4 steps = 9 frames
+    nice -n 15 .venv/bin/python -m bench.paths            # 5 keys x 15 steps = 61 frames
+    nice -n 15 .venv/bin/python -m bench.paths --quick    # 3 keys x 4 steps = 9 frames
 
 Writes ``bench/results/paths[_quick].csv`` (one row per frame: flicker of the pair ending there,
 PSNR where a photo exists), ``.json`` (means, the stamp) and ``.png`` (per-frame flicker, render vs
@@ -27,12 +27,10 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import torch
+import torch.nn.functional as F
 
-from bench.common import RESULTS, stamp, write_json, write_outputs  # noqa: E402
-
-import torch  # noqa: E402
-import torch.nn.functional as F  # noqa: E402
+from bench.common import RESULTS, stamp, write_json, write_outputs
 
 DEFAULT_FIT = Path.home() / ".cache" / "roguenerf" / "pairs" / "cup" / "coarse"
 
@@ -242,7 +240,7 @@ def main() -> None:
                      "valid_fraction": pair.get("valid_fraction"), "render_psnr": f.get("render_psnr"),
                      "enhanced_psnr": f.get("enhanced_psnr"), "gain_db": f.get("gain_db")})
     fl, ps_ = report["flicker"], report["psnr"]
-    summary = {**base, "command": " ".join(["bench/paths.py", *sys.argv[1:]]),
+    summary = {**base, "command": " ".join(["python -m bench.paths", *sys.argv[1:]]),
                "scene": "toy (exact geometry, Degradation per frame)" if args.toy else str(args.fit),
                "size": f"{width}x{height}", "frames": len(poses), "key_views": [scene.frames[i].name for i in keys],
                "checkpoint": str(checkpoint), "flicker": fl, "psnr": ps_,

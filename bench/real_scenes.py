@@ -28,22 +28,18 @@ after which 5e-4 became the default). Same data, seed and start.
 ``--blends 0.5,0.85`` also evaluates each fine-tune's weights blended with the starting
 checkpoint's (weight-space ensembling, start + a (tuned - start)), with no extra training.
 
-    .venv/bin/python bench/real_scenes.py ~/.cache/roguenerf/pairs/dtu_scan37/fine \\
+    .venv/bin/python -m bench.real_scenes ~/.cache/roguenerf/pairs/dtu_scan37/fine \\
         ~/.cache/roguenerf/pairs/mary_rose/fine --old-checkpoint old.safetensors
-    .venv/bin/python bench/real_scenes.py SCENE --quick      # seconds-long budgets (proves it runs)
+    .venv/bin/python -m bench.real_scenes SCENE --quick      # seconds-long budgets (proves it runs)
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench.common import RESULTS, save_figure, scene_label, stamp, write_outputs  # noqa: E402
-
+from bench.common import RESULTS, save_figure, scene_label, stamp, write_outputs
 
 PLANS = {
     "default": {},

@@ -8,19 +8,16 @@ sharper detail from the neighbours cannot mend pixel by pixel. Also each split's
 render is blurred by a Gaussian of sigma 1 and 2 px (``render_blur``'s degradation) and after a
 per-channel affine colour fit (how much of the error is colour). No model runs; seconds per scene.
 
-    .venv/bin/python bench/render_scales.py ~/.cache/roguenerf/pairs/{dtu_scan37,mary_rose}/{coarse,fine} \\
+    .venv/bin/python -m bench.render_scales ~/.cache/roguenerf/pairs/{dtu_scan37,mary_rose}/{coarse,fine} \\
         ../shared/data/lego --output bench/results/render_scales
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench.common import RESULTS, save_figure, scene_label, stamp, write_outputs  # noqa: E402
+from bench.common import RESULTS, save_figure, scene_label, stamp, write_outputs
 
 POOLS = (1, 2, 4, 8, 16)
 SIGMAS = (1.0, 2.0)

@@ -6,7 +6,7 @@ default checkpoint), fine-tune it for a few steps, open a test view in Compare, 
 camera path (Videos). Takes each screen at 1280x800 and the compare screen at 390x844 too.
 Nothing leaves the machine.
 
-    ./dev python bench/screenshots.py [--out docs/screenshots] [--steps 20] [--size 160x120]
+    ./dev python -m bench.screenshots [--out docs/screenshots] [--steps 20] [--size 160x120]
 """
 
 from __future__ import annotations
@@ -16,11 +16,10 @@ import sys
 import tempfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from tests.browser_helpers import CHROMIUM_ARGS, chromium_path, embedded_server, path_zip, wait_for
+from tests.service_helpers import zip_folder
 
-from tests.browser_helpers import CHROMIUM_ARGS, chromium_path, embedded_server, path_zip, wait_for  # noqa: E402
-from tests.service_helpers import zip_folder  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 KEY = "screenshot-key"
 

@@ -9,20 +9,17 @@ inference latency per view.
 Writes CSV rows (date, machine, commit, sweep, variant, minutes, steps, steps/s, crop, PSNR/SSIM
 of renders and enhanced, gain, latency) and a PNG plot to --output.
 
-    .venv/bin/python bench/speed_vs_error.py             # full (about an hour on 2 CPU cores)
-    .venv/bin/python bench/speed_vs_error.py --quick     # seconds-long budgets, 2 test views
+    .venv/bin/python -m bench.speed_vs_error             # full (about an hour on 2 CPU cores)
+    .venv/bin/python -m bench.speed_vs_error --quick     # seconds-long budgets, 2 test views
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench.common import LEGO, RESULTS, save_figure, scene_metrics, stamp, starting_checkpoint, write_outputs  # noqa: E402
+from bench.common import LEGO, RESULTS, save_figure, scene_metrics, stamp, starting_checkpoint, write_outputs
 
 
 def _floats(text: str) -> list[float]:

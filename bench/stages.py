@@ -1,6 +1,6 @@
 """Per-stage profile of the whole enhancement: time, FLOPs and FLOP efficiency per stage.
 
-    python bench/stages.py --output bench/results/stages.csv [--variants micro,nano,T,S,B]
+    python -m bench.stages --output bench/results/stages.csv [--variants micro,nano,T,S,B]
                             [--sizes 378x504,512x512] [--repeats 3] [--no-reference]
 
 For each variant and size, one enhancement with 5 neighbours whose sampling sources are cached
@@ -43,19 +43,16 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
-import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import roguenerf  # noqa: E402,F401  (first: OpenMP's wait policy is set before torch loads)
-import torch  # noqa: E402
+import torch
 
-from bench.common import stamp, write_csv, write_json  # noqa: E402
-from roguenerf import native, runtime  # noqa: E402
-from roguenerf.fastpath import reference_mode  # noqa: E402
-from roguenerf.models import VARIANTS, NeighbourBatch, Uformer, build_enhancer  # noqa: E402
-from roguenerf.profiling import STAGES, StageProfile  # noqa: E402
+from bench.common import stamp, write_csv, write_json
+from roguenerf import native, runtime
+from roguenerf.fastpath import reference_mode
+from roguenerf.models import VARIANTS, NeighbourBatch, Uformer, build_enhancer
+from roguenerf.profiling import STAGES, StageProfile
 
 NEIGHBOURS = 5
 

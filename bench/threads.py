@@ -1,8 +1,8 @@
 """Process-level settings against enhancement time: threads, OpenMP wait policy, allocator.
 
-    python bench/threads.py --output bench/results/threads.csv [--variant micro] [--size 378x504]
+    python -m bench.threads --output bench/results/threads.csv [--variant micro] [--size 378x504]
                             [--repeats 5] [--trials 1]
-    python bench/threads.py --cli-evaluate ../shared/data/lego --output bench/results/threads_cli.csv
+    python -m bench.threads --cli-evaluate ../shared/data/lego --output bench/results/threads_cli.csv
                             [--trials 2]
 
 ``--cli-evaluate SCENE`` times the whole ``roguenerf evaluate SCENE --json`` command instead (a
@@ -31,9 +31,7 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench.common import stamp, write_csv  # noqa: E402
+from bench.common import stamp, write_csv
 
 CHILD = r"""
 import json, statistics, sys, time

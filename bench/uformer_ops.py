@@ -1,6 +1,6 @@
 """Op-by-op time of one full-resolution Uformer LeWin block (the stage that limits the forward).
 
-    python bench/uformer_ops.py --output bench/results/uformer_ops.csv [--variant T]
+    python -m bench.uformer_ops --output bench/results/uformer_ops.csv [--variant T]
                                 [--size 512x512] [--stage dec3] [--repeats 5]
 
 Times, in isolation and on the inference fast path (``torch.inference_mode``, oneDNN fused
@@ -17,20 +17,17 @@ a PNG bar chart.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import roguenerf  # noqa: E402,F401  (first: OpenMP's wait policy is set before torch loads)
-import torch  # noqa: E402
-import torch.nn.functional as F  # noqa: E402
-from einops import rearrange  # noqa: E402
+import torch
+import torch.nn.functional as F
+from einops import rearrange
 
-from bench.common import stamp, write_csv  # noqa: E402
-from bench.stages import matmul_peak  # noqa: E402
-from roguenerf import runtime  # noqa: E402
-from roguenerf.models import build_enhancer, fastops  # noqa: E402
+from bench.common import stamp, write_csv
+from bench.stages import matmul_peak
+from roguenerf import runtime
+from roguenerf.models import build_enhancer, fastops
 
 
 def best_ms(fn, repeats: int) -> float:

@@ -1,7 +1,7 @@
 """Small fine-tuning jobs per hour with 1 and 2 workers on one Redis queue and one PostgreSQL job
 table, and the failover time after a SIGKILL.
 
-    python bench/workers_throughput.py [--jobs 6] [--steps 40] [--workers 1 2]
+    python -m bench.workers_throughput [--jobs 6] [--steps 40] [--workers 1 2]
                                        [--output bench/results/workers_throughput.json]
 
 Everything real, as in a team's set-up on one machine: Debian's redis-server and PostgreSQL on
@@ -23,16 +23,13 @@ from __future__ import annotations
 
 import argparse
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-from bench.common import stamp, write_json  # noqa: E402
-from tests.service_helpers import (  # noqa: E402
+from bench.common import stamp, write_json
+from service.settings import Settings
+from tests.service_helpers import (
     FAST,
     LiveServer,
     PostgresServer,
@@ -43,7 +40,8 @@ from tests.service_helpers import (  # noqa: E402
     wait_job,
     wait_until,
 )
-from service.settings import Settings  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def _settings(root: Path, redis_url: str, db_url: str) -> Settings:

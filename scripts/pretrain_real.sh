@@ -19,7 +19,7 @@
 #    pre-training: they are the honest evaluation), plus $EXTRA scene folders (lego's training
 #    views by default: its test views are never used), from $START.
 # 3. ship: copy to $DEST (roguenerf/weights/default.safetensors) with its JSON sidecar.
-# 4. evaluate: bench/real_scenes.py on the held-out scenes' $EVAL_PRESET fits (default: the last preset) (zero-shot old and new, 1/3/10-minute
+# 4. evaluate: python -m bench.real_scenes on the held-out scenes' $EVAL_PRESET fits (default: the last preset) (zero-shot old and new, 1/3/10-minute
 #    fine-tunes) when STAGE=all or STAGE=evaluate.
 #
 # The shipped roguenerf/weights/default.safetensors (2026-11-25: six stages) was made by, in this order:
@@ -175,5 +175,5 @@ if [ "$STAGE" = all ] || [ "$STAGE" = evaluate ]; then
   old=()
   if [ -n "${OLD_CHECKPOINT:-}" ]; then old=(--old-checkpoint "$OLD_CHECKPOINT"); fi
   read -r -a eval_args <<< "${EVAL_ARGS:-}"
-  "$PY" bench/real_scenes.py "${eval_scenes[@]}" --checkpoint "$DEST" "${old[@]}" "${eval_args[@]}"
+  "$PY" -m bench.real_scenes "${eval_scenes[@]}" --checkpoint "$DEST" "${old[@]}" "${eval_args[@]}"
 fi
