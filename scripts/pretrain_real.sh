@@ -49,22 +49,22 @@
 # (/tmp/spread.safetensors is `git show fbd18b3:roguenerf/weights/default.safetensors`.)
 # (/tmp/cosine.safetensors is also `git show bc20039:roguenerf/weights/default.safetensors`.)
 # The second stage without POOL_SPREAD=1 is its control: on the fits' held-out views the spread
-# gains more on all 13 (mean +1.33 against +1.28 dB), README "Neighbour spread at the merge".
+# gains more on all 13 (mean +1.33 against +1.28 dB), docs/history.md "Neighbour spread at the merge".
 # The third stage gains +0.09 dB on them (+1.42 against +1.33, better on 11 of 13); the same
-# stage with a first-neighbour map at the merge did no better (README "More pre-training steps").
+# stage with a first-neighbour map at the merge did no better (docs/history.md "More pre-training steps").
 # The fourth adds the sharper `fine` look of three pre-training scenes: on the held-out views of
 # the 13 fits +1.45 against +1.42 dB (higher on 10), of the 3 fine fits +0.05 to +0.08 dB each
-# (README "Pre-training on three looks").
+# (docs/history.md "Pre-training on three looks").
 # The fifth adds the `fine` fits of the other four scenes. Its control, the same start, steps
 # and seed on the fourth stage's data, gains as much on the 16 fits both saw alike (+1.405
 # against +1.398 dB, higher on 11 of 16), and this one has the better worst views (higher on 10
 # of 16, by +0.045 dB on average): a tie on the mean, so the worst views and the wider data
-# decided (README "Every scene's fine look").
-# The sixth: +0.016 dB on the 16 fits (README "Every scene's fine look"); its 10-minute runs on
-# the evaluation fits are level with the fifth's (README, top Results table).
+# decided (docs/results.md "Every scene's fine look").
+# The sixth: +0.016 dB on the 16 fits (docs/results.md "Every scene's fine look"); its 10-minute runs on
+# the evaluation fits are level with the fifth's (docs/results.md, top table).
 # The first stage's predecessor (commit fc5a08e) was the first stage with LR_SCHEDULE=constant MINUTES=30 (4845 steps):
 # on the fits' held-out views (never targets in pre-training) the cosine one gains more on all 13
-# (mean +1.25 against +1.03 dB), README "Pre-training with the cosine schedule".
+# (mean +1.25 against +1.03 dB), docs/history.md "Pre-training with the cosine schedule".
 set -euo pipefail
 cd "$(dirname "$0")/.."
 SHARED=${ROGUENERF_SHARED_DATA:-../shared/data}
@@ -151,7 +151,7 @@ if [ "$STAGE" = all ] || [ "$STAGE" = pretrain ]; then
   # HELD_OUT_SHARE > 0: the fits' held-out views are targets too (renders of novel views, with
   # the artefacts a user's novel views have); $EXTRA scenes (lego: evaluated on its test views)
   # never are. Off by default: 800 steps with share 0.5 or 0.15 gave a lower zero-shot mean gain
-  # on dtu_scan37 + mary_rose than 800 steps without (the model learns to hedge), see the README.
+  # on dtu_scan37 + mary_rose than 800 steps without (the model learns to hedge), see docs/history.md.
   if [ "$HELD_OUT_SHARE" != 0 ]; then
     for fit in "${scenes[@]:0:$n_fits}"; do extra+=(--held-out-from "$fit"); done
     extra+=(--held-out-share "$HELD_OUT_SHARE")

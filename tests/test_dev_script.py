@@ -81,3 +81,35 @@ def test_dev_roguenerf_forwards_to_the_venvs_command_line(tmp_path):
     assert _dev("roguenerf", "--help", env=env).returncode == 0
     assert len(_installs(log)) == 1  # stamped: nothing installed again
     assert log.read_text().splitlines()[-1] == "roguenerf --help"
+
+
+def test_quick_runs_the_unit_tier_only_and_passes_other_args_on(tmp_path):
+    venv, log, env = _fake_venv(tmp_path)
+    result = _dev("test", "--quick", "-q", "tests/test_geometry.py", env=env)
+    assert result.returncode == 0, result.stderr
+    assert log.read_text().splitlines()[-1] == (
+        "python -m pytest -m not service and not workers and not browser and not slow -q tests/test_geometry.py")
+    assert _dev("test", "-x", env=env).returncode == 0  # without --quick: every tier, args as given
+    assert log.read_text().splitlines()[-1] == "python -m pytest -x"
+
+
+def test_quick_tier_matches_the_registered_markers():
+    import tomllib
+
+    markers = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"]["markers"]
+    names = {m.split(":", 1)[0] for m in markers}
+    assert {"unit", "service", "workers", "browser", "slow"} <= names
+    script = (ROOT / "dev").read_text()
+    quick = script.split('QUICK_TIER="', 1)[1].split('"', 1)[0]
+    assert quick == "not service and not workers and not browser and not slow"
+
+
+def test_unknown_commands_are_refused_with_the_usage_and_install_nothing(tmp_path):
+    venv, log, env = _fake_venv(tmp_path)
+    for args in (("bogus",), ("--quick",), ()):
+        result = _dev(*args, env=env)
+        assert result.returncode == 2, (args, result.stderr)
+        assert result.stderr.startswith("usage: ./dev serve"), result.stderr
+        assert "./dev test [--quick] [pytest args]" in result.stderr
+        assert "Traceback" not in result.stderr and result.stdout == ""
+    assert not log.exists()  # nothing was installed or run

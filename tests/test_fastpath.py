@@ -18,7 +18,7 @@ from roguenerf.geometry import reproject, sampling_source
 from roguenerf.geometry.sampling import bilinear_sample
 from roguenerf.models import NeighbourBatch, build_enhancer, fastops
 from roguenerf.models.flow import FlowRefiner, flow_warp
-from tests.test_model import make_views, randomise
+from tests.model_helpers import make_views, randomise
 
 TOL = 2e-4
 

@@ -12,9 +12,6 @@ from safetensors.torch import save_file
 from roguenerf.data.readers import load_scene
 from roguenerf.errors import InputError
 from roguenerf.metrics import FLIPUnavailableError, LPIPSUnavailableError, flip, lpips, lpips_available, psnr, ssim
-from tests.conftest import SHARED_DATA
-
-LEGO = SHARED_DATA / "lego"
 
 
 def test_psnr_known_values_per_image():
@@ -116,8 +113,8 @@ def test_shape_mismatch_refused():
         ssim(torch.zeros(1, 3, 4, 4, dtype=torch.uint8), torch.zeros(1, 3, 4, 4, dtype=torch.uint8))
 
 
-def test_lego_readme_numbers_for_test_r_0():
-    scene = load_scene(LEGO)
+def test_lego_readme_numbers_for_test_r_0(lego_dir):
+    scene = load_scene(lego_dir)
     i = scene.index("test_r_0")
     render, photo = scene.render(i)[None], scene.photo(i)[None]
     assert round(psnr(render, photo).item(), 2) == 26.77
@@ -188,8 +185,8 @@ def test_flip_of_identical_images_is_zero_and_a_uniform_pair_is_the_packages_ans
     assert flip(black, white).item() == pytest.approx(_flip_direct(black[0], white[0]), abs=1e-6)
 
 
-def test_flip_per_image_equals_the_package_on_a_lego_view_and_on_noise():
-    scene = load_scene(LEGO)
+def test_flip_per_image_equals_the_package_on_a_lego_view_and_on_noise(lego_dir):
+    scene = load_scene(lego_dir)
     i = scene.index("test_r_0")
     render, photo = scene.render(i), scene.photo(i)
     g = torch.Generator().manual_seed(6)
@@ -204,10 +201,10 @@ def test_flip_per_image_equals_the_package_on_a_lego_view_and_on_noise():
     assert flip(noisy, ref, ppd=30.0).item() != pytest.approx(pair[0].item(), abs=1e-4)  # the viewing condition counts
 
 
-def test_flip_grows_with_blur():
+def test_flip_grows_with_blur(lego_dir):
     from kornia.filters import gaussian_blur2d
 
-    scene = load_scene(LEGO)
+    scene = load_scene(lego_dir)
     photo = scene.photo(scene.index("test_r_0"))[None]
     photo = photo[..., photo.shape[-2] // 4:, photo.shape[-1] // 4:][..., :96, :96]  # the model's edges
     errors = [flip(gaussian_blur2d(photo, 13, (s, s)), photo).item() for s in (0.5, 1.0, 2.0)]

@@ -28,7 +28,7 @@ from roguenerf.models import build_enhancer
 from roguenerf.models.flow import FlowRefiner, flow_warp, upsample_flow
 from roguenerf.models.layers import PixelAttention
 from roguenerf.models.uformer import LeWinBlock
-from tests.test_model import make_views, randomise
+from tests.model_helpers import make_views, randomise
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -366,7 +366,7 @@ def test_without_kernels_the_torch_path_gives_the_same_output(how, tmp_path):
         from roguenerf import native
         from roguenerf.fastpath import reference_mode
         from roguenerf.models import build_enhancer
-        from tests.test_model import make_views, randomise
+        from tests.model_helpers import make_views, randomise
         assert native.library() is None
         model = randomise(build_enhancer("micro").eval())
         views = make_views(model, n=2, h=24, w=32)

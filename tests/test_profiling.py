@@ -13,7 +13,7 @@ from roguenerf import native, runtime
 from roguenerf.fastpath import reference_mode
 from roguenerf.models import build_enhancer
 from roguenerf.profiling import STAGES, StageProfile, stage
-from tests.test_model import make_views, randomise
+from tests.model_helpers import make_views, randomise
 
 
 @pytest.mark.parametrize("fast, kernels", [(True, True), (True, False), (False, False)])

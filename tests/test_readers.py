@@ -17,9 +17,7 @@ from roguenerf.data.toy import make_toy_world, render_toy_view, toy_camera_path,
 from roguenerf.data.writers import write_scene_folder
 from roguenerf.errors import InputError, SceneFormatError
 from roguenerf.geometry.cameras import opencv_to_opengl
-from tests.conftest import SHARED_DATA
 
-LEGO = SHARED_DATA / "lego"
 H, W, M = 24, 32, 5
 EIGHT_BIT = 0.5 / 255 + 1e-6
 
@@ -84,12 +82,12 @@ def test_transforms_json_path_accepted(tmp_path, toy):
     assert len(load_scene(root / "transforms.json")) == M
 
 
-def test_lego_loads_lazily_with_opencv_poses():
-    scene = load_scene(LEGO)
+def test_lego_loads_lazily_with_opencv_poses(lego_dir):
+    scene = load_scene(lego_dir)
     assert len(scene._cache) == 0, "loading a scene must not decode any pixels"
     assert len(scene.indices("train")) == 100 and len(scene.indices("test")) == 25
     assert scene.frames[0].name == "train_r_0" and (scene.frames[0].width, scene.frames[0].height) == (200, 200)
-    gl = torch.tensor(json.loads((LEGO / "transforms.json").read_text())["frames"][0]["transform_matrix"],
+    gl = torch.tensor(json.loads((lego_dir / "transforms.json").read_text())["frames"][0]["transform_matrix"],
                       dtype=torch.float64)
     expected = gl * torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64)
     assert torch.allclose(scene.poses()[0], expected, atol=1e-6)

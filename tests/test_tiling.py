@@ -8,7 +8,7 @@ import torch
 from roguenerf.errors import InputError
 from roguenerf.models import build_enhancer
 from roguenerf.models.tiling import axis_weights, enhance_tiled, tile_starts
-from tests.test_model import make_views, randomise
+from tests.model_helpers import make_views, randomise
 
 
 @pytest.fixture(autouse=True, scope="module")
