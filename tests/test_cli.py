@@ -119,6 +119,7 @@ def test_enhance_writes_the_png(scene_dir, checkpoint, tmp_path):
     assert bad.exit_code == 2 and "nope" in bad.stderr
 
 
+@pytest.mark.slow
 def test_finetune_from_scratch_then_resume_to_more_steps(scene_dir, tmp_path):
     out = tmp_path / "ft"
     result = _run("finetune", scene_dir, "--scratch", "--steps", "2", "--output", out, "--no-eval", *FAST)
@@ -168,6 +169,7 @@ def test_pretrain_with_toy_scenes(scene_dir, tmp_path):
     assert (out / "toy" / "toy_000" / "transforms.json").is_file()
 
 
+@pytest.mark.slow
 def test_pretrain_held_out_from_adds_the_scene_and_its_held_out_views(scene_dir, tmp_path):
     out = tmp_path / "pt"
     result = _run("pretrain", "--toy", "1", "--held-out-from", scene_dir, "--held-out-share", "0.3",
@@ -316,6 +318,7 @@ main()
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("umask, mode", [("022", 0o644), ("077", 0o600), ("002", 0o664)])
 def test_written_files_get_the_mode_open_would_give(scene_dir, checkpoint, tmp_path, umask, mode):
     out = tmp_path / "x.png"

@@ -58,6 +58,7 @@ def fitted(tmp_path_factory):
     return root, out, report, truth
 
 
+@pytest.mark.slow
 def test_fit_writes_a_scene_folder_with_every_view(fitted):
     root, out, report, _ = fitted
     scene = load_scene(out)
@@ -71,6 +72,7 @@ def test_fit_writes_a_scene_folder_with_every_view(fitted):
     assert json.loads((out / "fit.json").read_text())["train"] == report["train"]
 
 
+@pytest.mark.slow
 def test_fit_reaches_a_psnr_floor_and_beats_a_constant_image(fitted):
     root, out, report, _ = fitted
     ps = read_photo_set(root)
@@ -82,6 +84,7 @@ def test_fit_reaches_a_psnr_floor_and_beats_a_constant_image(fitted):
     assert report["test"]["psnr"] > constant + 4.0, (report["test"], constant)  # held-out views include both path ends
 
 
+@pytest.mark.slow
 def test_rendered_depth_is_close_to_the_true_depth(fitted):
     _, out, _, truth = fitted
     scene = load_scene(out)
@@ -99,6 +102,7 @@ def test_rendered_depth_is_close_to_the_true_depth(fitted):
     assert min(coverage) > 0.9, coverage
 
 
+@pytest.mark.slow
 def test_interrupted_fit_resumes_to_the_same_result(tmp_path):
     root = tmp_path / "photos"
     write_photo_set(root, views=9)
@@ -163,6 +167,7 @@ def test_a_photo_set_it_cannot_read_is_a_clear_error(tmp_path, breakage, message
     assert message in proc.stderr and "Traceback" not in proc.stderr
 
 
+@pytest.mark.slow
 def test_make_pairs_cli_runs_and_the_library_never_imports_the_fitter(tmp_path):
     root = tmp_path / "photos"
     write_photo_set(root, views=9)
@@ -210,6 +215,7 @@ def test_manifest_keeps_the_rows_of_fits_made_in_another_cache(tmp_path):
     assert manifest.read_text().splitlines() == lines  # rewriting changes nothing
 
 
+@pytest.mark.slow
 def test_pretraining_pipeline_smoke(tmp_path):
     """scripts/pretrain_real.sh end to end on two toy photo sets, one held out: pairs (tiny
     budgets), a manifest, a 2-step pre-training that never sees the held-out scene (and trains
@@ -257,8 +263,9 @@ def test_pretraining_pipeline_smoke(tmp_path):
         assert abs(gains[r["worst_view"]] - float(r["worst_view_gain_db"])) < 6e-4
     # --replot merges sittings: the same CSV twice keeps the scene's zero-shot row once.
     quick_csv = tmp_path / "bench" / "real_quick.csv"
-    subprocess.run([sys.executable, str(repo / "bench" / "real_scenes.py"), "--replot", str(quick_csv), str(quick_csv),
-                    "--output", str(tmp_path / "bench" / "merged")], check=True, capture_output=True, timeout=120)
+    subprocess.run([sys.executable, "-m", "bench.real_scenes", "--replot", str(quick_csv), str(quick_csv),
+                    "--output", str(tmp_path / "bench" / "merged")], check=True, capture_output=True, timeout=120,
+                   cwd=repo)
     with (tmp_path / "bench" / "merged.csv").open() as fh:
         merged = [r["kind"] for r in csv.DictReader(fh)]
     assert merged == ["zero-shot new"] + ["finetune"] * 8 and (tmp_path / "bench" / "merged.png").is_file()
@@ -332,6 +339,7 @@ def test_distortion_loss_prefers_a_surface_to_fog():
     assert (d_fog > 10 * d_surface).all()
 
 
+@pytest.mark.slow
 def test_half_size_render_upsamples_to_the_photo_size_and_stays_close(fitted):
     """The blur preset renders at half size: same shape, nearly the same image and depth on a
     field whose voxels span pixels, and its identity differs from the full-size fit's."""
@@ -385,7 +393,7 @@ def test_render_scales_bench_known_answers(tmp_path):
 
 
 def test_real_scenes_blends_span_the_start_and_the_fine_tuned_weights(lego_dir, tmp_path):
-    """``bench/real_scenes.py --blends 0,1`` (weight-space ensembling of each fine-tune with its
+    """``python -m bench.real_scenes --blends 0,1`` (weight-space ensembling of each fine-tune with its
     starting checkpoint) reproduces both ends exactly: blend 0 is the zero-shot row, blend 1 the
     fine-tune's own row; a blend outside [0, 1] is refused before anything runs."""
     import csv
@@ -394,9 +402,9 @@ def test_real_scenes_blends_span_the_start_and_the_fine_tuned_weights(lego_dir, 
 
     repo = Path(__file__).resolve().parents[1]
     out = tmp_path / "blends"
-    proc = subprocess.run([sys.executable, str(repo / "bench" / "real_scenes.py"), str(lego_dir), "--minutes", "0.03",
+    proc = subprocess.run([sys.executable, "-m", "bench.real_scenes", str(lego_dir), "--minutes", "0.03",
                            "--max-views", "1", "--blends", "0,1", "--output", str(out)],
-                          capture_output=True, text=True, timeout=300)
+                          capture_output=True, text=True, timeout=300, cwd=repo)
     assert proc.returncode == 0, proc.stderr[-3000:]
     with out.with_suffix(".csv").open() as fh:
         rows = {(r["kind"], r["plan_name"]): r for r in csv.DictReader(fh)}
@@ -411,8 +419,9 @@ def test_real_scenes_blends_span_the_start_and_the_fine_tuned_weights(lego_dir, 
     b = {"w": torch.tensor([4.0, -2.0]), "n": torch.tensor([7])}
     mid = blend_state(a, b, 0.25)
     assert torch.equal(mid["w"], torch.tensor([1.0, 1.0])) and torch.equal(mid["n"], torch.tensor([7]))
-    refused = subprocess.run([sys.executable, str(repo / "bench" / "real_scenes.py"), str(lego_dir), "--blends", "1.5",
-                              "--output", str(tmp_path / "refused")], capture_output=True, text=True, timeout=120)
+    refused = subprocess.run([sys.executable, "-m", "bench.real_scenes", str(lego_dir), "--blends", "1.5",
+                              "--output", str(tmp_path / "refused")], capture_output=True, text=True, timeout=120,
+                             cwd=repo)
     assert refused.returncode == 2 and "--blends" in refused.stderr and not (tmp_path / "refused.csv").exists()
 
 

@@ -191,6 +191,7 @@ def test_large_images_are_tiled(scene):
     assert float((tiled.image - whole.image).abs().mean()) < 0.02
 
 
+@pytest.mark.slow
 def test_uncacheable_photos_use_per_tile_crops_with_the_same_result(scene):
     """Photos too large for the cache budget are encoded per tile, only the part each tile
     sees (plus margins): the image equals the cached path's (same tiles), and nothing is cached."""

@@ -387,6 +387,7 @@ def test_without_kernels_the_torch_path_gives_the_same_output(how, tmp_path):
     assert not list((tmp_path / "cache").glob("*.so"))
 
 
+@pytest.mark.slow
 def test_a_portable_build_passes_the_kernel_tests(tmp_path):
     """Built without -march=native (a compiler that refuses it, FLAG_SETS' fallback), the kernels
     use 4-lane vectors: they must still pass every kernel test above. Vectors wider than the

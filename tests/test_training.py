@@ -174,6 +174,7 @@ def test_held_out_share_must_be_a_probability():
         TrainConfig(held_out_share=1.5).validate()
 
 
+@pytest.mark.slow
 def test_resume_continues_from_the_saved_step(scene, tmp_path):
     config = TrainConfig(steps=4, **FAST)
     reference = finetune(scene, tmp_path / "straight", config=config)
@@ -214,6 +215,7 @@ def test_cosine_schedule_values():
         TrainConfig(lr_schedule="step").validate()
 
 
+@pytest.mark.slow
 def test_the_lr_follows_the_schedule_and_resumes_in_place(scene, tmp_path):
     config = TrainConfig(steps=4, lr=1e-3, lr_schedule="cosine", **FAST)
     seen = []

@@ -14,6 +14,8 @@ from roguenerf.models.layers import receptive_radius
 from roguenerf.training.batches import model_inputs, prepare_batch
 from roguenerf.training.loop import SceneData
 
+pytestmark = pytest.mark.slow  # equality of whole training steps: minutes on 2 cores
+
 H, W, CROP = 72, 96, 24
 TARGETS = torch.tensor([0, 3, 5, 7])
 ORIGINS = torch.tensor([[0, 0], [H - CROP, W - CROP], [0, W - CROP], [29, 41]])

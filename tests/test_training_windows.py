@@ -20,6 +20,8 @@ from roguenerf.training import batches as batches_mod
 from roguenerf.training.batches import Prefetcher, model_inputs, neighbour_windows, place_windows, prepare_batch
 from roguenerf.training.loop import SceneData
 
+pytestmark = pytest.mark.slow  # equality of whole training steps: minutes on 2 cores
+
 H, W, CROP = 72, 96, 20
 
 
