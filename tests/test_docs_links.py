@@ -20,8 +20,9 @@ def links(page: Path) -> list[str]:
 
 
 def slug(heading: str) -> str:
-    """GitHub's anchor of a heading: lower case, punctuation dropped, spaces to hyphens."""
-    text = re.sub(r"[`*_]", "", heading.strip().lower())
+    """GitHub's anchor of a heading: lower case, punctuation but ``-`` and ``_`` dropped, spaces to
+    hyphens (of the rendered text: code and emphasis marks go first)."""
+    text = re.sub(r"[`*]", "", heading.strip().lower())
     return re.sub(r"[^\w\- ]", "", text).replace(" ", "-")
 
 
@@ -35,6 +36,7 @@ def test_the_pages_and_the_link_pattern():
     found = links(ROOT / "README.md")
     assert "docs/results.md" in found and "docs/lego_test_r_9.png" in found
     assert slug("Speed: fine-tuning, memory, process settings, HTTP") == "speed-fine-tuning-memory-process-settings-http"
+    assert slug("gsplat `simple_trainer`") == "gsplat-simple_trainer"
     assert slug("Numerical rules (one definition each, used by every entry point)") == (
         "numerical-rules-one-definition-each-used-by-every-entry-point")
 
