@@ -236,6 +236,7 @@ except SystemExit:
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("env, expected", [({}, "PASSIVE"), ({"OMP_WAIT_POLICY": "ACTIVE"}, "ACTIVE"),
                                            ({"GOMP_SPINCOUNT": "300000"}, "None")])
 def test_serve_sets_passive_openmp_wait_before_torch_loads(env, expected):
@@ -365,6 +366,7 @@ print("env", os.environ.get("OMP_WAIT_POLICY"), "configure", runtime.configure()
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("first, env, expected", [
     ("roguenerf", {}, "env PASSIVE configure PASSIVE"),
     ("roguenerf", {"OMP_WAIT_POLICY": "active"}, "env active configure ACTIVE"),

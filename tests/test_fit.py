@@ -392,6 +392,7 @@ def test_render_scales_bench_known_answers(tmp_path):
     assert Image.open(render_scales.plot(rows, tmp_path / "scales.png")).size == (900, 540)
 
 
+@pytest.mark.slow
 def test_real_scenes_blends_span_the_start_and_the_fine_tuned_weights(lego_dir, tmp_path):
     """``python -m bench.real_scenes --blends 0,1`` (weight-space ensembling of each fine-tune with its
     starting checkpoint) reproduces both ends exactly: blend 0 is the zero-shot row, blend 1 the

@@ -349,6 +349,7 @@ def _run(code: str, env: dict) -> subprocess.CompletedProcess:
                           text=True, timeout=300)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("how", ["off", "failing compiler", "no compiler"])
 def test_without_kernels_the_torch_path_gives_the_same_output(how, tmp_path):
     env = {**os.environ, "ROGUENERF_NATIVE_CACHE": str(tmp_path / "cache")}

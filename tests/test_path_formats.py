@@ -118,6 +118,7 @@ def test_colmap_sizes_must_agree(tmp_path):
         read_camera_path(tmp_path / "images.txt")
 
 
+@pytest.mark.slow
 def test_enhance_path_cli_same_frames_from_every_camera_format(tmp_path):
     """The same path given as a transforms list, Inria's cameras.json and COLMAP's images.txt
     enhances to byte-identical frames (the readers agree end to end)."""

@@ -356,6 +356,7 @@ def test_bad_vgg_weights_are_input_errors(tmp_path):
         VGG19Features.from_file(tmp_path / "bad.safetensors")
 
 
+@pytest.mark.slow
 def test_ablation_from_a_full_checkpoint_transfers_matching_weights(scene, tmp_path):
     torch.manual_seed(0)
     full = build_enhancer("micro")
