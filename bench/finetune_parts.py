@@ -74,11 +74,11 @@ def main(argv=None) -> int:
     for r in range(args.reps):
         b = batches[r % len(batches)]
         for name, m in models.items():
-            timed(name, lambda: step(m, b))
+            timed(name, lambda m=m, b=b: step(m, b))
         full = models["full"]
-        timed("no_neighbours", lambda: step(full, b, neighbours=False))
+        timed("no_neighbours", lambda full=full, b=b: step(full, b, neighbours=False))
 
-        def convh():
+        def convh(full=full, b=b):
             sum(full.encode_neighbours(x).sum() for x in b.neighbour_photos).backward()
             full.zero_grad(set_to_none=True)
 

@@ -38,7 +38,8 @@ neighbours they need) are drawn and cut in a background thread
 (``roguenerf.training.batches.Prefetcher``), and each step is
 ``roguenerf.training.loop.optimise``: conv_H on the neighbour photos (with grad), enhancer
 forward, loss (L1, or L1 + 1e-3 VGG-19 with ``--vgg-weights``), backward, finiteness checks,
-Adam step (fused, as ``finetune`` makes it). Encodings (``TrainConfig.neighbour_encoding``): ``whole`` encodes the U distinct
+Adam step (fused, as ``finetune`` makes it). Encodings (``TrainConfig.neighbour_encoding``):
+``whole`` encodes the U distinct
 neighbour photos the batch uses, whole; ``window`` only the window
 of each neighbour photo that each crop can see (same loss and gradients); ``whole-loop`` is the
 step before issue 12: whole photos, and each neighbour refined, weighed and pooled one at a time
@@ -274,7 +275,8 @@ def median_rows(rows: list[dict]) -> list[dict]:
     """One row per (scene, variant, neighbours, crop, batch, encoding): the median steps/s over rounds."""
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
-        groups.setdefault((r["scene"], r["variant"], r["neighbours"], r["crop"], r["batch"], r["encoding"]), []).append(r)
+        key = (r["scene"], r["variant"], r["neighbours"], r["crop"], r["batch"], r["encoding"])
+        groups.setdefault(key, []).append(r)
     out = []
     for group in groups.values():
         sps = statistics.median(r["steps_per_s"] for r in group)
@@ -304,7 +306,8 @@ def summary(rows: list[dict], reference: str | None) -> dict:
                 entry["window_over_whole_loop"][sc] = round(mine[(sc, "window")] / mine[(sc, "whole-loop")], 3)
             for base in ("window", "whole-loop"):
                 if (sc, "frozen") in mine and (sc, base) in mine:
-                    entry[f"frozen_over_{base.replace('-', '_')}"][sc] = round(mine[(sc, "frozen")] / mine[(sc, base)], 3)
+                    ratio = mine[(sc, "frozen")] / mine[(sc, base)]
+                    entry[f"frozen_over_{base.replace('-', '_')}"][sc] = round(ratio, 3)
             for enc in ENCODINGS:
                 if (sc, enc) in mine and (reference, enc) in mine:
                     entry[f"over_{reference}"][f"{sc}/{enc}"] = round(mine[(sc, enc)] / mine[(reference, enc)], 3)

@@ -73,8 +73,8 @@ def make_scene(root: Path, h: int, w: int) -> Path:
     # In a child process, so this process stays small (see the VmHWM note in CHILD).
     code = (f"from roguenerf.data.toy import make_toy_scene; "
             f"make_toy_scene({str(root)!r}, seed=5, n_train=6, n_test=1, height={h}, width={w})")
-    subprocess.run([sys.executable, "-c", f"import sys; sys.path.insert(0, {str(Path(__file__).resolve().parents[1])!r}); {code}"],
-                   check=True)
+    repo = str(Path(__file__).resolve().parents[1])
+    subprocess.run([sys.executable, "-c", f"import sys; sys.path.insert(0, {repo!r}); {code}"], check=True)
     print(f"toy scene {w}x{h} written in {time.perf_counter() - t:.0f} s", flush=True)
     return root
 
@@ -100,7 +100,8 @@ def main(argv=None) -> None:
                     print(out.stderr[-3000:], file=sys.stderr)
                     raise SystemExit(f"child failed for {variant} at {w}x{h}")
                 r = json.loads(out.stdout.strip().splitlines()[-1])
-                row = {**meta, "variant": variant, "height": h, "width": w, **{k: (round(v, 1) if isinstance(v, float) else v) for k, v in r.items()}}
+                rounded = {k: (round(v, 1) if isinstance(v, float) else v) for k, v in r.items()}
+                row = {**meta, "variant": variant, "height": h, "width": w, **rounded}
                 rows.append(row)
                 print(f"{variant} {w}x{h}: peak RSS {r['peak_rss_mb']:.0f} MB (before enhancing "
                       f"{r['rss_before_mb']:.0f} MB), {r['seconds']:.1f} s, {r['tiles']} tiles, "

@@ -247,7 +247,8 @@ def main() -> None:
                "flicker_ratio_ok": fl["ratio"] is not None and fl["ratio"] <= 1.05,
                "render_s": round(render_s, 1), "frames_rendered_now": rendered,
                "enhance_s": round(result.seconds, 1), "frames_enhanced_now": result.enhanced_now,
-               "enhance_s_per_frame": round(result.seconds / max(result.enhanced_now, 1), 3) if result.enhanced_now else None,
+               "enhance_s_per_frame": (round(result.seconds / max(result.enhanced_now, 1), 3)
+                                       if result.enhanced_now else None),
                "cached_views": result.cached_views, "video": {"enhanced": info, "side_by_side": side},
                "video_path": str(result.video)}
     variant = ("_toy" if args.toy else "") + ("_photos" if args.photo_path else "")

@@ -131,7 +131,8 @@ def run(args, save=None) -> list[dict]:
         scene = load_scene(scene_dir)
         label = scene_label(scene_dir)
 
-        def record(kind: str, minutes: float, steps: int, seconds: float, report: dict, **extra) -> None:
+        def record(kind: str, minutes: float, steps: int, seconds: float, report: dict, *, label: str = label,
+                   **extra) -> None:
             row = {**base, "scene": label, "kind": kind, "minutes": minutes, "steps": steps,
                    "train_seconds": round(seconds, 1), **summarise(report), **extra}
             print(", ".join(f"{k}={v}" for k, v in row.items() if k not in base), flush=True)

@@ -66,8 +66,8 @@ def main() -> None:
             wait_for(page, "() => document.getElementById('job').dataset.state === 'running' && "
                            "Number(document.getElementById('loss-curve').dataset.points || 0) >= 3", timeout_s=300)
             page.screenshot(path=str(args.out / "finetune-running.png"))
-            wait_for(page, "() => ['succeeded', 'failed', 'cancelled'].includes(document.getElementById('job').dataset.state)",
-                     timeout_s=600)
+            wait_for(page, "() => ['succeeded', 'failed', 'cancelled']"
+                           ".includes(document.getElementById('job').dataset.state)", timeout_s=600)
             page.screenshot(path=str(args.out / "finetune.png"))
 
             page.get_by_role("link", name="Compare").click()

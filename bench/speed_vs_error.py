@@ -82,7 +82,8 @@ def run(args) -> list[dict]:
 
     if not args.skip_variants:
         for variant in [v for v in args.variants.split(",") if v]:
-            config = TrainConfig(lr=args.lr, minutes=args.variant_minutes, crop=args.crop, variant=variant, evaluate=False)
+            config = TrainConfig(lr=args.lr, minutes=args.variant_minutes, crop=args.crop, variant=variant,
+                                 evaluate=False)
             # A checkpoint of another variant has other shapes: those variants start from scratch.
             own = start if variant == start_variant else None
             result = finetune(scene, work / f"variant_{variant}", checkpoint=own, config=config)

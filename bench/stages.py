@@ -324,7 +324,8 @@ def main(argv=None) -> None:
         row["floor_s"] = max(row["floor_flops_s"], row["floor_bytes_s"])
         row["seconds_over_floor"] = round(row["seconds"] / row["floor_s"], 2) if row["floor_s"] else 0.0
     for s in summaries:
-        stage_rows = [r for r in rows if (r["variant"], r["height"], r["width"]) == (s["variant"], s["height"], s["width"])
+        same = (s["variant"], s["height"], s["width"])
+        stage_rows = [r for r in rows if (r["variant"], r["height"], r["width"]) == same
                       and r["stage"] not in ("total", "other")]
         # The stage costing the most time beyond what it would take at the matmul peak.
         limiting = max(stage_rows, key=lambda r: r["seconds"] - r["gflop_model"] / peak)
@@ -351,8 +352,8 @@ def main(argv=None) -> None:
         print(f"  floor (per stage max(FLOP / {peak:.0f} GFLOP/s, bytes / {bandwidth:.1f} GB/s)): "
               f"{s['floor_s']:.4f} s of {s['seconds']:.4f} s", flush=True)
         for stage, r in s["floor_table"].items():
-            print(f"    {stage:>12} {r['seconds']:8.4f} s  {r['gflop_executed']:7.3f} GFLOP -> {r['floor_flops_s']:.4f} s"
-                  f"  {r['gb_moved']:7.3f} GB -> {r['floor_bytes_s']:.4f} s", flush=True)
+            print(f"    {stage:>12} {r['seconds']:8.4f} s  {r['gflop_executed']:7.3f} GFLOP"
+                  f" -> {r['floor_flops_s']:.4f} s  {r['gb_moved']:7.3f} GB -> {r['floor_bytes_s']:.4f} s", flush=True)
     write_csv(args.output, rows)
     write_json(args.output.with_suffix(".json"), {**meta, "runtime": applied, "configs": summaries})
     plot(rows, summaries, args.output.with_suffix(".png"))

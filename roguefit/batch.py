@@ -27,8 +27,8 @@ from roguefit.fit import FIT_FILE, PRESETS, make_pairs
 
 log = logging.getLogger("roguefit.batch")
 
-MANIFEST_FIELDS = ["scene", "fit", "resolution", "features", "render_scale", "minutes", "steps", "fit_seconds", "render_seconds",
-                   "train_views", "train_psnr", "train_ssim", "test_views", "test_psnr", "test_ssim"]
+MANIFEST_FIELDS = ["scene", "fit", "resolution", "features", "render_scale", "minutes", "steps", "fit_seconds",
+                   "render_seconds", "train_views", "train_psnr", "train_ssim", "test_views", "test_psnr", "test_ssim"]
 
 
 def scene_folders(data: Path) -> list[Path]:
@@ -103,10 +103,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, required=True, help="folder of posed photo sets")
     parser.add_argument("--cache", type=Path, required=True, help="output root (outside the repository)")
     parser.add_argument("--presets", default="blur,coarse", help=f"comma-separated, of {', '.join(PRESETS)}")
-    parser.add_argument("--scenes", default="", help="comma-separated scene names, fitted in this order (default: all, sorted)")
+    parser.add_argument("--scenes", default="",
+                        help="comma-separated scene names, fitted in this order (default: all, sorted)")
     parser.add_argument("--budget-scale", type=float, default=1.0,
                         help="multiply every preset's budget (steps or minutes); a smoke test uses 0.01")
-    parser.add_argument("--manifest", type=Path, help="CSV manifest to (re)write after every fit (rows of fits not in --cache are kept)")
+    parser.add_argument("--manifest", type=Path,
+                        help="CSV manifest to (re)write after every fit (rows of fits not in --cache are kept)")
     parser.add_argument("--examples", type=Path, help="folder for one render|photo example per scene")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s %(message)s")
@@ -149,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
 
             bars = [bar]
 
-            def render_progress(done: int, total: int, bars=bars) -> None:
+            def render_progress(done: int, total: int, bars=bars, scene=scene, preset=preset) -> None:
                 if len(bars) == 1:
                     bars[0].close()
                     bars.append(tqdm(total=total, desc=f"{scene.name}/{preset} rendering", unit="view",

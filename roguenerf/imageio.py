@@ -21,7 +21,7 @@ import secrets
 import stat
 import zlib
 from pathlib import Path
-from typing import BinaryIO, Union
+from typing import BinaryIO
 
 import numpy as np
 import torch
@@ -46,7 +46,7 @@ strategy at level 6 (flat areas are runs of zeros), in a quarter of the time; fi
 content repeats at longer distances (text, tiled patterns) come out larger. The level does
 not matter with ``"rle"`` (1 to 9 give the same bytes); 0 still means "stored"."""
 
-Source = Union[str, os.PathLike, bytes, bytearray, memoryview]
+Source = str | os.PathLike | bytes | bytearray | memoryview
 
 # Pillow's own bomb guard raises (instead of warning) above twice this value, while decoding
 # headers. Our max_pixels check is the real gate; keep Pillow's guard at least as strict as

@@ -2,8 +2,8 @@
 
 Every entry point that takes an image tensor (``SceneEnhancer.enhance``, ``Enhancer.forward``
 and ``encode_neighbours``, ``metrics.psnr`` / ``ssim`` / ``lpips``, ``write_scene_folder``,
-``Degradation``, ``imageio.encode_png`` / ``write_png``) calls :func:`check_float_image`. Integer and bool tensors (``uint8`` 0-255 as
-PIL / NumPy give them, ``int16``, masks) are **refused** with an
+``Degradation``, ``imageio.encode_png`` / ``write_png``) calls :func:`check_float_image`. Integer
+and bool tensors (``uint8`` 0-255 as PIL / NumPy give them, ``int16``, masks) are **refused** with an
 :class:`~roguenerf.errors.InputError` that names the argument, its dtype and the conversion:
 they are never clamped or rescaled silently (clamping 0-255 to [0, 1] turned every pixel white).
 

@@ -46,7 +46,8 @@ def _pair(a: Tensor, b: Tensor, name: str) -> tuple[Tensor, Tensor]:
     if a.ndim == 3:
         a, b = a[None], b[None] if b.ndim == 3 else b
     if a.ndim != 4 or a.shape != b.shape:
-        raise InputError(f"{name}: expected two (B, C, H, W) tensors of the same shape, got {tuple(a.shape)} and {tuple(b.shape)}")
+        raise InputError(f"{name}: expected two (B, C, H, W) tensors of the same shape, "
+                         f"got {tuple(a.shape)} and {tuple(b.shape)}")
     if 0 in a.shape:
         raise InputError(f"{name}: expected non-empty images (B, C, H, W >= 1), got size {tuple(a.shape)}")
     check_float_image(a, f"{name}: first image")
@@ -203,7 +204,8 @@ class _LPIPSAlex(nn.Module):
                 missing.append(aliases[0])
                 continue
             if tuple(found.shape) != tuple(own[key].shape):
-                raise InputError(f"{source}: LPIPS tensor {aliases[0]} has shape {tuple(found.shape)}, expected {tuple(own[key].shape)}")
+                raise InputError(f"{source}: LPIPS tensor {aliases[0]} has shape {tuple(found.shape)}, "
+                                 f"expected {tuple(own[key].shape)}")
             loaded[key] = found.float()
         if missing:
             raise InputError(

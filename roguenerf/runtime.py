@@ -70,7 +70,7 @@ def wait_policy_in_effect() -> str:
     return "default"
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _glibc_function(name: str):
     """``libc.<name>`` when the C library is glibc-like and has it, else None. Looked up once:
     ``find_library`` runs ``ldconfig`` (~1.4 ms), and the trim is called once per tile."""

@@ -140,7 +140,8 @@ def install_error_handlers(app: FastAPI) -> None:
 
 
 _DESCRIPTIONS = {
-    400: "malformed request (multipart syntax, too many parts or fields, a part too large, unparseable JSON, a bad cursor)",
+    400: ("malformed request (multipart syntax, too many parts or fields, a part too large, unparseable JSON, "
+          "a bad cursor)"),
     401: "missing or wrong API key",
     404: "unknown id",
     409: "conflicts with the current state",

@@ -35,7 +35,8 @@ def test_the_pages_and_the_link_pattern():
     assert ROOT / "README.md" in PAGES and ROOT / "docs" / "results.md" in PAGES
     found = links(ROOT / "README.md")
     assert "docs/results.md" in found and "docs/lego_test_r_9.png" in found
-    assert slug("Speed: fine-tuning, memory, process settings, HTTP") == "speed-fine-tuning-memory-process-settings-http"
+    assert slug("Speed: fine-tuning, memory, process settings, HTTP") == (
+        "speed-fine-tuning-memory-process-settings-http")
     assert slug("gsplat `simple_trainer`") == "gsplat-simple_trainer"
     assert slug("Numerical rules (one definition each, used by every entry point)") == (
         "numerical-rules-one-definition-each-used-by-every-entry-point")

@@ -33,7 +33,8 @@ def _rotation(axis, angle):
 
 
 PARSER = DataparserTransform(
-    transform=torch.cat([_rotation((0.3, -1.0, 0.5), 0.7), torch.tensor([[0.4], [-1.2], [2.0]], dtype=torch.float64)], 1),
+    transform=torch.cat([_rotation((0.3, -1.0, 0.5), 0.7),
+                         torch.tensor([[0.4], [-1.2], [2.0]], dtype=torch.float64)], 1),
     scale=SCALE)
 
 

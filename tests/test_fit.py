@@ -226,8 +226,9 @@ def test_pretraining_pipeline_smoke(tmp_path):
     write_photo_set(data / "beta", views=9, seed=2)
     repo = Path(__file__).resolve().parents[1]
     env = {**__import__("os").environ, "DATA": str(data), "CACHE": str(tmp_path / "cache"), "PRESETS": "blur,coarse",
-           "HOLDOUT": "beta", "EXTRA": "", "HELD_OUT_SHARE": "0.5", "BUDGET_SCALE": "0.01", "STEPS": "2", "OUT": str(tmp_path / "run"),
-           "DEST": str(tmp_path / "weights" / "default.safetensors"), "MANIFEST": str(tmp_path / "docs" / "manifest.csv"),
+           "HOLDOUT": "beta", "EXTRA": "", "HELD_OUT_SHARE": "0.5", "BUDGET_SCALE": "0.01", "STEPS": "2",
+           "OUT": str(tmp_path / "run"), "DEST": str(tmp_path / "weights" / "default.safetensors"),
+           "MANIFEST": str(tmp_path / "docs" / "manifest.csv"),
            "PY": sys.executable,
            "EVAL_ARGS": f"--quick --plans default,whole --output {tmp_path / 'bench' / 'real'}"}
     proc = subprocess.run(["bash", str(repo / "scripts" / "pretrain_real.sh")], env=env, capture_output=True,
@@ -334,7 +335,8 @@ def test_distortion_loss_prefers_a_surface_to_fog():
     fog = torch.full((2, 32), 1 / 32)
     d_surface, d_fog = _distortion(surface, s, 32), _distortion(fog, s, 32)
     assert torch.allclose(d_surface, torch.full((2,), 1 / 96))  # a single bin: w^2 ds / 3
-    brute = sum(fog[0, i] * fog[0, j] * abs(s[0, i] - s[0, j]) for i in range(32) for j in range(32)) + (fog[0] ** 2).sum() / 96
+    pairs = sum(fog[0, i] * fog[0, j] * abs(s[0, i] - s[0, j]) for i in range(32) for j in range(32))
+    brute = pairs + (fog[0] ** 2).sum() / 96
     assert torch.allclose(d_fog[0], torch.as_tensor(brute, dtype=torch.float32), rtol=1e-5)
     assert (d_fog > 10 * d_surface).all()
 

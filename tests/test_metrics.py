@@ -138,7 +138,8 @@ def _random_lpips_weights(g):
     for idx, (o, i, k) in convs.items():
         backbone[f"features.{idx}.weight"] = torch.randn(o, i, k, k, generator=g) * (2 / (i * k * k)) ** 0.5
         backbone[f"features.{idx}.bias"] = torch.zeros(o)
-    lins = {f"lin{n}.model.1.weight": torch.rand(1, c, 1, 1, generator=g) for n, c in enumerate((64, 192, 384, 256, 256))}
+    lins = {f"lin{n}.model.1.weight": torch.rand(1, c, 1, 1, generator=g)
+            for n, c in enumerate((64, 192, 384, 256, 256))}
     return backbone, lins
 
 

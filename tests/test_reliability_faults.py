@@ -31,13 +31,13 @@ from tests.reliability_helpers import (
     site,
 )
 from tests.service_helpers import (
-    toy_upload,
     FAST,
     ROOT,
     LiveServer,
     WorkerProcess,
     redis_server,
     register,
+    toy_upload,
     view_request,
     wait_job,
     wait_until,

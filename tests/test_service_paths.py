@@ -156,7 +156,8 @@ def test_cancel_queued_and_running_path_jobs(setup, monkeypatch):
     from roguenerf.inference import SceneEnhancer
 
     slow = SceneEnhancer.enhance
-    monkeypatch.setattr(SceneEnhancer, "enhance", lambda self, *a, **k: (threading.Event().wait(0.4), slow(self, *a, **k))[1])
+    monkeypatch.setattr(SceneEnhancer, "enhance",
+                        lambda self, *a, **k: (threading.Event().wait(0.4), slow(self, *a, **k))[1])
     running = post_path(client, scene_id, archive).json()
     outcome = {}
     worker = threading.Thread(target=lambda: outcome.setdefault("r", run_job(setup["ctx"], running["id"])))

@@ -183,16 +183,18 @@ def test_view_errors_are_api_errors(client, scene_id):
     msg = _error(client.post(f"/scenes/{scene_id}/views/1/score", files={"image": ("h.png", half, "image/png")}),
                  422, "invalid_input")
     assert "expected 64x48" in msg and "got 32x24" in msg
-    assert client.post(f"/scenes/{scene_id}/views/1/score", files={"image": ("r.png", small, "image/png")}).status_code == 200
+    scored = client.post(f"/scenes/{scene_id}/views/1/score", files={"image": ("r.png", small, "image/png")})
+    assert scored.status_code == 200
 
 
 def test_new_routes_need_the_key_and_the_page_does_not(server, scene_id):
     import httpx
 
     with httpx.Client(base_url=server.url, timeout=30) as anon:
+        view = f"/scenes/{scene_id}/views/0"
         for method, path in [("GET", "/scenes"), ("GET", f"/scenes/{scene_id}/views"),
-                             ("GET", f"/scenes/{scene_id}/views/0/render"), ("GET", f"/scenes/{scene_id}/views/0/photo"),
-                             ("GET", f"/scenes/{scene_id}/views/0/depth"), ("POST", f"/scenes/{scene_id}/views/0/score"),
+                             ("GET", f"{view}/render"), ("GET", f"{view}/photo"),
+                             ("GET", f"{view}/depth"), ("POST", f"{view}/score"),
                              ("POST", "/"), ("DELETE", "/ui/app.js"), ("GET", "/uix/app.js")]:
             r = anon.request(method, path)
             assert r.status_code == 401 and r.json()["error"]["code"] == "unauthorized", (method, path)

@@ -25,7 +25,7 @@ from roguenerf.training import (
 )
 from roguenerf.training.config import FREEZE_NEIGHBOUR_ENCODER
 from roguenerf.training.loop import SceneData, _crop_batch
-from roguenerf.training.losses import VGG19Features, EnhancerLoss, _vgg19_layers, build_loss
+from roguenerf.training.losses import EnhancerLoss, VGG19Features, _vgg19_layers, build_loss
 from roguenerf.training.state import load_state
 
 FAST = dict(crop=16, batch=2, variant="micro", checkpoint_every_s=0.0, evaluate=False, progress_bar=False,

@@ -48,8 +48,10 @@ def _model(**overrides):
 def _run(model, batch, reference: bool):
     """Output, loss, {name: grad}, grad of the render, and the shapes the flow network was called with."""
     calls = []
-    hook = (model.flow.register_forward_hook(lambda m, i, out: calls.append((tuple(i[0].shape), float(out.detach().abs().max()))))
-            if model.flow is not None else None)
+    def record(m, i, out):
+        calls.append((tuple(i[0].shape), float(out.detach().abs().max())))
+
+    hook = model.flow.register_forward_hook(record) if model.flow is not None else None
     model.zero_grad(set_to_none=True)
     args, photo = model_inputs(model, batch, torch.device("cpu"))
     render = args[0].clone().requires_grad_(True)

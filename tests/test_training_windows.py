@@ -258,7 +258,7 @@ def test_cached_features_step_equals_the_frozen_encoder_step(scene):
     assert whole.neighbour_photos is not None and whole.neighbour_features is None
     # No receptive margin around cached features: windows are smaller than photo windows.
     photo_window = prepare_batch(data, TARGETS, ORIGINS, CROP, encoding="window", margin=receptive_radius(model.conv_H))
-    assert bool((cached.windows[..., 2:].prod(-1).sum() < photo_window.windows[..., 2:].prod(-1).sum()))
+    assert bool(cached.windows[..., 2:].prod(-1).sum() < photo_window.windows[..., 2:].prod(-1).sum())
 
     model.zero_grad(set_to_none=True)
     args, photo = model_inputs(model, cached, torch.device("cpu"))

@@ -145,7 +145,8 @@ def test_2_one_step_finetune_runs_to_the_end(session, site):
              timeout_s=240)
     seen = page.evaluate("window.phasesSeen")
     order = ["waiting for a worker", "loading the scene", "measuring before", "training", "measuring after", "–"]
-    assert len(seen) >= 2 and seen[-1] == "–" and [order.index(p) for p in seen] == sorted(order.index(p) for p in seen), seen
+    positions = [order.index(p) for p in seen]
+    assert len(seen) >= 2 and seen[-1] == "–" and positions == sorted(positions), seen
     job_id = _text(page, "#job-id")
     job = site["api"].get(f"/jobs/{job_id}").json()
     assert job["scene_id"] == sid and job["request"] == {"steps": 1}
@@ -154,7 +155,8 @@ def test_2_one_step_finetune_runs_to_the_end(session, site):
     assert _text(page, "#job-step") == "1 of 1"
     assert _text(page, "#job-version") == "v2" and job["checkpoint_version"] == 2
     assert page.locator("#job-progress").evaluate("e => e.value") == 1
-    assert _text(page, "#job-loss") == f"{job['loss']:.4g}" or float(_text(page, "#job-loss")) == pytest.approx(job["loss"], rel=1e-3)
+    shown = _text(page, "#job-loss")
+    assert shown == f"{job['loss']:.4g}" or float(shown) == pytest.approx(job["loss"], rel=1e-3)
     assert page.locator("#loss-curve").get_attribute("data-points") == "1"
     assert page.locator("#job-error").is_hidden()
     assert page.locator("#ft-cancel").is_disabled()

@@ -158,7 +158,7 @@ def test_two_workers_racing_for_one_job_exactly_one_wins(store, database_url):
         for round_ in range(15):
             job, _ = store.create_job(SCENE, {"steps": round_ + 1})
             workers = (store, other)
-            results = _race(2, lambda i: workers[i].claim(job["id"], f"lease-{i}"))
+            results = _race(2, lambda i, workers=workers, job=job: workers[i].claim(job["id"], f"lease-{i}"))
             won = [r for r in results if r is not None]
             assert len(won) == 1, results
             assert not any(isinstance(r, Exception) for r in results), results

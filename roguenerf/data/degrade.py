@@ -108,7 +108,8 @@ class Degradation:
         if isinstance(photos, Tensor):
             check_float_image(photos, "photos")
         if not isinstance(photos, Tensor) or photos.ndim != 4 or photos.shape[1] != 3 or not photos.is_floating_point():
-            raise InputError(f"photos: expected a float (M, 3, H, W) tensor, got {getattr(photos, 'shape', type(photos))}")
+            got = getattr(photos, "shape", type(photos))
+            raise InputError(f"photos: expected a float (M, 3, H, W) tensor, got {got}")
         m, _, h, w = photos.shape
         if not isinstance(depths, Tensor) or tuple(depths.shape) != (m, 1, h, w):
             raise InputError(f"depths: expected shape ({m}, 1, {h}, {w}), got {tuple(getattr(depths, 'shape', ()))}")
@@ -245,7 +246,8 @@ def _defocus(images: Tensor, inv_depth: Tensor, known: Tensor, radius: Tensor, f
     blurred = kornia.filters.filter2d(images, disk, border_type="reflect")
     flat = torch.where(known, inv_depth, torch.nan).flatten(1)
     focus = torch.stack([
-        torch.nanquantile(flat[i], focus_q[i], interpolation="nearest") if known[i].any() else flat.new_tensor(0.0) for i in range(m)
+        torch.nanquantile(flat[i], focus_q[i], interpolation="nearest") if known[i].any() else flat.new_tensor(0.0)
+        for i in range(m)
     ])
     off = (inv_depth - focus.view(-1, 1, 1, 1)).abs()
     mix = off / off.flatten(1).amax(dim=1).clamp_min(1e-12).view(-1, 1, 1, 1)

@@ -326,7 +326,8 @@ def _check_unique(source: Path, frames: list[Frame]) -> None:
     for n, frame in enumerate(frames):
         if frame.name in seen:
             raise SceneFormatError(
-                source, f"views {seen[frame.name]} and {n} have the same name {frame.name!r} (file stems must be unique)"
+                source,
+                f"views {seen[frame.name]} and {n} have the same name {frame.name!r} (file stems must be unique)",
             )
         seen[frame.name] = n
 
@@ -452,7 +453,8 @@ def _load_llff(pb_path: Path, factor: int | None, hold: int, check_files: bool) 
             width, height = int(round(full_w / div)), int(round(full_h / div))
         if check_files and (abs(width * full_h - height * full_w) > max(full_w, full_h)):
             raise SceneFormatError(
-                image_path, f"image is {width}x{height} but poses_bounds.npy says {full_w:g}x{full_h:g} (aspect differs)"
+                image_path,
+                f"image is {width}x{height} but poses_bounds.npy says {full_w:g}x{full_h:g} (aspect differs)",
             )
         sx, sy = width / full_w, height / full_h
         K = torch.tensor(

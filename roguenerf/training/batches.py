@@ -64,7 +64,6 @@ from roguenerf.errors import InputError
 from roguenerf.geometry.reproject import DEPTH_EPS, MAX_DEPTH
 from roguenerf.training.config import NEIGHBOUR_ENCODINGS
 
-
 WINDOW_SLACK = 1
 """Pixels added beyond conv_H's receptive radius on each side of a window: the model computes
 the projected coordinates in float32, which may floor one pixel below the float64 ones here."""

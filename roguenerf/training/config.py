@@ -184,9 +184,11 @@ class TrainConfig:
         if not 0.0 <= float(self.held_out_share) <= 1.0:
             raise InputError(f"held_out_share: expected a probability in [0, 1], got {self.held_out_share}")
         if self.render_blur is not None and not 0.0 <= float(self.render_blur) <= MAX_RENDER_BLUR:
-            raise InputError(f"render_blur: expected a sigma in [0, {MAX_RENDER_BLUR:g}] pixels, got {self.render_blur}")
+            raise InputError(f"render_blur: expected a sigma in [0, {MAX_RENDER_BLUR:g}] pixels, "
+                             f"got {self.render_blur}")
         if self.render_warp is not None and not 0.0 <= float(self.render_warp) <= MAX_RENDER_WARP:
-            raise InputError(f"render_warp: expected a shift in [0, {MAX_RENDER_WARP:g}] pixels, got {self.render_warp}")
+            raise InputError(f"render_warp: expected a shift in [0, {MAX_RENDER_WARP:g}] pixels, "
+                             f"got {self.render_warp}")
         if self.num_neighbours is not None and int(self.num_neighbours) < 0:
             raise InputError(f"num_neighbours: expected >= 0, got {self.num_neighbours}")
         if self.lr_schedule is not None and self.lr_schedule not in LR_SCHEDULES:

@@ -40,7 +40,6 @@ from roguenerf.training.batches import (
     sample_crops,
     warp_renders,
 )
-from roguenerf.training.evaluate import evaluate
 from roguenerf.training.config import (
     FEATURE_CACHE_BYTES,
     TrainConfig,
@@ -51,6 +50,7 @@ from roguenerf.training.config import (
     lr_factor,
     plan_training,
 )
+from roguenerf.training.evaluate import evaluate
 from roguenerf.training.losses import build_loss
 from roguenerf.training.state import load_state, save_state
 

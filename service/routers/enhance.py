@@ -109,7 +109,8 @@ async def create_enhancement(
     scene_id: Annotated[str, Form(min_length=1, description="id returned by POST /scenes")],
     render: Annotated[UploadFile, File(description="the radiance field's render (PNG)")],
     depth: Annotated[UploadFile, File(description=".npy float32 HxW, or 16-bit PNG with depth_scale")],
-    camera: Annotated[str, Form(min_length=1, description="JSON: transform_matrix, convention, fl_x, fl_y, cx, cy, depth_type")],
+    camera: Annotated[str, Form(
+        min_length=1, description="JSON: transform_matrix, convention, fl_x, fl_y, cx, cy, depth_type")],
     depth_scale: Annotated[float, Form(gt=0, description="multiplier for 16-bit PNG depth (e.g. 0.001 for mm)")] = 1.0,
 ) -> Response:
     start = time.perf_counter()

@@ -83,7 +83,8 @@ def read_job_result(
     job_id: str,
     services: ServicesDep,
     what: Annotated[Literal["video", "side_by_side", "frames", "flicker"],
-                    Query(description="video (enhanced MP4), side_by_side (render | enhanced), frames (zip), flicker")] = "video",
+                    Query(description=("video (enhanced MP4), side_by_side (render | enhanced), frames (zip), "
+                                       "flicker"))] = "video",
 ) -> FileResponse:
     job = job_or_404(services, job_id)
     if (job["request"] or {}).get("kind") != "path":

@@ -114,7 +114,8 @@ def _register(services: Services, archive: UploadFile, checkpoint: UploadFile | 
              responses=error_responses(400, 413, 422))
 def create_scene(
     services: ServicesDep,
-    archive: Annotated[UploadFile, File(description="zip of a scene folder (transforms.json, images/, renders/, depths/)")],
+    archive: Annotated[UploadFile, File(
+        description="zip of a scene folder (transforms.json, images/, renders/, depths/)")],
     # Not `UploadFile | None`: that publishes a nullable schema, and a multipart "null" text
     # part is then schema-valid but refused. Omitting the part is how it is left out.
     checkpoint: Annotated[UploadFile, File(description="optional enhancer checkpoint (.safetensors)")] = None,
