@@ -5,7 +5,7 @@ most nearly opaque) in front of one camera at 504x378; each size runs in a fresh
 peak resident memory is its own. Writes ``bench/results/splats_render.csv`` (date, machine,
 commit on every row).
 
-    python bench/splats_render.py [--sizes 100000,1000000] [--threads 1] [--repeat 2]
+    python -m bench.splats_render [--sizes 100000,1000000] [--threads 1] [--repeat 2]
 """
 
 from __future__ import annotations
@@ -16,11 +16,8 @@ import resource
 import subprocess
 import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from common import RESULTS, stamp, write_csv  # noqa: E402
+from bench.common import REPO, RESULTS, stamp, write_csv
 
 WIDTH, HEIGHT = 504, 378
 
@@ -63,8 +60,9 @@ def main() -> None:
         return
     rows = []
     for n in (int(s) for s in args.sizes.split(",")):
-        out = subprocess.run([sys.executable, __file__, "--one", str(n), "--threads", str(args.threads),
-                              "--repeat", str(args.repeat)], capture_output=True, text=True, check=True)
+        out = subprocess.run([sys.executable, "-m", "bench.splats_render", "--one", str(n),
+                              "--threads", str(args.threads), "--repeat", str(args.repeat)],
+                             capture_output=True, text=True, check=True, cwd=REPO)
         row = {**stamp(), **json.loads(out.stdout.strip().splitlines()[-1])}
         print(row, flush=True)
         rows.append(row)
