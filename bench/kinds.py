@@ -18,9 +18,9 @@ Writes ``OUTPUT.csv`` (one row per view and condition: PSNR, SSIM, FLIP of rende
 ``OUTPUT.json`` (rows plus per-condition means) and ``OUTPUT.png`` (gain against fine-tuning
 minutes and against pose noise, per scene), stamped with date, machine and commit.
 
-    nice .venv/bin/python bench/kinds.py --kind hash --scenes can_clip,ollie --scale 2 --steps 400 \\
+    nice .venv/bin/python -m bench.kinds --kind hash --scenes can_clip,ollie --scale 2 --steps 400 \\
         --rays 1024 --samples 48 --finetune 1,3,10
-    nice .venv/bin/python bench/kinds.py ... --quick    # tiny budgets (proves it runs)
+    nice .venv/bin/python -m bench.kinds ... --quick    # tiny budgets (proves it runs)
 """
 
 from __future__ import annotations
@@ -32,9 +32,7 @@ import json
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench.common import REPO, RESULTS, SHARED_DATA, save_figure, stamp, write_csv, write_json  # noqa: E402
+from bench.common import REPO, RESULTS, SHARED_DATA, save_figure, stamp, write_csv, write_json
 
 NOISE_LEVELS = "0/0,0.1/0.01,0.25/0.02,0.5/0.05,1/0.1"
 """The issue's sweep: none, 0.1 deg / 1 %, 0.25 deg / 2 %, 0.5 deg / 5 %, 1 deg / 10 %."""

@@ -23,7 +23,8 @@ from roguenerf.errors import InputError, RoGUENeRFError
 
 # rich_markup_mode=None: typer's rich help shows flags (--json, --help) as taking a "<bool>" value.
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  rich_markup_mode=None, help="RoGUENeRF: enhance radiance-field renders with geometry-aligned training photos.")
+                  rich_markup_mode=None,
+                  help="RoGUENeRF: enhance radiance-field renders with geometry-aligned training photos.")
 
 CheckpointOpt = Annotated[Path | None, typer.Option(
     "--checkpoint", help="Enhancer .safetensors, or the folder a fine-tune wrote (its model.safetensors); "
@@ -42,7 +43,9 @@ CropOpt = Annotated[int | None, typer.Option("--crop", help="Random crop side in
 VggOpt = Annotated[Path | None, typer.Option(
     "--vgg-weights", help="Local torchvision VGG-19 weights for the perceptual loss (else L1 alone).")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed.")]
-LrOpt = Annotated[float | None, typer.Option("--lr", help="Adam learning rate (default: 5e-4 on a CPU, chosen by measured gain per minute; 1e-4 on a GPU, the paper's).")]
+LrOpt = Annotated[float | None, typer.Option("--lr", help=(
+    "Adam learning rate (default: 5e-4 on a CPU, chosen by measured gain per minute; "
+    "1e-4 on a GPU, the paper's)."))]
 LrScheduleOpt = Annotated[str | None, typer.Option(
     "--lr-schedule", help="cosine (the lr falls to 0 over the budget; the default) or constant.")]
 NeighboursOpt = Annotated[int | None, typer.Option("--neighbours", help="Neighbours per view (default: model's).")]
@@ -440,7 +443,8 @@ def _import_command(tool: str, dataset: Path, renders: Path, output: Path, depth
 DepthTypeOpt = Annotated[str | None, typer.Option("--depth-type", help=(
     "ray: distance along the ray (nerfacto, gsplat ED); z: along the optical axis (splatfacto, gsplat RGB+ED). "
     "Default: ray for nerfstudio, z for gsplat."))]
-DepthScaleOpt = Annotated[float, typer.Option("--depth-scale", help="Multiply stored depth by this (0.001 for millimetre PNGs).")]
+DepthScaleOpt = Annotated[float, typer.Option(
+    "--depth-scale", help="Multiply stored depth by this (0.001 for millimetre PNGs).")]
 BackgroundOpt = Annotated[str | None, typer.Option("--background", help=(
     "What no-surface pixels hold: zero, or max (the map's maximum; gsplat's default). Made unknown."))]
 SkipMissingOpt = Annotated[bool, typer.Option("--skip-missing", help=(
@@ -456,7 +460,8 @@ DataparserOpt = Annotated[Path | None, typer.Option("--dataparser-transforms", h
 @app.command("import-nerfstudio")
 def import_nerfstudio(
     dataset: Annotated[Path, typer.Argument(help="nerfstudio dataset: folder with transforms.json and the photos.")],
-    renders: Annotated[Path, typer.Option("--renders", help="ns-render dataset output (<split>/rgb, <split>/raw-depth).")],
+    renders: Annotated[Path, typer.Option(
+        "--renders", help="ns-render dataset output (<split>/rgb, <split>/raw-depth).")],
     output: Annotated[Path, typer.Option("--output", help="Scene folder to write.")],
     depth_type: DepthTypeOpt = None,
     depth_scale: DepthScaleOpt = 1.0,
@@ -552,18 +557,22 @@ def import_3dgs_command(
 @app.command("enhance-path")
 def enhance_path_command(
     scene_dir: Annotated[Path, typer.Argument(help="Scene folder (the training photos, poses, renders, depths).")],
-    frames: Annotated[Path, typer.Option("--frames", help="Folder of the path's renders and depths (rgb/ + depth/, or NAME.png + NAME.npy).")],
+    frames: Annotated[Path, typer.Option(
+        "--frames", help="Folder of the path's renders and depths (rgb/ + depth/, or NAME.png + NAME.npy).")],
     cameras: Annotated[Path, typer.Option("--cameras", help=(
         "nerfstudio camera_path.json, a transforms-style list of cameras, Inria 3DGS cameras.json, or COLMAP "
         "images.txt / images.bin (cameras file beside it)."))],
-    output: Annotated[Path, typer.Option("--output", help="Output folder: frames/, enhanced.mp4, side_by_side.mp4, flicker.json.")],
+    output: Annotated[Path, typer.Option(
+        "--output", help="Output folder: frames/, enhanced.mp4, side_by_side.mp4, flicker.json.")],
     checkpoint: CheckpointOpt = None,
     neighbours: NeighboursOpt = None,
     quality: Annotated[int, typer.Option("--quality", help="x264 CRF, 0 (lossless) .. 51; 18-23 look good.")] = 20,
-    fps: Annotated[float | None, typer.Option("--fps", help="Frame rate (default: the camera path's, else 24).")] = None,
+    fps: Annotated[float | None, typer.Option(
+        "--fps", help="Frame rate (default: the camera path's, else 24).")] = None,
     depth_type: Annotated[str, typer.Option("--depth-type", help="z or ray (distance along the ray, nerfacto).")] = "z",
     depth_scale: DepthScaleOpt = 1.0,
-    background: Annotated[str, typer.Option("--background", help="No-surface pixels hold zero, or max (gsplat).")] = "zero",
+    background: Annotated[str, typer.Option(
+        "--background", help="No-surface pixels hold zero, or max (gsplat).")] = "zero",
     dataparser_transforms: Annotated[Path | None, typer.Option("--dataparser-transforms", help=(
         "Maps a nerfstudio camera path (model world) to the scene's poses; default: the scene folder's "
         "dataparser_transforms.json when there is one."))] = None,
@@ -614,7 +623,8 @@ def enhance_path_command(
         with _progress_bar(f"enhancing {len(camera_path)} frames", "frame") as progress:
             result = enhance_path(scene, enhancer, camera_path, frames, output, depth_type=depth_type,
                                   depth_scale=depth_scale, background=background, video=not no_video,
-                                  quality=quality, fps=fps, checkpoint_id=f"{ckpt.resolve()}:{stat.st_size}:{stat.st_mtime_ns}",
+                                  quality=quality, fps=fps,
+                                  checkpoint_id=f"{ckpt.resolve()}:{stat.st_size}:{stat.st_mtime_ns}",
                                   progress=progress, force=force)
         for warning in result.warnings:
             typer.echo(f"warning: {warning}", err=True)
