@@ -13,7 +13,7 @@ from PIL import Image
 from bench import kinds
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.geometry.noise import camera_spread
-from tests.test_fit import write_photo_set
+from tests.fit_helpers import write_photo_set
 
 
 def test_downscaled_photo_set_scales_images_and_intrinsics(tmp_path):

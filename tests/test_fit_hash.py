@@ -19,7 +19,7 @@ from roguefit.fit import PRESETS, FitConfig
 from roguefit.hashfield import HASH_PRIMES, HashEncoding, HashField, level_resolutions, spherical_harmonics
 from roguenerf.data.readers import load_scene
 from roguenerf.errors import InputError, TrainingCancelled
-from tests.test_fit import write_photo_set
+from tests.fit_helpers import write_photo_set
 
 # The preset's field, small: 4 levels (16 to 32; the first two dense, the others hashed into
 # 2^14 rows), at a test's budget. On the 30 x 40 px toy views a hash field memorises the

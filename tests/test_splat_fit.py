@@ -16,7 +16,7 @@ from roguefit.splats import PLY_FILE, STATE_FILE
 from roguenerf.data.readers import load_scene
 from roguenerf.errors import InputError, TrainingCancelled
 from roguenerf.splats import read_ply, render
-from tests.test_fit import write_photo_set
+from tests.fit_helpers import write_photo_set
 
 SMALL = SplatConfig(steps=150, scale=1, init_points=2000, checkpoint_every=50)
 # Measured at this budget (9 views, 30x40, seeds 0, 1, 2): training PSNR 32.3 / 32.8 / 32.5 dB,
