@@ -11,7 +11,7 @@ import importlib
 from roguenerf import runtime as _runtime
 
 # Before anything loads torch: OpenMP's default spin-wait collapses beside any busy process
-# (README, *Process settings*); PASSIVE unless the user chose a policy.
+# (docs/results.md, *Process settings*); PASSIVE unless the user chose a policy.
 _runtime.prefer_passive_wait()
 
 from roguenerf.errors import (  # noqa: E402

@@ -50,7 +50,7 @@ def in_reference_mode() -> bool:
 def layout_enabled(x: Tensor) -> bool:
     """Channels-last layouts apply, with or without gradient: not in reference mode, float32 on
     the CPU. oneDNN's convolutions with 3-32 channels run forward + backward 15-40 % faster on
-    channels-last inputs than on NCHW ones (README, *Channels-last convolutions in training*);
+    channels-last inputs than on NCHW ones (docs/results.md, *Channels-last convolutions in training*);
     the values are the same to float32 rounding."""
     return not in_reference_mode() and x.device.type == "cpu" and x.dtype == torch.float32
 

@@ -1,7 +1,7 @@
 """Process-level settings for fast CPU inference and training.
 
 Two settings measured to matter more than any kernel on this project's CPUs
-(``bench/threads.py``; figures in the README):
+(``python -m bench.threads``; figures in docs/results.md):
 
 * **Keep freed memory.** glibc returns large freed blocks (>= 128 KiB by default) to the
   OS with ``munmap`` and trims the heap top eagerly; the next forward pass then page-faults
@@ -11,7 +11,7 @@ Two settings measured to matter more than any kernel on this project's CPUs
 * **Threads and OpenMP's wait policy.** torch uses one thread per core it may run on
   (``sched_getaffinity``). OpenMP reads its wait policy once, when torch is loaded. Its default
   (spin about 3 ms, then sleep) collapses beside any other busy process: measured
-  (``bench/threads.py``, README *Process settings*) the CLI's ``evaluate`` on lego took minutes
+  (``python -m bench.threads``, docs/results.md *Process settings*) the CLI's ``evaluate`` on lego took minutes
   instead of seconds in some processes, and enhancements ran 3-14x slower. ``PASSIVE`` never
   collapsed, at a small price on an idle machine. So every entry point starts with it:
   ``import roguenerf`` calls :func:`prefer_passive_wait` before anything loads torch (the CLI,

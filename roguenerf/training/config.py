@@ -23,40 +23,40 @@ GPU_CROP = 512
 CPU_NEIGHBOURS = 2
 """Kept after the re-plan (issue 12): with crop windows more neighbours are cheap, but on the
 unseen real scenes the views made worse get worse with each added neighbour (mary_rose 048:
--0.01, -0.42, -0.66 dB with 1, 2, 4) while the mean gains little (README, Results)."""
+-0.01, -0.42, -0.66 dB with 1, 2, 4) while the mean gains little (docs/results.md)."""
 CPU_VARIANT = "micro"
 """On a CPU, micro at 64 px crops trains at ~1.8 steps/s on 2 busy cores (nano: ~0.3 at 96 px)."""
 CPU_MINUTES = 10.0
 CPU_LR = 5e-4
 """Re-planned (issue 12) from 1e-4: in one sitting from the shipped checkpoint, the gain after
 10 minutes was higher on both unseen real scenes (+0.04, +0.02 dB) and on lego (+0.10 dB); after
-1 and 3 minutes it was higher on lego and mixed on the real scenes (README, Results)."""
+1 and 3 minutes it was higher on lego and mixed on the real scenes (docs/results.md)."""
 GPU_LR = 1e-4
 LR_SCHEDULES = ("cosine", "constant")
 """How the learning rate moves over a run's budget (TrainConfig.lr_schedule, :func:`lr_factor`)."""
 LR_SCHEDULE = "cosine"
 """The plan's schedule on any device. In one sitting, 1600 steps from the shipped checkpoint,
 cosine against constant (lr 5e-4): dtu_scan37 +0.77 against +0.64 dB, mary_rose +1.48
-against +1.04, lego +1.45 against +1.51 (README, Results). Single runs on scenes where a run's
+against +1.04, lego +1.45 against +1.51 (docs/results.md). Single runs on scenes where a run's
 gain varies by ~0.3 dB from run to run; a constant lr also ends wherever its last steps left it."""
 FREEZE_NEIGHBOUR_ENCODER = False
 """Fine-tuning's default for :attr:`TrainConfig.freeze_neighbour_encoder`. Frozen, a step is 1.3x
 faster (5 neighbours), but 10-minute fine-tunes from the shipped checkpoint gained no more: mary_rose
 +1.43 against +1.43 dB, dtu_scan37 +0.73 against +0.73, lego +1.44 against +1.48
-(bench/results/frozen_encoder_paired.json, README)."""
+(bench/results/frozen_encoder_paired.json, docs/results.md)."""
 FEATURE_CACHE_BYTES = 2 * 1024**3
 """Largest cache of frozen neighbour features (float32, training views x F x H x W) kept in memory."""
 RENDER_BLUR = 0.0
 """Fine-tuning's default for :attr:`TrainConfig.render_blur` (0: the renders as they are). A sigma
 up to 2 px lowered the 3-minute gain on both unseen ``fine`` fits (-0.05, -0.04 dB): blurring a
 training render costs it under 1 dB, where a field's novel views are 3-6 dB worse than its
-training views, and 7-10 dB worse pooled by 16 px (bench/render_scales.py; README, Results)."""
+training views, and 7-10 dB worse pooled by 16 px (python -m bench.render_scales; docs/results.md)."""
 MAX_RENDER_BLUR = 8.0
 RENDER_WARP = 0.0
 """Fine-tuning's default for :attr:`TrainConfig.render_warp` (0: the renders as they are). Off by
 default: in one sitting, 3-minute fine-tunes with 4 px gained more on the four unseen real-scene
 fits (dtu_scan37 coarse +0.12 dB, fine +0.10; mary_rose +0.01, +0.02) but 0.17 dB less on lego,
-whose field renders its novel views about as well as its training views (README, Results)."""
+whose field renders its novel views about as well as its training views (docs/results.md)."""
 MAX_RENDER_WARP = 32.0
 MAX_POSE_NOISE_DEG = 10.0
 MAX_POSE_NOISE_SHARE = 1.0
