@@ -20,6 +20,7 @@ from tests.reliability_helpers import assert_error, assert_healthy, db_rows, pos
 
 CLIENTS = 12
 PER_CLIENT = 4
+MIN_PROBES = 10  # /healthz samples taken while the clients hammer /enhance
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +48,11 @@ def test_enhance_over_capacity_is_503_at_once_and_healthz_stays_fast(s):
 
     def hammer(_):
         with httpx.Client(base_url=s.live.url, timeout=60) as c:
-            for _ in range(PER_CLIENT):
+            sent = 0
+            # PER_CLIENT requests each, and on until the prober has its samples under load
+            # (fast enhancements can finish within fewer than MIN_PROBES probes).
+            while sent < PER_CLIENT or (len(health) < MIN_PROBES and prober.is_alive()):
+                sent += 1
                 t = time.perf_counter()
                 r = post_enhance(c, s.scene_id, render=view["render"], depth=view["depth"], camera=view["camera"])
                 with lock:
@@ -65,7 +70,7 @@ def test_enhance_over_capacity_is_503_at_once_and_healthz_stays_fast(s):
     wall = time.perf_counter() - start
 
     codes = Counter(code for code, _, _ in results)
-    assert sum(codes.values()) == CLIENTS * PER_CLIENT
+    assert sum(codes.values()) >= CLIENTS * PER_CLIENT
     assert set(codes) <= {200, 503}, codes
     assert codes[200] >= 1 and codes[503] >= 1, codes
     refused = [(sec, h) for code, sec, h in results if code == 503]
@@ -78,7 +83,7 @@ def test_enhance_over_capacity_is_503_at_once_and_healthz_stays_fast(s):
     # a refusal that waited for a slot would take a served request per request ahead of it.
     assert refused_p95 < max(0.6, served_median), (refused_p95, served_median)
     health_p95 = float(np.percentile(health, 95))
-    assert len(health) >= 10 and health_p95 < 0.25, health_p95
+    assert len(health) >= MIN_PROBES and health_p95 < 0.25, health_p95
     figures = {"requests": len(results), "ok_200": codes[200], "busy_503": codes[503],
                "other": sum(v for k, v in codes.items() if k not in (200, 503)), "clients": CLIENTS,
                "enhance_concurrency": 1, "wall_s": round(wall, 2),
