@@ -22,7 +22,7 @@ from torch import Tensor
 
 from roguefit.field import GridField, scene_frame, seen_by_cameras
 from roguefit.photos import PhotoSet, read_photo_set
-from roguefit.splats import SplatConfig
+from roguefit.splats import SplatConfig, _SplatFitter
 from roguenerf.errors import InputError, TrainingCancelled, TrainingDivergedError
 from roguenerf.imageio import atomic_write
 
@@ -340,6 +340,14 @@ class _Fitter:
                 last_save = time.monotonic()
         self.save()
 
+    def summary(self) -> dict:
+        """This field's own entries of the fit report."""
+        return {"centre": [float(x) for x in self.field.centre], "radius": self.field.radius,
+                "occupied_fraction": float(self.field.occupancy.float().mean())}
+
+    def write_extras(self, output: Path) -> None:
+        """Files beside the scene folder that only this kind of field writes: none."""
+
     # -- rendering -------------------------------------------------------------------------
     @torch.no_grad()
     def render_view(self, i: int, chunk: int = 16384) -> tuple[Tensor, Tensor, Tensor]:
@@ -387,13 +395,8 @@ def make_pairs(photos_dir: str | Path, output: str | Path, config: FitConfig | S
 
     Returns the fit report (also written as ``output/fit.json``): configuration, steps, seconds,
     and the renders' PSNR/SSIM on the training and held-out views. A :class:`SplatConfig` fits
-    Gaussian splats instead (:func:`roguefit.splats.make_splat_pairs`).
+    Gaussian splats instead (``roguefit.splats``), and writes their ``point_cloud.ply`` too.
     """
-    if isinstance(config, SplatConfig):
-        from roguefit.splats import make_splat_pairs
-
-        return make_splat_pairs(photos_dir, output, config, progress=progress, should_stop=should_stop,
-                                render_progress=render_progress)
     from roguenerf.data.writers import write_scene_folder
 
     output = Path(output)
@@ -407,7 +410,8 @@ def make_pairs(photos_dir: str | Path, output: str | Path, config: FitConfig | S
         except (OSError, json.JSONDecodeError):
             pass
     ps = read_photo_set(photos_dir, hold=config.hold)
-    fitter = _Fitter(ps, config, output / STATE_DIR)
+    fitter_type = _SplatFitter if isinstance(config, SplatConfig) else _Fitter
+    fitter = fitter_type(ps, config, output / STATE_DIR)
     if fitter.load():
         log.info("resuming the fit at step %d (%.0f s done)", fitter.step, fitter.elapsed)
     fitter.run(progress, should_stop)
@@ -422,6 +426,7 @@ def make_pairs(photos_dir: str | Path, output: str | Path, config: FitConfig | S
             raise TrainingCancelled("stopped while rendering; run again to resume (the fit is saved)")
     render_seconds = time.perf_counter() - t0
     renders, depths, accs = torch.stack(renders), torch.stack(depths), torch.stack(accs)
+    fitter.write_extras(output)
     write_scene_folder(output, names=ps.names, photos=ps.photos, renders=renders, depths=depths,
                        world_from_cam=ps.world_from_cam, K=ps.K, splits=ps.splits, acc=accs)
     train, test = ps.indices("train"), ps.indices("test")
@@ -432,10 +437,8 @@ def make_pairs(photos_dir: str | Path, output: str | Path, config: FitConfig | S
         "steps": fitter.step,
         "fit_seconds": round(fitter.elapsed, 1),
         "render_seconds": round(render_seconds, 1),
-        "centre": [float(x) for x in fitter.field.centre],
-        "radius": fitter.field.radius,
+        **fitter.summary(),
         "bounds": ps.bounds_note,
-        "occupied_fraction": float(fitter.field.occupancy.float().mean()),
         "train": _metrics(renders[train], ps.photos[train]),
         "test": _metrics(renders[test], ps.photos[test]) if test else None,
     }

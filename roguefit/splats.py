@@ -42,9 +42,9 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 from torch import Tensor
 
-from roguefit.photos import PhotoSet, read_photo_set
-from roguenerf.errors import InputError, TrainingCancelled
-from roguenerf.splats import Gaussians, logit, render
+from roguefit.photos import PhotoSet
+from roguenerf.errors import InputError, TrainingCancelled, TrainingDivergedError
+from roguenerf.splats import Gaussians, logit, render, write_ply
 from roguenerf.splats.sh import C0
 
 log = logging.getLogger("roguefit")
@@ -340,8 +340,8 @@ class _SplatFitter:
             if c.densify_from <= f < c.densify_until and self.step % c.densify_every == 0:
                 self.densify_and_prune()
             self.elapsed += time.perf_counter() - t0
-            if not math.isfinite(mse):
-                raise RuntimeError(f"the splat fit diverged at step {self.step} (loss {mse})")
+            if not math.isfinite(mse):  # the configuration was checked: this is real divergence
+                raise TrainingDivergedError(self.step, mse)
             mse_avg = mse if mse_avg is None else 0.95 * mse_avg + 0.05 * mse
             if progress is not None:
                 progress({"step": self.step, "fraction": min(self.fraction(), 1.0),
@@ -353,6 +353,15 @@ class _SplatFitter:
                 self.save()
         self.save()
 
+    def summary(self) -> dict:
+        """The splats' own entries of the fit report."""
+        return {"gaussians": len(self.params["means"]), "extent": self.extent}
+
+    def write_extras(self, output: Path) -> None:
+        """The fitted splats as Inria's ``point_cloud.ply`` (``import-3dgs`` reads it)."""
+        output.mkdir(parents=True, exist_ok=True)
+        write_ply(output / PLY_FILE, self.gaussians())
+
     @torch.no_grad()
     def render_view(self, i: int) -> tuple[Tensor, Tensor, Tensor]:
         rgb, depth, acc = render(self.gaussians().detach(), self.ps.world_from_cam[i], self.ps.K[i],
@@ -363,55 +372,9 @@ class _SplatFitter:
 def make_splat_pairs(photos_dir: str | Path, output: str | Path, config: SplatConfig = SplatConfig(), *,
                      progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
                      render_progress: Callable[[int, int], None] | None = None) -> dict:
-    """Fit splats to ``photos_dir``'s training views and write the scene folder ``output``
-    (as :func:`roguefit.make_pairs`, which calls this for a :class:`SplatConfig`)."""
-    from roguefit.fit import FIT_FILE, STATE_DIR, _metrics
-    from roguenerf.data.writers import write_scene_folder
-    from roguenerf.imageio import atomic_write
-    from roguenerf.splats import write_ply
+    """Fit splats to ``photos_dir``'s training views and write the scene folder ``output``:
+    :func:`roguefit.make_pairs` with a :class:`SplatConfig`."""
+    from roguefit.fit import make_pairs
 
-    output = Path(output)
-    done = output / FIT_FILE
-    if done.is_file() and (output / "transforms.json").is_file():
-        try:
-            report = json.loads(done.read_text())
-            if report.get("config") == config.identity():
-                log.info("%s is complete (fit.json has this configuration): nothing to do", output)
-                return report
-        except (OSError, json.JSONDecodeError):
-            pass
-    ps = read_photo_set(photos_dir, hold=config.hold)
-    fitter = _SplatFitter(ps, config, output / STATE_DIR)
-    if fitter.load():
-        log.info("resuming the splat fit at step %d (%.0f s done)", fitter.step, fitter.elapsed)
-    fitter.run(progress, should_stop)
-    t0 = time.perf_counter()
-    renders, depths, accs = [], [], []
-    for k in range(len(ps.names)):
-        rgb, depth, acc = fitter.render_view(k)
-        renders.append(rgb), depths.append(depth), accs.append(acc)
-        if render_progress is not None:
-            render_progress(k + 1, len(ps.names))
-        if should_stop is not None and should_stop():
-            raise TrainingCancelled("stopped while rendering; run again to resume (the fit is saved)")
-    render_seconds = time.perf_counter() - t0
-    renders, depths, accs = torch.stack(renders), torch.stack(depths), torch.stack(accs)
-    write_ply(output / PLY_FILE, fitter.gaussians())
-    write_scene_folder(output, names=ps.names, photos=ps.photos, renders=renders, depths=depths,
-                       world_from_cam=ps.world_from_cam, K=ps.K, splits=ps.splits, acc=accs)
-    train, test = ps.indices("train"), ps.indices("test")
-    report = {
-        "format_version": FORMAT_VERSION,
-        "photos": str(Path(photos_dir)),
-        "config": config.identity(),
-        "steps": fitter.step,
-        "fit_seconds": round(fitter.elapsed, 1),
-        "render_seconds": round(render_seconds, 1),
-        "gaussians": len(fitter.params["means"]),
-        "extent": fitter.extent,
-        "bounds": ps.bounds_note,
-        "train": _metrics(renders[train], ps.photos[train]),
-        "test": _metrics(renders[test], ps.photos[test]) if test else None,
-    }
-    atomic_write(done, json.dumps(report, indent=1).encode())
-    return report
+    return make_pairs(photos_dir, output, config, progress=progress, should_stop=should_stop,
+                      render_progress=render_progress)
