@@ -14,12 +14,16 @@ are in one place:
 
 from __future__ import annotations
 
+import contextlib
 import io
 import math
 import os
 import secrets
+import shutil
 import stat
+import tempfile
 import zlib
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import BinaryIO
 
@@ -465,6 +469,46 @@ def atomic_write(path: str | os.PathLike, data: bytes, *, make_parents: bool = F
     finally:
         os.close(dir_fd)
     return path
+
+
+def check_output_folder(final: Path, replaceable: Callable[[Path], bool], what: str = "output") -> None:
+    """An output folder may be new, empty, or an earlier output of the same command
+    (``replaceable(final)``), which is then replaced whole; anything else is an :class:`InputError`."""
+    if not final.exists():
+        return
+    if not final.is_dir():
+        raise InputError(f"{what}: {final} exists and is not a folder")
+    if any(final.iterdir()) and not replaceable(final):
+        raise InputError(f"{what}: {final} exists and is not empty: it holds other files, not an earlier "
+                         "output of this command (which would be replaced); choose a new folder")
+
+
+@contextlib.contextmanager
+def atomic_folder(final: str | os.PathLike, *, replaceable: Callable[[Path], bool],
+                  what: str = "output") -> Iterator[Path]:
+    """Build a folder in a temporary sibling (yielded) and rename it to ``final`` at the end, so a
+    failure half-way leaves no half-written folder: the temporary one is removed, and an earlier
+    output at ``final`` stays until the new one is complete (see :func:`check_output_folder`)."""
+    final = Path(final)
+    check_output_folder(final, replaceable, what)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".partial", dir=final.parent))
+    try:
+        yield tmp
+        check_output_folder(final, replaceable, what)
+        if final.is_dir() and not any(final.iterdir()):
+            final.rmdir()
+        if final.exists():
+            old = final.parent / f".{final.name}.replaced-{os.getpid()}"
+            shutil.rmtree(old, ignore_errors=True)
+            os.replace(final, old)
+            os.replace(tmp, final)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
 
 def _image_array(image, name: str) -> np.ndarray:

@@ -29,7 +29,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import re
 import shutil
 from dataclasses import dataclass
@@ -40,6 +39,7 @@ import torch
 from torch import Tensor
 
 from roguenerf.errors import InputError, SceneFormatError
+from roguenerf.imageio import atomic_folder
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 DEPTH_SUFFIXES = (".npy.gz", ".npy", ".npz", ".png", ".tif", ".tiff", ".exr")
@@ -426,19 +426,12 @@ def import_renders(
         if problem is not None:
             raise InputError(f"{problem}; to import them as given anyway: --force (check_depth=False)")
     final = Path(output)
-    _check_output(final)
     # Built in a temporary sibling folder and renamed at the end: a failed import (a bad depth
     # file half-way) leaves no half-written scene folder behind.
-    output = final.parent / f".{final.name}.importing-{os.getpid()}"
-    shutil.rmtree(output, ignore_errors=True)
-    try:
-        scene = _write_import(source, frames, found, output, tool=tool, dataset=dataset, renders=renders,
-                              depth_type=depth_type, depth_scale=depth_scale, background=background,
-                              parser=parser, skipped=[name for name, _ in missing], progress=progress)
-        _replace_folder(output, final)
-    except BaseException:
-        shutil.rmtree(output, ignore_errors=True)
-        raise
+    with atomic_folder(final, replaceable=_is_import) as output:
+        _write_import(source, frames, found, output, tool=tool, dataset=dataset, renders=renders,
+                      depth_type=depth_type, depth_scale=depth_scale, background=background,
+                      parser=parser, skipped=[name for name, _ in missing], progress=progress)
     scene = load_scene(final)
     scene.meta["skipped_views"] = [name for name, _ in missing]
     return scene
@@ -677,37 +670,12 @@ def _depth_type_views(source, frames, found, depth_scale: float, background: str
     return pairs
 
 
-def _check_output(final: Path) -> None:
-    """The output may be new, empty, or an earlier import (replaced whole); nothing else."""
-    if not final.exists():
-        final.parent.mkdir(parents=True, exist_ok=True)
-        return
-    if not final.is_dir():
-        raise InputError(f"output: {final} exists and is not a folder")
-    if any(final.iterdir()) and not _is_import(final):
-        raise InputError(f"output: {final} exists and is not empty (nor an earlier import, which would be "
-                         "replaced): choose a new folder")
-
-
 def _is_import(folder: Path) -> bool:
     try:
         doc = json.loads((folder / "transforms.json").read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         return False
     return isinstance(doc, dict) and isinstance(doc.get("source"), dict) and doc["source"].get("tool") in TOOLS
-
-
-def _replace_folder(new: Path, final: Path) -> None:
-    """Rename ``new`` to ``final``; an earlier import there is swapped out, then deleted."""
-    if final.is_dir() and not any(final.iterdir()):
-        final.rmdir()
-    if final.exists():
-        old = final.parent / f".{final.name}.replaced-{os.getpid()}"
-        os.replace(final, old)
-        os.replace(new, final)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(new, final)
 
 
 def _write_import(source, frames, found, output: Path, *, tool, dataset, renders, depth_type, depth_scale,

@@ -18,7 +18,6 @@ from __future__ import annotations
 import importlib.util
 import json
 import shutil
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +26,7 @@ import torch
 from torch import Tensor
 
 from roguenerf.errors import InputError
+from roguenerf.imageio import atomic_folder, check_output_folder
 from roguenerf.splats.gaussians import Gaussians
 from roguenerf.splats.raster import DEFAULT_DEPTH_THRESHOLD, render
 
@@ -121,33 +121,9 @@ def _model_camera(world_from_cam: Tensor, parser) -> Tensor:
     return world_from_cam if parser is None else parser.to_model(world_from_cam)
 
 
-def _temp_dir(final: Path) -> Path:
-    final.parent.mkdir(parents=True, exist_ok=True)
-    return Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent))
-
-
-def _check_output(final: Path, what: str) -> None:
-    """An existing ``final`` must be a folder this tool wrote (it is replaced) or empty."""
-    if final.exists():
-        if not final.is_dir():
-            raise InputError(f"{what} {final} exists and is not a folder")
-        ours = any((final / name).is_file() for name in ("transforms.json", "camera_path.json"))
-        if any(final.iterdir()) and not ours:
-            raise InputError(f"{what} {final} exists and holds other files: choose a new folder")
-
-
-def _replace_dir(tmp: Path, final: Path, what: str) -> None:
-    """Rename ``tmp`` to ``final`` (see :func:`_check_output`)."""
-    _check_output(final, what)
-    if final.exists():
-        old = final.with_name(f".{final.name}.old")
-        if old.exists():
-            shutil.rmtree(old)
-        final.rename(old)
-        tmp.rename(final)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        tmp.rename(final)
+def _is_ours(folder: Path) -> bool:
+    """An earlier output of ``import-3dgs`` (a scene folder or a rendered path): replaced whole."""
+    return any((folder / name).is_file() for name in ("transforms.json", "camera_path.json"))
 
 
 def import_3dgs(dataset: str | Path, ply: str | Path, output: str | Path, *, backend: str = "auto",
@@ -176,7 +152,7 @@ def import_3dgs(dataset: str | Path, ply: str | Path, output: str | Path, *, bac
     from roguenerf.splats.ply import read_ply
 
     backend = pick_backend(backend)
-    _check_output(Path(output), "output")
+    check_output_folder(Path(output), _is_ours, "output")
     views, fmt = read_dataset_views(dataset, hold=hold, images=images)
     parser = DataparserTransform.read(dataparser_transforms) if dataparser_transforms is not None else None
     gaussians = read_ply(ply)
@@ -186,8 +162,7 @@ def import_3dgs(dataset: str | Path, ply: str | Path, output: str | Path, *, bac
         from roguenerf.paths import read_camera_path
 
         path_cams = read_camera_path(camera_path, dataparser=parser)
-    tmp = _temp_dir(output)
-    try:
+    with atomic_folder(output, replaceable=_is_ours) as tmp:
         total = len(views) + (len(path_cams) if path_cams is not None else 0)
         frames = []
         for n, view in enumerate(views):
@@ -229,10 +204,6 @@ def import_3dgs(dataset: str | Path, ply: str | Path, output: str | Path, *, bac
             "frames": frames,
         }
         atomic_write(tmp / "transforms.json", json.dumps(doc, indent=1).encode())
-        _replace_dir(tmp, output, "output")
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return load_scene(output)
 
 
@@ -275,16 +246,11 @@ def render_camera_path(ply: str | Path, camera_path: str | Path, output: str | P
     from roguenerf.splats.ply import read_ply
 
     backend = pick_backend(backend)
-    _check_output(Path(output), "path output")
+    check_output_folder(Path(output), _is_ours, "path output")
     parser = DataparserTransform.read(dataparser_transforms) if dataparser_transforms is not None else None
     cams = read_camera_path(camera_path, dataparser=parser)
     gaussians = read_ply(ply)
     output = Path(output)
-    tmp = _temp_dir(output)
-    try:
+    with atomic_folder(output, replaceable=_is_ours, what="path output") as tmp:
         _render_path_into(gaussians, cams, Path(camera_path), tmp, backend, parser, depth_threshold, progress)
-        _replace_dir(tmp, output, "path output")
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return output
