@@ -38,6 +38,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from roguenerf.data.writers import camera_fields
 from roguenerf.errors import InputError, SceneFormatError
 from roguenerf.imageio import atomic_folder
 
@@ -712,8 +713,7 @@ def _write_import(source, frames, found, output: Path, *, tool, dataset, renders
             "render_path": str(render_out.relative_to(output)),
             "depth_path": f"depths/{frame.name}.npy",
             "split": split or frame.split,
-            "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
-            "w": width, "h": height,
+            **camera_fields(K, width, height),
             "transform_matrix": gl.tolist(),
         })
         if progress is not None:

@@ -100,25 +100,27 @@ def write_scene_folder(
             frame["acc_path"] = f"acc/{name}.png"
             atomic_write(root / frame["acc_path"], encode_png(acc[i], name=f"acc[{i}]"), make_parents=True)
         if not shared:
-            frame.update(_camera(K[i], width, height))
+            frame.update(camera_fields(K[i], width, height))
         frame["transform_matrix"] = gl[i].tolist()
         frame["split"] = splits[i]
         frames.append(frame)
     transforms = {"camera_model": "OPENCV"}
     if shared:
-        transforms.update(_camera(K, width, height))
-    transforms.update(
-        {
-            "depth_definition": "z-depth along the camera's viewing axis, pose units, float32 .npy, HxW",
-            "pixel_convention": "pixel (row v, col u) centre is at image coordinates (u+0.5, v+0.5)",
-            "frames": frames,
-        }
-    )
+        transforms.update(camera_fields(K, width, height))
+    transforms.update({**CONVENTIONS, "frames": frames})
     atomic_write(root / "transforms.json", json.dumps(transforms, indent=1).encode("utf-8"), make_parents=True)
     return root
 
 
-def _camera(K: Tensor, width: int, height: int) -> dict:
+CONVENTIONS = {
+    "depth_definition": "z-depth along the camera's viewing axis, pose units, float32 .npy, HxW",
+    "pixel_convention": "pixel (row v, col u) centre is at image coordinates (u+0.5, v+0.5)",
+}
+"""What a scene folder's ``transforms.json`` states about its depths and pixel centres."""
+
+
+def camera_fields(K: Tensor, width: int, height: int) -> dict:
+    """A frame's (or the file's) intrinsics as ``transforms.json`` holds them."""
     return {
         "fl_x": float(K[0, 0]),
         "fl_y": float(K[1, 1]),

@@ -25,6 +25,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from roguenerf.data.writers import CONVENTIONS, camera_fields
 from roguenerf.errors import InputError
 from roguenerf.imageio import atomic_folder, check_output_folder
 from roguenerf.splats.gaussians import Gaussians
@@ -180,12 +181,11 @@ def import_3dgs(dataset: str | Path, ply: str | Path, output: str | Path, *, bac
             atomic_write(tmp / "renders" / f"{view.name}.png", encode_png(rgb), make_parents=True)
             atomic_write(tmp / "depths" / f"{view.name}.npy", encode_npy(depth[0].numpy()), make_parents=True)
             atomic_write(tmp / "acc" / f"{view.name}.png", encode_png(acc), make_parents=True)
-            K = view.K
             frames.append({
                 "file_path": photo_rel, "render_path": f"renders/{view.name}.png",
                 "depth_path": f"depths/{view.name}.npy", "acc_path": f"acc/{view.name}.png", "split": view.split,
-                "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
-                "w": width, "h": height, "transform_matrix": opencv_to_opengl(view.world_from_cam).tolist(),
+                **camera_fields(view.K, width, height),
+                "transform_matrix": opencv_to_opengl(view.world_from_cam).tolist(),
             })
             if progress is not None:
                 progress(n + 1, total)
@@ -196,8 +196,7 @@ def import_3dgs(dataset: str | Path, ply: str | Path, output: str | Path, *, bac
                               depth_threshold, lambda k, _t: progress(len(views) + k, total) if progress else None)
         doc = {
             "camera_model": "OPENCV",
-            "depth_definition": "z-depth along the camera's viewing axis, pose units, float32 .npy, HxW",
-            "pixel_convention": "pixel (row v, col u) centre is at image coordinates (u+0.5, v+0.5)",
+            **CONVENTIONS,
             "source": {"tool": "3dgs", "dataset": str(dataset), "dataset_format": fmt, "ply": str(ply),
                        "gaussians": len(gaussians), "sh_degree": gaussians.sh_degree, "backend": backend,
                        "depth_threshold": depth_threshold},
@@ -224,14 +223,11 @@ def _render_path_into(gaussians, cams, camera_file: Path, folder: Path, backend,
     # The cameras as rendered (the dataset's world, whatever file they came from): what
     # ``enhance-path --cameras`` reads beside the frames.
     from roguenerf.geometry.cameras import opencv_to_opengl
-    from roguenerf.imageio import atomic_write as write
 
     doc = {"fps": cams.fps, "source": {"camera_path": str(camera_file), "format": cams.source},
            "frames": [{"transform_matrix": opencv_to_opengl(cams.world_from_cam[t]).tolist(),
-                       "fl_x": float(cams.K[t, 0, 0]), "fl_y": float(cams.K[t, 1, 1]),
-                       "cx": float(cams.K[t, 0, 2]), "cy": float(cams.K[t, 1, 2]),
-                       "w": cams.width, "h": cams.height} for t in range(len(cams))]}
-    write(folder / PATH_CAMERAS, json.dumps(doc, indent=1).encode())
+                       **camera_fields(cams.K[t], cams.width, cams.height)} for t in range(len(cams))]}
+    atomic_write(folder / PATH_CAMERAS, json.dumps(doc, indent=1).encode())
 
 
 def render_camera_path(ply: str | Path, camera_path: str | Path, output: str | Path, *, backend: str = "auto",
