@@ -39,6 +39,11 @@ def make_pairs_command(
         "--steps", help="Fitting budget in steps (instead of minutes).")] = None,
     resolution: Annotated[int | None, typer.Option(
         "--resolution", help="Final grid side (default: the preset's).")] = None,
+    folds: Annotated[int, typer.Option(
+        "--folds", min=1, help=(
+            "Cross-fit: K fields, each rendering the training views it never saw (novel-view renders "
+            "with the field's real geometry error, K times the fitting time); 1: one field.")),
+    ] = 1,
     seed: SeedOpt = 0,
 ) -> None:
     """Fit a radiance field to a posed photo set's training views and render render/photo pairs.
@@ -62,7 +67,7 @@ def make_pairs_command(
         if not photos_dir.is_dir():
             raise InputError(f"photo set {photos_dir} is not a directory")
         config = PRESETS[preset]
-        changes = {"seed": seed}
+        changes = {"seed": seed, "folds": folds}
         if steps is not None:
             changes.update(steps=steps, minutes=None)
         elif minutes is not None:
@@ -74,7 +79,7 @@ def make_pairs_command(
         config = dataclasses.replace(config, **changes)
         from tqdm import tqdm
 
-        total = config.steps if config.steps is not None else 100
+        total = config.steps * config.folds if config.steps is not None else 100
         bar = tqdm(total=total, desc=f"fitting {photos_dir.name}", unit="step" if config.steps else "%",
                    file=sys.stderr)
 

@@ -107,6 +107,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="comma-separated scene names, fitted in this order (default: all, sorted)")
     parser.add_argument("--budget-scale", type=float, default=1.0,
                         help="multiply every preset's budget (steps or minutes); a smoke test uses 0.01")
+    parser.add_argument("--folds", type=int, default=1,
+                        help="cross-fit with K folds (make_pairs' folds) into CACHE/SCENE/PRESET_xK; 1: one field")
     parser.add_argument("--manifest", type=Path,
                         help="CSV manifest to (re)write after every fit (rows of fits not in --cache are kept)")
     parser.add_argument("--examples", type=Path, help="folder for one render|photo example per scene")
@@ -119,6 +121,8 @@ def main(argv: list[str] | None = None) -> int:
     for p in presets:
         if p not in PRESETS:
             parser.error(f"--presets: unknown preset {p!r} (expected {', '.join(PRESETS)})")
+    if args.folds < 1:
+        parser.error(f"--folds: expected >= 1, got {args.folds}")
     if not args.budget_scale > 0:
         parser.error(f"--budget-scale: expected > 0, got {args.budget_scale}")
     if not args.data.is_dir():
@@ -141,7 +145,9 @@ def main(argv: list[str] | None = None) -> int:
                     config = dataclasses.replace(config, steps=max(1, round(config.steps * args.budget_scale)))
                 else:
                     config = dataclasses.replace(config, minutes=config.minutes * args.budget_scale)
-            out = args.cache / scene.name / preset
+            if args.folds > 1:
+                config = dataclasses.replace(config, folds=args.folds)
+            out = args.cache / scene.name / (preset if args.folds == 1 else f"{preset}_x{args.folds}")
             t0 = time.monotonic()
             bar = tqdm(total=100, desc=f"{scene.name}/{preset}", unit="%", file=sys.stderr, mininterval=5)
 

@@ -82,6 +82,8 @@ class SplatConfig:
     max_gaussians: int = 60000
     seed: int = 0
     hold: int = 8
+    folds: int = 1
+    """Cross-fitting, as :attr:`roguefit.fit.FitConfig.folds`."""
     checkpoint_every: int = 50
 
     def __post_init__(self) -> None:
@@ -94,6 +96,8 @@ class SplatConfig:
         if self.scale < 1 or self.init_points < 1 or self.sh_degree not in (0, 1, 2, 3):
             raise InputError(f"scale >= 1, init_points >= 1 and sh_degree 0..3 expected, got {self.scale}, "
                              f"{self.init_points}, {self.sh_degree}")
+        if isinstance(self.folds, bool) or not isinstance(self.folds, int) or self.folds < 1:
+            raise InputError(f"folds: expected an integer >= 1, got {self.folds!r}")
         if self.checkpoint_every < 1 or self.densify_every < 1:
             raise InputError("checkpoint_every and densify_every: expected >= 1")
 
@@ -104,6 +108,8 @@ class SplatConfig:
         """The keys that define the result (not the checkpoint cadence), with the field's kind."""
         d = {"field": "splat", **self.to_dict()}
         d.pop("checkpoint_every")
+        if d["folds"] == 1:
+            d.pop("folds")
         return d
 
 
