@@ -62,6 +62,8 @@ def parse_args(argv=None):
                    help="comma-separated fine-tuning budgets in minutes (e.g. 1,3,10; default none)")
     p.add_argument("--noise", type=_noise, default=_noise(NOISE_LEVELS),
                    help=f"pose-noise levels deg/share, comma-separated (default {NOISE_LEVELS}; '' for none)")
+    p.add_argument("--neighbours", type=lambda t: [int(x) for x in t.split(",") if x], default=[],
+                   help="zero-shot neighbour sweep: comma-separated counts (e.g. 2,3,4,5; default: the model's only)")
     p.add_argument("--max-views", type=int, default=None)
     p.add_argument("--runs", type=Path, default=REPO / "runs" / "kinds", help="cache of photo sets, fits, fine-tunes")
     p.add_argument("--output", type=Path, default=None, help="default: bench/results/kinds_KIND")
@@ -225,33 +227,43 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
     scene = load_scene(pairs)
     cache = args.runs / "results" / name / tag / checkpoint.stem
     model, _ = load_checkpoint(checkpoint)
-    common = {**base, "scene": name, "kind": args.kind, "scale": args.scale, "checkpoint": checkpoint.name}
+    default_n = model.config.num_neighbours
+    common = {**base, "scene": name, "kind": args.kind, "scale": args.scale, "checkpoint": checkpoint.name,
+              "model_neighbours": default_n}
     rows: list[dict] = []
 
     def note(new: list[dict]) -> None:
+        for x in new:  # rows cached before the neighbour sweep existed used the model's count
+            x.setdefault("neighbours", default_n)
+            x.setdefault("model_neighbours", default_n)
         rows.extend(new)
         gain = sum(x["gain_db"] for x in new) / len(new)
         flip = sum(x["flip_change"] for x in new) / len(new)
         c = new[0]
-        print(f"{name} {args.kind} {c['stage']} noise {c['noise_deg']:g}/{c['noise_share']:g}: "
+        print(f"{name} {args.kind} {c['stage']} noise {c['noise_deg']:g}/{c['noise_share']:g} "
+              f"{c.get('neighbours')} neighbours: "
               f"gain {gain:+.3f} dB, FLIP {flip:+.4f}, worst view {min(x['gain_db'] for x in new):+.3f} dB",
               flush=True)
 
-    def zero_shot(k: int, deg: float, share: float) -> list[dict]:
+    def zero_shot(k: int, deg: float, share: float, n: int | None = None) -> list[dict]:
         target = scene if deg == 0 and share == 0 else noisy_scene(scene, deg, share, seed=1000 + k)
-        return view_rows(evaluate(target, model, max_views=args.max_views), **common, stage="zero-shot",
-                         minutes=0.0, noise_deg=deg, noise_share=share)
+        return view_rows(evaluate(target, model, max_views=args.max_views, num_neighbours=n), **common,
+                         stage="zero-shot", minutes=0.0, noise_deg=deg, noise_share=share,
+                         neighbours=default_n if n is None else n)
 
     def tune(m: float) -> list[dict]:
         result = finetune(scene, args.runs / "finetune" / name / tag / checkpoint.stem / f"{m:g}min",
                           checkpoint=checkpoint, config=TrainConfig(minutes=m, evaluate=False))
         tuned, _ = load_checkpoint(result.checkpoint)
         return view_rows(evaluate(scene, tuned, max_views=args.max_views), **common, stage=f"finetune {m:g} min",
-                         minutes=m, noise_deg=0.0, noise_share=0.0, steps=result.steps)
+                         minutes=m, noise_deg=0.0, noise_share=0.0, neighbours=default_n, steps=result.steps)
 
     for k, (deg, share) in enumerate(args.noise or [(0.0, 0.0)]):
         note(cached_rows(cache / f"zero_shot_noise{deg:g}_{share:g}.json",
                          functools.partial(zero_shot, k, deg, share)))
+    for n in args.neighbours:
+        if n != default_n:
+            note(cached_rows(cache / f"zero_shot_{n}neighbours.json", functools.partial(zero_shot, 0, 0.0, 0.0, n)))
     for minutes in sorted(args.finetune):
         note(cached_rows(cache / f"finetune_{minutes:g}min.json", functools.partial(tune, minutes)))
     return rows, fit
@@ -261,12 +273,14 @@ def summary(rows: list[dict]) -> list[dict]:
     """Per scene and condition: mean gain, FLIP change, worst view, views with better FLIP."""
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
-        groups.setdefault((r["scene"], r["kind"], r["stage"], r["noise_deg"], r["noise_share"]), []).append(r)
+        groups.setdefault((r["scene"], r["kind"], r["stage"], r["noise_deg"], r["noise_share"],
+                           r.get("neighbours")), []).append(r)
     out = []
-    for (scene, kind, stage, deg, share), rs in groups.items():
+    for (scene, kind, stage, deg, share, neighbours), rs in groups.items():
         n = len(rs)
         out.append({"scene": scene, "kind": kind, "stage": stage, "minutes": rs[0]["minutes"], "noise_deg": deg,
-                    "noise_share": share, "views": n,
+                    "noise_share": share, "neighbours": neighbours,
+                    "model_neighbours": rs[0].get("model_neighbours"), "views": n,
                     "render_psnr": round(sum(r["render_psnr"] for r in rs) / n, 4),
                     "gain_db": round(sum(r["gain_db"] for r in rs) / n, 4),
                     "worst_view_gain_db": min(r["gain_db"] for r in rs),
@@ -283,24 +297,32 @@ def plot(rows: list[dict], path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     means = summary(rows)
-    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
+    fig, (left, middle, right) = plt.subplots(1, 3, figsize=(14, 4))
     for scene in dict.fromkeys(m["scene"] for m in means):
         mine = [m for m in means if m["scene"] == scene]
-        tune = sorted((m for m in mine if m["noise_deg"] == 0 and m["noise_share"] == 0), key=lambda m: m["minutes"])
+        own = [m for m in mine if m["neighbours"] == m["model_neighbours"]]  # fine-tunes and noise use the model's
+        tune = sorted((m for m in own if m["noise_deg"] == 0 and m["noise_share"] == 0), key=lambda m: m["minutes"])
         line, = left.plot([m["minutes"] for m in tune], [m["gain_db"] for m in tune], "o-", label=scene)
         left.scatter([m["minutes"] for m in tune], [m["worst_view_gain_db"] for m in tune], marker="_",
                      color=line.get_color())
-        sweep = sorted((m for m in mine if m["stage"] == "zero-shot"), key=lambda m: (m["noise_deg"], m["noise_share"]))
+        sweep = sorted((m for m in own if m["stage"] == "zero-shot"), key=lambda m: (m["noise_deg"], m["noise_share"]))
         labels = [f"{m['noise_deg']:g}°/{m['noise_share']:.0%}" for m in sweep]
-        right.plot(range(len(sweep)), [m["gain_db"] for m in sweep], "o-", color=line.get_color(), label=scene)
-        right.set_xticks(range(len(sweep)), labels, fontsize=7)
-    for ax in (left, right):
+        middle.plot(range(len(sweep)), [m["gain_db"] for m in sweep], "o-", color=line.get_color(), label=scene)
+        middle.set_xticks(range(len(sweep)), labels, fontsize=7)
+        counted = sorted((m for m in mine if m["stage"] == "zero-shot" and m["noise_deg"] == 0
+                          and m["noise_share"] == 0), key=lambda m: m["neighbours"] or 0)
+        right.plot([m["neighbours"] for m in counted], [m["gain_db"] for m in counted], "o-",
+                   color=line.get_color(), label=scene)
+        right.scatter([m["neighbours"] for m in counted], [m["worst_view_gain_db"] for m in counted], marker="_",
+                      color=line.get_color())
+    for ax in (left, middle, right):
         ax.axhline(0, color="grey", lw=0.8)
         ax.legend(fontsize=7)
         ax.set_ylabel("PSNR gain over renders, held-out views (dB)", fontsize=8)
     left.set_xlabel("fine-tuning minutes (0 = zero-shot); dashes: worst view", fontsize=8)
-    right.set_xlabel("zero-shot, pose noise on the training views\n"
-                     "(rotation RMS / translation RMS, share of the spread)", fontsize=8)
+    middle.set_xlabel("zero-shot, pose noise on the training views\n"
+                      "(rotation RMS / translation RMS, share of the spread)", fontsize=8)
+    right.set_xlabel("zero-shot, neighbours per view; dashes: worst view", fontsize=8)
     if rows:
         r = rows[0]
         fig.suptitle(f"{r['kind']} fields, checkpoint {r['checkpoint']} | {r['machine'][:60]} | {r['commit']} | "
@@ -322,7 +344,8 @@ def main(argv=None) -> int:
     png_path = plot(rows, out.with_suffix(".png"))
     print(f"wrote {csv_path}, {json_path} and {png_path}")
     for m in summary(rows):
-        print(f"{m['scene']:<12} {m['stage']:<18} noise {m['noise_deg']:g}/{m['noise_share']:g}: render "
+        print(f"{m['scene']:<12} {m['stage']:<18} noise {m['noise_deg']:g}/{m['noise_share']:g} "
+              f"n={m['neighbours']}: render "
               f"{m['render_psnr']:.2f} dB, gain {m['gain_db']:+.3f} dB (worst view {m['worst_view_gain_db']:+.3f}), "
               f"FLIP {m['render_flip']:.4f} {m['flip_change']:+.4f} "
               f"({m['views_flip_better']}/{m['views']} views better)")

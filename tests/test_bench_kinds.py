@@ -50,3 +50,20 @@ def test_summary_means_worst_view_and_flip_counts():
     assert out[0]["gain_db"] == pytest.approx(0.25) and out[0]["worst_view_gain_db"] == -0.5
     assert out[0]["views_flip_better"] == 1 and out[0]["flip_change"] == pytest.approx(0.005)
     assert out[1]["noise_deg"] == 0.5 and out[1]["views"] == 1 and not math.isnan(out[1]["gain_db"])
+
+
+def test_the_neighbour_sweep_is_its_own_condition_and_plots(tmp_path):
+    def row(view, gain, n, stage="zero-shot", minutes=0.0):
+        return {"scene": "s", "kind": "hash", "stage": stage, "minutes": minutes, "noise_deg": 0.0,
+                "noise_share": 0.0, "neighbours": n, "model_neighbours": 2, "view": view, "render_psnr": 20.0,
+                "gain_db": gain, "render_flip": 0.2, "flip_change": -0.01, "checkpoint": "c.safetensors",
+                "machine": "m", "commit": "abc", "date": "2026-11-26"}
+
+    rows = [row("a", 1.0, 2), row("b", 0.0, 2), row("a", 2.0, 4), row("b", 1.0, 4),
+            row("a", 3.0, 2, "finetune 1 min", 1.0), row("b", 2.0, 2, "finetune 1 min", 1.0)]
+    out = {(m["stage"], m["neighbours"]): m for m in kinds.summary(rows)}
+    assert set(out) == {("zero-shot", 2), ("zero-shot", 4), ("finetune 1 min", 2)}
+    assert out["zero-shot", 2]["gain_db"] == pytest.approx(0.5) and out["zero-shot", 4]["gain_db"] == pytest.approx(1.5)
+    assert out["zero-shot", 4]["worst_view_gain_db"] == 1.0
+    png = kinds.plot(rows, tmp_path / "kinds.png")
+    assert png.is_file() and png.stat().st_size > 10_000
