@@ -155,3 +155,16 @@ def test_pretrain_cli_takes_the_noise_and_refuses_bad_values(tmp_path):
                              "--variant", "micro", "--crop", "24", "--neighbour-pose-noise", "0.5,0.05"])
     assert ok.exit_code == 0, ok.output
     assert "neighbour poses perturbed (0.5 deg, 5% of the camera spread RMS)" in ok.stderr, ok.stderr
+
+
+def test_each_target_draws_its_own_noise_level_from_none_up_to_the_given_size(scene, tmp_path):
+    base = dict(steps=3, crop=24, batch=8, variant="micro", num_neighbours=3, evaluate=False, progress_bar=False)
+    noisy = _plan_batches(scene, tmp_path / "levels", TrainConfig(**base, neighbour_pose_noise=(2.0, 0.0)))
+    data = SceneData(scene, 3)
+    per_target = []
+    for batch in noisy:
+        delta = data.poses[batch.neighbours][..., :3, :3].transpose(-1, -2) @ batch.neighbour_pose[..., :3, :3]
+        per_target += [float(x) for x in _angle(delta).pow(2).mean(dim=-1).sqrt()]  # RMS over a target's neighbours
+    rms = sorted(math.degrees(x) for x in per_target)
+    assert len(rms) == 24
+    assert rms[0] < 0.5 < 1.5 < rms[-1] < 2.0 * 3, rms  # small and large levels both drawn, none past the size's tail

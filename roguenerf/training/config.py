@@ -161,10 +161,13 @@ class TrainConfig:
     None: the plan's (RENDER_WARP); pre-training: 0."""
     neighbour_pose_noise: tuple[float, float] | None = None
     """``(degrees, share)``: every neighbour of every training target gets its own random pose
-    error (:func:`~roguenerf.geometry.noise.perturb_poses`: a rotation of RMS ``degrees`` about
-    its centre and a displacement of RMS ``share`` of the scene's camera spread), so the model
-    learns that a reprojection can be off, as a user's poses are. None (or zeros): the poses as
-    they are, and the batches are those of a run without the option."""
+    error (:func:`~roguenerf.geometry.noise.perturb_poses`: a rotation about its centre and a
+    displacement), so the model learns that a reprojection can be off, as a user's poses are.
+    Each target draws its own level ``u`` uniformly in [0, 1]: its neighbours' errors have RMS
+    ``u * degrees`` and ``u * share`` of the scene's camera spread, so one run sees every size
+    from exact poses up to these (a model trained at one size only learns to distrust all).
+    None (or zeros): the poses as they are, and the batches are those of a run without the
+    option."""
     neighbour_encoding: str = "window"
     """"window": conv_H encodes only the window of each neighbour photo that a target crop can
     see; "whole": every neighbour photo whole (the former path, kept for comparison). Same

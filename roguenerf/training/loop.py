@@ -401,7 +401,9 @@ class _Run:
         noise = plan.neighbour_pose_noise
 
         def noisy(poses: Tensor) -> Tensor:  # TrainConfig.neighbour_pose_noise: each (target, neighbour) its own
-            return perturb_poses(poses, noise[0], noise[1] * d.spread, generator)
+            level = torch.rand(poses.shape[0], generator=generator, dtype=torch.float64).tolist()  # per target
+            return torch.stack([perturb_poses(p, noise[0] * u, noise[1] * d.spread * u, generator)
+                                for p, u in zip(poses, level, strict=True)])
 
         batch = prepare_batch(d, targets, origins, plan.crop, encoding=self.encoding, margin=self.margin,
                               use_neighbours=self.model.config.use_neighbours,
