@@ -259,8 +259,9 @@ def pretrain(
         "max-pool (not in the paper); from a checkpoint without it, the new inputs start at zero weight. "
         "Default: the checkpoint's.")] = None,
     neighbour_pose_noise: Annotated[str | None, typer.Option(
-        "--neighbour-pose-noise", metavar="DEG,SHARE", help="Perturb each neighbour's pose per sample: rotation "
-        "RMS in degrees, translation RMS as a share of the cameras' spread (e.g. 0.5,0.05).")] = None,
+        "--neighbour-pose-noise", metavar="DEG,SHARE", help="Perturb each neighbour's pose per sample, up to: "
+        "rotation RMS in degrees, translation RMS as a share of the cameras' spread (e.g. 0.5,0.05); each "
+        "target draws its own level, from exact poses to these.")] = None,
 ) -> None:
     """Pre-train across scene folders and/or generated toy scenes."""
     from roguenerf.training import pretrain as run_pretrain
