@@ -180,7 +180,7 @@ def _footprint(f: Tensor, px: Tensor, py: Tensor) -> tuple[Tensor, Tensor]:
     return alpha, (maha <= SIGMA_CUT * SIGMA_CUT) & (alpha >= ALPHA_MIN)
 
 
-def _render_tile(feat: Tensor, gids: Tensor, ext: Tensor, rank: Tensor, x0: int, y0: int, tile: int,
+def _render_tile(feat: Tensor, gids: Tensor, ext: Tensor, x0: int, y0: int, tile: int,
                  chunk: int, group: int, width: int, height: int) -> Tensor:
     """One tile: ``(tile², 5)`` = rgb, Σ w z, Σ w per pixel. ``gids`` (into ``feat``) are in depth order.
 
@@ -188,10 +188,12 @@ def _render_tile(feat: Tensor, gids: Tensor, ext: Tensor, rank: Tensor, x0: int,
     candidate pairs); each group's pairs inside the boxes are tested, the kept ones sorted by
     (pixel, depth) and composited onto the transmittance the earlier groups left (a float64 log,
     per pixel); once every pixel of the tile is below 1e-4 the rest cannot count and is skipped.
+    The candidates are tested on a detached copy of the tile's rows (one gather per group), and
+    only the kept pairs are gathered from ``feat`` with autograd: the cost follows the kept pairs.
     """
     dtype, tp = feat.dtype, tile * tile
-    f_det = feat.detach()
-    m = f_det[gids, :2].to(torch.float64)
+    rows = feat.detach()[gids, :6].contiguous()  # u, v, a, b, c, opacity of the tile's Gaussians
+    m = rows[:, :2].to(torch.float64)
     e = ext[gids].to(torch.float64)
     # Pixel j's centre is j + 0.5: the box [m - e, m + e] holds centres j in [ceil(m-e-0.5), floor(m+e-0.5)].
     xl = torch.ceil(m[:, 0] - e[:, 0] - 0.5 - 1e-6).clamp(min=x0).long()
@@ -201,6 +203,7 @@ def _render_tile(feat: Tensor, gids: Tensor, ext: Tensor, rank: Tensor, x0: int,
     w, h = (xh - xl + 1).clamp_min(0), (yh - yl + 1).clamp_min(0)
     n = w * h
     ends = torch.cumsum(n, 0)
+    first = ends - n  # where each Gaussian's candidates start
     inside = ((torch.arange(tp) // tile + y0) < height) & ((torch.arange(tp) % tile + x0) < width)
     out = torch.zeros(tp, 5, dtype=dtype)
     log_t = torch.zeros(tp, dtype=torch.float64)  # transmittance left by the groups so far
@@ -209,19 +212,19 @@ def _render_tile(feat: Tensor, gids: Tensor, ext: Tensor, rank: Tensor, x0: int,
         base = int(ends[g0 - 1]) if g0 else 0
         g1 = min(max(g0 + 1, int(torch.searchsorted(ends, base + chunk, right=True))), g0 + group, total)
         counts = n[g0:g1]
-        local_g = torch.repeat_interleave(torch.arange(g0, g1), counts)
-        first = torch.cumsum(counts, 0) - counts
-        k = torch.arange(local_g.numel()) - first[local_g - g0]
-        px = xl[local_g] + k % w[local_g]
-        py = yl[local_g] + k // w[local_g]
-        gid = gids[local_g]
-        keep = _footprint(f_det[gid], px, py)[1]
-        gid, pix = gid[keep], (py[keep] - y0) * tile + (px[keep] - x0)
+        local = torch.repeat_interleave(torch.arange(g0, g1), counts)
+        k = torch.arange(base, base + local.numel()) - first[local]
+        wl = w[local]
+        q = torch.div(k, wl, rounding_mode="floor")
+        px, py = xl[local] + (k - q * wl), yl[local] + q
+        keep = _footprint(rows[local], px, py)[1]
+        local, pix = local[keep], (py[keep] - y0) * tile + (px[keep] - x0)
         g0 = g1
-        if gid.numel() == 0:
+        if local.numel() == 0:
             continue
-        order = torch.argsort(pix * rank.numel() + rank[gid])
-        gid, pix = gid[order], pix[order]
+        # The pairs are in depth order (``gids`` is): a stable sort by pixel keeps it within a pixel.
+        order = torch.argsort(pix, stable=True)
+        gid, pix = gids[local[order]], pix[order]
         f = feat[gid]
         alpha, _ = _footprint(f, pix % tile + x0, pix // tile + y0)
         alpha64 = alpha.to(torch.float64)
@@ -287,8 +290,6 @@ def render(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int,
     feat = torch.cat([proj.means2d[vis], proj.conics[vis], proj.opacities[vis, None], proj.depths[vis, None],
                       proj.colours[vis]], dim=1)
     ext = proj.extents[vis]
-    rank = torch.empty(vis.numel(), dtype=torch.long)
-    rank[torch.argsort(proj.depths.detach()[vis], stable=True)] = torch.arange(vis.numel())
     busy = torch.nonzero(count > 0).squeeze(1).tolist()
     bar = None
     if progress is True:
@@ -299,7 +300,7 @@ def render(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int,
     for n, t in enumerate(busy):
         y0, x0 = (t // tiles_x) * tile, (t % tiles_x) * tile
         gids = pair_gid[int(start[t]):int(start[t] + count[t])]
-        outputs.append(_render_tile(feat, gids, ext, rank, x0, y0, tile, chunk, group, width, height))
+        outputs.append(_render_tile(feat, gids, ext, x0, y0, tile, chunk, group, width, height))
         if bar is not None:
             bar.update(1)
         elif callable(progress):
