@@ -33,7 +33,8 @@ import logging
 import math
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -79,7 +80,7 @@ class SplatConfig:
     dense_share: float = 0.01
     prune_opacity: float = 0.005
     prune_size: float = 0.5
-    max_gaussians: int = 60000
+    max_gaussians: int = 20000
     seed: int = 0
     hold: int = 8
     folds: int = 1
@@ -138,6 +139,20 @@ def _knn_scale(points: Tensor, k: int = 3, chunk: int = 2048) -> Tensor:
         d[torch.arange(d.shape[0]), torch.arange(s, s + d.shape[0])] = float("inf")
         out.append(d.topk(min(k, points.shape[0] - 1), largest=False).values.mean(-1))
     return torch.cat(out)
+
+
+@contextmanager
+def one_thread() -> Iterator[None]:
+    """Run torch on one thread inside (restored after). The rasterizer is many small tensor
+    operations on the CPU: a second thread gains nothing on them and, when the other core is busy,
+    makes a step several times slower (measured 8x on 2 loaded cores, docs/splats.md); one thread
+    also makes the sums' order, so the fit, repeatable."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 class _SplatFitter:
@@ -332,6 +347,10 @@ class _SplatFitter:
         self._edit(keep, extra)
 
     def run(self, progress: Callable[[dict], None] | None, should_stop: Callable[[], bool] | None) -> None:
+        with one_thread():
+            self._run(progress, should_stop)
+
+    def _run(self, progress: Callable[[dict], None] | None, should_stop: Callable[[], bool] | None) -> None:
         c = self.config
         mse_avg = None
         while self.fraction() < 1.0:
@@ -370,8 +389,9 @@ class _SplatFitter:
 
     @torch.no_grad()
     def render_view(self, i: int) -> tuple[Tensor, Tensor, Tensor]:
-        rgb, depth, acc = render(self.gaussians().detach(), self.ps.world_from_cam[i], self.ps.K[i],
-                                 self.ps.height, self.ps.width)
+        with one_thread():
+            rgb, depth, acc = render(self.gaussians().detach(), self.ps.world_from_cam[i], self.ps.K[i],
+                                     self.ps.height, self.ps.width)
         return rgb.clamp(0, 1), depth, acc.clamp(0, 1)
 
 

@@ -126,3 +126,14 @@ def test_splat_config_refuses_nonsense():
         SplatConfig(steps=None, minutes=None)
     with pytest.raises(InputError, match="sh_degree"):
         SplatConfig(sh_degree=4)
+
+
+def test_the_fit_runs_on_one_thread_and_gives_the_threads_back():
+    from roguefit.splats import one_thread
+
+    torch.set_num_threads(2)
+    seen = []
+    with pytest.raises(RuntimeError, match="boom"), one_thread():
+        seen.append(torch.get_num_threads())
+        raise RuntimeError("boom")
+    assert seen == [1] and torch.get_num_threads() == 2
