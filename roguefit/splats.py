@@ -61,7 +61,7 @@ class SplatConfig:
     """How to fit one splat scene (see the module's docstring). Budgets: ``steps`` wins over
     ``minutes`` when both are given."""
 
-    steps: int | None = 1500
+    steps: int | None = 1000
     minutes: float | None = None
     scale: int = 2
     init_points: int = 6000
