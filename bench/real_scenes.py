@@ -118,7 +118,7 @@ def summarise(report: dict) -> dict:
 
 def run(args, save=None) -> list[dict]:
     """The rows; ``save(rows)`` is called after each one (a long run loses nothing on a crash)."""
-    from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
+    from roguenerf.checkpoint import blend_state, default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
     from roguenerf.training import TrainConfig, evaluate, finetune, plan_training
 
@@ -167,17 +167,6 @@ def run(args, save=None) -> list[dict]:
                                evaluate(scene, model, max_views=args.max_views), checkpoint=str(new),
                                plan_name=f"{plan_name}+blend{a:g}", plan=f"{plan}, blend {a:g}")
     return rows
-
-
-def blend_state(start: dict, tuned: dict, a: float) -> dict:
-    """``start + a (tuned - start)`` for every floating-point tensor of two state dicts of one
-    architecture (a = 0: the start, 1: the fine-tuned weights); other tensors from ``tuned``."""
-    import torch
-
-    if start.keys() != tuned.keys():
-        raise ValueError("blend_state: the two state dicts have different keys")
-    return {k: torch.lerp(start[k].to(v.dtype), v, a) if v.is_floating_point() else v.clone()
-            for k, v in tuned.items()}
 
 
 def _save(fig, ax, rows: list[dict], path: Path) -> Path:

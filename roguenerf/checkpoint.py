@@ -205,3 +205,35 @@ def load_checkpoint(path: str | os.PathLike, *, max_bytes: int | None = None, de
             raise CheckpointError(f"{source}: tensor {name!r} contains NaN or inf")
     model.load_state_dict({k: v.to(expected[k].dtype) for k, v in tensors.items()}, strict=True)
     return model.to(device).eval(), meta
+
+
+def blend_state(start: dict, tuned: dict, a: float) -> dict:
+    """``start + a (tuned - start)`` for every floating-point tensor of two state dicts of one
+    architecture (a = 0: the start, 1: the tuned weights); other tensors from ``tuned``."""
+    if start.keys() != tuned.keys():
+        raise InputError("blend: the two checkpoints have different weights (another architecture)")
+    for k, v in tuned.items():
+        if start[k].shape != v.shape:
+            raise InputError(f"blend: weight {k} has shape {tuple(start[k].shape)} in one checkpoint and "
+                             f"{tuple(v.shape)} in the other (another architecture)")
+    return {k: torch.lerp(start[k].to(v.dtype), v, a) if v.is_floating_point() else v.clone()
+            for k, v in tuned.items()}
+
+
+def blend_checkpoints(start: str | os.PathLike, tuned: str | os.PathLike, weight: float, output: str | os.PathLike
+                      ) -> Path:
+    """Weight-space ensembling (WiSE-FT, Wortsman et al. 2022): write ``start + weight (tuned -
+    start)`` to ``output``, with ``tuned``'s configuration and metadata plus a ``blend`` entry
+    naming both and the weight. ``weight`` in [0, 1]."""
+    weight = float(weight)
+    if not 0.0 <= weight <= 1.0:
+        raise InputError(f"blend weight: expected a number in [0, 1], got {weight}")
+    start_model, start_meta = load_checkpoint(start)
+    model, meta = load_checkpoint(tuned)
+    if start_model.config != model.config:
+        raise InputError("blend: the two checkpoints have different model configurations")
+    model.load_state_dict(blend_state(start_model.state_dict(), model.state_dict(), weight))
+    meta = dict(meta or {})
+    meta["blend"] = {"start": Path(start).name, "tuned": Path(tuned).name, "weight": weight,
+                     "start_training": (start_meta or {}).get("training")}
+    return save_checkpoint(output, model, meta=meta)

@@ -12,6 +12,7 @@
 #                                                  # 15 % of their targets (off by default, see below)
 #   FOLDS=3 PRESETS=coarse STAGE=pairs ...         # cross-fitted pairs into CACHE/SCENE/coarse_x3 (issue 35)
 #   STAGE=pretrain NOISE=0.5,0.05 NEIGHBOURS=3 ... # neighbours' pose noise up to 0.5 deg / 5 %; 3 neighbours
+#   STAGE=pretrain BLEND=0.5 ...                   # ship START + 0.5 (trained - START) (weight-space blend)
 #
 # 1. pairs: `python -m roguefit.batch` fits a blur and a coarse radiance field (PRESETS; fine is a
 #    sharper, ~4x costlier third look) to the TRAINING views
@@ -165,9 +166,17 @@ if [ "$STAGE" = all ] || [ "$STAGE" = pretrain ]; then
     --crop "$CROP" --lr "$LR" --lr-schedule "$LR_SCHEDULE" --seed "$SEED" --output "$OUT" "${extra[@]}"
   mkdir -p "$(dirname "$DEST")"
   # Saved again by the library, not copied: the weights with a sidecar that names DEST's file.
-  "$PY" -c 'import sys; from roguenerf.checkpoint import load_checkpoint, save_checkpoint
+  # BLEND=a (0..1): ship START + a (trained - START) instead (weight-space ensembling, WiSE-FT).
+  if [ -n "${BLEND:-}" ]; then
+    if [ -z "$START" ]; then echo "BLEND needs a START checkpoint" >&2; exit 2; fi
+    "$PY" -c 'import sys; from roguenerf.checkpoint import blend_checkpoints
+blend_checkpoints(sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4])' \
+      "$START" "$OUT/model.safetensors" "$BLEND" "$DEST"
+  else
+    "$PY" -c 'import sys; from roguenerf.checkpoint import load_checkpoint, save_checkpoint
 model, meta = load_checkpoint(sys.argv[1]); save_checkpoint(sys.argv[2], model, meta=meta)' \
-    "$OUT/model.safetensors" "$DEST"
+      "$OUT/model.safetensors" "$DEST"
+  fi
   echo "default checkpoint: $DEST" >&2
 fi
 

@@ -192,3 +192,28 @@ def test_default_checkpoint_path():
             default_checkpoint_path()
     else:
         assert default_checkpoint_path() == path
+
+
+def test_blended_checkpoint_is_the_weighted_mean_and_other_architectures_are_refused(tmp_path):
+    from roguenerf.checkpoint import blend_checkpoints
+    from roguenerf.errors import InputError
+    from roguenerf.models import build_enhancer
+
+    torch.manual_seed(0)
+    a, b = build_enhancer("nano"), build_enhancer("nano")
+    save_checkpoint(tmp_path / "a.safetensors", a, meta={"training": {"kind": "pretrain"}})
+    save_checkpoint(tmp_path / "b.safetensors", b, meta={"training": {"kind": "finetune"}})
+    for w in (0.0, 0.25, 1.0):
+        blend_checkpoints(tmp_path / "a.safetensors", tmp_path / "b.safetensors", w, tmp_path / f"m{w}.safetensors")
+        model, meta = load_checkpoint(tmp_path / f"m{w}.safetensors")
+        for k, v in model.state_dict().items():
+            want = a.state_dict()[k] + w * (b.state_dict()[k] - a.state_dict()[k])
+            assert torch.allclose(v, want, atol=1e-6), k
+        assert meta["blend"]["weight"] == w and meta["training"]["kind"] == "finetune"
+        assert meta["blend"]["start_training"] == {"kind": "pretrain"}
+    save_checkpoint(tmp_path / "other.safetensors", build_enhancer("micro"))
+    with pytest.raises(InputError, match="blend"):
+        blend_checkpoints(tmp_path / "a.safetensors", tmp_path / "other.safetensors", 0.5, tmp_path / "x.safetensors")
+    with pytest.raises(InputError, match=r"\[0, 1\]"):
+        blend_checkpoints(tmp_path / "a.safetensors", tmp_path / "b.safetensors", 1.5, tmp_path / "x.safetensors")
+    assert not (tmp_path / "x.safetensors").exists()

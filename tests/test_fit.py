@@ -375,7 +375,7 @@ def test_real_scenes_blends_span_the_start_and_the_fine_tuned_weights(lego_dir, 
     fine-tune's own row; a blend outside [0, 1] is refused before anything runs."""
     import csv
 
-    from bench.real_scenes import blend_state
+    from roguenerf.checkpoint import blend_state
 
     repo = Path(__file__).resolve().parents[1]
     out = tmp_path / "blends"
