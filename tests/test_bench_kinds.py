@@ -67,3 +67,26 @@ def test_the_neighbour_sweep_is_its_own_condition_and_plots(tmp_path):
     assert out["zero-shot", 4]["worst_view_gain_db"] == 1.0
     png = kinds.plot(rows, tmp_path / "kinds.png")
     assert png.is_file() and png.stat().st_size > 10_000
+
+
+def test_compare_puts_checkpoints_side_by_side_per_kind_scene_and_noise(tmp_path):
+    from bench import kinds_compare
+
+    def run(name, checkpoint, kind, gains):
+        rows = [{"scene": s, "checkpoint": checkpoint, "commit": "abc"} for s, _, _ in gains]
+        means = [{"scene": s, "kind": kind, "stage": "zero-shot", "minutes": 0.0, "noise_deg": d, "noise_share": d / 10,
+                  "neighbours": 2, "model_neighbours": 2, "views": 3, "render_psnr": 20.0, "gain_db": g,
+                  "worst_view_gain_db": g - 1, "flip_change": -0.01, "views_flip_better": 3} for s, d, g in gains]
+        path = tmp_path / name
+        path.write_text(json.dumps({"rows": rows, "means": means}))
+        return path
+
+    paths = [run("a.json", "/x/old.safetensors", "hash", [("s", 0.0, 1.0), ("s", 0.25, -0.5)]),
+             run("b.json", "/x/new.safetensors", "hash", [("s", 0.0, 0.8), ("s", 0.25, 0.3)]),
+             run("c.json", "/x/new.safetensors", "splat", [("t", 0.0, 0.2)])]
+    rows = kinds_compare.compare_rows(paths)
+    assert kinds_compare.zero_shot(rows, 0.0, 0.0) == {("hash", "s"): {"old": 1.0, "new": 0.8},
+                                                       ("splat", "t"): {"new": 0.2}}
+    assert kinds_compare.zero_shot(rows, 0.25, 0.025) == {("hash", "s"): {"old": -0.5, "new": 0.3}}
+    assert kinds_compare.main([*map(str, paths), "--output", str(tmp_path / "cmp")]) == 0
+    assert (tmp_path / "cmp.png").stat().st_size > 10_000 and len((tmp_path / "cmp.csv").read_text().splitlines()) == 6
