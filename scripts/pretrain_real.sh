@@ -25,7 +25,7 @@
 # 4. evaluate: python -m bench.real_scenes on the held-out scenes' $EVAL_PRESET fits (default: the last preset) (zero-shot old and new, 1/3/10-minute
 #    fine-tunes) when STAGE=all or STAGE=evaluate.
 #
-# The shipped roguenerf/weights/default.safetensors (2026-11-25: six stages) was made by, in this order:
+# The sixth stage (2026-11-25, the default before the seventh below) was made by, in this order:
 #   git show a4ce751:roguenerf/weights/default.safetensors > /tmp/lego_toy.safetensors  # the lego + toy default
 #   STAGE=pairs scripts/pretrain_real.sh              # blur + coarse fits (gold_cape/coarse was cut short)
 #   FITS=cup/blur,cup/coarse,dtu_scan24/blur,dtu_scan24/coarse,milk/blur,milk/coarse,drink_box/blur,drink_box/coarse,beer/blur,beer/coarse,ethiopian_head/blur,ethiopian_head/coarse,gold_cape/blur
@@ -46,6 +46,12 @@
 #     OUT=runs/pretrain_looks7 scripts/pretrain_real.sh  # every scene's fine look: 16 min on 2 cores (AVX-512)
 #   STAGE=pretrain START=/tmp/fifth.safetensors STEPS=4845 LR=2.5e-4 SEED=5 \
 #     FITS=<the fifth's FITS> OUT=runs/pretrain_sixth scripts/pretrain_real.sh  # the same data again: 16 min
+# The seventh (2026-11-26, issue 35: chosen on the leave-one-kind-out figure, docs/kinds.md):
+#   FOLDS=3 PRESETS=coarse SCENES=cup,dtu_scan24 STAGE=pairs scripts/pretrain_real.sh   # 10 + 4 min, loaded
+#   STAGE=pretrain START=/tmp/sixth.safetensors STEPS=1500 LR=2.5e-4 SEED=7 NOISE=0.5,0.05 BLEND=0.5 \
+#     FITS=cup/coarse_x3,dtu_scan24/coarse_x3 OUT=runs/pretrain_B scripts/pretrain_real.sh
+#   # 12 min on 2 cores shared with another run; ships SIXTH + 0.5 (trained - SIXTH)
+# (/tmp/sixth.safetensors is `git show b611814:roguenerf/weights/default.safetensors`.)
 # (/tmp/fifth.safetensors is `git show b24f519:roguenerf/weights/default.safetensors`.)
 # (/tmp/looks.safetensors is `git show 70e5329:roguenerf/weights/default.safetensors`.)
 # (/tmp/continue.safetensors is `git show c2474f8:roguenerf/weights/default.safetensors`.)
