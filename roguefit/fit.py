@@ -455,9 +455,11 @@ def _cross_fit(ps: PhotoSet, config: FitConfig | SplatConfig, state_dir: Path, *
         done = fold_dir / "renders.safetensors"
         sub = dataclasses.replace(ps, splits=["train" if folds[i] is not None and folds[i] != f else "test"
                                               for i in range(n)])
-        saved = load_file(str(done)) if done.is_file() else None
-        if saved is not None and saved["views"].tolist() == views:
+        saved, fold_report = None, None
+        if done.is_file() and (fold_dir / "fold.json").is_file():  # a finished fold of this configuration
             fold_report = json.loads((fold_dir / "fold.json").read_text())
+            saved = load_file(str(done)) if fold_report.get("config") == config.identity() else None
+        if saved is not None and saved["views"].tolist() == views:
             rendered += len(views)
             fold_render_progress(rendered, n)
             rgb, depth, acc = saved["rgb"], saved["depth"], saved["acc"]
@@ -468,7 +470,7 @@ def _cross_fit(ps: PhotoSet, config: FitConfig | SplatConfig, state_dir: Path, *
             rendered += len(views)
             own = sub.indices("train")[:3]  # how well this fold's field fits views it saw
             seen = torch.stack([fitter.render_view(i)[0] for i in own])
-            fold_report = {"steps": fitter.step, "fit_seconds": round(fitter.elapsed, 1),
+            fold_report = {"config": config.identity(), "steps": fitter.step, "fit_seconds": round(fitter.elapsed, 1),
                            "render_seconds": round(seconds, 1), "train_psnr": _metrics(seen, ps.photos[own])["psnr"]}
             save_file({"views": torch.as_tensor(views), "rgb": rgb.contiguous(), "depth": depth.contiguous(),
                        "acc": acc.contiguous()}, str(done.with_suffix(".tmp")))

@@ -58,6 +58,9 @@ def test_cross_fitted_renders_are_novel_views_and_resume_after_a_stop(tmp_path):
     for i in range(VIEWS):
         assert torch.isfinite(scene.depth(i)).all() and scene.render(i).std() > 0.01
     assert make_pairs(root, tmp_path / "cross", config) == cross  # a finished folder is left as it is
+    # Another configuration in the same folder never reuses a finished fold's renders.
+    other = make_pairs(root, tmp_path / "cross", dataclasses.replace(config, steps=60))
+    assert other["steps"] == 3 * 60 and other["train"]["psnr"] != cross["train"]["psnr"]
 
 
 def test_too_few_training_views_for_the_folds_is_a_clear_error(tmp_path):
