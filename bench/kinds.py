@@ -64,6 +64,8 @@ def parse_args(argv=None):
                    help=f"pose-noise levels deg/share, comma-separated (default {NOISE_LEVELS}; '' for none)")
     p.add_argument("--neighbours", type=lambda t: [int(x) for x in t.split(",") if x], default=[],
                    help="zero-shot neighbour sweep: comma-separated counts (e.g. 2,3,4,5; default: the model's only)")
+    p.add_argument("--align", choices=["on", "off"], default="on",
+                   help="neighbour pose refinement at inference (default on, as shipped)")
     p.add_argument("--max-views", type=int, default=None)
     p.add_argument("--runs", type=Path, default=REPO / "runs" / "kinds", help="cache of photo sets, fits, fine-tunes")
     p.add_argument("--output", type=Path, default=None, help="default: bench/results/kinds_KIND")
@@ -179,7 +181,9 @@ def view_rows(report: dict, **condition) -> list[dict]:
                      "gain_db": round(e["psnr"] - r["psnr"], 4),
                      "render_ssim": round(r["ssim"], 5), "enhanced_ssim": round(e["ssim"], 5),
                      "render_flip": round(r["flip"], 5), "enhanced_flip": round(e["flip"], 5),
-                     "flip_change": round(e["flip"] - r["flip"], 5), "seconds": round(v["seconds"], 2)})
+                     "flip_change": round(e["flip"] - r["flip"], 5), "seconds": round(v["seconds"], 2),
+                     "aligned": (None if v.get("aligned") is None
+                                 else round(sum(v["aligned"]) / max(1, len(v["aligned"])), 3))})
     return rows
 
 
@@ -231,11 +235,15 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
     common = {**base, "scene": name, "kind": args.kind, "scale": args.scale, "checkpoint": checkpoint.name,
               "model_neighbours": default_n}
     rows: list[dict] = []
+    align = args.align == "on"
+    suffix = "_align" if align else ""  # results cached before pose refinement existed had it off
 
     def note(new: list[dict]) -> None:
         for x in new:  # rows cached before the neighbour sweep existed used the model's count
             x.setdefault("neighbours", default_n)
             x.setdefault("model_neighbours", default_n)
+            x.setdefault("aligned", None)
+            x["align"] = align
         rows.extend(new)
         gain = sum(x["gain_db"] for x in new) / len(new)
         flip = sum(x["flip_change"] for x in new) / len(new)
@@ -247,7 +255,7 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
 
     def zero_shot(k: int, deg: float, share: float, n: int | None = None) -> list[dict]:
         target = scene if deg == 0 and share == 0 else noisy_scene(scene, deg, share, seed=1000 + k)
-        return view_rows(evaluate(target, model, max_views=args.max_views, num_neighbours=n), **common,
+        return view_rows(evaluate(target, model, max_views=args.max_views, num_neighbours=n, align=align), **common,
                          stage="zero-shot", minutes=0.0, noise_deg=deg, noise_share=share,
                          neighbours=default_n if n is None else n)
 
@@ -255,17 +263,19 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
         result = finetune(scene, args.runs / "finetune" / name / tag / checkpoint.stem / f"{m:g}min",
                           checkpoint=checkpoint, config=TrainConfig(minutes=m, evaluate=False))
         tuned, _ = load_checkpoint(result.checkpoint)
-        return view_rows(evaluate(scene, tuned, max_views=args.max_views), **common, stage=f"finetune {m:g} min",
+        return view_rows(evaluate(scene, tuned, max_views=args.max_views, align=align), **common,
+                         stage=f"finetune {m:g} min",
                          minutes=m, noise_deg=0.0, noise_share=0.0, neighbours=default_n, steps=result.steps)
 
     for k, (deg, share) in enumerate(args.noise or [(0.0, 0.0)]):
-        note(cached_rows(cache / f"zero_shot_noise{deg:g}_{share:g}.json",
+        note(cached_rows(cache / f"zero_shot_noise{deg:g}_{share:g}{suffix}.json",
                          functools.partial(zero_shot, k, deg, share)))
     for n in args.neighbours:
         if n != default_n:
-            note(cached_rows(cache / f"zero_shot_{n}neighbours.json", functools.partial(zero_shot, 0, 0.0, 0.0, n)))
+            note(cached_rows(cache / f"zero_shot_{n}neighbours{suffix}.json",
+                             functools.partial(zero_shot, 0, 0.0, 0.0, n)))
     for minutes in sorted(args.finetune):
-        note(cached_rows(cache / f"finetune_{minutes:g}min.json", functools.partial(tune, minutes)))
+        note(cached_rows(cache / f"finetune_{minutes:g}min{suffix}.json", functools.partial(tune, minutes)))
     return rows, fit
 
 
@@ -280,13 +290,16 @@ def summary(rows: list[dict]) -> list[dict]:
         n = len(rs)
         out.append({"scene": scene, "kind": kind, "stage": stage, "minutes": rs[0]["minutes"], "noise_deg": deg,
                     "noise_share": share, "neighbours": neighbours,
-                    "model_neighbours": rs[0].get("model_neighbours"), "views": n,
+                    "model_neighbours": rs[0].get("model_neighbours"), "align": rs[0].get("align", False),
+                    "views": n,
                     "render_psnr": round(sum(r["render_psnr"] for r in rs) / n, 4),
                     "gain_db": round(sum(r["gain_db"] for r in rs) / n, 4),
                     "worst_view_gain_db": min(r["gain_db"] for r in rs),
                     "render_flip": round(sum(r["render_flip"] for r in rs) / n, 5),
                     "flip_change": round(sum(r["flip_change"] for r in rs) / n, 5),
-                    "views_flip_better": sum(r["flip_change"] < 0 for r in rs)})
+                    "views_flip_better": sum(r["flip_change"] < 0 for r in rs),
+                    "aligned_share": (None if any(r.get("aligned") is None for r in rs)
+                                      else round(sum(r["aligned"] for r in rs) / n, 3))})
     return out
 
 

@@ -74,6 +74,8 @@ def parse_args(argv=None):
     p.add_argument("--old-checkpoint", type=Path, default=None, help="the checkpoint to compare zero-shot against")
     p.add_argument("--minutes", type=_floats, default=[1, 3, 10], help="comma-separated fine-tuning budgets")
     p.add_argument("--max-views", type=int, default=None)
+    p.add_argument("--align", choices=["on", "off"], default="on",
+                   help="neighbour pose refinement at inference (default on, as shipped)")
     p.add_argument("--plans", type=lambda t: [x for x in t.split(",") if x], default=["default"],
                    help=f"comma-separated fine-tuning plans: {', '.join(PLANS)}")
     p.add_argument("--replot", type=Path, nargs="+", default=None, metavar="CSV",
@@ -131,9 +133,12 @@ def run(args, save=None) -> list[dict]:
         scene = load_scene(scene_dir)
         label = scene_label(scene_dir)
 
+        def measure(scene, model) -> dict:
+            return evaluate(scene, model, max_views=args.max_views, align=args.align == "on")
+
         def record(kind: str, minutes: float, steps: int, seconds: float, report: dict, *, label: str = label,
                    **extra) -> None:
-            row = {**base, "scene": label, "kind": kind, "minutes": minutes, "steps": steps,
+            row = {**base, "scene": label, "kind": kind, "minutes": minutes, "steps": steps, "align": args.align,
                    "train_seconds": round(seconds, 1), **summarise(report), **extra}
             print(", ".join(f"{k}={v}" for k, v in row.items() if k not in base), flush=True)
             rows.append(row)
@@ -144,7 +149,7 @@ def run(args, save=None) -> list[dict]:
             if ckpt is None:
                 continue
             model, _ = load_checkpoint(ckpt)
-            record(kind, 0.0, 0, 0.0, evaluate(scene, model, max_views=args.max_views), checkpoint=str(ckpt))
+            record(kind, 0.0, 0, 0.0, measure(scene, model), checkpoint=str(ckpt))
         for plan_name in args.plans:
             scheduled = plan_training(scene, TrainConfig(**PLANS[plan_name])).lr_schedule != "constant"
             for minutes in sorted(args.minutes):
@@ -157,14 +162,14 @@ def run(args, save=None) -> list[dict]:
                         f"{c['neighbour_encoding']}{'+frozen' if c.get('freeze_neighbour_encoder') else ''} "
                         f"lr {c['lr']:g} {c['lr_schedule']}")
                 record("finetune", minutes, result.steps, result.seconds,
-                       evaluate(scene, model, max_views=args.max_views), checkpoint=str(new), plan_name=plan_name,
+                       measure(scene, model), checkpoint=str(new), plan_name=plan_name,
                        plan=plan)
                 if args.blends:
                     tuned = {k: v.clone() for k, v in model.state_dict().items()}
                     for a in args.blends:
                         model.load_state_dict(blend_state(start, tuned, a))
                         record("finetune", minutes, result.steps, result.seconds,
-                               evaluate(scene, model, max_views=args.max_views), checkpoint=str(new),
+                               measure(scene, model), checkpoint=str(new),
                                plan_name=f"{plan_name}+blend{a:g}", plan=f"{plan}, blend {a:g}")
     return rows
 

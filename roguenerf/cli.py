@@ -49,6 +49,9 @@ LrOpt = Annotated[float | None, typer.Option("--lr", help=(
 LrScheduleOpt = Annotated[str | None, typer.Option(
     "--lr-schedule", help="cosine (the lr falls to 0 over the budget; the default) or constant.")]
 NeighboursOpt = Annotated[int | None, typer.Option("--neighbours", help="Neighbours per view (default: model's).")]
+AlignOpt = Annotated[bool, typer.Option("--align/--no-align", help=(
+    "Refine each neighbour's pose against the render before using its photo (for dataset poses that are a "
+    "little off; refused where it does not clearly help). Default on."))]
 FreezeOpt = Annotated[bool | None, typer.Option(
     "--freeze-neighbour-encoder/--train-neighbour-encoder",
     help="Keep conv_H (the neighbour-photo encoder) fixed and encode the training photos once, so each "
@@ -347,6 +350,7 @@ def evaluate(
     split: Annotated[str, typer.Option("--split", help="Views to evaluate: test, train or all.")] = "test",
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object and nothing else.")] = False,
     neighbours: NeighboursOpt = None,
+    align: AlignOpt = True,
 ) -> None:
     """PSNR/SSIM/FLIP of renders and enhanced renders against the photos, per view and mean (FLIP: lower is better)."""
     from roguenerf.training import evaluate as run_evaluate
@@ -357,7 +361,8 @@ def evaluate(
         scene = _load_scene(scene_dir)
         model = _load_model(checkpoint)
         with _progress_bar(f"evaluating {split} views", "view") as progress:
-            report = run_evaluate(scene, model, split=split, num_neighbours=neighbours, progress=progress)
+            report = run_evaluate(scene, model, split=split, num_neighbours=neighbours, progress=progress,
+                                  align=align)
     if as_json:
         from roguenerf.imageio import finite_for_json
 
@@ -382,6 +387,7 @@ def enhance(
     output: Annotated[Path, typer.Option("--output", help="Where to write the enhanced PNG.")],
     checkpoint: CheckpointOpt = None,
     neighbours: NeighboursOpt = None,
+    align: AlignOpt = True,
 ) -> None:
     """Enhance one view's render (a training view never uses its own photo)."""
     from roguenerf.imageio import write_png
@@ -399,9 +405,12 @@ def enhance(
         index = scene.index(view)
         model = _load_model(checkpoint)
         with _progress_bar(f"enhancing {view}", "tile") as progress:
-            result = SceneEnhancer(scene, model, num_neighbours=neighbours).enhance_view(index, progress=progress)
+            result = SceneEnhancer(scene, model, num_neighbours=neighbours,
+                                   align=align).enhance_view(index, progress=progress)
         write_png(output, result.image)
-        used = ", ".join(result.neighbours) or "none"
+        used = ", ".join(f"{n} (pose refined)" if done else n
+                         for n, done in zip(result.neighbours, result.aligned or [False] * len(result.neighbours)))
+        used = used or "none"
         typer.echo(f"enhanced {view} in {result.seconds:.2f} s with neighbours: {used}", err=True)
         if result.note:
             typer.echo(f"note: {result.note}", err=True)
@@ -567,6 +576,7 @@ def enhance_path_command(
         "--output", help="Output folder: frames/, enhanced.mp4, side_by_side.mp4, flicker.json.")],
     checkpoint: CheckpointOpt = None,
     neighbours: NeighboursOpt = None,
+    align: AlignOpt = True,
     quality: Annotated[int, typer.Option("--quality", help="x264 CRF, 0 (lossless) .. 51; 18-23 look good.")] = 20,
     fps: Annotated[float | None, typer.Option(
         "--fps", help="Frame rate (default: the camera path's, else 24).")] = None,
@@ -619,13 +629,14 @@ def enhance_path_command(
         from roguenerf.checkpoint import load_checkpoint
 
         model, _meta = load_checkpoint(ckpt)
-        enhancer = SceneEnhancer(scene, model, num_neighbours=neighbours)
+        enhancer = SceneEnhancer(scene, model, num_neighbours=neighbours, align=align)
         stat = ckpt.stat()
         with _progress_bar(f"enhancing {len(camera_path)} frames", "frame") as progress:
             result = enhance_path(scene, enhancer, camera_path, frames, output, depth_type=depth_type,
                                   depth_scale=depth_scale, background=background, video=not no_video,
                                   quality=quality, fps=fps,
-                                  checkpoint_id=f"{ckpt.resolve()}:{stat.st_size}:{stat.st_mtime_ns}",
+                                  checkpoint_id=f"{ckpt.resolve()}:{stat.st_size}:{stat.st_mtime_ns}"
+                                  + ("" if align else ":no-align"),
                                   progress=progress, force=force)
         for warning in result.warnings:
             typer.echo(f"warning: {warning}", err=True)

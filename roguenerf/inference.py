@@ -28,6 +28,9 @@ from roguenerf.runtime import release_freed_memory
 DEFAULT_TILE = 512
 """Images whose height or width exceed this are enhanced tile by tile (bounded memory)."""
 
+DEFAULT_ALIGN = True
+"""Whether :class:`SceneEnhancer` refines neighbour poses by default (``align``)."""
+
 DEFAULT_CACHE_BYTES = 2 << 30
 """Budget of the per-scene neighbour cache (features + depth, float32), least recently used
 first out. A photo whose entry alone would take more than budget / neighbours per request is
@@ -38,6 +41,10 @@ PROBE_PIXELS = 128 * 128
 """The "does any neighbour see this view" check looks at about this many target pixels."""
 
 NO_NEIGHBOUR_NOTE = "no neighbour sees this view: enhanced without neighbours"
+
+ALIGN_SIDE = 512
+"""Pose refinement (:mod:`roguenerf.geometry.align`) works on copies of the neighbour photos and
+depths no larger than this (long side), cached per scene (about 3 MB a photo)."""
 
 
 @dataclass
@@ -50,6 +57,9 @@ class EnhanceResult:
     """Wall-clock time of this call (neighbour encoding included when it happened)."""
     note: str | None = None
     """Why the result differs from the usual path, e.g. no neighbour sees the view."""
+    aligned: list[bool] | None = None
+    """Per neighbour (as ``neighbours``): whether its pose was refined for this view
+    (:mod:`roguenerf.geometry.align`); None when pose refinement is off."""
 
 
 def _check_image(x: Tensor, name: str, channels: int) -> Tensor:
@@ -92,10 +102,14 @@ class SceneEnhancer:
         tile: images larger than this (height or width) are enhanced with
             :func:`~roguenerf.models.tiling.enhance_tiled`; default :data:`DEFAULT_TILE`.
         device: where the model runs.
+        align: refine each neighbour's pose against the render before reprojecting it
+            (:func:`~roguenerf.geometry.align.align_neighbour`): a photo whose dataset pose is a
+            little off then still lands on the render. True, False, or an
+            :class:`~roguenerf.geometry.align.AlignConfig`; default :data:`DEFAULT_ALIGN`.
     """
 
     def __init__(self, scene, model, *, num_neighbours: int | None = None, tile: int | None = None,
-                 device: str | torch.device = "cpu", cache_bytes: int = DEFAULT_CACHE_BYTES):
+                 device: str | torch.device = "cpu", cache_bytes: int = DEFAULT_CACHE_BYTES, align=None):
         if num_neighbours is not None and int(num_neighbours) < 0:
             raise InputError(f"num_neighbours: expected >= 0, got {num_neighbours}")
         if tile is not None and int(tile) < 16:
@@ -121,6 +135,13 @@ class SceneEnhancer:
         else:
             self.train_poses = torch.zeros(0, 4, 4, dtype=torch.float64)
             self.train_K = torch.zeros(0, 3, 3)
+        from roguenerf.geometry.align import AlignConfig
+
+        align = DEFAULT_ALIGN if align is None else align
+        if not isinstance(align, (bool, AlignConfig)):
+            raise InputError(f"align: expected True, False or an AlignConfig, got {type(align).__name__}")
+        self.align = AlignConfig() if align is True else (align or None)
+        self._small: dict[int, tuple[Tensor, Tensor, Tensor]] = {}
         self.cache_bytes = int(cache_bytes)
         self._sources: OrderedDict[int, Tensor] = OrderedDict()
         self._depths: dict[int, Tensor] = {}
@@ -159,7 +180,38 @@ class SceneEnhancer:
                 out.append(self._sources[p])
         return out
 
-    def _crop_provider(self, positions: list[int], world_from_cam: Tensor):
+    def _small_neighbour(self, position: int) -> tuple[Tensor, Tensor, Tensor]:
+        """Photo ``(3, h, w)``, depth ``(1, h, w)`` and K of a training position, no larger than
+        :data:`ALIGN_SIDE` (cached): what the pose refinement reads."""
+        from roguenerf.geometry.align import shrink
+
+        with self._lock:
+            if position not in self._small:
+                i = self.train[position]
+                self._small[position] = shrink(self.scene.photo(i), self.scene.depth(i),
+                                               self.train_K[position], ALIGN_SIDE)
+            return self._small[position]
+
+    def neighbour_poses(self, positions: list[int], render: Tensor, depth: Tensor, K: Tensor,
+                        world_from_cam: Tensor) -> tuple[Tensor, list[bool]]:
+        """``(N, 4, 4)`` float64 poses of the neighbours at training ``positions`` for this view:
+        refined against the render where :attr:`align` is on and the fit is accepted, else the
+        dataset's; and, per neighbour, whether it was refined."""
+        from roguenerf.geometry.align import align_neighbour, shrink
+
+        poses = self.train_poses[positions].clone()
+        if self.align is None:
+            return poses, [False] * len(positions)
+        r, d, k = shrink(render, depth, K, ALIGN_SIDE)
+        done = []
+        for j, p in enumerate(positions):
+            photo, photo_depth, photo_K = self._small_neighbour(p)
+            fit = align_neighbour(photo, photo_depth, photo_K, poses[j], r, d, k, world_from_cam, config=self.align)
+            poses[j] = fit.world_from_cam
+            done.append(fit.accepted)
+        return poses, done
+
+    def _crop_provider(self, positions: list[int], world_from_cam: Tensor, poses: Tensor):
         """Per-tile neighbours for photos too large to cache: for each tile, each neighbour's
         features are computed on just the part of its photo the tile projects into (plus the
         bilinear and conv_H margins), which gives the same values as the whole photo's."""
@@ -169,7 +221,7 @@ class SceneEnhancer:
         photos = [self.scene.photo(self.train[p]).to(self.device, torch.float32) for p in positions]
         depths = [self._depth(p) for p in positions]
         Ks = self.train_K[positions].to(self.device)
-        poses = self.train_poses[positions].to(self.device)
+        poses = poses.to(self.device)
         leniency = getattr(self.model.config, "leniency", 0.25)
         with torch.inference_mode():
             depth_sources = [sampling_source(d[None], d[None]) for d in depths]
@@ -279,6 +331,7 @@ class SceneEnhancer:
         chosen = self.select(world_from_cam, exclude=exclude)
         note = None
         batch = None
+        aligned = None
         if chosen:
             positions = [self.train.index(i) for i in chosen]
             if not self._any_neighbour_sees(positions, depth_b, K_b, pose_b):
@@ -286,12 +339,14 @@ class SceneEnhancer:
                 chosen = []
             else:
                 n_K = self.train_K[positions].to(dev)
-                n_pose = self.train_poses[positions].to(dev)
+                n_pose, done = self.neighbour_poses(positions, render, depth, K, world_from_cam)
+                aligned = done if self.align is not None else None
+                n_pose = n_pose.to(dev)
                 if all(self.cacheable(p) for p in positions):
                     batch = NeighbourBatch(None, None, n_K[None], n_pose[None],
                                            sources=self._cached_sources(positions))
                 else:
-                    batch = self._crop_provider(positions, pose_b[0])
+                    batch = self._crop_provider(positions, pose_b[0], n_pose)
 
         with torch.inference_mode():
             height, width = render.shape[1:]
@@ -310,7 +365,8 @@ class SceneEnhancer:
                                  "its inputs are broken (check the checkpoint and the depth)")
         image = out[0].clamp(0, 1).to("cpu", torch.float32)
         names = [self.scene.frames[i].name for i in chosen]
-        return EnhanceResult(image=image, neighbours=names, seconds=time.perf_counter() - start, note=note)
+        return EnhanceResult(image=image, neighbours=names, seconds=time.perf_counter() - start, note=note,
+                             aligned=aligned if chosen else ([] if self.align is not None else None))
 
     def _any_neighbour_sees(self, positions: list[int], depth_b: Tensor, K_b: Tensor, pose_b: Tensor) -> bool:
         """Whether any target pixel passes the reprojection test in any neighbour, checked on a

@@ -31,7 +31,7 @@ def _mean(views: list[dict], key: str) -> dict:
 
 def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = None,
              max_views: int | None = None, device: str | torch.device = "cpu",
-             progress: Callable[[int, int], None] | None = None) -> dict:
+             progress: Callable[[int, int], None] | None = None, align=None) -> dict:
     """Compare renders and enhanced renders of ``split`` views with their photos.
 
     Neighbours always come from the scene's TRAIN views (a train view never uses itself).
@@ -42,6 +42,8 @@ def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = 
         split: "test", "train" or "all".
         num_neighbours: override of the model's default.
         max_views: evaluate only the first views of the split (quick benchmarks).
+        align: neighbour pose refinement (``SceneEnhancer``'s ``align``; default on). Ignored
+            when ``model`` is a SceneEnhancer already.
         progress: called as ``progress(done, total)`` before the first view and after each.
     Returns:
         ``{"split", "views": [{"name", "render": {"psnr", "ssim", "flip"}, "enhanced": {...},
@@ -60,7 +62,7 @@ def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = 
         enhancer = model
     else:
         was_training = model.training
-        enhancer = SceneEnhancer(scene, model, num_neighbours=num_neighbours, device=device)
+        enhancer = SceneEnhancer(scene, model, num_neighbours=num_neighbours, device=device, align=align)
     views = []
     if progress is not None:
         progress(0, len(indices))
@@ -75,6 +77,7 @@ def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = 
                           "render": _metrics_of(render, photo),
                           "enhanced": _metrics_of(result.image, photo),
                           "neighbours": result.neighbours,
+                          "aligned": result.aligned,
                           "seconds": seconds})
             if progress is not None:
                 progress(len(views), len(indices))

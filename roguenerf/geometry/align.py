@@ -1,0 +1,340 @@
+"""Neighbour pose refinement: direct image alignment of a training photo onto the render.
+
+Real poses are a little wrong (COLMAP's error; nerfacto's camera optimiser moves them on
+purpose), so a neighbour photo reprojected with its dataset pose lands beside the render's
+content, and its detail is put in the wrong place. Before a request reprojects a neighbour,
+:func:`align_neighbour` turns and moves that neighbour's camera by the small rigid motion that
+best maps its photo onto the render through the render's depth (the target pose, render and
+depth are the user's and are not touched): a photometric least-squares fit of 6 numbers,
+coarse to fine on small copies of the images (long side 64, 128, 256 pixels), sampled with
+:func:`~roguenerf.geometry.reproject` (so the visibility test is the enhancer's).
+
+The motion is a rotation ``w`` (radians) and a move ``v`` of the neighbour camera in its own
+frame, ``v`` measured in units of the target's median depth so that the fit does not depend
+on the scene's units.
+It is kept only where it lowers the photometric error by :attr:`AlignConfig.min_gain` (a
+share) and stays within :attr:`AlignConfig.max_rotation_deg` and
+:attr:`AlignConfig.max_translation`; otherwise the dataset pose is kept (a featureless
+view, a neighbour that barely overlaps, a fit that wandered). The error is a Charbonnier
+mean over the target pixels the neighbour sees; a moved camera must still see
+:data:`MIN_OVERLAP` of the pixels it saw (the fit cannot win by looking away), and the two poses
+are compared on the pixels both see. Each level takes damped Gauss-Newton steps (the photo's
+gradients sampled with its colour, IRLS weights of the Charbonnier penalty); a step that does
+not lower the error is refused and the damping raised.
+
+Legend: (H, W) target size, (Hs, Ws) neighbour size.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from roguenerf.errors import InputError
+from roguenerf.geometry.cameras import check_intrinsics, check_pose, relative_pose
+from roguenerf.geometry.depth import known_depth_mask, median_known_depth
+from roguenerf.geometry.reproject import reproject
+
+
+@dataclass(frozen=True)
+class AlignConfig:
+    levels: tuple[int, ...] = (64, 128, 256)
+    """Long side (pixels) of the target at each level of the coarse-to-fine fit; levels larger
+    than the target itself are skipped."""
+    iterations: int = 12
+    """Gauss-Newton steps per level (at most; refused steps count)."""
+    blur_sigma: float = 1.0
+    """Gaussian blur (pixels of the level) of both images: the render is blurry, the photo is not."""
+    max_rotation_deg: float = 3.0
+    """The fit never turns the camera further than this (a step that would is refused)."""
+    max_translation: float = 0.15
+    """The fit never moves the camera further than this share of the target's median depth."""
+    min_gain: float = 0.10
+    """The fit is kept only when it lowers the photometric error by at least this share. With
+    the dataset's poses, a fit slides a little along the rotation/translation valley of a
+    shallow scene, or fits the geometry errors of a blurry render, and gains 2-7 % (and such
+    fits cost up to 0.7 dB on our own `coarse` look); a wrong pose's fit gains 10-75 %."""
+    charbonnier: float = 0.01
+    """Scale of the Charbonnier penalty ``sqrt(r^2 + c^2) - c`` on colour differences in [0, 1]."""
+
+
+@dataclass
+class Alignment:
+    world_from_cam: Tensor
+    """``(4, 4)`` float64: the refined neighbour pose (the given one where not ``accepted``)."""
+    accepted: bool
+    rotation_deg: float
+    """Angle of the fitted rotation (degrees), whether or not it was accepted."""
+    translation: float
+    """Length of the fitted move, as a share of the target's median depth."""
+    error_before: float
+    """Photometric error at the finest level with the given pose (nan where nothing overlaps)."""
+    error_after: float
+
+
+def _area(x: Tensor, size: tuple[int, int]) -> Tensor:
+    return F.interpolate(x, size=size, mode="area") if tuple(x.shape[-2:]) != size else x
+
+
+def _scaled_K(K: Tensor, size: tuple[int, int], to: tuple[int, int]) -> Tensor:
+    """Intrinsics of an image of ``size`` (H, W) resized to ``to``: pixel-centre convention, so
+    scaling the first two rows maps pixel areas exactly."""
+    out = K.to(torch.float64).clone()
+    out[0] *= to[1] / size[1]
+    out[1] *= to[0] / size[0]
+    return out
+
+
+def _level_depth(depth: Tensor, to: tuple[int, int]) -> Tensor:
+    """``(1, 1, h, w)`` mean of the known depth over each cell; 0 (unknown) where less than
+    half the cell is known."""
+    known = known_depth_mask(depth).to(depth.dtype)
+    z = torch.where(known > 0, torch.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+    weight = _area(known, to)
+    mean = _area(z, to) / weight.clamp_min(1e-6)
+    return torch.where(weight >= 0.5, mean, 0.0)
+
+
+def _blurred(image: Tensor, to: tuple[int, int], sigma: float) -> Tensor:
+    from kornia.filters import gaussian_blur2d
+
+    small = _area(image, to)
+    if sigma <= 0:
+        return small
+    radius = max(1, int(math.ceil(2.5 * sigma)))
+    return gaussian_blur2d(small, (2 * radius + 1, 2 * radius + 1), (sigma, sigma), border_type="replicate")
+
+
+def shrink(image: Tensor, depth: Tensor, K: Tensor, side: int) -> tuple[Tensor, Tensor, Tensor]:
+    """An image ``(3, H, W)``, its z-depth ``(1, H, W)`` and K, area-resized so that the long
+    side is at most ``side`` (unchanged, on the CPU, when it already is); depth is averaged
+    over its known pixels (unknown where less than half a cell is known)."""
+    image, depth = image.detach().cpu().float(), depth.detach().cpu().float()
+    K = torch.as_tensor(K).detach().cpu().to(torch.float64)
+    h, w = image.shape[-2:]
+    if max(h, w) <= side:
+        return image, depth, K
+    to = (max(1, round(h * side / max(h, w))), max(1, round(w * side / max(h, w))))
+    return _area(image[None], to)[0], _level_depth(depth[None], to)[0], _scaled_K(K, (h, w), to)
+
+
+def _se3(delta: Tensor) -> Tensor:
+    """``(4, 4)`` float64 rigid motion of 6 numbers: a rotation vector (radians), then a move."""
+    w = delta[:3].to(torch.float64)
+    skew = torch.zeros(3, 3, dtype=torch.float64)
+    skew[0, 1], skew[0, 2], skew[1, 2] = -w[2], w[1], -w[0]
+    skew[1, 0], skew[2, 0], skew[2, 1] = w[2], -w[1], w[0]
+    out = torch.eye(4, dtype=torch.float64)
+    out[:3, :3] = torch.linalg.matrix_exp(skew)
+    out[:3, 3] = delta[3:].to(torch.float64)
+    return out
+
+
+def _central_gradients(image: Tensor) -> tuple[Tensor, Tensor]:
+    """Central differences along x and y (edges repeated), same size."""
+    pad = F.pad(image, (1, 1, 1, 1), mode="replicate")
+    return (pad[..., 1:-1, 2:] - pad[..., 1:-1, :-2]) * 0.5, (pad[..., 2:, 1:-1] - pad[..., :-2, 1:-1]) * 0.5
+
+
+def _rays(K: Tensor, size: tuple[int, int]) -> Tensor:
+    """``(H, W, 3)`` float64 ``K^-1 [u + 0.5, v + 0.5, 1]`` (z = 1 for a K without a third-row twist)."""
+    h, w = size
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64) + 0.5, torch.arange(w, dtype=torch.float64) + 0.5,
+                          indexing="ij")
+    return torch.stack([u, v, torch.ones_like(u)], dim=-1) @ torch.linalg.inv(K.to(torch.float64)).T
+
+
+def _angle_deg(R: Tensor) -> float:
+    cos = ((torch.diagonal(R).sum() - 1.0) / 2.0).clamp(-1.0, 1.0)
+    return math.degrees(float(torch.arccos(cos)))
+
+
+MIN_OVERLAP = 0.9
+"""A moved neighbour camera must still see this share of the target pixels it saw before."""
+
+
+INTERIOR = 0.8
+"""A fit is kept only when it ends inside this share of the trust region (both limits)."""
+
+
+class _Level:
+    """One level of the coarse-to-fine fit: blurred small images, depths in units of the
+    target's median depth, intrinsics scaled to the level."""
+
+    def __init__(self, n: int, photo, photo_depth, photo_K, render, render_depth, K, scale: float, sigma: float):
+        H, W = render.shape[-2:]
+        Hs, Ws = photo.shape[-2:]
+        f = n / max(H, W)
+        to = (max(4, round(H * f)), max(4, round(W * f)))
+        to_s = (max(4, round(Hs * f)), max(4, round(Ws * f)))
+        self.render = _blurred(render.float()[None], to, sigma)
+        self.depth = _level_depth(render_depth.float()[None], to) / scale
+        small = _blurred(photo.float()[None], to_s, sigma)
+        gx, gy = _central_gradients(small)
+        self.stack = torch.cat([small, gx, gy], dim=1)  # sampled together: colour and its gradients
+        self.photo_depth = _level_depth(photo_depth.float()[None], to_s) / scale
+        self.K = _scaled_K(K, (H, W), to)
+        self.photo_K = _scaled_K(photo_K, (Hs, Ws), to_s)
+        self.points = _rays(self.K, to) * self.depth[0, 0, ..., None].to(torch.float64)  # (h, w, 3), target frame
+
+    def sample(self, photo_from_cam: Tensor) -> tuple[Tensor, Tensor]:
+        """``(9, h, w)`` photo colour and gradients reprojected with ``photo_from_cam`` (0 where not
+        seen) and ``(h, w)`` bool: seen (target depth known, in front, inside, visible)."""
+        rp = reproject(self.stack, self.photo_depth, self.depth, self.photo_K.float(), self.K.float(),
+                       torch.eye(4, dtype=torch.float64)[None], photo_from_cam[None], validated=True)
+        return rp.features[0], rp.valid[0, 0] > 0
+
+    def error(self, sampled: Tensor, seen: Tensor, counted: Tensor, c: float) -> float:
+        """Charbonnier mean over the ``counted`` pixels that are ``seen``; infinite when fewer than
+        :data:`MIN_OVERLAP` of them are (the fit must not win by looking away)."""
+        use = seen & counted
+        n = int(use.sum())
+        if n == 0 or n < MIN_OVERLAP * int(counted.sum()):
+            return float("inf")
+        r = (sampled[:3, use] - self.render[0][:, use]).square().sum(dim=0)
+        return float(((r + c * c).sqrt() - c).mean())
+
+    def step(self, photo_from_cam: Tensor, sampled: Tensor, seen: Tensor, counted: Tensor, c: float,
+             damping: float) -> Tensor:
+        """One damped Gauss-Newton step (IRLS weights of the Charbonnier penalty): the 6 numbers
+        of the motion, in the neighbour's frame, that best reduce the error to first order."""
+        use = seen & counted
+        R, t = photo_from_cam[:3, :3], photo_from_cam[:3, 3]
+        P = (self.points[use] @ R.T + t)  # (n, 3) target points in the neighbour camera
+        q = P @ self.photo_K.T
+        u, v = q[:, 0] / q[:, 2], q[:, 1] / q[:, 2]
+        du = (self.photo_K[0] - u[:, None] * self.photo_K[2]) / q[:, 2:3]  # (n, 3) d(u)/dP
+        dv = (self.photo_K[1] - v[:, None] * self.photo_K[2]) / q[:, 2:3]
+        X, Y, Z = P.unbind(-1)
+        zero = torch.zeros_like(X)
+        # dP/d(rotation) = columns e_j x P; dP/d(move) = identity
+        dP = torch.stack([torch.stack([zero, -Z, Y], -1), torch.stack([Z, zero, -X], -1),
+                          torch.stack([-Y, X, zero], -1)], dim=-1)  # (n, 3, 3): [:, :, j] = e_j x P
+        ju = torch.cat([(du[:, :, None] * dP).sum(1), du], dim=1)  # (n, 6)
+        jv = torch.cat([(dv[:, :, None] * dP).sum(1), dv], dim=1)
+        s = sampled[:, use].to(torch.float64)  # (9, n)
+        colour, gx, gy = s[:3], s[3:6], s[6:9]
+        J = gx[..., None] * ju[None] + gy[..., None] * jv[None]  # (3, n, 6)
+        r = colour - self.render[0][:, use].to(torch.float64)  # (3, n)
+        weight = 1.0 / (r.square().sum(0) + c * c).sqrt()  # (n,)
+        Jw = J * weight[None, :, None]
+        A = torch.einsum("cni,cnj->ij", Jw, J)
+        b = torch.einsum("cni,cn->i", Jw, r)
+        A = A + damping * torch.diag(torch.diagonal(A).clamp_min(1e-12))
+        return -torch.linalg.solve(A, b)
+
+
+def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_from_photo: Tensor,
+                    render: Tensor, render_depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
+                    config: AlignConfig | None = None) -> Alignment:
+    """Refine the pose of one neighbour photo so that it reprojects onto the render.
+
+    Args:
+        photo: ``(3, Hs, Ws)`` the neighbour's photo, float in [0, 1].
+        photo_depth: ``(1, Hs, Ws)`` its rendered z-depth (for the visibility test).
+        photo_K, K: ``(3, 3)`` intrinsics of the neighbour and the target (pixel-centre convention).
+        world_from_photo, world_from_cam: ``(4, 4)`` OpenCV camera-to-world of the neighbour
+            (the pose refined) and the target (kept).
+        render: ``(3, H, W)``; render_depth: ``(1, H, W)``: the target's render and z-depth.
+        config: the fit's settings (:class:`AlignConfig`).
+    Returns:
+        :class:`Alignment`. Never raises on image content: where the neighbour sees (almost)
+        nothing of the target, or no fit lowers the error, the given pose comes back with
+        ``accepted`` False.
+    """
+    config = config or AlignConfig()
+    for name, x, ch in (("photo", photo, 3), ("photo_depth", photo_depth, 1), ("render", render, 3),
+                        ("render_depth", render_depth, 1)):
+        if not isinstance(x, Tensor) or not x.is_floating_point() or x.ndim != 3 or x.shape[0] != ch:
+            raise InputError(f"{name}: expected a float tensor ({ch}, H, W), got "
+                             f"{tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__}")
+    if photo_depth.shape[1:] != photo.shape[1:] or render_depth.shape[1:] != render.shape[1:]:
+        raise InputError("photo_depth / render_depth: expected the size of their image")
+    photo_K, K = check_intrinsics(photo_K, "photo_K"), check_intrinsics(K, "K")
+    world_from_photo = check_pose(torch.as_tensor(world_from_photo), "world_from_photo").to(torch.float64)
+    world_from_cam = check_pose(torch.as_tensor(world_from_cam), "world_from_cam").to(torch.float64)
+    photo, photo_depth = photo.detach().cpu(), photo_depth.detach().cpu()
+    render, render_depth = render.detach().cpu(), render_depth.detach().cpu()
+
+    def unchanged(before: float = float("nan")) -> Alignment:
+        return Alignment(world_from_cam=world_from_photo, accepted=False, rotation_deg=0.0, translation=0.0,
+                         error_before=before, error_after=before)
+
+    scale = float(median_known_depth(render_depth.float()[None])[0])
+    H, W = render.shape[-2:]
+    sizes = sorted({min(int(n), max(H, W)) for n in config.levels if int(n) >= 8}) or [max(H, W)]
+    # Relative pose in float64, in units of the target's median depth.
+    start = relative_pose(world_from_photo, world_from_cam).cpu()
+    start[:3, 3] /= scale
+    c = config.charbonnier
+    start_inverse = torch.linalg.inv(start)
+
+    def within(pose: Tensor) -> bool:
+        motion = pose @ start_inverse
+        return (_angle_deg(motion[:3, :3]) <= config.max_rotation_deg
+                and float(motion[:3, 3].norm()) <= config.max_translation)
+
+    with torch.no_grad():
+        levels = [_Level(n, photo, photo_depth, photo_K.cpu(), render, render_depth, K.cpu(), scale,
+                         config.blur_sigma) for n in sizes]
+        finest = levels[-1]
+        sampled, counted_finest = finest.sample(start)
+        if int(counted_finest.sum()) < 64:
+            return unchanged()
+        before = finest.error(sampled, counted_finest, counted_finest, c)
+        pose = start
+        for level in levels:
+            sampled, counted = level.sample(pose)
+            if int(counted.sum()) < 16:
+                continue
+            seen = counted
+            err = level.error(sampled, seen, counted, c)
+            damping = 1e-3
+            for _ in range(config.iterations):
+                delta = level.step(pose, sampled, seen, counted, c, damping)
+                if not bool(torch.isfinite(delta).all()):
+                    break
+                trial = _se3(delta) @ pose
+                if not within(trial):  # a trust region: the fit never leaves the plausible motions
+                    damping *= 10.0
+                    if damping > 1e4:
+                        break
+                    continue
+                t_sampled, t_seen = level.sample(trial)
+                t_err = level.error(t_sampled, t_seen, counted, c)
+                if t_err < err:
+                    pose, sampled, seen, err = trial, t_sampled, t_seen, t_err
+                    damping = max(damping / 10.0, 1e-6)
+                    if float(delta.norm()) < 1e-7:
+                        break
+                else:
+                    damping *= 10.0
+                    if damping > 1e4:
+                        break
+        # Both poses judged on the pixels both see.
+        sampled, seen = finest.sample(pose)
+        both = seen & counted_finest
+        start_sampled, _ = finest.sample(start)
+        before = finest.error(start_sampled, both, both, c)
+        after = finest.error(sampled, both, both, c)
+    motion = pose @ start_inverse  # the fitted motion, in the neighbour's frame
+    rotation_deg = _angle_deg(motion[:3, :3])
+    translation = float(motion[:3, 3].norm())
+    # A fit that ends against the trust region's edge has no minimum near the dataset pose
+    # (wrong geometry, a render unlike the photo): refused.
+    ok = (math.isfinite(after) and after < before * (1.0 - config.min_gain)
+          and rotation_deg <= INTERIOR * config.max_rotation_deg
+          and translation <= INTERIOR * config.max_translation)
+    if not ok:
+        out = unchanged(before)
+        out.rotation_deg, out.translation, out.error_after = rotation_deg, translation, after
+        return out
+    photo_from_cam = pose.clone()
+    photo_from_cam[:3, 3] *= scale
+    refined = world_from_cam.cpu() @ torch.linalg.inv(photo_from_cam)
+    return Alignment(world_from_cam=refined.to(world_from_photo.device), accepted=True, rotation_deg=rotation_deg,
+                     translation=translation, error_before=before, error_after=after)

@@ -1,0 +1,161 @@
+"""Neighbour pose refinement (roguenerf.geometry.align) on the toy world's exact geometry."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from kornia.filters import gaussian_blur2d
+
+from roguenerf.data.toy import make_toy_scene, make_toy_world, render_toy_view, toy_camera_path, toy_intrinsics
+from roguenerf.errors import InputError
+from roguenerf.geometry import reproject
+from roguenerf.geometry.align import AlignConfig, align_neighbour, shrink
+from roguenerf.geometry.noise import perturb_poses
+
+H, W = 96, 128
+
+
+@pytest.fixture(scope="module")
+def views():
+    world = make_toy_world(0)
+    poses = toy_camera_path(world, 6, seed=0)
+    K = toy_intrinsics(H, W)
+    target, neighbour = poses[2], poses[3]
+    photo_t, depth_t = render_toy_view(world, target, K, H, W)
+    photo_n, depth_n = render_toy_view(world, neighbour, K, H, W)
+    render = gaussian_blur2d(photo_t[None], (5, 5), (1.0, 1.0), border_type="replicate")[0]
+    return {"K": K, "target": target, "neighbour": neighbour, "render": render, "depth": depth_t,
+            "photo": photo_n, "photo_depth": depth_n, "poses": poses}
+
+
+def pixel_error(v, pose) -> float:
+    """Mean distance (pixels) between where the target's pixels land in the neighbour with
+    ``pose`` and with the true pose, over the pixels the true pose sees."""
+    def land(p):
+        return reproject(v["photo"][None], v["photo_depth"][None], v["depth"][None], v["K"].float(), v["K"].float(),
+                         p, v["target"])
+    true, moved = land(v["neighbour"]), land(pose)
+    seen = true.valid[0, 0] > 0
+    return float((true.coords[0] - moved.coords[0]).norm(dim=-1)[seen].mean())
+
+
+def fit(v, pose, **config):
+    return align_neighbour(v["photo"], v["photo_depth"], v["K"], pose, v["render"], v["depth"], v["K"],
+                           v["target"], config=AlignConfig(**config) if config else None)
+
+
+@pytest.mark.parametrize("deg,share,seed", [(0.25, 0.02, 1), (0.5, 0.05, 2), (1.0, 0.1, 3)])
+def test_a_wrong_pose_is_found_again(views, deg, share, seed):
+    spread = float(views["poses"][:, :3, 3].std(dim=0).norm())
+    wrong = perturb_poses(views["neighbour"], deg, share * spread, torch.Generator().manual_seed(seed))
+    before = pixel_error(views, wrong)
+    assert before > 0.2  # the noise moves the reprojection by a fair share of a pixel, or more
+    result = fit(views, wrong)
+    assert result.accepted
+    assert result.error_after < 0.95 * result.error_before
+    # Every fit ends within a tenth of a pixel of the truth (a small bias: the render is blurred).
+    assert pixel_error(views, result.world_from_cam) < 0.1
+    assert result.world_from_cam.dtype == torch.float64
+
+
+def test_a_right_pose_is_kept(views):
+    result = fit(views, views["neighbour"])
+    assert pixel_error(views, result.world_from_cam) < 0.1
+    if not result.accepted:
+        assert torch.equal(result.world_from_cam, views["neighbour"])
+
+
+def test_the_fit_does_not_depend_on_the_scene_units(views):
+    """Depths and translations x1000: the same correction, in the new units."""
+    wrong = perturb_poses(views["neighbour"], 0.5, 0.1, torch.Generator().manual_seed(5))
+    a = fit(views, wrong)
+    scaled = dict(views)
+    scaled["depth"], scaled["photo_depth"] = views["depth"] * 1000, views["photo_depth"] * 1000
+    scaled["target"] = views["target"].clone()
+    scaled["target"][:3, 3] *= 1000
+    wrong_scaled = wrong.clone()
+    wrong_scaled[:3, 3] *= 1000
+    b = align_neighbour(scaled["photo"], scaled["photo_depth"], views["K"], wrong_scaled, views["render"],
+                        scaled["depth"], views["K"], scaled["target"])
+    assert a.accepted and b.accepted
+    assert b.rotation_deg == pytest.approx(a.rotation_deg, abs=1e-3)
+    assert b.translation == pytest.approx(a.translation, abs=1e-4)
+    assert torch.allclose(b.world_from_cam[:3, :3], a.world_from_cam[:3, :3], atol=1e-6)
+    assert torch.allclose(b.world_from_cam[:3, 3], a.world_from_cam[:3, 3] * 1000, atol=1e-3)
+
+
+def test_nothing_to_fit_keeps_the_dataset_pose(views):
+    # A neighbour that looks the other way sees none of the target.
+    away = views["neighbour"].clone()
+    away[:3, :3] = away[:3, :3] @ torch.diag(torch.tensor([-1.0, 1.0, -1.0], dtype=torch.float64))
+    result = fit(views, away)
+    assert not result.accepted and torch.equal(result.world_from_cam, away)
+    assert math.isnan(result.error_before)
+    # A featureless photo and render: no gradient to follow.
+    wrong = perturb_poses(views["neighbour"], 0.5, 0.05, torch.Generator().manual_seed(1))
+    flat = align_neighbour(torch.full_like(views["photo"], 0.5), views["photo_depth"], views["K"], wrong,
+                           torch.full_like(views["render"], 0.5), views["depth"], views["K"], views["target"])
+    assert not flat.accepted and torch.equal(flat.world_from_cam, wrong)
+
+
+def test_the_trust_region_bounds_the_fit(views):
+    """A pose 6 degrees off is outside a 3-degree trust region: the fit may not go there, and
+    one that ends against the edge is refused."""
+    wrong = views["neighbour"].clone()
+    wrong[:3, :3] = wrong[:3, :3] @ torch.linalg.matrix_exp(torch.tensor(
+        [[0.0, 0.0, 0.1], [0.0, 0.0, 0.0], [-0.1, 0.0, 0.0]], dtype=torch.float64))  # ~5.7 deg about y
+    result = fit(views, wrong, max_rotation_deg=3.0)
+    assert result.rotation_deg <= 3.0 + 1e-6
+    assert not result.accepted and torch.equal(result.world_from_cam, wrong)
+
+
+def test_bad_inputs_are_refused(views):
+    with pytest.raises(InputError, match="photo"):
+        align_neighbour(views["photo"][0], views["photo_depth"], views["K"], views["neighbour"], views["render"],
+                        views["depth"], views["K"], views["target"])
+    with pytest.raises(InputError, match="render_depth"):
+        align_neighbour(views["photo"], views["photo_depth"], views["K"], views["neighbour"], views["render"],
+                        views["depth"][:, :10], views["K"], views["target"])
+
+
+def test_shrink_keeps_the_geometry(views):
+    """The half-size copy with its scaled K lands each pixel where the full-size one does."""
+    photo, depth, K = shrink(views["photo"], views["photo_depth"], views["K"], 64)
+    assert max(photo.shape[-2:]) == 64 and depth.shape[-2:] == photo.shape[-2:]
+    assert K[0, 0] == pytest.approx(float(views["K"][0, 0]) * 64 / W)
+    same = shrink(views["photo"], views["photo_depth"], views["K"], 512)
+    assert same[0].shape == views["photo"].shape
+
+
+def test_the_scene_enhancer_refines_wrong_neighbour_poses(tmp_path):
+    """SceneEnhancer(align=True) hands the model refined poses; align=False the dataset's."""
+    from roguenerf.inference import SceneEnhancer
+    from roguenerf.models import Enhancer, make_config
+
+    scene = make_toy_scene(tmp_path / "scene", n_train=6, n_test=1, height=72, width=96)
+    test = scene.indices("test")[0]
+    frame = scene.frames[test]
+    model = Enhancer(make_config("nano", num_neighbours=2))
+    exact = SceneEnhancer(scene, model, align=False)
+    positions = [exact.train.index(i) for i in exact.select(frame.world_from_cam)]
+    true = exact.train_poses[positions].clone()
+    wrong = perturb_poses(true, 0.5, 0.05, torch.Generator().manual_seed(0))
+    exact.train_poses[positions] = wrong
+    render, depth = scene.render(test), scene.depth(test)
+    kept, done = exact.neighbour_poses(positions, render, depth, frame.K, frame.world_from_cam)
+    assert done == [False, False] and torch.equal(kept, wrong)
+    aligned = SceneEnhancer(scene, model)
+    aligned.train_poses[positions] = wrong
+    refined, done = aligned.neighbour_poses(positions, render, depth, frame.K, frame.world_from_cam)
+    assert all(done)
+    for j in range(2):
+        before = (wrong[j, :3, 3] - true[j, :3, 3]).norm()
+        after = (refined[j, :3, 3] - true[j, :3, 3]).norm()
+        assert after < 0.5 * before
+    result = aligned.enhance_view(test)
+    assert result.aligned == [True, True] and len(result.neighbours) == 2
+    assert exact.enhance_view(test).aligned is None
+    with pytest.raises(InputError, match="align"):
+        SceneEnhancer(scene, model, align="yes")
