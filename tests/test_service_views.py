@@ -128,6 +128,7 @@ def test_views_give_the_enhance_camera_of_each_view(client, toy, scene_id):
     direct = SceneEnhancer(scene, model).enhance(scene.render(t), scene.depth(t), K, pose)
     assert torch.equal(read_image(r.content), read_image(encode_png(direct.image)))
     assert r.headers["X-Neighbours"] == ",".join(direct.neighbours)
+    assert r.headers["X-Pose-Refined"] == ",".join(n for n, a in zip(direct.neighbours, direct.aligned) if a)
 
 
 def test_view_files_are_the_scene_pixels(client, toy, scene_id):

@@ -226,7 +226,9 @@ def test_3_compare_shows_what_enhance_returned_and_the_slider_moves(session, sit
     assert _text(page, "#m-render-ssim") == f"{float(ssim(scene.render(t0)[None], photo)[0]):.4f}"
     assert _text(page, "#m-enhanced-flip") == f"{float(flip(enh, photo)[0]):.4f}"
     assert _text(page, "#m-render-flip") == f"{float(flip(scene.render(t0)[None], photo)[0]):.4f}"
-    assert _text(page, "#cmp-neighbours") == answer["headers"]["x-neighbours"].replace(",", ", ")
+    refined = set(filter(None, answer["headers"]["x-pose-refined"].split(",")))
+    assert _text(page, "#cmp-neighbours") == ", ".join(
+        f"{n} (pose refined)" if n in refined else n for n in answer["headers"]["x-neighbours"].split(","))
     assert len(answer["headers"]["x-neighbours"].split(",")) == 2
     assert _text(page, "#cmp-version") == "v2" == "v" + answer["headers"]["x-checkpoint-version"]
 

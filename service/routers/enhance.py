@@ -132,6 +132,8 @@ async def create_enhancement(
         "X-Enhance-Seconds": f"{result.seconds:.4f}",
         "X-Total-Seconds": f"{time.perf_counter() - start:.4f}",
         "X-Neighbours": ",".join(result.neighbours),
+        # the neighbours whose pose was refined against this render (roguenerf.geometry.align)
+        "X-Pose-Refined": ",".join(n for n, done in zip(result.neighbours, result.aligned or []) if done),
         "X-Checkpoint-Version": str(version),
     }
     if result.note:

@@ -523,6 +523,7 @@
     const entry = {
       blob: await response.blob(),
       neighbours: (response.headers.get("X-Neighbours") || "").split(",").filter(Boolean),
+      refined: (response.headers.get("X-Pose-Refined") || "").split(",").filter(Boolean),
       seconds: Number(response.headers.get("X-Enhance-Seconds")),
       version: response.headers.get("X-Checkpoint-Version"),
       note: response.headers.get("X-Enhance-Note"),
@@ -573,7 +574,8 @@
       link.href = urls.enhanced;
       link.download = `${fileSafe(sceneLabel(sceneId))}-${fileSafe(view.name)}-enhanced-v${out.version}.png`;
       setPending(null);
-      $("cmp-neighbours").textContent = out.neighbours.join(", ") || "none";
+      $("cmp-neighbours").textContent = out.neighbours
+        .map((n) => (out.refined.includes(n) ? `${n} (pose refined)` : n)).join(", ") || "none";
       $("cmp-version").textContent = fmt.version(Number(out.version));
       $("cmp-seconds").textContent = out.cached ? `${out.seconds.toFixed(2)} s (cached result)` : `${out.seconds.toFixed(2)} s`;
       $("cmp-note").textContent = out.note || "–";
