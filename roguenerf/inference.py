@@ -44,7 +44,11 @@ NO_NEIGHBOUR_NOTE = "no neighbour sees this view: enhanced without neighbours"
 
 ALIGN_SIDE = 512
 """Pose refinement (:mod:`roguenerf.geometry.align`) works on copies of the neighbour photos and
-depths no larger than this (long side), cached per scene (about 3 MB a photo)."""
+depths no larger than this (long side), the last :data:`ALIGN_CACHE` of them cached (about 3 MB
+a photo)."""
+
+ALIGN_CACHE = 32
+"""How many neighbours' small copies pose refinement keeps (least recently used first out)."""
 
 
 @dataclass
@@ -141,7 +145,7 @@ class SceneEnhancer:
         if not isinstance(align, (bool, AlignConfig)):
             raise InputError(f"align: expected True, False or an AlignConfig, got {type(align).__name__}")
         self.align = AlignConfig() if align is True else (align or None)
-        self._small: dict[int, tuple[Tensor, Tensor, Tensor]] = {}
+        self._small: OrderedDict[int, tuple[Tensor, Tensor, Tensor]] = OrderedDict()
         self.cache_bytes = int(cache_bytes)
         self._sources: OrderedDict[int, Tensor] = OrderedDict()
         self._depths: dict[int, Tensor] = {}
@@ -190,6 +194,9 @@ class SceneEnhancer:
                 i = self.train[position]
                 self._small[position] = shrink(self.scene.photo(i), self.scene.depth(i),
                                                self.train_K[position], ALIGN_SIDE)
+                while len(self._small) > ALIGN_CACHE:
+                    self._small.popitem(last=False)
+            self._small.move_to_end(position)
             return self._small[position]
 
     def neighbour_poses(self, positions: list[int], render: Tensor, depth: Tensor, K: Tensor,

@@ -171,3 +171,17 @@ def test_evaluate_reports_which_neighbours_were_refined(tmp_path):
     assert on["views"][0]["aligned"] == [False, False]  # exact poses: nothing to refine
     assert off["views"][0]["aligned"] is None
     assert on["enhanced"]["psnr"] == pytest.approx(off["enhanced"]["psnr"], abs=1e-6)
+
+
+def test_the_small_copies_are_a_bounded_cache(tmp_path, monkeypatch):
+    from roguenerf import inference
+    from roguenerf.inference import SceneEnhancer
+    from roguenerf.models import Enhancer, make_config
+
+    monkeypatch.setattr(inference, "ALIGN_CACHE", 3)
+    scene = make_toy_scene(tmp_path / "scene", n_train=8, n_test=2, height=48, width=64)
+    enhancer = SceneEnhancer(scene, Enhancer(make_config("nano", num_neighbours=2)))
+    for i in scene.indices("train"):
+        enhancer.enhance_view(i)
+        assert len(enhancer._small) <= 3
+    assert len(enhancer._small) == 3
