@@ -145,7 +145,7 @@ class SceneEnhancer:
         if not isinstance(align, (bool, AlignConfig)):
             raise InputError(f"align: expected True, False or an AlignConfig, got {type(align).__name__}")
         self.align = AlignConfig() if align is True else (align or None)
-        self._small: OrderedDict[int, tuple[Tensor, Tensor, Tensor]] = OrderedDict()
+        self._small: OrderedDict[int, tuple[Tensor, Tensor, Tensor, dict]] = OrderedDict()
         self.cache_bytes = int(cache_bytes)
         self._sources: OrderedDict[int, Tensor] = OrderedDict()
         self._depths: dict[int, Tensor] = {}
@@ -184,16 +184,17 @@ class SceneEnhancer:
                 out.append(self._sources[p])
         return out
 
-    def _small_neighbour(self, position: int) -> tuple[Tensor, Tensor, Tensor]:
+    def _small_neighbour(self, position: int) -> tuple[Tensor, Tensor, Tensor, dict]:
         """Photo ``(3, h, w)``, depth ``(1, h, w)`` and K of a training position, no larger than
-        :data:`ALIGN_SIDE` (cached): what the pose refinement reads."""
+        :data:`ALIGN_SIDE`, and the fit's cache of its levels (all cached): what the pose
+        refinement reads."""
         from roguenerf.geometry.align import shrink
 
         with self._lock:
             if position not in self._small:
                 i = self.train[position]
-                self._small[position] = shrink(self.scene.photo(i), self.scene.depth(i),
-                                               self.train_K[position], ALIGN_SIDE)
+                self._small[position] = (*shrink(self.scene.photo(i), self.scene.depth(i),
+                                                 self.train_K[position], ALIGN_SIDE), {})
                 while len(self._small) > ALIGN_CACHE:
                     self._small.popitem(last=False)
             self._small.move_to_end(position)
@@ -212,8 +213,9 @@ class SceneEnhancer:
         r, d, k = shrink(render, depth, K, ALIGN_SIDE)
         done = []
         for j, p in enumerate(positions):
-            photo, photo_depth, photo_K = self._small_neighbour(p)
-            fit = align_neighbour(photo, photo_depth, photo_K, poses[j], r, d, k, world_from_cam, config=self.align)
+            photo, photo_depth, photo_K, levels = self._small_neighbour(p)
+            fit = align_neighbour(photo, photo_depth, photo_K, poses[j], r, d, k, world_from_cam, config=self.align,
+                                  cache=levels)
             poses[j] = fit.world_from_cam
             done.append(fit.accepted)
         return poses, done

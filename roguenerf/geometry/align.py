@@ -157,6 +157,12 @@ MIN_OVERLAP = 0.9
 """A moved neighbour camera must still see this share of the target pixels it saw before."""
 
 
+STEP_PIXELS = 0.02
+"""A level's fit stops once a step would move the pixels by less than this (pixels of the level)."""
+
+CONVERGED = 1e-3
+"""... or once a step lowers the error by less than this share."""
+
 INTERIOR = 0.8
 """A fit is kept only when it ends inside this share of the trust region (both limits)."""
 
@@ -165,7 +171,8 @@ class _Level:
     """One level of the coarse-to-fine fit: blurred small images, depths in units of the
     target's median depth, intrinsics scaled to the level."""
 
-    def __init__(self, n: int, photo, photo_depth, photo_K, render, render_depth, K, scale: float, sigma: float):
+    def __init__(self, n: int, photo, photo_depth, photo_K, render, render_depth, K, scale: float, sigma: float,
+                 cache: dict | None = None):
         H, W = render.shape[-2:]
         Hs, Ws = photo.shape[-2:]
         f = n / max(H, W)
@@ -173,13 +180,22 @@ class _Level:
         to_s = (max(4, round(Hs * f)), max(4, round(Ws * f)))
         self.render = _blurred(render.float()[None], to, sigma)
         self.depth = _level_depth(render_depth.float()[None], to) / scale
-        small = _blurred(photo.float()[None], to_s, sigma)
-        gx, gy = _central_gradients(small)
-        self.stack = torch.cat([small, gx, gy], dim=1)  # sampled together: colour and its gradients
-        self.photo_depth = _level_depth(photo_depth.float()[None], to_s) / scale
+        key = (to_s, sigma)
+        if cache is None or key not in cache:  # the neighbour's part depends on it alone
+            small = _blurred(photo.float()[None], to_s, sigma)
+            gx, gy = _central_gradients(small)
+            # sampled together: colour and its gradients
+            entry = (torch.cat([small, gx, gy], dim=1), _level_depth(photo_depth.float()[None], to_s))
+            if cache is not None:
+                cache[key] = entry
+        else:
+            entry = cache[key]
+        self.stack = entry[0]
+        self.photo_depth = entry[1] / scale
         self.K = _scaled_K(K, (H, W), to)
         self.photo_K = _scaled_K(photo_K, (Hs, Ws), to_s)
-        self.points = _rays(self.K, to) * self.depth[0, 0, ..., None].to(torch.float64)  # (h, w, 3), target frame
+        # (h, w, 3) float32 target points (target frame, depth units): float64 rays first
+        self.points = (_rays(self.K, to) * self.depth[0, 0, ..., None].to(torch.float64)).float()
 
     def sample(self, photo_from_cam: Tensor) -> tuple[Tensor, Tensor]:
         """``(9, h, w)`` photo colour and gradients reprojected with ``photo_from_cam`` (0 where not
@@ -203,34 +219,31 @@ class _Level:
         """One damped Gauss-Newton step (IRLS weights of the Charbonnier penalty): the 6 numbers
         of the motion, in the neighbour's frame, that best reduce the error to first order."""
         use = seen & counted
-        R, t = photo_from_cam[:3, :3], photo_from_cam[:3, 3]
-        P = (self.points[use] @ R.T + t)  # (n, 3) target points in the neighbour camera
-        q = P @ self.photo_K.T
-        u, v = q[:, 0] / q[:, 2], q[:, 1] / q[:, 2]
-        du = (self.photo_K[0] - u[:, None] * self.photo_K[2]) / q[:, 2:3]  # (n, 3) d(u)/dP
-        dv = (self.photo_K[1] - v[:, None] * self.photo_K[2]) / q[:, 2:3]
-        X, Y, Z = P.unbind(-1)
-        zero = torch.zeros_like(X)
-        # dP/d(rotation) = columns e_j x P; dP/d(move) = identity
-        dP = torch.stack([torch.stack([zero, -Z, Y], -1), torch.stack([Z, zero, -X], -1),
-                          torch.stack([-Y, X, zero], -1)], dim=-1)  # (n, 3, 3): [:, :, j] = e_j x P
-        ju = torch.cat([(du[:, :, None] * dP).sum(1), du], dim=1)  # (n, 6)
-        jv = torch.cat([(dv[:, :, None] * dP).sum(1), dv], dim=1)
-        s = sampled[:, use].to(torch.float64)  # (9, n)
+        R, t = photo_from_cam[:3, :3].float(), photo_from_cam[:3, 3].float()
+        P = torch.addmm(t, self.points[use], R.T)  # (n, 3) target points in the neighbour camera
+        Kp = self.photo_K.float()
+        q = P @ Kp.T
+        inv_z = 1.0 / q[:, 2:3]
+        du = (Kp[0] - q[:, 0:1] * inv_z * Kp[2]) * inv_z  # (n, 3) d(u)/dP
+        dv = (Kp[1] - q[:, 1:2] * inv_z * Kp[2]) * inv_z
+        # dP/d(rotation j) = e_j x P, and a . (e_j x P) = (P x a)_j; dP/d(move) = identity.
+        ju = torch.cat([torch.linalg.cross(P, du), du], dim=1)  # (n, 6)
+        jv = torch.cat([torch.linalg.cross(P, dv), dv], dim=1)
+        s = sampled[:, use]  # (9, n)
         colour, gx, gy = s[:3], s[3:6], s[6:9]
-        J = gx[..., None] * ju[None] + gy[..., None] * jv[None]  # (3, n, 6)
-        r = colour - self.render[0][:, use].to(torch.float64)  # (3, n)
-        weight = 1.0 / (r.square().sum(0) + c * c).sqrt()  # (n,)
-        Jw = J * weight[None, :, None]
-        A = torch.einsum("cni,cnj->ij", Jw, J)
-        b = torch.einsum("cni,cn->i", Jw, r)
+        J = (gx[..., None] * ju + gy[..., None] * jv).reshape(-1, 6)  # (3 n, 6)
+        r = colour - self.render[0][:, use]  # (3, n)
+        weight = (1.0 / (r.square().sum(0) + c * c).sqrt()).repeat(3)  # (3 n,)
+        Jw = J * weight[:, None]
+        A = (Jw.T @ J).double()
+        b = (Jw.T @ r.reshape(-1)).double()
         A = A + damping * torch.diag(torch.diagonal(A).clamp_min(1e-12))
         return -torch.linalg.solve(A, b)
 
 
 def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_from_photo: Tensor,
                     render: Tensor, render_depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
-                    config: AlignConfig | None = None) -> Alignment:
+                    config: AlignConfig | None = None, cache: dict | None = None) -> Alignment:
     """Refine the pose of one neighbour photo so that it reprojects onto the render.
 
     Args:
@@ -241,6 +254,8 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
             (the pose refined) and the target (kept).
         render: ``(3, H, W)``; render_depth: ``(1, H, W)``: the target's render and z-depth.
         config: the fit's settings (:class:`AlignConfig`).
+        cache: a dict kept by the caller for this one neighbour photo (and its depth): the
+            photo's blurred levels and gradients are stored there and reused by later fits.
     Returns:
         :class:`Alignment`. Never raises on image content: where the neighbour sees (almost)
         nothing of the target, or no fit lowers the error, the given pose comes back with
@@ -280,7 +295,7 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
 
     with torch.no_grad():
         levels = [_Level(n, photo, photo_depth, photo_K.cpu(), render, render_depth, K.cpu(), scale,
-                         config.blur_sigma) for n in sizes]
+                         config.blur_sigma, cache) for n in sizes]
         finest = levels[-1]
         sampled, counted_finest = finest.sample(start)
         if int(counted_finest.sum()) < 64:
@@ -294,10 +309,14 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
             seen = counted
             err = level.error(sampled, seen, counted, c)
             damping = 1e-3
+            focal = float(level.K[0, 0])
             for _ in range(config.iterations):
                 delta = level.step(pose, sampled, seen, counted, c, damping)
                 if not bool(torch.isfinite(delta).all()):
                     break
+                # About how far the step moves the pixels (a rotation of w radians moves them by
+                # focal * w, a move of v depths by up to focal * v): below STEP_PIXELS it is done.
+                small = float(delta.norm()) * focal < STEP_PIXELS
                 trial = _se3(delta) @ pose
                 if not within(trial):  # a trust region: the fit never leaves the plausible motions
                     damping *= 10.0
@@ -307,13 +326,14 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
                 t_sampled, t_seen = level.sample(trial)
                 t_err = level.error(t_sampled, t_seen, counted, c)
                 if t_err < err:
+                    converged = small or err - t_err < CONVERGED * err
                     pose, sampled, seen, err = trial, t_sampled, t_seen, t_err
                     damping = max(damping / 10.0, 1e-6)
-                    if float(delta.norm()) < 1e-7:
+                    if converged:
                         break
                 else:
                     damping *= 10.0
-                    if damping > 1e4:
+                    if small or damping > 1e4:
                         break
         # Both poses judged on the pixels both see.
         sampled, seen = finest.sample(pose)
