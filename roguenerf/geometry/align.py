@@ -161,7 +161,7 @@ STEP_PIXELS = 0.02
 """A level's fit stops once a step would move the pixels by less than this (pixels of the level)."""
 
 CONVERGED = 1e-3
-"""... or once a step lowers the error by less than this share."""
+"""A level's fit also stops once a step lowers the error by less than this share."""
 
 INTERIOR = 0.8
 """A fit is kept only when it ends inside this share of the trust region (both limits)."""
