@@ -30,6 +30,10 @@ def parse_args(argv=None):
     p.add_argument("--checkpoint", type=Path, default=None, help="default: the shipped checkpoint")
     p.add_argument("--noise", type=_noise, default=_noise("0/0,0.5/0.05"),
                    help="pose-noise levels deg/share, comma-separated (default 0/0,0.5/0.05)")
+    p.add_argument("--max-rotation", type=float, default=None,
+                   help="the fit's trust region, degrees (default: AlignConfig's)")
+    p.add_argument("--max-translation", type=float, default=None,
+                   help="the fit's trust region, share of the median depth (default: AlignConfig's)")
     p.add_argument("--max-views", type=int, default=None)
     p.add_argument("--output", type=Path, default=RESULTS / "align_cost")
     return p.parse_args(argv)
@@ -40,17 +44,22 @@ def measure(args) -> list[dict]:
     from roguenerf import metrics
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
+    from roguenerf.geometry.align import AlignConfig
     from roguenerf.inference import SceneEnhancer
 
     checkpoint = args.checkpoint or default_checkpoint_path()
     model, _ = load_checkpoint(checkpoint)
+    trust = {k: v for k, v in (("max_rotation_deg", args.max_rotation), ("max_translation", args.max_translation))
+             if v is not None}
+    config = AlignConfig(**trust)
     base = stamp()
     rows = []
     for scene_dir in args.scenes:
         clean = load_scene(scene_dir)
         for k, (deg, share) in enumerate(args.noise):
             scene = clean if deg == 0 and share == 0 else noisy_scene(clean, deg, share, seed=1000 + k)
-            enhancers = {False: SceneEnhancer(scene, model, align=False), True: SceneEnhancer(scene, model)}
+            enhancers = {False: SceneEnhancer(scene, model, align=False),
+                         True: SceneEnhancer(scene, model, align=config)}
             views = scene.indices("test")[: args.max_views] if args.max_views else scene.indices("test")
             for i in views:
                 enhancers[False].enhance_view(i)  # warm both neighbour caches: time the request, not the cache
@@ -67,7 +76,8 @@ def measure(args) -> list[dict]:
                                  "flip_change": round(float(metrics.flip(out, photo)[0]) - r_flip, 5),
                                  "aligned_share": (round(sum(result.aligned) / len(result.aligned), 3)
                                                    if result.aligned else 0.0),
-                                 "checkpoint": checkpoint.name})
+                                 "checkpoint": checkpoint.name, "max_rotation_deg": config.max_rotation_deg,
+                                 "max_translation": config.max_translation})
                     print(f"{rows[-1]['scene']} {deg:g}/{share:g} {rows[-1]['view']} align={align}: "
                           f"{seconds:.2f} s, gain {rows[-1]['gain_db']:+.3f} dB", flush=True)
     return rows
