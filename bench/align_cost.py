@@ -16,12 +16,7 @@ import time
 from pathlib import Path
 
 from bench.common import RESULTS, save_figure, scene_label, stamp, write_outputs
-
-
-def _noise(text: str) -> list[tuple[float, float]]:
-    from bench.kinds import _noise as parse
-
-    return parse(text)
+from bench.kinds import _noise
 
 
 def parse_args(argv=None):

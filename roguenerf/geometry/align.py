@@ -35,8 +35,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from roguenerf.errors import InputError
-from roguenerf.geometry.cameras import check_intrinsics, check_pose, relative_pose
+from roguenerf.geometry.cameras import check_intrinsics, check_pose, relative_pose, scale_intrinsics
 from roguenerf.geometry.depth import known_depth_mask, median_known_depth
+from roguenerf.geometry.noise import axis_angle_to_matrix
 from roguenerf.geometry.reproject import reproject
 
 
@@ -83,12 +84,9 @@ def _area(x: Tensor, size: tuple[int, int]) -> Tensor:
 
 
 def _scaled_K(K: Tensor, size: tuple[int, int], to: tuple[int, int]) -> Tensor:
-    """Intrinsics of an image of ``size`` (H, W) resized to ``to``: pixel-centre convention, so
-    scaling the first two rows maps pixel areas exactly."""
-    out = K.to(torch.float64).clone()
-    out[0] *= to[1] / size[1]
-    out[1] *= to[0] / size[0]
-    return out
+    """float64 intrinsics of an image of ``size`` (H, W) resized to ``to``
+    (:func:`~roguenerf.geometry.cameras.scale_intrinsics`)."""
+    return scale_intrinsics(K.to(torch.float64), to[1] / size[1], to[0] / size[0])
 
 
 def _level_depth(depth: Tensor, to: tuple[int, int]) -> Tensor:
@@ -126,20 +124,10 @@ def shrink(image: Tensor, depth: Tensor, K: Tensor, side: int) -> tuple[Tensor, 
 
 def _se3(delta: Tensor) -> Tensor:
     """``(4, 4)`` float64 rigid motion of 6 numbers: a rotation vector (radians), then a move."""
-    w = delta[:3].to(torch.float64)
-    skew = torch.zeros(3, 3, dtype=torch.float64)
-    skew[0, 1], skew[0, 2], skew[1, 2] = -w[2], w[1], -w[0]
-    skew[1, 0], skew[2, 0], skew[2, 1] = w[2], -w[1], w[0]
     out = torch.eye(4, dtype=torch.float64)
-    out[:3, :3] = torch.linalg.matrix_exp(skew)
+    out[:3, :3] = axis_angle_to_matrix(delta[:3])
     out[:3, 3] = delta[3:].to(torch.float64)
     return out
-
-
-def _central_gradients(image: Tensor) -> tuple[Tensor, Tensor]:
-    """Central differences along x and y (edges repeated), same size."""
-    pad = F.pad(image, (1, 1, 1, 1), mode="replicate")
-    return (pad[..., 1:-1, 2:] - pad[..., 1:-1, :-2]) * 0.5, (pad[..., 2:, 1:-1] - pad[..., :-2, 1:-1]) * 0.5
 
 
 def _rays(K: Tensor, size: tuple[int, int]) -> Tensor:
@@ -185,9 +173,12 @@ class _Level:
         key = (to_s, sigma)
         if cache is None or key not in cache:  # the neighbour's part depends on it alone
             small = _blurred(photo.float()[None], to_s, sigma)
-            gx, gy = _central_gradients(small)
-            # sampled together: colour and its gradients
-            entry = (torch.cat([small, gx, gy], dim=1), _level_depth(photo_depth.float()[None], to_s))
+            from kornia.filters import spatial_gradient
+
+            # central differences, edges repeated; sampled together with the colour
+            grad = spatial_gradient(small, mode="diff", order=1, normalized=True)
+            entry = (torch.cat([small, grad[:, :, 0], grad[:, :, 1]], dim=1),
+                     _level_depth(photo_depth.float()[None], to_s))
             if cache is not None:
                 cache[key] = entry
         else:
@@ -299,10 +290,9 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
         levels = [_Level(n, photo, photo_depth, photo_K.cpu(), render, render_depth, K.cpu(), scale,
                          config.blur_sigma, cache) for n in sizes]
         finest = levels[-1]
-        sampled, counted_finest = finest.sample(start)
+        start_sampled, counted_finest = finest.sample(start)
         if int(counted_finest.sum()) < 64:
             return unchanged()
-        before = finest.error(sampled, counted_finest, counted_finest, c)
         pose = start
         for level in levels:
             sampled, counted = level.sample(pose)
@@ -340,7 +330,6 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
         # Both poses judged on the pixels both see.
         sampled, seen = finest.sample(pose)
         both = seen & counted_finest
-        start_sampled, _ = finest.sample(start)
         before = finest.error(start_sampled, both, both, c)
         after = finest.error(sampled, both, both, c)
     motion = pose @ start_inverse  # the fitted motion, in the neighbour's frame
