@@ -129,12 +129,13 @@ def run(args, save=None) -> list[dict]:
     rows = []
     work = Path(tempfile.mkdtemp(prefix="real_scenes_"))
     start = load_checkpoint(new)[0].state_dict() if args.blends else None  # what --blends mixes with
+
+    def measure(scene, model) -> dict:
+        return evaluate(scene, model, max_views=args.max_views, align=args.align == "on")
+
     for scene_dir in args.scenes:
         scene = load_scene(scene_dir)
         label = scene_label(scene_dir)
-
-        def measure(scene, model) -> dict:
-            return evaluate(scene, model, max_views=args.max_views, align=args.align == "on")
 
         def record(kind: str, minutes: float, steps: int, seconds: float, report: dict, *, label: str = label,
                    **extra) -> None:
