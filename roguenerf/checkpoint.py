@@ -14,6 +14,7 @@ shapes and finiteness, each with a message that says what is wrong.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import struct
@@ -230,7 +231,9 @@ def blend_checkpoints(start: str | os.PathLike, tuned: str | os.PathLike, weight
         raise InputError(f"blend weight: expected a number in [0, 1], got {weight}")
     start_model, start_meta = load_checkpoint(start)
     model, meta = load_checkpoint(tuned)
-    if start_model.config != model.config:
+    # The default neighbour count is a run-time default, not a weight's shape: a start trained
+    # with 2 neighbours blends with its continuation trained with 5 (the blend keeps ``tuned``'s).
+    if dataclasses.replace(start_model.config, num_neighbours=model.config.num_neighbours) != model.config:
         raise InputError("blend: the two checkpoints have different model configurations")
     model.load_state_dict(blend_state(start_model.state_dict(), model.state_dict(), weight))
     meta = dict(meta or {})

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import pickle
@@ -211,6 +212,16 @@ def test_blended_checkpoint_is_the_weighted_mean_and_other_architectures_are_ref
             assert torch.allclose(v, want, atol=1e-6), k
         assert meta["blend"]["weight"] == w and meta["training"]["kind"] == "finetune"
         assert meta["blend"]["start_training"] == {"kind": "pretrain"}
+    # Another default neighbour count is no other architecture: the blend keeps the tuned one's.
+    c = build_enhancer("nano")
+    c.load_state_dict(b.state_dict())
+    c.config = dataclasses.replace(c.config, num_neighbours=a.config.num_neighbours + 3)
+    save_checkpoint(tmp_path / "c.safetensors", c)
+    blend_checkpoints(tmp_path / "a.safetensors", tmp_path / "c.safetensors", 0.5, tmp_path / "mc.safetensors")
+    model, _ = load_checkpoint(tmp_path / "mc.safetensors")
+    assert model.config.num_neighbours == a.config.num_neighbours + 3
+    key = next(iter(a.state_dict()))
+    assert torch.allclose(model.state_dict()[key], (a.state_dict()[key] + b.state_dict()[key]) / 2, atol=1e-6)
     save_checkpoint(tmp_path / "other.safetensors", build_enhancer("micro"))
     with pytest.raises(InputError, match="blend"):
         blend_checkpoints(tmp_path / "a.safetensors", tmp_path / "other.safetensors", 0.5, tmp_path / "x.safetensors")
