@@ -265,6 +265,10 @@ def pretrain(
         "--neighbour-pose-noise", metavar="DEG,SHARE", help="Perturb each neighbour's pose per sample, up to: "
         "rotation RMS in degrees, translation RMS as a share of the cameras' spread (e.g. 0.5,0.05); each "
         "target draws its own level, from exact poses to these.")] = None,
+    depth_noise: Annotated[float | None, typer.Option(
+        "--depth-noise", help="Largest log-depth error put on half the target depths as a smooth random field "
+        "(e.g. 0.3); render and photo unchanged, so the model learns to fall back on the render where the "
+        "geometry is off.")] = None,
 ) -> None:
     """Pre-train across scene folders and/or generated toy scenes."""
     from roguenerf.training import pretrain as run_pretrain
@@ -283,7 +287,7 @@ def pretrain(
         config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
                                vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, lr=lr,
                                lr_schedule=lr_schedule, evaluate=False, held_out_share=held_out_share,
-                               pool_spread=pool_spread, neighbour_pose_noise=noise)
+                               pool_spread=pool_spread, neighbour_pose_noise=noise, depth_noise=depth_noise)
         dirs = list(scene_dirs or [])
         position = {}  # resolved folder -> its first position in dirs
         for k, d in enumerate(dirs):

@@ -13,6 +13,7 @@
 #   FOLDS=3 PRESETS=coarse STAGE=pairs ...         # cross-fitted pairs into CACHE/SCENE/coarse_x3 (issue 35)
 #   STAGE=pretrain NOISE=0.5,0.05 NEIGHBOURS=3 ... # neighbours' pose noise up to 0.5 deg / 5 %; 3 neighbours
 #   STAGE=pretrain BLEND=0.5 ...                   # ship START + 0.5 (trained - START) (weight-space blend)
+#   STAGE=pretrain DEPTH_NOISE=0.3 ...             # half the target depths off by a smooth error up to x1.35
 #
 # 1. pairs: `python -m roguefit.batch` fits a blur and a coarse radiance field (PRESETS; fine is a
 #    sharper, ~4x costlier third look) to the TRAINING views
@@ -167,6 +168,7 @@ if [ "$STAGE" = all ] || [ "$STAGE" = pretrain ]; then
   fi
   if [ -n "${NOISE:-}" ]; then extra+=(--neighbour-pose-noise "$NOISE"); fi
   if [ -n "${NEIGHBOURS:-}" ]; then extra+=(--neighbours "$NEIGHBOURS"); fi
+  if [ -n "${DEPTH_NOISE:-}" ]; then extra+=(--depth-noise "$DEPTH_NOISE"); fi
   if [ -n "${STEPS:-}" ]; then budget=(--steps "$STEPS"); else budget=(--minutes "$MINUTES"); fi
   "$PY" -m roguenerf.cli pretrain "${scenes[@]}" "${start[@]}" "${budget[@]}" --variant "$VARIANT" \
     --crop "$CROP" --lr "$LR" --lr-schedule "$LR_SCHEDULE" --seed "$SEED" --output "$OUT" "${extra[@]}"

@@ -169,6 +169,21 @@ def test_render_augmentation_is_planned_saved_and_resumed(scene, tmp_path):
     assert (saved["render_warp"], saved["render_blur"]) == (3.0, 1.5)
 
 
+def test_depth_noise_is_validated_planned_described_and_resumed(scene, tmp_path):
+    from roguenerf.training.config import describe_plan
+
+    for bad in (-0.1, 5.0):
+        with pytest.raises(InputError, match="depth_noise"):
+            TrainConfig(depth_noise=bad).validate()
+    assert plan_training(scene, TrainConfig(), "cpu", kind="pretrain").depth_noise == 0.0
+    config = TrainConfig(steps=1, depth_noise=0.3, **FAST)
+    plan = plan_training(scene, config, "cpu", kind="pretrain")
+    assert plan.depth_noise == 0.3 and "target depths off by a smooth error up to x1.35" in describe_plan(plan)
+    finetune(scene, tmp_path, config=config)
+    resumed = finetune(scene, tmp_path, config=TrainConfig(**{**FAST, "steps": 2}))
+    assert resumed.steps == 2 and load_state(tmp_path / STATE_FILE)["info"]["plan"]["depth_noise"] == 0.3
+
+
 def test_held_out_share_must_be_a_probability():
     with pytest.raises(InputError, match="held_out_share"):
         TrainConfig(held_out_share=1.5).validate()

@@ -5,6 +5,7 @@ background batch thread."""
 
 from __future__ import annotations
 
+import math
 import threading
 
 import pytest
@@ -341,6 +342,25 @@ def test_warp_renders_moves_a_share_of_crops_by_at_most_the_shift():
     same, _ = warp_renders(ramp, depth, 4.0, torch.Generator().manual_seed(0))
     assert torch.equal(same, warped)  # the generator alone decides
     assert warp_renders(ramp, depth, 0.0, generator)[0] is ramp
+
+
+def test_corrupt_depths_scales_a_share_of_crops_smoothly_within_the_bound():
+    from roguenerf.training.batches import corrupt_depths
+
+    b, c = 64, 32
+    depth = torch.full((b, 1, c, c), 2.0)
+    depth[:, :, 0, 0] = 0.0  # unknown depth stays unknown
+    depth[:, :, 0, 1] = float("inf")
+    out = corrupt_depths(depth, 0.3, torch.Generator().manual_seed(0))
+    changed = (out != depth)[:, :, 1:].flatten(1).any(dim=1)
+    assert 16 < int(changed.sum()) < 48  # about half the crops
+    ratio = (out / depth)[:, :, 1:]
+    assert float(ratio.max()) <= math.exp(0.3) + 1e-5 and float(ratio.min()) >= math.exp(-0.3) - 1e-5
+    assert float(ratio[changed].max()) > math.exp(0.15)  # errors of the size asked for
+    assert float((ratio[changed][..., 1:] / ratio[changed][..., :-1]).log().abs().max()) < 0.1  # smooth
+    assert torch.equal(out[:, :, 0, 0], depth[:, :, 0, 0]) and torch.equal(out[:, :, 0, 1], depth[:, :, 0, 1])
+    assert torch.equal(out, corrupt_depths(depth, 0.3, torch.Generator().manual_seed(0)))  # the generator decides
+    assert corrupt_depths(depth, 0.0, torch.Generator()) is depth
 
 
 def test_blur_renders_blurs_a_share_and_keeps_flat_colour():

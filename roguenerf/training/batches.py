@@ -283,6 +283,30 @@ def warp_renders(render: Tensor, depth: Tensor, max_shift: float, generator: tor
     return torch.where(keep, render, warped), torch.where(keep, depth, warped_depth)
 
 
+def corrupt_depths(depth: Tensor, max_log: float, generator: torch.Generator, share: float = 0.5,
+                   grid: int = 4) -> Tensor:
+    """``depth`` ``(B, 1, c, c)`` with a smooth random error on a random ``share`` of the crops;
+    the others, the render and the photo unchanged: the reprojections read the wrong depth.
+
+    The error multiplies each valid depth (> 0, finite) by ``exp(max_log * e)``, ``e`` a ``grid``
+    x ``grid`` lattice of uniform draws in [-1, 1] upsampled bicubically (clamped). A field's
+    novel views carry such geometry error (floaters, a surface too near or too far, depths mixed
+    at silhouettes) while its render can still look right; a model trained on exact depths
+    learns to trust every reprojection, and here its target is the photo whatever the
+    reprojections say. Draws ``B (1 + grid^2)`` numbers from ``generator`` whatever the outcome."""
+    import torch.nn.functional as F
+
+    b, _, h, w = depth.shape
+    pick = torch.rand(b, generator=generator) < share
+    lattice = torch.rand(b, 1, grid, grid, generator=generator) * 2.0 - 1.0
+    if max_log <= 0 or not bool(pick.any()):
+        return depth
+    error = F.interpolate(lattice, size=(h, w), mode="bicubic", align_corners=True).clamp(-1.0, 1.0)
+    valid = (depth > 0) & torch.isfinite(depth)
+    scaled = torch.where(valid, depth * torch.exp(error * float(max_log)).to(depth.dtype), depth)
+    return torch.where(pick[:, None, None, None], scaled, depth)
+
+
 def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding: str = "window",
                   margin: int = 0, use_neighbours: bool = True,
                   augment: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]] | None = None,

@@ -58,6 +58,8 @@ default: in one sitting, 3-minute fine-tunes with 4 px gained more on the four u
 fits (dtu_scan37 coarse +0.12 dB, fine +0.10; mary_rose +0.01, +0.02) but 0.17 dB less on lego,
 whose field renders its novel views about as well as its training views (docs/results.md)."""
 MAX_RENDER_WARP = 32.0
+MAX_DEPTH_NOISE = 2.0
+"""Bound of :attr:`TrainConfig.depth_noise` (exp(2): depths off by a factor up to 7.4)."""
 MAX_POSE_NOISE_DEG = 10.0
 MAX_POSE_NOISE_SHARE = 1.0
 """Bounds of :attr:`TrainConfig.neighbour_pose_noise` (a pose error past these is no longer
@@ -159,6 +161,12 @@ class TrainConfig:
     target render and depth of half of the crops (:func:`~roguenerf.training.batches.warp_renders`):
     the large-scale errors a field's novel views have and its training views lack. 0: none.
     None: the plan's (RENDER_WARP); pre-training: 0."""
+    depth_noise: float | None = None
+    """The largest log-depth error (e.g. 0.3: depths up to x1.35 or /1.35) put on the target depth
+    of half of the crops as a smooth random field
+    (:func:`~roguenerf.training.batches.corrupt_depths`); the render and the photo target are
+    unchanged, so the neighbours' reprojections land wrong where the target stays the photo: the
+    model learns to fall back on the render where the geometry is off. 0 or None: none."""
     neighbour_pose_noise: tuple[float, float] | None = None
     """``(degrees, share)``: every neighbour of every training target gets its own random pose
     error (:func:`~roguenerf.geometry.noise.perturb_poses`: a rotation about its centre and a
@@ -196,6 +204,9 @@ class TrainConfig:
             raise InputError(f"num_neighbours: expected >= 0, got {self.num_neighbours}")
         if self.lr_schedule is not None and self.lr_schedule not in LR_SCHEDULES:
             raise InputError(f"lr_schedule: expected one of {', '.join(LR_SCHEDULES)}, got {self.lr_schedule!r}")
+        if self.depth_noise is not None and not 0.0 <= float(self.depth_noise) <= MAX_DEPTH_NOISE:
+            raise InputError(f"depth_noise: expected a log-depth error in [0, {MAX_DEPTH_NOISE:g}], "
+                             f"got {self.depth_noise}")
         if self.neighbour_pose_noise is not None:
             noise = tuple(self.neighbour_pose_noise)
             if (len(noise) != 2 or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in noise)
@@ -273,11 +284,14 @@ class TrainPlan:
     """Pre-training: the share of held-out views among the targets of ``held_out_scenes``."""
     neighbour_pose_noise: tuple[float, float] | None = None
     """:attr:`TrainConfig.neighbour_pose_noise` (None: off)."""
+    depth_noise: float = 0.0
+    """:attr:`TrainConfig.depth_noise` (0: off)."""
 
     # The saved plan's key order (JSON in the state and the checkpoint's meta).
     _ORDER = ("device", "variant", "crop", "crop_used", "batch", "lr", "lr_schedule", "num_neighbours",
               "steps", "minutes", "without", "seed", "neighbour_encoding", "freeze_neighbour_encoder",
-              "render_blur", "render_warp", "why", "threads", "held_out_share", "neighbour_pose_noise")
+              "render_blur", "render_warp", "why", "threads", "held_out_share", "neighbour_pose_noise",
+              "depth_noise")
 
     def to_dict(self) -> dict:
         """JSON-able, as saved (``without`` a list)."""
@@ -404,6 +418,7 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
                               if config.neighbour_pose_noise is not None and any(config.neighbour_pose_noise)
                               else None),
         freeze_neighbour_encoder=bool(freeze),
+        depth_noise=float(config.depth_noise or 0.0),
         **augment,
         why=GPU_PLAN_WHY if on_gpu else CPU_PLAN_WHY,
         threads=torch.get_num_threads(),
@@ -424,6 +439,8 @@ def describe_plan(plan: TrainPlan | Mapping) -> str:
     if plan.neighbour_pose_noise:
         deg, share = plan.neighbour_pose_noise
         without += f", neighbour poses perturbed ({deg:g} deg, {share:.0%} of the camera spread RMS)"
+    if plan.depth_noise:
+        without += f", half the target depths off by a smooth error up to x{math.exp(plan.depth_noise):.2f}"
     if plan.held_out_share:
         without += f", held-out views {plan.held_out_share:.0%} of their scenes' targets"
     return (f"plan: {plan.device} ({plan.threads} threads), variant {plan.variant}, "
