@@ -66,6 +66,9 @@ def parse_args(argv=None):
                    help="zero-shot neighbour sweep: comma-separated counts (e.g. 2,3,4,5; default: the model's only)")
     p.add_argument("--align", choices=["on", "off"], default="on",
                    help="neighbour pose refinement at inference (default on, as shipped)")
+    p.add_argument("--finetune-depth-noise", type=float, default=0.0,
+                   help="fine-tune with TrainConfig.depth_noise (log-depth error on half the target depths; "
+                        "default 0, as shipped); cached apart")
     p.add_argument("--max-views", type=int, default=None)
     p.add_argument("--runs", type=Path, default=REPO / "runs" / "kinds", help="cache of photo sets, fits, fine-tunes")
     p.add_argument("--output", type=Path, default=None, help="default: bench/results/kinds_KIND")
@@ -237,6 +240,7 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
     rows: list[dict] = []
     align = args.align == "on"
     suffix = "_align" if align else ""  # results cached before pose refinement existed had it off
+    plan = f"_depth{args.finetune_depth_noise:g}" if args.finetune_depth_noise else ""  # the fine-tune's options
 
     def note(new: list[dict]) -> None:
         for x in new:  # rows cached before the neighbour sweep existed used the model's count
@@ -260,11 +264,12 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
                          neighbours=default_n if n is None else n)
 
     def tune(m: float) -> list[dict]:
-        result = finetune(scene, args.runs / "finetune" / name / tag / checkpoint.stem / f"{m:g}min",
-                          checkpoint=checkpoint, config=TrainConfig(minutes=m, evaluate=False))
+        result = finetune(scene, args.runs / "finetune" / name / tag / checkpoint.stem / f"{m:g}min{plan}",
+                          checkpoint=checkpoint,
+                          config=TrainConfig(minutes=m, evaluate=False, depth_noise=args.finetune_depth_noise))
         tuned, _ = load_checkpoint(result.checkpoint)
         return view_rows(evaluate(scene, tuned, max_views=args.max_views, align=align), **common,
-                         stage=f"finetune {m:g} min",
+                         stage=f"finetune {m:g} min" + (f", depth noise {args.finetune_depth_noise:g}" if plan else ""),
                          minutes=m, noise_deg=0.0, noise_share=0.0, neighbours=default_n, steps=result.steps)
 
     for k, (deg, share) in enumerate(args.noise or [(0.0, 0.0)]):
@@ -275,7 +280,7 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
             note(cached_rows(cache / f"zero_shot_{n}neighbours{suffix}.json",
                              functools.partial(zero_shot, 0, 0.0, 0.0, n)))
     for minutes in sorted(args.finetune):
-        note(cached_rows(cache / f"finetune_{minutes:g}min{suffix}.json", functools.partial(tune, minutes)))
+        note(cached_rows(cache / f"finetune_{minutes:g}min{plan}{suffix}.json", functools.partial(tune, minutes)))
     return rows, fit
 
 

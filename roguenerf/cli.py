@@ -57,6 +57,10 @@ FreezeOpt = Annotated[bool | None, typer.Option(
     help="Keep conv_H (the neighbour-photo encoder) fixed and encode the training photos once, so each "
          "step skips it; default: the plan's.")]
 
+DepthNoiseOpt = Annotated[float | None, typer.Option(
+    "--depth-noise", help="Largest log-depth error put on half the target depths as a smooth random field "
+                          "(e.g. 0.3: up to x1.35); render and photo unchanged, so the model learns to fall back "
+                          "on the render where the geometry is off. Default: none.")]
 RenderWarpOpt = Annotated[float | None, typer.Option(
     "--render-warp", help="Pixels: displace the target render and depth of half the crops along a smooth random "
                           "shift up to this size, so the training views look like novel views (default: the plan's).")]
@@ -215,6 +219,7 @@ def finetune(
     lr_schedule: LrScheduleOpt = None,
     freeze_neighbour_encoder: FreezeOpt = None,
     render_warp: RenderWarpOpt = None,
+    depth_noise: DepthNoiseOpt = None,
     no_eval: Annotated[bool, typer.Option("--no-eval", help="Skip the before/after test evaluation.")] = False,
 ) -> None:
     """Fine-tune the enhancer on one scene's training views; resumes from OUTPUT when interrupted."""
@@ -227,7 +232,8 @@ def finetune(
         config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
                                vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, lr=lr,
                                lr_schedule=lr_schedule, evaluate=not no_eval,
-                               freeze_neighbour_encoder=freeze_neighbour_encoder, render_warp=render_warp)
+                               freeze_neighbour_encoder=freeze_neighbour_encoder, render_warp=render_warp,
+                               depth_noise=depth_noise)
         scene = _load_scene(scene_dir)
         start = None if scratch else _checkpoint_path(checkpoint)
         result = run_finetune(scene, output, checkpoint=start, config=config)
@@ -265,10 +271,7 @@ def pretrain(
         "--neighbour-pose-noise", metavar="DEG,SHARE", help="Perturb each neighbour's pose per sample, up to: "
         "rotation RMS in degrees, translation RMS as a share of the cameras' spread (e.g. 0.5,0.05); each "
         "target draws its own level, from exact poses to these.")] = None,
-    depth_noise: Annotated[float | None, typer.Option(
-        "--depth-noise", help="Largest log-depth error put on half the target depths as a smooth random field "
-        "(e.g. 0.3); render and photo unchanged, so the model learns to fall back on the render where the "
-        "geometry is off.")] = None,
+    depth_noise: DepthNoiseOpt = None,
 ) -> None:
     """Pre-train across scene folders and/or generated toy scenes."""
     from roguenerf.training import pretrain as run_pretrain

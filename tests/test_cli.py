@@ -194,6 +194,7 @@ def test_pretrain_held_out_from_adds_the_scene_and_its_held_out_views(scene_dir,
     (["--steps", "1", "--variant", "huge"], "variant"),
     (["--steps", "1", "--lr-schedule", "step"], "lr_schedule"),
     (["--steps", "1", "--render-warp", "100"], "render_warp"),
+    (["--steps", "1", "--depth-noise", "-1"], "depth_noise"),
 ])
 def test_finetune_bad_flags_exit_2(scene_dir, tmp_path, args, message):
     result = _run("finetune", scene_dir, "--scratch", "--output", tmp_path / "x", *args)
