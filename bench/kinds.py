@@ -354,12 +354,15 @@ def main(argv=None) -> int:
 
     print(f"runtime: {runtime.configure()}", flush=True)
     rows, fits = run(args)
-    stem = args.output.name + ("_quick" if args.quick else "")
-    out = args.output.with_name(stem)
-    csv_path = write_csv(out.with_suffix(".csv"), rows)
-    json_path = write_json(out.with_suffix(".json"), {"command": " ".join(sys.argv), "fits": fits,
-                                                       "means": summary(rows), "rows": rows})
-    png_path = plot(rows, out.with_suffix(".png"))
+    # --output is a stem: a dot in it (hash_ft0.6) is part of the name, not a suffix to replace.
+    name = args.output.name
+    for ext in (".csv", ".json", ".png"):
+        name = name.removesuffix(ext)
+    stem = str(args.output.parent / name) + ("_quick" if args.quick else "")
+    csv_path = write_csv(Path(stem + ".csv"), rows)
+    json_path = write_json(Path(stem + ".json"), {"command": " ".join(sys.argv), "fits": fits,
+                                                  "means": summary(rows), "rows": rows})
+    png_path = plot(rows, Path(stem + ".png"))
     print(f"wrote {csv_path}, {json_path} and {png_path}")
     for m in summary(rows):
         print(f"{m['scene']:<12} {m['stage']:<18} noise {m['noise_deg']:g}/{m['noise_share']:g} "

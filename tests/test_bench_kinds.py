@@ -90,3 +90,22 @@ def test_compare_puts_checkpoints_side_by_side_per_kind_scene_and_noise(tmp_path
     assert kinds_compare.zero_shot(rows, 0.25, 0.025) == {("hash", "s"): {"old": -0.5, "new": 0.3}}
     assert kinds_compare.main([*map(str, paths), "--output", str(tmp_path / "cmp")]) == 0
     assert (tmp_path / "cmp.png").stat().st_size > 10_000 and len((tmp_path / "cmp.csv").read_text().splitlines()) == 6
+
+
+def test_output_stem_keeps_a_dot_in_its_name_and_the_fine_tune_options_their_own_stage(tmp_path, monkeypatch):
+    """``--output DIR/hash_ft0.6`` writes hash_ft0.6.{csv,json,png} (not hash_ft0.*), and a fine-tune
+    with ``--finetune-depth-noise`` is a condition of its own."""
+    def row(view, gain, stage, minutes):
+        return {"scene": "s", "kind": "hash", "stage": stage, "minutes": minutes, "noise_deg": 0.0,
+                "noise_share": 0.0, "neighbours": 2, "model_neighbours": 2, "view": view, "render_psnr": 20.0,
+                "gain_db": gain, "render_flip": 0.2, "flip_change": -0.01, "checkpoint": "c.safetensors",
+                "machine": "m", "commit": "abc", "date": "2026-11-26"}
+
+    rows = [row("a", 1.0, "finetune 10 min", 10.0), row("a", 0.5, "finetune 10 min, depth noise 0.6", 10.0)]
+    monkeypatch.setattr(kinds, "run", lambda args: (rows, []))
+    monkeypatch.setattr(kinds.sys, "argv", ["kinds.py"])
+    assert kinds.main(["--kind", "hash", "--scenes", "can_clip", "--noise", "", "--finetune-depth-noise", "0.6",
+                       "--output", str(tmp_path / "hash_ft0.6")]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["hash_ft0.6.csv", "hash_ft0.6.json", "hash_ft0.6.png"]
+    means = json.loads((tmp_path / "hash_ft0.6.json").read_text())["means"]
+    assert sorted(m["gain_db"] for m in means) == [0.5, 1.0]
