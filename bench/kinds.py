@@ -32,7 +32,7 @@ import json
 import sys
 from pathlib import Path
 
-from bench.common import REPO, RESULTS, SHARED_DATA, save_figure, stamp, write_csv, write_json
+from bench.common import REPO, RESULTS, SHARED_DATA, save_figure, stamp, write_json, write_outputs
 
 NOISE_LEVELS = "0/0,0.1/0.01,0.25/0.02,0.5/0.05,1/0.1"
 """The issue's sweep: none, 0.1 deg / 1 %, 0.25 deg / 2 %, 0.5 deg / 5 %, 1 deg / 10 %."""
@@ -358,12 +358,10 @@ def main(argv=None) -> int:
     name = args.output.name
     for ext in (".csv", ".json", ".png"):
         name = name.removesuffix(ext)
-    stem = str(args.output.parent / name) + ("_quick" if args.quick else "")
-    csv_path = write_csv(Path(stem + ".csv"), rows)
-    json_path = write_json(Path(stem + ".json"), {"command": " ".join(sys.argv), "fits": fits,
-                                                  "means": summary(rows), "rows": rows})
-    png_path = plot(rows, Path(stem + ".png"))
-    print(f"wrote {csv_path}, {json_path} and {png_path}")
+    csv_path, _ = write_outputs(args.output.with_name(name), rows, plot, quick=args.quick)
+    json_path = write_json(csv_path.with_suffix(".json"), {"command": " ".join(sys.argv), "fits": fits,
+                                                           "means": summary(rows), "rows": rows})
+    print(f"wrote {json_path}")
     for m in summary(rows):
         print(f"{m['scene']:<12} {m['stage']:<18} noise {m['noise_deg']:g}/{m['noise_share']:g} "
               f"n={m['neighbours']}: render "
