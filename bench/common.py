@@ -103,11 +103,23 @@ def save_figure(fig, path: Path) -> Path:
     return path
 
 
+_OUTPUT_SUFFIXES = (".csv", ".json", ".png")
+
+
+def beside(output: Path, suffix: str) -> Path:
+    """``output`` with ``suffix``: a ``.csv``/``.json``/``.png`` ending is replaced, anything else kept.
+
+    ``Path.with_suffix`` would cut ``run_0.5`` to ``run_0``: a dot in a run's name is not a suffix.
+    """
+    base = output.with_suffix("") if output.suffix in _OUTPUT_SUFFIXES else output
+    return base.with_name(base.name + suffix)
+
+
 def write_outputs(output: Path, rows: list[dict], plot, *, quick: bool = False) -> tuple[Path, Path]:
     """``OUTPUT[_quick].csv`` and ``OUTPUT[_quick].png`` (``plot(rows, path)``); prints both paths."""
-    stem = output.name + ("_quick" if quick else "")
-    csv_path = write_csv(output.with_name(stem + ".csv"), rows)
-    png_path = plot(rows, output.with_name(stem + ".png"))
+    stem = beside(output, "_quick" if quick else "")
+    csv_path = write_csv(beside(stem, ".csv"), rows)
+    png_path = plot(rows, beside(stem, ".png"))
     print(f"wrote {csv_path} and {png_path}")
     return csv_path, png_path
 

@@ -85,7 +85,7 @@ from pathlib import Path
 
 import torch
 
-from bench.common import LEGO, save_figure, scene_label, stamp, write_csv
+from bench.common import LEGO, beside, save_figure, scene_label, stamp, write_csv
 
 ENCODINGS = ("whole-loop", "whole", "window", "frozen")
 """Bench labels: ``whole`` and ``window`` are ``TrainConfig.neighbour_encoding``; ``whole-loop``
@@ -383,7 +383,7 @@ def main(argv=None) -> int:
                 print(f"note: crops {big} exceed the {d.width}x{d.height} images: they train on "
                       f"{min(d.height, d.width)} px crops (column crop_used)", flush=True)
 
-    json_path = args.output.with_suffix(".json")
+    json_path = beside(args.output, ".json")
     too_slow: dict[tuple, list] = {}  # (round, scene, variant, n, encoding) -> (crop_used, batch) over the cap
     for rnd, label, variant, n, crop, batch in itertools.product(
             range(args.rounds), scenes, args.variants, neighbours, sorted(args.crops), sorted(args.batches)):
@@ -404,7 +404,7 @@ def main(argv=None) -> int:
             gc.collect()  # the point's model, optimiser state and activations
             rows.append(row)
             print(", ".join(f"{k}={row[k]}" for k in list(row)[3:]), flush=True)
-            write_csv(args.output, rows)
+            write_csv(beside(args.output, ".csv"), rows)
             if row["seconds_per_step"] > args.max_seconds:
                 slow.append((crop_used, batch))
 
@@ -416,7 +416,7 @@ def main(argv=None) -> int:
     result = summary(medians, args.reference)
     write_json(json_path, {**base, "argv": sys.argv[1:] if argv is None else list(argv), **result,
                            "medians": medians, "rows": rows})
-    png = plot(medians, args.output.with_suffix(".png"))
+    png = plot(medians, beside(args.output, ".png"))
     print()
     print(table(rows))
     print()
@@ -426,7 +426,7 @@ def main(argv=None) -> int:
               f"{entry['window_over_whole_loop']}; frozen/window {entry['frozen_over_window']}; "
               f"frozen/whole-loop {entry['frozen_over_whole_loop']}; over {result['reference']} "
               f"{entry['over_' + result['reference']]}")
-    print(f"\nwrote {args.output}, {json_path} and {png}")
+    print(f"\nwrote {beside(args.output, '.csv')}, {json_path} and {png}")
     return 0
 
 

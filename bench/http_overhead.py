@@ -94,7 +94,7 @@ from pathlib import Path
 
 import torch
 
-from bench.common import REPO, RESULTS, stamp, write_csv, write_json
+from bench.common import REPO, RESULTS, beside, stamp, write_csv, write_json
 
 HEIGHT, WIDTH = 378, 504
 SCENE_SEED = 3
@@ -533,7 +533,7 @@ def main(argv=None) -> int:
                 print(f"  {name:30s} {_ms(s['median'])}  {s['what']}")
 
     # ------------------------------------------------------------------ files
-    out = args.output if args.output.suffix == ".csv" else args.output.with_suffix(".csv")
+    out = beside(args.output, ".csv")
     base = {k: meta[k] for k in ("date", "machine", "commit", "torch_threads", "omp_wait_policy", "size", "repeats")}
     rows = []
     for key, s in summary.items():
@@ -549,11 +549,11 @@ def main(argv=None) -> int:
                          **{k: (round(v, 6) if isinstance(v, float) else v) for k, v in s.items()
                             if k != "what"}})
     write_csv(out, rows)
-    write_json(out.with_suffix(".json"), {**meta, "summary": summary, "breakdown": parts,
+    write_json(beside(out, ".json"), {**meta, "summary": summary, "breakdown": parts,
                                           "samples": samples,
                                           "server_log_tail": server_log.splitlines()[-30:]})
-    plot(out.with_suffix(".png"), summary, meta)
-    print(f"wrote {out}, {out.with_suffix('.json')}, {out.with_suffix('.png')}")
+    plot(beside(out, ".png"), summary, meta)
+    print(f"wrote {out}, {beside(out, '.json')}, {beside(out, '.png')}")
     return 0 if pixels_identical else 1
 
 

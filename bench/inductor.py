@@ -42,7 +42,7 @@ from pathlib import Path
 
 import torch
 
-from bench.common import RESULTS, stamp, write_csv, write_json
+from bench.common import RESULTS, beside, stamp, write_csv, write_json
 from bench.stages import make_inputs, randomise_zero_layers
 from roguenerf import runtime
 from roguenerf.fastpath import reference_mode
@@ -230,10 +230,10 @@ def main(argv=None) -> None:
     if unknown:
         p.error(f"--configs: unknown {', '.join(map(repr, unknown))}; expected some of {', '.join(CONFIGS)}")
     rows = measure(args.variant, h, w, args.repeats, only)
-    write_csv(args.output, rows)
-    write_json(args.output.with_suffix(".json"), rows)
-    plot(rows, args.output.with_suffix(".png"))
-    print(f"wrote {args.output}, .json and .png")
+    write_csv(beside(args.output, ".csv"), rows)
+    write_json(beside(args.output, ".json"), rows)
+    plot(rows, beside(args.output, ".png"))
+    print(f"wrote {beside(args.output, '.csv')}, .json and .png")
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ import json
 import sys
 from pathlib import Path
 
-from bench.common import REPO, RESULTS, SHARED_DATA, save_figure, stamp, write_json, write_outputs
+from bench.common import REPO, RESULTS, SHARED_DATA, beside, save_figure, stamp, write_json, write_outputs
 
 NOISE_LEVELS = "0/0,0.1/0.01,0.25/0.02,0.5/0.05,1/0.1"
 """The issue's sweep: none, 0.1 deg / 1 %, 0.25 deg / 2 %, 0.5 deg / 5 %, 1 deg / 10 %."""
@@ -359,7 +359,7 @@ def main(argv=None) -> int:
     for ext in (".csv", ".json", ".png"):
         name = name.removesuffix(ext)
     csv_path, _ = write_outputs(args.output.with_name(name), rows, plot, quick=args.quick)
-    json_path = write_json(csv_path.with_suffix(".json"), {"command": " ".join(sys.argv), "fits": fits,
+    json_path = write_json(beside(csv_path, ".json"), {"command": " ".join(sys.argv), "fits": fits,
                                                            "means": summary(rows), "rows": rows})
     print(f"wrote {json_path}")
     for m in summary(rows):

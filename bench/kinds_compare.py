@@ -14,7 +14,7 @@ import argparse
 import json
 from pathlib import Path
 
-from bench.common import save_figure, stamp, write_csv
+from bench.common import beside, save_figure, stamp, write_csv
 
 PANELS = ((0.0, 0.0), (0.25, 0.02), (0.5, 0.05))
 """Zero-shot pose-noise levels plotted (degrees, share): none, the issue's 0.25° / 2 % and 0.5° / 5 %."""
@@ -84,8 +84,8 @@ def main(argv=None) -> int:
         p.error(f"not a file: {', '.join(missing)}")
     rows = compare_rows(args.runs)
     base = stamp()
-    csv_path = write_csv(args.output.with_suffix(".csv"), [{**base, **r} for r in rows])
-    png = plot(rows, args.output.with_suffix(".png"))
+    csv_path = write_csv(beside(args.output, ".csv"), [{**base, **r} for r in rows])
+    png = plot(rows, beside(args.output, ".png"))
     print(f"wrote {csv_path} and {png}")
     for deg, share in PANELS:
         for (kind, scene), gains in sorted(zero_shot(rows, deg, share).items()):

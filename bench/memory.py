@@ -24,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench.common import stamp, write_csv
+from bench.common import beside, stamp, write_csv
 
 CHILD = r"""
 import json, resource, sys, time
@@ -106,9 +106,9 @@ def main(argv=None) -> None:
                 print(f"{variant} {w}x{h}: peak RSS {r['peak_rss_mb']:.0f} MB (before enhancing "
                       f"{r['rss_before_mb']:.0f} MB), {r['seconds']:.1f} s, {r['tiles']} tiles, "
                       f"neighbours cached: {r['cached_views']}/{r['neighbours']}", flush=True)
-                write_csv(args.output, rows)
-    plot(rows, args.output.with_suffix(".png"), args.limit_gb)
-    print(f"wrote {args.output} and {args.output.with_suffix('.png')}")
+                write_csv(beside(args.output, ".csv"), rows)
+    plot(rows, beside(args.output, ".png"), args.limit_gb)
+    print(f"wrote {beside(args.output, '.csv')} and {beside(args.output, '.png')}")
     worst = max(r["peak_rss_mb"] for r in rows) / 1024
     if worst > args.limit_gb:
         raise SystemExit(f"peak RSS {worst:.2f} GB exceeds {args.limit_gb} GB")

@@ -48,7 +48,7 @@ from pathlib import Path
 
 import torch
 
-from bench.common import stamp, write_csv, write_json
+from bench.common import beside, stamp, write_csv, write_json
 from roguenerf import native, runtime
 from roguenerf.fastpath import reference_mode
 from roguenerf.models import VARIANTS, NeighbourBatch, Uformer, build_enhancer
@@ -354,10 +354,10 @@ def main(argv=None) -> None:
         for stage, r in s["floor_table"].items():
             print(f"    {stage:>12} {r['seconds']:8.4f} s  {r['gflop_executed']:7.3f} GFLOP"
                   f" -> {r['floor_flops_s']:.4f} s  {r['gb_moved']:7.3f} GB -> {r['floor_bytes_s']:.4f} s", flush=True)
-    write_csv(args.output, rows)
-    write_json(args.output.with_suffix(".json"), {**meta, "runtime": applied, "configs": summaries})
-    plot(rows, summaries, args.output.with_suffix(".png"))
-    print(f"wrote {args.output}, {args.output.with_suffix('.json')} and {args.output.with_suffix('.png')}")
+    write_csv(beside(args.output, ".csv"), rows)
+    write_json(beside(args.output, ".json"), {**meta, "runtime": applied, "configs": summaries})
+    plot(rows, summaries, beside(args.output, ".png"))
+    print(f"wrote {beside(args.output, '.csv')}, {beside(args.output, '.json')} and {beside(args.output, '.png')}")
 
 
 if __name__ == "__main__":

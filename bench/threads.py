@@ -31,7 +31,7 @@ import sys
 import time
 from pathlib import Path
 
-from bench.common import stamp, write_csv
+from bench.common import beside, stamp, write_csv
 
 CHILD = r"""
 import json, statistics, sys, time
@@ -110,8 +110,8 @@ def cli_main(args, meta: dict) -> None:
             if competitor is not None:
                 competitor.kill()
                 competitor.wait()
-    write_csv(args.output, rows)
-    print(f"wrote {args.output}")
+    write_csv(beside(args.output, ".csv"), rows)
+    print(f"wrote {beside(args.output, '.csv')}")
 
 
 def run_child(repo: Path, variant: str, h: int, w: int, repeats: int, threads: int, policy: str | None,
@@ -168,9 +168,9 @@ def main(argv=None) -> None:
             if competitor is not None:
                 competitor.kill()
                 competitor.wait()
-    write_csv(args.output, rows)
-    plot(rows, args.output.with_suffix(".png"))
-    print(f"wrote {args.output} and {args.output.with_suffix('.png')}")
+    write_csv(beside(args.output, ".csv"), rows)
+    plot(rows, beside(args.output, ".png"))
+    print(f"wrote {beside(args.output, '.csv')} and {beside(args.output, '.png')}")
 
 
 def plot(rows: list[dict], path: Path) -> None:

@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from einops import rearrange
 
-from bench.common import stamp, write_csv
+from bench.common import beside, stamp, write_csv
 from bench.stages import matmul_peak
 from roguenerf import runtime
 from roguenerf.models import build_enhancer, fastops
@@ -102,9 +102,9 @@ def main(argv=None) -> None:
                          "peak_gflops": round(peak, 1), "threads": applied["threads"]})
             print(f"{name:28s} {ms:7.2f} ms  {flops / 1e9:6.2f} GFLOP  {flops / ms / 1e6:7.1f} GFLOP/s", flush=True)
     print(f"one block, ops above: {sum(r['ms'] for r in rows):.1f} ms; matmul peak {peak:.0f} GFLOP/s")
-    write_csv(args.output, rows)
-    plot(rows, args.output.with_suffix(".png"))
-    print(f"wrote {args.output} and {args.output.with_suffix('.png')}")
+    write_csv(beside(args.output, ".csv"), rows)
+    plot(rows, beside(args.output, ".png"))
+    print(f"wrote {beside(args.output, '.csv')} and {beside(args.output, '.png')}")
 
 
 def plot(rows: list[dict], path: Path) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -109,3 +110,24 @@ def test_output_stem_keeps_a_dot_in_its_name_and_the_fine_tune_options_their_own
     assert sorted(p.name for p in tmp_path.iterdir()) == ["hash_ft0.6.csv", "hash_ft0.6.json", "hash_ft0.6.png"]
     means = json.loads((tmp_path / "hash_ft0.6.json").read_text())["means"]
     assert sorted(m["gain_db"] for m in means) == [0.5, 1.0]
+
+
+def test_every_bench_output_keeps_a_dot_in_its_name(tmp_path):
+    """``beside`` replaces only a .csv/.json/.png ending: ``Path.with_suffix`` would turn
+    ``run_0.5`` into ``run_0.png`` and two runs would overwrite each other's plots."""
+    from bench import kinds_compare
+    from bench.common import beside
+
+    assert beside(Path("r/run_0.5"), ".png") == Path("r/run_0.5.png")
+    assert beside(Path("r/run_0.5.csv"), ".json") == Path("r/run_0.5.json")
+    assert beside(Path("r/stages.csv"), ".csv") == Path("r/stages.csv")
+    assert beside(Path("r/kinds.png"), "_quick") == Path("r/kinds_quick")
+    means = [{"scene": "s", "kind": "hash", "stage": "zero-shot", "minutes": 0.0, "noise_deg": 0.0, "noise_share": 0.0,
+              "neighbours": 2, "model_neighbours": 2, "views": 3, "render_psnr": 20.0, "gain_db": 0.5,
+              "worst_view_gain_db": 0.1, "flip_change": -0.01, "views_flip_better": 3}]
+    run = tmp_path / "a.json"
+    run.write_text(json.dumps({"rows": [{"scene": "s", "checkpoint": "/x/c.safetensors", "commit": "abc"}],
+                               "means": means}))
+    for output in ("cmp_0.5", "cmp_0.6.csv"):
+        assert kinds_compare.main([str(run), "--output", str(tmp_path / output)]) == 0
+    assert sorted(p.name for p in tmp_path.glob("cmp*")) == ["cmp_0.5.csv", "cmp_0.5.png", "cmp_0.6.csv", "cmp_0.6.png"]
