@@ -66,6 +66,8 @@ def parse_args(argv=None):
                    help="zero-shot neighbour sweep: comma-separated counts (e.g. 2,3,4,5; default: the model's only)")
     p.add_argument("--align", choices=["on", "off"], default="on",
                    help="neighbour pose refinement at inference (default on, as shipped)")
+    p.add_argument("--colour", choices=["on", "off"], default="on",
+                   help="colour matching to the neighbour photos at inference (default on, as shipped)")
     p.add_argument("--finetune-depth-noise", type=float, default=0.0,
                    help="fine-tune with TrainConfig.depth_noise (log-depth error on half the target depths; "
                         "default 0, as shipped); cached apart")
@@ -186,7 +188,8 @@ def view_rows(report: dict, **condition) -> list[dict]:
                      "render_flip": round(r["flip"], 5), "enhanced_flip": round(e["flip"], 5),
                      "flip_change": round(e["flip"] - r["flip"], 5), "seconds": round(v["seconds"], 2),
                      "aligned": (None if v.get("aligned") is None
-                                 else round(sum(v["aligned"]) / max(1, len(v["aligned"])), 3))})
+                                 else round(sum(v["aligned"]) / max(1, len(v["aligned"])), 3)),
+                     "colour_matched": v.get("colour_offset") is not None})
     return rows
 
 
@@ -239,7 +242,9 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
               "model_neighbours": default_n}
     rows: list[dict] = []
     align = args.align == "on"
-    suffix = "_align" if align else ""  # results cached before pose refinement existed had it off
+    colour = args.colour == "on"
+    # Results cached before pose refinement existed had it off, before colour matching that off.
+    suffix = ("_align" if align else "") + ("_colour" if colour else "")
     plan = f"_depth{args.finetune_depth_noise:g}" if args.finetune_depth_noise else ""  # the fine-tune's options
 
     def note(new: list[dict]) -> None:
@@ -248,6 +253,7 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
             x.setdefault("model_neighbours", default_n)
             x.setdefault("aligned", None)
             x["align"] = align
+            x["colour"] = colour
         rows.extend(new)
         gain = sum(x["gain_db"] for x in new) / len(new)
         flip = sum(x["flip_change"] for x in new) / len(new)
@@ -259,7 +265,8 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
 
     def zero_shot(k: int, deg: float, share: float, n: int | None = None) -> list[dict]:
         target = scene if deg == 0 and share == 0 else noisy_scene(scene, deg, share, seed=1000 + k)
-        return view_rows(evaluate(target, model, max_views=args.max_views, num_neighbours=n, align=align), **common,
+        return view_rows(evaluate(target, model, max_views=args.max_views, num_neighbours=n, align=align,
+                                  colour=colour), **common,
                          stage="zero-shot", minutes=0.0, noise_deg=deg, noise_share=share,
                          neighbours=default_n if n is None else n)
 
@@ -268,7 +275,7 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
                           checkpoint=checkpoint,
                           config=TrainConfig(minutes=m, evaluate=False, depth_noise=args.finetune_depth_noise))
         tuned, _ = load_checkpoint(result.checkpoint)
-        return view_rows(evaluate(scene, tuned, max_views=args.max_views, align=align), **common,
+        return view_rows(evaluate(scene, tuned, max_views=args.max_views, align=align, colour=colour), **common,
                          stage=f"finetune {m:g} min" + (f", depth noise {args.finetune_depth_noise:g}" if plan else ""),
                          minutes=m, noise_deg=0.0, noise_share=0.0, neighbours=default_n, steps=result.steps)
 

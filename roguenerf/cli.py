@@ -52,6 +52,9 @@ NeighboursOpt = Annotated[int | None, typer.Option("--neighbours", help="Neighbo
 AlignOpt = Annotated[bool, typer.Option("--align/--no-align", help=(
     "Refine each neighbour's pose against the render before using its photo (for dataset poses that are a "
     "little off; refused where it does not clearly help). Default on."))]
+ColourOpt = Annotated[bool, typer.Option("--colour/--no-colour", help=(
+    "Match the enhanced view's overall colour to the neighbour photos where two or more agree (the model's "
+    "colour prior comes from its pre-training renders). Default on."))]
 FreezeOpt = Annotated[bool | None, typer.Option(
     "--freeze-neighbour-encoder/--train-neighbour-encoder",
     help="Keep conv_H (the neighbour-photo encoder) fixed and encode the training photos once, so each "
@@ -358,6 +361,7 @@ def evaluate(
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object and nothing else.")] = False,
     neighbours: NeighboursOpt = None,
     align: AlignOpt = True,
+    colour: ColourOpt = True,
 ) -> None:
     """PSNR/SSIM/FLIP of renders and enhanced renders against the photos, per view and mean (FLIP: lower is better)."""
     from roguenerf.training import evaluate as run_evaluate
@@ -369,7 +373,7 @@ def evaluate(
         model = _load_model(checkpoint)
         with _progress_bar(f"evaluating {split} views", "view") as progress:
             report = run_evaluate(scene, model, split=split, num_neighbours=neighbours, progress=progress,
-                                  align=align)
+                                  align=align, colour=colour)
     if as_json:
         from roguenerf.imageio import finite_for_json
 
@@ -395,6 +399,7 @@ def enhance(
     checkpoint: CheckpointOpt = None,
     neighbours: NeighboursOpt = None,
     align: AlignOpt = True,
+    colour: ColourOpt = True,
 ) -> None:
     """Enhance one view's render (a training view never uses its own photo)."""
     from roguenerf.imageio import write_png
@@ -413,12 +418,15 @@ def enhance(
         model = _load_model(checkpoint)
         with _progress_bar(f"enhancing {view}", "tile") as progress:
             result = SceneEnhancer(scene, model, num_neighbours=neighbours,
-                                   align=align).enhance_view(index, progress=progress)
+                                   align=align, colour=colour).enhance_view(index, progress=progress)
         write_png(output, result.image)
         used = ", ".join(f"{n} (pose refined)" if done else n
                          for n, done in zip(result.neighbours, result.aligned or [False] * len(result.neighbours)))
         used = used or "none"
         typer.echo(f"enhanced {view} in {result.seconds:.2f} s with neighbours: {used}", err=True)
+        if result.colour_offset is not None:
+            typer.echo("colour matched to the neighbours: RGB offset "
+                       + ", ".join(f"{x:+.4f}" for x in result.colour_offset), err=True)
         if result.note:
             typer.echo(f"note: {result.note}", err=True)
         typer.echo(str(output))
@@ -584,6 +592,7 @@ def enhance_path_command(
     checkpoint: CheckpointOpt = None,
     neighbours: NeighboursOpt = None,
     align: AlignOpt = True,
+    colour: ColourOpt = True,
     quality: Annotated[int, typer.Option("--quality", help="x264 CRF, 0 (lossless) .. 51; 18-23 look good.")] = 20,
     fps: Annotated[float | None, typer.Option(
         "--fps", help="Frame rate (default: the camera path's, else 24).")] = None,
@@ -636,14 +645,14 @@ def enhance_path_command(
         from roguenerf.checkpoint import load_checkpoint
 
         model, _meta = load_checkpoint(ckpt)
-        enhancer = SceneEnhancer(scene, model, num_neighbours=neighbours, align=align)
+        enhancer = SceneEnhancer(scene, model, num_neighbours=neighbours, align=align, colour=colour)
         stat = ckpt.stat()
         with _progress_bar(f"enhancing {len(camera_path)} frames", "frame") as progress:
             result = enhance_path(scene, enhancer, camera_path, frames, output, depth_type=depth_type,
                                   depth_scale=depth_scale, background=background, video=not no_video,
                                   quality=quality, fps=fps,
                                   checkpoint_id=f"{ckpt.resolve()}:{stat.st_size}:{stat.st_mtime_ns}"
-                                  + ("" if align else ":no-align"),
+                                  + ("" if align else ":no-align") + ("" if colour else ":no-colour"),
                                   progress=progress, force=force)
         for warning in result.warnings:
             typer.echo(f"warning: {warning}", err=True)

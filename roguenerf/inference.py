@@ -31,6 +31,10 @@ DEFAULT_TILE = 512
 DEFAULT_ALIGN = True
 """Whether :class:`SceneEnhancer` refines neighbour poses by default (``align``)."""
 
+DEFAULT_COLOUR = True
+"""Whether :class:`SceneEnhancer` matches the enhanced view's colour to the agreeing neighbour
+photos by default (``colour``; :mod:`roguenerf.geometry.colour`)."""
+
 DEFAULT_CACHE_BYTES = 2 << 30
 """Budget of the per-scene neighbour cache (features + depth, float32), least recently used
 first out. A photo whose entry alone would take more than budget / neighbours per request is
@@ -64,6 +68,10 @@ class EnhanceResult:
     aligned: list[bool] | None = None
     """Per neighbour (as ``neighbours``): whether its pose was refined for this view
     (:mod:`roguenerf.geometry.align`); None when pose refinement is off."""
+    colour_offset: list[float] | None = None
+    """The RGB offset added to the whole image to match the agreeing neighbours' colour
+    (:mod:`roguenerf.geometry.colour`); None where none was added (colour matching off, fewer
+    than two neighbours, or too few pixels where they agree)."""
 
 
 def _check_image(x: Tensor, name: str, channels: int) -> Tensor:
@@ -110,10 +118,16 @@ class SceneEnhancer:
             (:func:`~roguenerf.geometry.align.align_neighbour`): a photo whose dataset pose is a
             little off then still lands on the render. True, False, or an
             :class:`~roguenerf.geometry.align.AlignConfig`; default :data:`DEFAULT_ALIGN`.
+        colour: after enhancing, shift the image's colour to the neighbour photos' where two or
+            more of them agree (:func:`~roguenerf.geometry.colour.colour_offset`): the model's
+            colour prior comes from its pre-training renders, the photos are the camera's own.
+            True, False, or a :class:`~roguenerf.geometry.colour.ColourConfig`; default
+            :data:`DEFAULT_COLOUR`.
     """
 
     def __init__(self, scene, model, *, num_neighbours: int | None = None, tile: int | None = None,
-                 device: str | torch.device = "cpu", cache_bytes: int = DEFAULT_CACHE_BYTES, align=None):
+                 device: str | torch.device = "cpu", cache_bytes: int = DEFAULT_CACHE_BYTES, align=None,
+                 colour=None):
         if num_neighbours is not None and int(num_neighbours) < 0:
             raise InputError(f"num_neighbours: expected >= 0, got {num_neighbours}")
         if tile is not None and int(tile) < 16:
@@ -145,6 +159,12 @@ class SceneEnhancer:
         if not isinstance(align, (bool, AlignConfig)):
             raise InputError(f"align: expected True, False or an AlignConfig, got {type(align).__name__}")
         self.align = AlignConfig() if align is True else (align or None)
+        from roguenerf.geometry.colour import ColourConfig
+
+        colour = DEFAULT_COLOUR if colour is None else colour
+        if not isinstance(colour, (bool, ColourConfig)):
+            raise InputError(f"colour: expected True, False or a ColourConfig, got {type(colour).__name__}")
+        self.colour = ColourConfig() if colour is True else (colour or None)
         self._small: OrderedDict[int, tuple[Tensor, Tensor, Tensor, dict]] = OrderedDict()
         self.cache_bytes = int(cache_bytes)
         self._sources: OrderedDict[int, Tensor] = OrderedDict()
@@ -373,9 +393,39 @@ class SceneEnhancer:
             raise NonFiniteOutputError("the enhancer produced non-finite values for this view; the model or "
                                  "its inputs are broken (check the checkpoint and the depth)")
         image = out[0].clamp(0, 1).to("cpu", torch.float32)
+        offset = None
+        if self.colour is not None and len(chosen) >= 2:
+            offset = self.colour_offset(positions, image, depth, K, world_from_cam, n_pose)
+            if offset is not None:
+                image = (image + offset.view(3, 1, 1)).clamp(0, 1)
         names = [self.scene.frames[i].name for i in chosen]
         return EnhanceResult(image=image, neighbours=names, seconds=time.perf_counter() - start, note=note,
-                             aligned=aligned if chosen else ([] if self.align is not None else None))
+                             aligned=aligned if chosen else ([] if self.align is not None else None),
+                             colour_offset=None if offset is None else [round(float(x), 6) for x in offset])
+
+    def colour_offset(self, positions: list[int], image: Tensor, depth: Tensor, K: Tensor,
+                      world_from_cam: Tensor, poses: Tensor) -> Tensor | None:
+        """``(3,)`` offset matching ``image`` (an enhanced view) to the neighbours at training
+        ``positions`` seen from ``poses`` (:func:`~roguenerf.geometry.colour.colour_offset`), on
+        copies no larger than :data:`ALIGN_SIDE` (the neighbours' are the pose fit's); None
+        where there is no agreement to match, or colour matching is off."""
+        from roguenerf.geometry import reproject
+        from roguenerf.geometry.align import shrink
+        from roguenerf.geometry.colour import colour_offset
+
+        if self.colour is None:
+            return None
+        small, small_depth, small_K = shrink(image, depth, K, ALIGN_SIDE)
+        leniency = getattr(self.model.config, "leniency", 0.25)
+        pose = torch.as_tensor(world_from_cam).to(torch.float64)
+        seen = []
+        with torch.inference_mode():
+            for j, p in enumerate(positions):
+                photo, photo_depth, photo_K, _ = self._small_neighbour(p)
+                r = reproject(photo[None], photo_depth[None], small_depth[None], photo_K.float(), small_K.float(),
+                              poses[j].cpu().to(torch.float64), pose, leniency=leniency)
+                seen.append((r.features, r.valid))
+            return colour_offset(small[None], seen, self.colour)
 
     def _any_neighbour_sees(self, positions: list[int], depth_b: Tensor, K_b: Tensor, pose_b: Tensor) -> bool:
         """Whether any target pixel passes the reprojection test in any neighbour, checked on a

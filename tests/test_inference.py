@@ -89,10 +89,11 @@ def test_cached_result_equals_direct_model_call(scene):
     from roguenerf.models import NeighbourBatch
 
     model = _model()
-    enhancer = SceneEnhancer(scene, model, num_neighbours=2)
+    enhancer = SceneEnhancer(scene, model, num_neighbours=2, colour=False)
     i = scene.index("test_001")
     frame = scene.frames[i]
     result = enhancer.enhance_view(i)
+    matched = SceneEnhancer(scene, model, num_neighbours=2).enhance_view(i)
     idx = [scene.index(n) for n in result.neighbours]
     with torch.no_grad():
         feats = model.encode_neighbours(torch.stack([scene.photo(j) for j in idx]))
@@ -101,6 +102,10 @@ def test_cached_result_equals_direct_model_call(scene):
         direct = model(scene.render(i)[None], scene.depth(i)[None], frame.K.float()[None],
                        frame.world_from_cam.float()[None], batch)[0].clamp(0, 1)
     torch.testing.assert_close(result.image, direct, atol=1e-5, rtol=0)
+    # With colour matching (the default) the same image, shifted by the offset it reports.
+    assert result.colour_offset is None and matched.colour_offset is not None
+    shifted = (direct + torch.tensor(matched.colour_offset).view(3, 1, 1)).clamp(0, 1)
+    torch.testing.assert_close(matched.image, shifted, atol=1e-5, rtol=0)
 
 
 def test_view_seen_by_no_neighbour_runs_without_them(scene):

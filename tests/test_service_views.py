@@ -129,6 +129,10 @@ def test_views_give_the_enhance_camera_of_each_view(client, toy, scene_id):
     assert torch.equal(read_image(r.content), read_image(encode_png(direct.image)))
     assert r.headers["X-Neighbours"] == ",".join(direct.neighbours)
     assert r.headers["X-Pose-Refined"] == ",".join(n for n, a in zip(direct.neighbours, direct.aligned) if a)
+    if direct.colour_offset is None:
+        assert "X-Colour-Offset" not in r.headers
+    else:
+        assert [float(x) for x in r.headers["X-Colour-Offset"].split(",")] == pytest.approx(direct.colour_offset, abs=1e-6)
 
 
 def test_view_files_are_the_scene_pixels(client, toy, scene_id):

@@ -65,7 +65,10 @@ def test_finetune_smoke_two_steps(scene, tmp_path):
     assert moved
 
 
-def test_finetune_reports_before_and_after(scene, tmp_path):
+def test_finetune_reports_before_and_after(scene, tmp_path, monkeypatch):
+    from roguenerf import inference
+
+    monkeypatch.setattr(inference, "DEFAULT_COLOUR", False)  # the model's own output, not colour-matched
     result = finetune(scene, tmp_path, config=TrainConfig(steps=1, **{**FAST, "evaluate": True}))
     assert set(result.before) == {"render", "enhanced"} and set(result.after) == {"render", "enhanced"}
     assert result.before["render"] == result.after["render"]  # the renders do not change

@@ -31,7 +31,8 @@ def _mean(views: list[dict], key: str) -> dict:
 
 def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = None,
              max_views: int | None = None, device: str | torch.device = "cpu",
-             progress: Callable[[int, int], None] | None = None, align=None) -> dict:
+             progress: Callable[[int, int], None] | None = None, align=None,
+             colour=None) -> dict:
     """Compare renders and enhanced renders of ``split`` views with their photos.
 
     Neighbours always come from the scene's TRAIN views (a train view never uses itself).
@@ -44,6 +45,8 @@ def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = 
         max_views: evaluate only the first views of the split (quick benchmarks).
         align: neighbour pose refinement (``SceneEnhancer``'s ``align``; default on). Ignored
             when ``model`` is a SceneEnhancer already.
+        colour: colour matching to the neighbours (``SceneEnhancer``'s ``colour``; default on).
+            Ignored when ``model`` is a SceneEnhancer already.
         progress: called as ``progress(done, total)`` before the first view and after each.
     Returns:
         ``{"split", "views": [{"name", "render": {"psnr", "ssim", "flip"}, "enhanced": {...},
@@ -62,7 +65,8 @@ def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = 
         enhancer = model
     else:
         was_training = model.training
-        enhancer = SceneEnhancer(scene, model, num_neighbours=num_neighbours, device=device, align=align)
+        enhancer = SceneEnhancer(scene, model, num_neighbours=num_neighbours, device=device, align=align,
+                                 colour=colour)
     views = []
     if progress is not None:
         progress(0, len(indices))
@@ -78,6 +82,7 @@ def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = 
                           "enhanced": _metrics_of(result.image, photo),
                           "neighbours": result.neighbours,
                           "aligned": result.aligned,
+                          "colour_offset": result.colour_offset,
                           "seconds": seconds})
             if progress is not None:
                 progress(len(views), len(indices))

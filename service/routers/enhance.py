@@ -136,6 +136,8 @@ async def create_enhancement(
         "X-Pose-Refined": ",".join(n for n, done in zip(result.neighbours, result.aligned or []) if done),
         "X-Checkpoint-Version": str(version),
     }
+    if result.colour_offset is not None:  # the RGB offset matching the neighbours' colour (roguenerf.geometry.colour)
+        headers["X-Colour-Offset"] = ",".join(f"{x:.6f}" for x in result.colour_offset)
     if result.note:
         headers["X-Enhance-Note"] = result.note.encode("ascii", "replace").decode()
     return Response(content=png, media_type="image/png", headers=headers)

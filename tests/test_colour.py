@@ -1,0 +1,116 @@
+"""Colour matching to the neighbour photos (roguenerf.geometry.colour) on known answers and the
+toy world's exact geometry."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from roguenerf.data.toy import make_toy_scene
+from roguenerf.errors import InputError
+from roguenerf.geometry.colour import ColourConfig, colour_offset
+
+SHIFT = torch.tensor([0.02, -0.01, 0.03])
+
+
+def textured(seed: int, h: int = 48, w: int = 64) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return (0.2 + 0.6 * torch.rand(1, 3, h, w, generator=g)).clamp(0, 1)
+
+
+def test_the_offset_brings_a_shifted_image_back_to_the_neighbours():
+    photo = textured(0)
+    full = torch.ones(1, 1, 48, 64)
+    offset = colour_offset(photo + SHIFT.view(1, 3, 1, 1), [(photo, full), (photo, full)])
+    assert torch.allclose(offset, -SHIFT, atol=1e-5)
+    # Three neighbours, one of which sees only the left half: the same answer.
+    half = full.clone()
+    half[..., 32:] = 0
+    offset = colour_offset(photo + SHIFT.view(1, 3, 1, 1), [(photo, full), (photo * half, half), (photo, full)])
+    assert torch.allclose(offset, -SHIFT, atol=1e-5)
+
+
+def test_colour_where_a_neighbour_does_not_see_never_bleeds_in():
+    photo = textured(1)
+    seen = torch.zeros(1, 1, 48, 64)
+    seen[..., 8:40, 8:56] = 1
+    garbage = torch.where(seen > 0, photo, torch.ones_like(photo))  # white outside what it sees
+    offset = colour_offset(photo + SHIFT.view(1, 3, 1, 1), [(garbage, seen), (garbage, seen)])
+    assert torch.allclose(offset, -SHIFT, atol=1e-4)
+
+
+def test_nothing_is_changed_without_two_agreeing_neighbours():
+    photo, other = textured(2), textured(3)
+    full = torch.ones(1, 1, 48, 64)
+    image = photo + SHIFT.view(1, 3, 1, 1)
+    assert colour_offset(image, [(photo, full)]) is None  # one neighbour: no agreement to check
+    # Two neighbours that disagree everywhere (a broken field's depth lands them on other things).
+    assert colour_offset(image, [(photo, full), ((photo + 0.1).clamp(0, 1), full)]) is None
+    # They agree on 4 % of the pixels only, under the 5 % floor.
+    little = torch.zeros_like(full)
+    little[..., :2, :] = 1
+    assert colour_offset(image, [(photo * little, little), (photo * little, little)]) is None
+    assert colour_offset(image, [(photo * little, little), (photo * little, little)],
+                         ColourConfig(min_share=0.01)) is not None
+    # Blurred, two different random textures agree (their means are alike): the offset is
+    # about colour, not detail.
+    assert colour_offset(image, [(photo, full), (other, full)]) is not None
+
+
+@pytest.mark.parametrize("bad", [dict(sigma=0), dict(max_disagreement=-1), dict(min_share=2.0),
+                                 dict(min_share=float("nan"))])
+def test_the_config_is_checked(bad):
+    with pytest.raises(InputError, match="ColourConfig"):
+        ColourConfig(**bad)
+
+
+def test_shapes_are_checked():
+    photo = textured(4)
+    full = torch.ones(1, 1, 48, 64)
+    with pytest.raises(InputError, match="image"):
+        colour_offset(photo[0], [(photo, full), (photo, full)])
+    with pytest.raises(InputError, match="neighbours"):
+        colour_offset(photo, [(photo[..., :32], full), (photo, full)])
+
+
+class Biased(torch.nn.Module):
+    """A stand-in enhancer that returns the render a little too bright."""
+
+    def __init__(self, model, bias: torch.Tensor):
+        super().__init__()
+        self.inner, self.bias, self.config = model, bias, model.config
+
+    def forward(self, render, depth, K, pose, batch):
+        return render + self.bias.view(1, 3, 1, 1)
+
+    def encode_neighbours(self, photos):
+        return self.inner.encode_neighbours(photos)
+
+    def neighbour_source(self, features, depth):
+        return self.inner.neighbour_source(features, depth)
+
+
+def test_the_scene_enhancer_takes_a_colour_bias_back_out(tmp_path):
+    """On the toy world (exact geometry, the photos' own colour), a model that brightens every
+    pixel by 0.04 is brought back to the render's colour; ``colour=False`` keeps the bias."""
+    from roguenerf.inference import SceneEnhancer
+    from roguenerf.models import Enhancer, make_config
+    from roguenerf.training import evaluate
+
+    scene = make_toy_scene(tmp_path / "scene", n_train=6, n_test=1, height=72, width=96)
+    test = scene.indices("test")[0]
+    bias = torch.tensor([0.04, 0.04, 0.04])
+    model = Biased(Enhancer(make_config("nano", num_neighbours=2)), bias)
+    render = scene.render(test)
+    on = SceneEnhancer(scene, model).enhance_view(test)
+    off = SceneEnhancer(scene, model, colour=False).enhance_view(test)
+    assert off.colour_offset is None
+    assert torch.allclose(off.image, (render + bias.view(3, 1, 1)).clamp(0, 1))
+    assert len(on.colour_offset) == 3
+    assert torch.allclose(torch.tensor(on.colour_offset), -bias, atol=0.01)
+    assert (on.image - render).mean().abs() < 0.01 < (off.image - render).mean().abs()
+    report = evaluate(scene, model)
+    assert report["views"][0]["colour_offset"] == on.colour_offset
+    assert report["enhanced"]["psnr"] > evaluate(scene, model, colour=False)["enhanced"]["psnr"] + 3
+    with pytest.raises(InputError, match="colour"):
+        SceneEnhancer(scene, model, colour="yes")
