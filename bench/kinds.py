@@ -243,8 +243,9 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
     rows: list[dict] = []
     align = args.align == "on"
     colour = args.colour == "on"
-    # Results cached before pose refinement existed had it off, before colour matching that off.
-    suffix = ("_align" if align else "") + ("_colour" if colour else "")
+    # Results cached before pose refinement existed had it off, before colour matching that off
+    # ("_colour": the first, view-wide offset only, before its local field).
+    suffix = ("_align" if align else "") + ("_colourfield" if colour else "")
     plan = f"_depth{args.finetune_depth_noise:g}" if args.finetune_depth_noise else ""  # the fine-tune's options
 
     def note(new: list[dict]) -> None:

@@ -193,6 +193,8 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="3 keys x 4 steps (9 frames)")
     parser.add_argument("--align", choices=["on", "off"], default="on",
                         help="neighbour pose refinement (default on, as shipped)")
+    parser.add_argument("--colour", choices=["on", "off"], default="on",
+                        help="colour matching to the neighbour photos (default on, as shipped)")
     parser.add_argument("--photo-path", action="store_true", help=(
         "a path made only of the scene's views (train and test, in azimuth order, --steps 1): every "
         "frame has a photo, so the photos' own flicker is measured too"))
@@ -219,12 +221,13 @@ def main() -> None:
     keys = key_views(scene, args.keys, "all" if args.photo_path else "test")
     checkpoint = args.checkpoint or default_checkpoint_path()
     model, _ = load_checkpoint(checkpoint)
-    enhancer = SceneEnhancer(scene, model, align=args.align == "on")
+    enhancer = SceneEnhancer(scene, model, align=args.align == "on", colour=args.colour == "on")
     camera_path = CameraPath(world_from_cam=poses, K=K.expand(len(poses), 3, 3).clone(), width=width,
                              height=height, fps=24.0)
-    out = frames.parent / ("enhanced_" + frames.name + ("" if args.align == "on" else "_noalign"))
+    out = frames.parent / ("enhanced_" + frames.name + ("" if args.align == "on" else "_noalign")
+                           + ("" if args.colour == "on" else "_nocolour"))
     result = enhance_path(scene, enhancer, camera_path, frames, out, quality=args.quality,
-                          checkpoint_id=f"{checkpoint}:align={args.align}",
+                          checkpoint_id=f"{checkpoint}:align={args.align}:colour={args.colour}",
                           progress=lambda d, n: print(f"enhanced {d}/{n}", flush=True))
     from roguenerf.video import read_video_info
 
@@ -246,7 +249,7 @@ def main() -> None:
     summary = {**base, "command": " ".join(["python -m bench.paths", *sys.argv[1:]]),
                "scene": "toy (exact geometry, Degradation per frame)" if args.toy else str(args.fit),
                "size": f"{width}x{height}", "frames": len(poses), "key_views": [scene.frames[i].name for i in keys],
-               "checkpoint": str(checkpoint), "align": args.align, "flicker": fl, "psnr": ps_,
+               "checkpoint": str(checkpoint), "align": args.align, "colour": args.colour, "flicker": fl, "psnr": ps_,
                "flicker_ratio_ok": fl["ratio"] is not None and fl["ratio"] <= 1.05,
                "render_s": round(render_s, 1), "frames_rendered_now": rendered,
                "enhance_s": round(result.seconds, 1), "frames_enhanced_now": result.enhanced_now,
@@ -255,7 +258,7 @@ def main() -> None:
                "cached_views": result.cached_views, "video": {"enhanced": info, "side_by_side": side},
                "video_path": str(result.video)}
     variant = (("_toy" if args.toy else "") + ("_photos" if args.photo_path else "")
-               + ("_noalign" if args.align == "off" else ""))
+               + ("_noalign" if args.align == "off" else "") + ("_nocolour" if args.colour == "off" else ""))
     stem = "paths" + variant + ("_quick" if args.quick else "")
     write_json(RESULTS / f"{stem}.json", summary)
 

@@ -69,9 +69,9 @@ class EnhanceResult:
     """Per neighbour (as ``neighbours``): whether its pose was refined for this view
     (:mod:`roguenerf.geometry.align`); None when pose refinement is off."""
     colour_offset: list[float] | None = None
-    """The RGB offset added to the whole image to match the agreeing neighbours' colour
-    (:mod:`roguenerf.geometry.colour`); None where none was added (colour matching off, fewer
-    than two neighbours, or too few pixels where they agree)."""
+    """The view's RGB offset to the agreeing neighbours' colour (:mod:`roguenerf.geometry.colour`;
+    what was added varies smoothly around it across the image); None where nothing was added
+    (colour matching off, fewer than two neighbours, or too few pixels where they agree)."""
 
 
 def _check_image(x: Tensor, name: str, channels: int) -> Tensor:
@@ -118,9 +118,9 @@ class SceneEnhancer:
             (:func:`~roguenerf.geometry.align.align_neighbour`): a photo whose dataset pose is a
             little off then still lands on the render. True, False, or an
             :class:`~roguenerf.geometry.align.AlignConfig`; default :data:`DEFAULT_ALIGN`.
-        colour: after enhancing, shift the image's colour to the neighbour photos' where two or
-            more of them agree (:func:`~roguenerf.geometry.colour.colour_offset`): the model's
-            colour prior comes from its pre-training renders, the photos are the camera's own.
+        colour: after enhancing, bring the image's low-frequency colour to the neighbour photos'
+            where two or more of them agree (:func:`~roguenerf.geometry.colour.colour_match`): the
+            model's colour prior comes from its pre-training renders, the photos are the camera's own.
             True, False, or a :class:`~roguenerf.geometry.colour.ColourConfig`; default
             :data:`DEFAULT_COLOUR`.
     """
@@ -393,25 +393,30 @@ class SceneEnhancer:
             raise NonFiniteOutputError("the enhancer produced non-finite values for this view; the model or "
                                  "its inputs are broken (check the checkpoint and the depth)")
         image = out[0].clamp(0, 1).to("cpu", torch.float32)
-        offset = None
+        match = None
         if self.colour is not None and len(chosen) >= 2:
-            offset = self.colour_offset(positions, image, depth, K, world_from_cam, n_pose)
-            if offset is not None:
-                image = (image + offset.view(3, 1, 1)).clamp(0, 1)
+            match = self.colour_match(positions, image, depth, K, world_from_cam, n_pose)
+            if match is not None:
+                field = match.field
+                if field.shape[-2:] != image.shape[-2:]:
+                    field = torch.nn.functional.interpolate(field, size=tuple(image.shape[-2:]), mode="bilinear",
+                                                            align_corners=False)
+                image = (image + field[0]).clamp(0, 1)
         names = [self.scene.frames[i].name for i in chosen]
         return EnhanceResult(image=image, neighbours=names, seconds=time.perf_counter() - start, note=note,
                              aligned=aligned if chosen else ([] if self.align is not None else None),
-                             colour_offset=None if offset is None else [round(float(x), 6) for x in offset])
+                             colour_offset=None if match is None else [round(float(x), 6) for x in match.offset])
 
-    def colour_offset(self, positions: list[int], image: Tensor, depth: Tensor, K: Tensor,
-                      world_from_cam: Tensor, poses: Tensor) -> Tensor | None:
-        """``(3,)`` offset matching ``image`` (an enhanced view) to the neighbours at training
-        ``positions`` seen from ``poses`` (:func:`~roguenerf.geometry.colour.colour_offset`), on
-        copies no larger than :data:`ALIGN_SIDE` (the neighbours' are the pose fit's); None
-        where there is no agreement to match, or colour matching is off."""
+    def colour_match(self, positions: list[int], image: Tensor, depth: Tensor, K: Tensor,
+                     world_from_cam: Tensor, poses: Tensor):
+        """How far ``image`` (an enhanced view) is from the colour of the neighbours at training
+        ``positions`` seen from ``poses`` (:func:`~roguenerf.geometry.colour.colour_match`), on
+        copies no larger than :data:`ALIGN_SIDE` (the neighbours' are the pose fit's): a
+        :class:`~roguenerf.geometry.colour.ColourMatch` whose field is at the small copy's size;
+        None where there is no agreement to match, or colour matching is off."""
         from roguenerf.geometry import reproject
         from roguenerf.geometry.align import shrink
-        from roguenerf.geometry.colour import colour_offset
+        from roguenerf.geometry.colour import colour_match
 
         if self.colour is None:
             return None
@@ -425,7 +430,7 @@ class SceneEnhancer:
                 r = reproject(photo[None], photo_depth[None], small_depth[None], photo_K.float(), small_K.float(),
                               poses[j].cpu().to(torch.float64), pose, leniency=leniency)
                 seen.append((r.features, r.valid))
-            return colour_offset(small[None], seen, self.colour)
+            return colour_match(small[None], seen, self.colour)
 
     def _any_neighbour_sees(self, positions: list[int], depth_b: Tensor, K_b: Tensor, pose_b: Tensor) -> bool:
         """Whether any target pixel passes the reprojection test in any neighbour, checked on a

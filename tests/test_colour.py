@@ -8,7 +8,7 @@ import torch
 
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.errors import InputError
-from roguenerf.geometry.colour import ColourConfig, colour_offset
+from roguenerf.geometry.colour import ColourConfig, colour_match, colour_offset
 
 SHIFT = torch.tensor([0.02, -0.01, 0.03])
 
@@ -57,8 +57,35 @@ def test_nothing_is_changed_without_two_agreeing_neighbours():
     assert colour_offset(image, [(photo, full), (other, full)]) is not None
 
 
+def test_the_field_follows_a_shift_that_varies_across_the_view():
+    """The image is too bright on the left and too dark on the right (a smooth ramp): the field
+    takes each side back; without a field (local_sigma 0) one median offset is all there is."""
+    photo = textured(5, 64, 128)
+    full = torch.ones(1, 1, 64, 128)
+    ramp = torch.linspace(0.04, -0.04, 128).view(1, 1, 1, 128).expand(1, 3, 64, 128)
+    match = colour_match(photo + ramp, [(photo, full), (photo, full)])
+    assert match.share == 1.0
+    inner = (..., slice(16, 48), slice(24, 104))  # away from the borders' replicate padding
+    assert torch.allclose(match.field[inner], -ramp[inner], atol=2e-3)
+    flat = colour_match(photo + ramp, [(photo, full), (photo, full)], ColourConfig(local_sigma=0))
+    assert torch.allclose(flat.field, flat.offset.view(1, 3, 1, 1).expand(1, 3, 64, 128))
+    assert flat.offset.abs().max() < 2e-3  # the ramp's median
+
+
+def test_where_no_neighbours_agree_the_field_leans_on_the_views_offset():
+    photo = textured(6, 64, 128)
+    left = torch.zeros(1, 1, 64, 128)
+    left[..., :80] = 1  # both see the left 62 %, none the rest
+    match = colour_match(photo + SHIFT.view(1, 3, 1, 1), [(photo * left, left), (photo * left, left)])
+    assert match.share == pytest.approx(80 / 128)
+    assert torch.allclose(match.offset, -SHIFT, atol=1e-5)
+    # Far from anything seen the field is the offset; inside, the local measure, the same here.
+    assert torch.allclose(match.field[..., 120:], -SHIFT.view(1, 3, 1, 1).expand(1, 3, 64, 8), atol=1e-4)
+    assert torch.allclose(match.field[..., 8:60], -SHIFT.view(1, 3, 1, 1).expand(1, 3, 64, 52), atol=5e-4)
+
+
 @pytest.mark.parametrize("bad", [dict(sigma=0), dict(max_disagreement=-1), dict(min_share=2.0),
-                                 dict(min_share=float("nan"))])
+                                 dict(min_share=float("nan")), dict(local_sigma=-1), dict(local_support=0)])
 def test_the_config_is_checked(bad):
     with pytest.raises(InputError, match="ColourConfig"):
         ColourConfig(**bad)
@@ -108,6 +135,7 @@ def test_the_scene_enhancer_takes_a_colour_bias_back_out(tmp_path):
     assert torch.allclose(off.image, (render + bias.view(3, 1, 1)).clamp(0, 1))
     assert len(on.colour_offset) == 3
     assert torch.allclose(torch.tensor(on.colour_offset), -bias, atol=0.01)
+    assert (on.image - render).abs().mean() < 0.01  # everywhere, not just on average
     assert (on.image - render).mean().abs() < 0.01 < (off.image - render).mean().abs()
     report = evaluate(scene, model)
     assert report["views"][0]["colour_offset"] == on.colour_offset

@@ -93,7 +93,8 @@ def test_cached_result_equals_direct_model_call(scene):
     i = scene.index("test_001")
     frame = scene.frames[i]
     result = enhancer.enhance_view(i)
-    matched = SceneEnhancer(scene, model, num_neighbours=2).enhance_view(i)
+    matcher = SceneEnhancer(scene, model, num_neighbours=2)
+    matched = matcher.enhance_view(i)
     idx = [scene.index(n) for n in result.neighbours]
     with torch.no_grad():
         feats = model.encode_neighbours(torch.stack([scene.photo(j) for j in idx]))
@@ -102,10 +103,14 @@ def test_cached_result_equals_direct_model_call(scene):
         direct = model(scene.render(i)[None], scene.depth(i)[None], frame.K.float()[None],
                        frame.world_from_cam.float()[None], batch)[0].clamp(0, 1)
     torch.testing.assert_close(result.image, direct, atol=1e-5, rtol=0)
-    # With colour matching (the default) the same image, shifted by the offset it reports.
+    # With colour matching (the default) the same image plus the colour field, upsampled.
     assert result.colour_offset is None and matched.colour_offset is not None
-    shifted = (direct + torch.tensor(matched.colour_offset).view(3, 1, 1)).clamp(0, 1)
-    torch.testing.assert_close(matched.image, shifted, atol=1e-5, rtol=0)
+    positions = [matcher.train.index(j) for j in idx]
+    match = matcher.colour_match(positions, direct, scene.depth(i), frame.K, frame.world_from_cam,
+                                  scene.poses(idx).to(torch.float64))
+    assert match.offset.tolist() == pytest.approx(matched.colour_offset, abs=1e-6)
+    field = torch.nn.functional.interpolate(match.field, size=direct.shape[-2:], mode="bilinear", align_corners=False)
+    torch.testing.assert_close(matched.image, (direct + field[0]).clamp(0, 1), atol=1e-5, rtol=0)
 
 
 def test_view_seen_by_no_neighbour_runs_without_them(scene):

@@ -132,7 +132,8 @@ def test_views_give_the_enhance_camera_of_each_view(client, toy, scene_id):
     if direct.colour_offset is None:
         assert "X-Colour-Offset" not in r.headers
     else:
-        assert [float(x) for x in r.headers["X-Colour-Offset"].split(",")] == pytest.approx(direct.colour_offset, abs=1e-6)
+        sent = [float(x) for x in r.headers["X-Colour-Offset"].split(",")]
+        assert sent == pytest.approx(direct.colour_offset, abs=1e-6)
 
 
 def test_view_files_are_the_scene_pixels(client, toy, scene_id):

@@ -1,18 +1,23 @@
-"""Colour matching: the enhanced view's overall colour, anchored on the neighbour photos.
+"""Colour matching: the enhanced view's low-frequency colour, anchored on the neighbour photos.
 
 The enhancer learns a colour prior from its pre-training renders (our grid fields render a
-little darker than the photos, so it brightens). A field of another kind (splats, which match
-the photos' colour) then comes out a few thousandths too bright in every pixel: PSNR barely
-notices, but FLIP (:func:`roguenerf.metrics.flip`) does, in every flat region of the image.
+little darker than the photos, so it brightens), and its small model restores detail better
+than smooth shading. A field of another kind (splats, which match the photos' colour) then
+comes out a few thousandths too bright, and flat regions drift a little: PSNR barely notices,
+but FLIP (:func:`roguenerf.metrics.flip`) does, in every flat region of the image.
 
 The neighbour photos are the camera's own colour. Where two or more of them, reprojected
 through the render's depth, agree with each other at low frequency, the geometry is right
-there and their colour is what the view's photo shows. :func:`colour_offset` is the median,
-over those pixels, of the neighbours' colour minus the enhanced image's (both blurred: only
-the colour, not the detail), per channel; :class:`~roguenerf.inference.SceneEnhancer` adds it
-to the whole enhanced image. Where fewer than :attr:`ColourConfig.min_share` of the pixels
-have agreeing neighbours (a field whose geometry is broken, a single neighbour), nothing is
-changed.
+there and their colour is what the view's photo shows. :func:`colour_match` measures, on those
+pixels, the neighbours' colour minus the enhanced image's (both blurred: colour, not detail):
+
+- its median per channel, the **offset** of the whole view;
+- and a smooth **field** of it: the difference averaged over the agreeing pixels within about
+  :attr:`ColourConfig.local_sigma` pixels, blended into the offset where few pixels near by agree.
+
+:class:`~roguenerf.inference.SceneEnhancer` adds the field (upsampled) to the enhanced image.
+Where fewer than :attr:`ColourConfig.min_share` of the pixels have agreeing neighbours (a field
+whose geometry is broken, a single neighbour), nothing is changed.
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ from roguenerf.errors import InputError
 class ColourConfig:
     sigma: float = 2.0
     """Gaussian blur (pixels of the copies no larger than ``ALIGN_SIDE``) of both the
-    neighbours and the enhanced image: the offset is about colour, not detail."""
+    neighbours and the enhanced image before they are compared: colour, not detail."""
     max_disagreement: float = 0.03
     """Two neighbours agree at a pixel when their blurred colours differ by less than this
     (mean over RGB, colours in [0, 1]); 0.02 and 0.05 gave the same offsets within 0.01 dB on
@@ -41,14 +46,35 @@ class ColourConfig:
     figure, views of fields with sound geometry have 57-82 %, those of ollie's broken hash
     field (floaters) 0-24 %, where a 10-minute fine-tune's worst view lost another 0.18 dB
     with a 5 % floor (docs/kinds.md)."""
+    local_sigma: float = 8.0
+    """Reach (Gaussian sigma, pixels of the small copies) of the field: the colour difference is
+    averaged over the agreeing pixels this near. 0: the view's offset alone, no field. 4, 8 and
+    16 were measured (docs/kinds.md, *Matching the neighbours' colour*)."""
+    local_support: float = 0.5
+    """Where the agreeing pixels' weight near a pixel (their blurred share) is under this, the
+    field there leans on the view's offset in proportion."""
 
     def __post_init__(self):
-        for name in ("sigma", "max_disagreement", "min_share"):
+        for name in ("sigma", "max_disagreement", "min_share", "local_support"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and 0 < value < float("inf")):
                 raise InputError(f"ColourConfig.{name}: expected a positive number, got {value!r}")
-        if self.min_share > 1:
-            raise InputError(f"ColourConfig.min_share: expected a share in (0, 1], got {self.min_share}")
+        if not (isinstance(self.local_sigma, (int, float)) and 0 <= self.local_sigma < float("inf")):
+            raise InputError(f"ColourConfig.local_sigma: expected a number >= 0, got {self.local_sigma!r}")
+        for name in ("min_share", "local_support"):
+            if getattr(self, name) > 1:
+                raise InputError(f"ColourConfig.{name}: expected a share in (0, 1], got {getattr(self, name)}")
+
+
+@dataclass
+class ColourMatch:
+    offset: Tensor
+    """``(3,)`` the view's offset: the median over the agreeing pixels."""
+    field: Tensor
+    """``(1, 3, h, w)`` what to add at each pixel (the image's size): the offset where
+    ``local_sigma`` is 0."""
+    share: float
+    """Share of the pixels where two or more neighbours agree."""
 
 
 def _blur(x: Tensor, sigma: float) -> Tensor:
@@ -56,9 +82,9 @@ def _blur(x: Tensor, sigma: float) -> Tensor:
     return gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="replicate")
 
 
-def colour_offset(image: Tensor, neighbours: list[tuple[Tensor, Tensor]],
-                  config: ColourConfig | None = None) -> Tensor | None:
-    """The per-channel offset that brings ``image``'s colour to the agreeing neighbours'.
+def colour_match(image: Tensor, neighbours: list[tuple[Tensor, Tensor]],
+                 config: ColourConfig | None = None) -> ColourMatch | None:
+    """How far ``image``'s colour is from the agreeing neighbours', as an offset and a field.
 
     Args:
         image: ``(1, 3, h, w)`` the enhanced view (any size; the caller passes a small copy).
@@ -67,8 +93,8 @@ def colour_offset(image: Tensor, neighbours: list[tuple[Tensor, Tensor]],
             gives them.
         config: thresholds; default :class:`ColourConfig`.
     Returns:
-        ``(3,)`` float32 to add to every pixel, or None where fewer than two neighbours agree
-        on at least ``config.min_share`` of the pixels.
+        A :class:`ColourMatch`, or None where fewer than two neighbours agree on at least
+        ``config.min_share`` of the pixels.
     """
     config = config or ColourConfig()
     if image.ndim != 4 or image.shape[:2] != (1, 3):
@@ -98,9 +124,26 @@ def colour_offset(image: Tensor, neighbours: list[tuple[Tensor, Tensor]],
             both = valid[a] & valid[b]
             d = (blurred[a] - blurred[b]).abs().mean(1)
             disagreement = torch.where(both, torch.maximum(disagreement, d), disagreement)
-    agree = (count >= 2) & (disagreement < config.max_disagreement)
-    if float(agree.float().mean()) < config.min_share:
+    agree = (count >= 2) & (disagreement < config.max_disagreement)  # (1, h, w)
+    share = float(agree.float().mean())
+    if share < config.min_share:
         return None
-    diff = (mean - _blur(image, config.sigma))[0]  # (3, h, w)
-    offset = torch.stack([diff[c][agree[0]].median() for c in range(3)])
-    return offset if bool(torch.isfinite(offset).all()) else None
+    diff = mean - _blur(image, config.sigma)  # (1, 3, h, w)
+    offset = torch.stack([diff[0, c][agree[0]].median() for c in range(3)])
+    if not bool(torch.isfinite(offset).all()):
+        return None
+    field = offset.view(1, 3, 1, 1).expand_as(image).clone()
+    if config.local_sigma > 0:
+        a = agree[:, None].float()
+        support = _blur(a, config.local_sigma)
+        local = _blur(diff * a, config.local_sigma) / support.clamp_min(1e-3)
+        w = (support / config.local_support).clamp(0, 1)
+        field = w * local + (1 - w) * field
+    return ColourMatch(offset=offset, field=field, share=share)
+
+
+def colour_offset(image: Tensor, neighbours: list[tuple[Tensor, Tensor]],
+                  config: ColourConfig | None = None) -> Tensor | None:
+    """The view's ``(3,)`` offset of :func:`colour_match` (None where it finds no agreement)."""
+    match = colour_match(image, neighbours, config)
+    return None if match is None else match.offset
