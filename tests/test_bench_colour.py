@@ -1,0 +1,46 @@
+"""bench/colour.py end to end on a toy scene: one model output per view, each colour setting
+applied to it; matching takes a model's colour bias out."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+
+from bench import colour
+from roguenerf.checkpoint import save_checkpoint
+from roguenerf.data.toy import make_toy_scene
+from roguenerf.errors import InputError
+from roguenerf.models import Enhancer, make_config
+
+
+def test_settings_side_by_side_on_one_output(tmp_path):
+    from roguenerf.imageio import read_image, write_png
+
+    make_toy_scene(tmp_path / "toy", seed=2, n_train=6, n_test=2, height=72, width=96)
+    # The test views' renders come out too bright (as a field that learned another exposure):
+    # a fresh enhancer is the identity, so only colour matching can take it back out.
+    for png in (tmp_path / "toy" / "renders").glob("test_*.png"):
+        write_png(png, (read_image(png.read_bytes()) + 0.06).clamp(0, 1))
+    ckpt = save_checkpoint(tmp_path / "m.safetensors", Enhancer(make_config("nano", num_neighbours=2)))
+    out = tmp_path / "colour_0.5"
+    assert colour.main([str(tmp_path / "toy"), "--checkpoint", str(ckpt), "--configs", "off,local_sigma=0,default",
+                        "--max-views", "1", "--output", str(out)]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "colour_0.5.csv")))
+    assert [r["config"] for r in rows] == ["off", "local_sigma=0", "default"]
+    off, flat, default = rows
+    assert off["changed"] == "False" and off["agree_share"] == ""
+    # The neighbours (the photos, exact geometry) agree: their colour replaces the render's.
+    assert default["changed"] == "True" and float(default["agree_share"]) > 0.3
+    assert float(default["gain_db"]) > float(off["gain_db"]) + 1 and float(flat["gain_db"]) > float(off["gain_db"])
+    assert all(r["date"] and r["machine"] and r["commit"] for r in rows)
+    assert (tmp_path / "colour_0.5.png").stat().st_size > 1000
+    s = {x["config"]: x for x in colour.summary([{**r, "gain_db": float(r["gain_db"]),
+                                                  "flip_change": float(r["flip_change"])} for r in rows])}
+    assert s["default"]["gain_db"] == pytest.approx(float(default["gain_db"]))
+
+
+@pytest.mark.parametrize("spec", ["sigma", "nope=1", "local_sigma=-1"])
+def test_a_bad_setting_is_refused(spec):
+    with pytest.raises(InputError):
+        colour.colour_config(spec)
