@@ -52,6 +52,12 @@
 #   STAGE=pretrain START=/tmp/sixth.safetensors STEPS=1500 LR=2.5e-4 SEED=7 NOISE=0.5,0.05 BLEND=0.5 \
 #     FITS=cup/coarse_x3,dtu_scan24/coarse_x3 OUT=runs/pretrain_B scripts/pretrain_real.sh
 #   # 12 min on 2 cores shared with another run; ships SIXTH + 0.5 (trained - SIXTH)
+# The eighth (2026-11-26, issue 35 item 4: the four new real scenes; docs/kinds.md "More real scenes"):
+#   FOLDS=3 PRESETS=coarse SCENES=bird_figurine,blowtorch,dancing_robot,doraemon STAGE=pairs scripts/pretrain_real.sh  # 17 min
+#   (coke_can and beer's coarse_x3 pairs: FOLDS=3 PRESETS=coarse SCENES=coke_can,beer STAGE=pairs ...)
+#   STAGE=pretrain START=/tmp/sixth.safetensors STEPS=1500 LR=2.5e-4 SEED=7 NOISE=0.5,0.05 BLEND=0.5 \
+#     FITS=cup/coarse_x3,dtu_scan24/coarse_x3,coke_can/coarse_x3,beer/coarse_x3,bird_figurine/coarse_x3,blowtorch/coarse_x3,dancing_robot/coarse_x3,doraemon/coarse_x3 \
+#     OUT=runs/pretrain_E8 scripts/pretrain_real.sh   # 369 s on 2 cores (shared); ships SIXTH + 0.5 (trained - SIXTH)
 # (/tmp/sixth.safetensors is `git show b611814:roguenerf/weights/default.safetensors`.)
 # (/tmp/fifth.safetensors is `git show b24f519:roguenerf/weights/default.safetensors`.)
 # (/tmp/looks.safetensors is `git show 70e5329:roguenerf/weights/default.safetensors`.)
