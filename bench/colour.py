@@ -63,11 +63,10 @@ def parse_args(argv=None):
 
 
 def measure(args) -> list[dict]:
-    import torch
-
     from roguenerf import metrics
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
+    from roguenerf.geometry.colour import apply_match
     from roguenerf.inference import SceneEnhancer
 
     checkpoint = args.checkpoint or default_checkpoint_path()
@@ -95,10 +94,7 @@ def measure(args) -> list[dict]:
                     t0 = time.perf_counter()
                     match = enhancer.colour_match(positions, result.image, depth, frame.K, frame.world_from_cam, poses)
                     if match is not None:
-                        field = torch.nn.functional.interpolate(match.field, size=tuple(image.shape[-2:]),
-                                                                mode="bilinear", align_corners=False)
-                        image = (image + field[0]).clamp(0, 1)
-                        share, changed = match.share, True
+                        image, share, changed = apply_match(image, match), match.share, True
                     seconds = time.perf_counter() - t0
                     enhancer.colour = None
                 out = image[None]

@@ -397,11 +397,9 @@ class SceneEnhancer:
         if self.colour is not None and len(chosen) >= 2:
             match = self.colour_match(positions, image, depth, K, world_from_cam, n_pose)
             if match is not None:
-                field = match.field
-                if field.shape[-2:] != image.shape[-2:]:
-                    field = torch.nn.functional.interpolate(field, size=tuple(image.shape[-2:]), mode="bilinear",
-                                                            align_corners=False)
-                image = (image + field[0]).clamp(0, 1)
+                from roguenerf.geometry.colour import apply_match
+
+                image = apply_match(image, match)
         names = [self.scene.frames[i].name for i in chosen]
         return EnhanceResult(image=image, neighbours=names, seconds=time.perf_counter() - start, note=note,
                              aligned=aligned if chosen else ([] if self.align is not None else None),

@@ -142,6 +142,15 @@ def colour_match(image: Tensor, neighbours: list[tuple[Tensor, Tensor]],
     return ColourMatch(offset=offset, field=field, share=share)
 
 
+def apply_match(image: Tensor, match: ColourMatch) -> Tensor:
+    """``(3, H, W)`` ``image`` plus ``match``'s field (bilinearly upsampled to its size), clamped to [0, 1]."""
+    field = match.field
+    if field.shape[-2:] != image.shape[-2:]:
+        field = torch.nn.functional.interpolate(field, size=tuple(image.shape[-2:]), mode="bilinear",
+                                                align_corners=False)
+    return (image + field[0]).clamp(0, 1)
+
+
 def colour_offset(image: Tensor, neighbours: list[tuple[Tensor, Tensor]],
                   config: ColourConfig | None = None) -> Tensor | None:
     """The view's ``(3,)`` offset of :func:`colour_match` (None where it finds no agreement)."""
