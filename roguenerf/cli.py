@@ -40,6 +40,7 @@ WithoutOpt = Annotated[list[str] | None, typer.Option(
     "--without", help="Switch a component off (repeatable): neighbours, alignment, refinement, attention.")]
 VariantOpt = Annotated[str | None, typer.Option("--variant", help="Model variant: nano, micro, T, S, B.")]
 CropOpt = Annotated[int | None, typer.Option("--crop", help="Random crop side in pixels (default per machine).")]
+BatchOpt = Annotated[int, typer.Option("--batch", help="Crops per optimiser step.")]
 VggOpt = Annotated[Path | None, typer.Option(
     "--vgg-weights", help="Local torchvision VGG-19 weights for the perceptual loss (else L1 alone).")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed.")]
@@ -255,6 +256,7 @@ def pretrain(
     without: WithoutOpt = None,
     variant: VariantOpt = None,
     crop: CropOpt = None,
+    batch: BatchOpt = 4,
     vgg_weights: VggOpt = None,
     seed: SeedOpt = 0,
     neighbours: NeighboursOpt = None,
@@ -292,7 +294,7 @@ def pretrain(
                                  f"got {neighbour_pose_noise!r}") from None
         config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
                                vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, lr=lr,
-                               lr_schedule=lr_schedule, evaluate=False, held_out_share=held_out_share,
+                               lr_schedule=lr_schedule, evaluate=False, held_out_share=held_out_share, batch=batch,
                                pool_spread=pool_spread, neighbour_pose_noise=noise, depth_noise=depth_noise)
         dirs = list(scene_dirs or [])
         position = {}  # resolved folder -> its first position in dirs

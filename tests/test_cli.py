@@ -162,13 +162,17 @@ def test_finetune_ablation_from_a_full_checkpoint(scene_dir, checkpoint, tmp_pat
 
 def test_pretrain_with_toy_scenes(scene_dir, tmp_path):
     out = tmp_path / "pt"
-    result = _run("pretrain", scene_dir, "--toy", "1", "--steps", "1", "--depth-noise", "0.3", "--output", out, *FAST)
+    result = _run("pretrain", scene_dir, "--toy", "1", "--steps", "1", "--depth-noise", "0.3", "--batch", "3",
+                  "--output", out, *FAST)
     assert result.exit_code == 0, result.output
     _, meta = load_checkpoint(out / "model.safetensors")
     assert len(meta["training"]["scenes"]) == 2 and meta["training"]["plan"]["depth_noise"] == 0.3
+    assert meta["training"]["plan"]["batch"] == 3
     assert (out / "toy" / "toy_000" / "transforms.json").is_file()
     bad = _run("pretrain", "--toy", "1", "--steps", "1", "--depth-noise", "9", "--output", tmp_path / "x", *FAST)
     assert bad.exit_code == 2 and "depth_noise" in bad.stderr and "Traceback" not in bad.output
+    bad = _run("pretrain", "--toy", "1", "--steps", "1", "--batch", "0", "--output", tmp_path / "x", *FAST)
+    assert bad.exit_code == 2 and "batch" in bad.stderr and "Traceback" not in bad.output
 
 
 @pytest.mark.slow
