@@ -231,6 +231,14 @@ def test_3_compare_shows_what_enhance_returned_and_the_slider_moves(session, sit
         f"{n} (pose refined)" if n in refined else n for n in answer["headers"]["x-neighbours"].split(","))
     assert len(answer["headers"]["x-neighbours"].split(",")) == 2
     assert _text(page, "#cmp-version") == "v2" == "v" + answer["headers"]["x-checkpoint-version"]
+    sent = answer["headers"].get("x-colour-offset")
+    if sent is None:
+        assert _text(page, "#cmp-colour") == "no (the neighbours did not agree enough)"
+    else:
+        shown = _text(page, "#cmp-colour")
+        assert shown.startswith("yes, offset R "), shown
+        values = [float(x.replace("−", "-")) for x in shown.split()[3::2]]
+        assert values == pytest.approx([float(x) for x in sent.split(",")], abs=1e-4)
 
     # The enhanced view downloads as the PNG /enhance returned.
     with page.expect_download() as info:

@@ -73,6 +73,10 @@
     },
     date: (iso) => iso ? new Date(iso).toLocaleString() : "–",
     version: (v) => v === 0 ? "v0 (default)" : "v" + v,
+    /** X-Colour-Offset (R, G, B added to match the neighbour photos' colour), or none sent. */
+    colour: (rgb) => rgb && rgb.length === 3
+      ? "yes, offset " + ["R", "G", "B"].map((c, k) => `${c} ${rgb[k] >= 0 ? "+" : "−"}${Math.abs(rgb[k]).toFixed(4)}`).join(" ")
+      : "no (the neighbours did not agree enough)",
   };
 
   // ------------------------------------------------------------------ screens
@@ -524,6 +528,7 @@
       blob: await response.blob(),
       neighbours: (response.headers.get("X-Neighbours") || "").split(",").filter(Boolean),
       refined: (response.headers.get("X-Pose-Refined") || "").split(",").filter(Boolean),
+      colour: (response.headers.get("X-Colour-Offset") || "").split(",").filter(Boolean).map(Number),
       seconds: Number(response.headers.get("X-Enhance-Seconds")),
       version: response.headers.get("X-Checkpoint-Version"),
       note: response.headers.get("X-Enhance-Note"),
@@ -577,6 +582,7 @@
       $("cmp-neighbours").textContent = out.neighbours
         .map((n) => (out.refined.includes(n) ? `${n} (pose refined)` : n)).join(", ") || "none";
       $("cmp-version").textContent = fmt.version(Number(out.version));
+      $("cmp-colour").textContent = fmt.colour(out.colour);
       $("cmp-seconds").textContent = out.cached ? `${out.seconds.toFixed(2)} s (cached result)` : `${out.seconds.toFixed(2)} s`;
       $("cmp-note").textContent = out.note || "–";
       status.textContent = `${view.name}: scoring…`;
