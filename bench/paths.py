@@ -193,8 +193,9 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="3 keys x 4 steps (9 frames)")
     parser.add_argument("--align", choices=["on", "off"], default="on",
                         help="neighbour pose refinement (default on, as shipped)")
-    parser.add_argument("--colour", choices=["on", "off"], default="on",
-                        help="colour matching to the neighbour photos (default on, as shipped)")
+    parser.add_argument("--colour", default="on",
+                        help="colour matching to the neighbour photos: on (default, as shipped), off, or a "
+                             "setting FIELD=VALUE[:FIELD=VALUE] of ColourConfig (bench.colour's --configs)")
     parser.add_argument("--photo-path", action="store_true", help=(
         "a path made only of the scene's views (train and test, in azimuth order, --steps 1): every "
         "frame has a photo, so the photos' own flicker is measured too"))
@@ -202,6 +203,17 @@ def main() -> None:
         "an exact-geometry toy orbit instead of the fitted field (renders: the photos through "
         "roguenerf's NeRF-like Degradation, drawn anew per frame)"))
     args = parser.parse_args()
+    from bench.colour import colour_config
+    from roguenerf.errors import InputError
+
+    colour = {"on": True, "off": False}.get(args.colour)
+    if colour is None:
+        try:
+            colour = colour_config(args.colour)
+        except (InputError, ValueError) as exc:  # a field ColourConfig has not, a value that is no number
+            parser.error(f"--colour: expected on, off or FIELD=VALUE[:FIELD=VALUE], got {args.colour!r} ({exc})")
+    colour_tag = {"on": "", "off": "_nocolour"}.get(
+        args.colour, "_colour_" + args.colour.replace("=", "").replace(":", "_"))
     if args.quick:
         args.keys, args.steps = 3, 4
     if args.photo_path:
@@ -221,11 +233,10 @@ def main() -> None:
     keys = key_views(scene, args.keys, "all" if args.photo_path else "test")
     checkpoint = args.checkpoint or default_checkpoint_path()
     model, _ = load_checkpoint(checkpoint)
-    enhancer = SceneEnhancer(scene, model, align=args.align == "on", colour=args.colour == "on")
+    enhancer = SceneEnhancer(scene, model, align=args.align == "on", colour=colour)
     camera_path = CameraPath(world_from_cam=poses, K=K.expand(len(poses), 3, 3).clone(), width=width,
                              height=height, fps=24.0)
-    out = frames.parent / ("enhanced_" + frames.name + ("" if args.align == "on" else "_noalign")
-                           + ("" if args.colour == "on" else "_nocolour"))
+    out = frames.parent / ("enhanced_" + frames.name + ("" if args.align == "on" else "_noalign") + colour_tag)
     result = enhance_path(scene, enhancer, camera_path, frames, out, quality=args.quality,
                           checkpoint_id=f"{checkpoint}:align={args.align}:colour={args.colour}",
                           progress=lambda d, n: print(f"enhanced {d}/{n}", flush=True))
@@ -258,7 +269,7 @@ def main() -> None:
                "cached_views": result.cached_views, "video": {"enhanced": info, "side_by_side": side},
                "video_path": str(result.video)}
     variant = (("_toy" if args.toy else "") + ("_photos" if args.photo_path else "")
-               + ("_noalign" if args.align == "off" else "") + ("_nocolour" if args.colour == "off" else ""))
+               + ("_noalign" if args.align == "off" else "") + colour_tag)
     stem = "paths" + variant + ("_quick" if args.quick else "")
     write_json(RESULTS / f"{stem}.json", summary)
 
