@@ -222,10 +222,25 @@ def run(args) -> tuple[list[dict], list[dict]]:
     return rows, fits
 
 
+FIELD_CONFIG = {"local_sigma": 8.0}
+"""The colour matching of results cached as ``_colourfield`` (ColourConfig's defaults then)."""
+
+
+def colour_cache_tag(config) -> str:
+    """``_colourfield``, plus ``_FIELDVALUE`` for each field where ``config`` differs from the
+    setting cached results without it were measured with (:data:`FIELD_CONFIG`)."""
+    from roguenerf.geometry.colour import ColourConfig
+
+    then = ColourConfig(**FIELD_CONFIG)
+    return "_colourfield" + "".join(f"_{f}{getattr(config, f):g}" for f in ColourConfig.__dataclass_fields__
+                                    if getattr(config, f) != getattr(then, f))
+
+
 def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tuple[list[dict], dict]:
     """One held-out scene: fit (cached), zero-shot with each pose-noise level, fine-tunes (cached)."""
     from roguenerf.checkpoint import load_checkpoint
     from roguenerf.data.readers import load_scene
+    from roguenerf.geometry.colour import ColourConfig
     from roguenerf.training import TrainConfig, evaluate, finetune
 
     photos = downscaled_photo_set(args.data / name, args.runs / "photos" / f"{name}_s{args.scale}", args.scale)
@@ -245,7 +260,7 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
     colour = args.colour == "on"
     # Results cached before pose refinement existed had it off, before colour matching that off
     # ("_colour": the first, view-wide offset only, before its local field).
-    suffix = ("_align" if align else "") + ("_colourfield" if colour else "")
+    suffix = ("_align" if align else "") + (colour_cache_tag(ColourConfig()) if colour else "")
     plan = f"_depth{args.finetune_depth_noise:g}" if args.finetune_depth_noise else ""  # the fine-tune's options
 
     def note(new: list[dict]) -> None:

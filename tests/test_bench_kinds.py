@@ -131,3 +131,13 @@ def test_every_bench_output_keeps_a_dot_in_its_name(tmp_path):
     for output in ("cmp_0.5", "cmp_0.6.csv"):
         assert kinds_compare.main([str(run), "--output", str(tmp_path / output)]) == 0
     assert sorted(p.name for p in tmp_path.glob("cmp*")) == ["cmp_0.5.csv", "cmp_0.5.png", "cmp_0.6.csv", "cmp_0.6.png"]
+
+
+def test_colour_cache_tag_names_what_differs_from_the_cached_setting():
+    """Rows cached as ``_colourfield`` were measured with local_sigma 8: another setting must not
+    read them back (it would report the old setting's figures as its own)."""
+    from roguenerf.geometry.colour import ColourConfig
+
+    assert kinds.colour_cache_tag(ColourConfig(local_sigma=8.0)) == "_colourfield"
+    assert kinds.colour_cache_tag(ColourConfig(local_sigma=3.0)) == "_colourfield_local_sigma3"
+    assert kinds.colour_cache_tag(ColourConfig(local_sigma=8.0, min_share=0.05)) == "_colourfield_min_share0.05"

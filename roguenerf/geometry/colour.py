@@ -46,10 +46,13 @@ class ColourConfig:
     figure, views of fields with sound geometry have 57-82 %, those of ollie's broken hash
     field (floaters) 0-24 %, where a 10-minute fine-tune's worst view lost another 0.18 dB
     with a 5 % floor (docs/kinds.md)."""
-    local_sigma: float = 8.0
+    local_sigma: float = 3.0
     """Reach (Gaussian sigma, pixels of the small copies) of the field: the colour difference is
-    averaged over the agreeing pixels this near. 0: the view's offset alone, no field. 4, 8 and
-    16 were measured (docs/kinds.md, *Matching the neighbours' colour*)."""
+    averaged over the agreeing pixels this near. 0: the view's offset alone, no field. 2, 3, 4,
+    6, 8 (the default before 2026-11-27) and 16 were measured side by side (docs/kinds.md,
+    *Matching the neighbours' colour*): the smaller, the higher the zero-shot gain on the
+    leave-one-kind-out figure and the lower the flicker along a path; under 3 the gain flattens
+    on our own look while its worst view gets worse."""
     local_support: float = 0.5
     """Where the agreeing pixels' weight near a pixel (their blurred share) is under this, the
     field there leans on the view's offset in proportion."""
