@@ -25,7 +25,7 @@ import logging
 import math
 import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
@@ -732,8 +732,12 @@ def enhance_path(
     output = Path(output)
     frame_dir = output / FRAME_FOLDER
     frame_dir.mkdir(parents=True, exist_ok=True)
+    # The enhancer's settings too: frames matched with another colour reach or pose refinement
+    # (a changed default after an upgrade) must not be mixed into this video.
     options = {"depth_type": depth_type, "depth_scale": depth_scale, "background": background,
-               "neighbours": enhancer.num_neighbours}
+               "neighbours": enhancer.num_neighbours,
+               "align": None if enhancer.align is None else asdict(enhancer.align),
+               "colour": None if enhancer.colour is None else asdict(enhancer.colour)}
     fingerprint = _fingerprint(camera_path, pairs, checkpoint_id, options)
     state_path = output / STATE_FILE
     if state_path.is_file():
