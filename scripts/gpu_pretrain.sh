@@ -11,9 +11,10 @@
 #   git show b611814:roguenerf/weights/default.safetensors > .gpu/sixth.safetensors   # START
 #   pip download --no-deps kornia==0.9.0 kornia_rs==0.2.0 (cp312 manylinux x86_64) -d .whl
 # There (device tool: carry .gpu and .whl), from the repository root:
-#   MINUTES=6 OUT_DIR=$OUT scripts/gpu_pretrain.sh
+#   MINUTES=6 ROGUENERF_THREADS=5 OUT_DIR=$OUT scripts/gpu_pretrain.sh   # 385 s on an H100, 2026-11-27
 # It writes OUT_DIR/{A,B,C}.safetensors (the trained weights) and {A,B,C}.log. Then, here, blend and
-# measure on the leave-one-kind-out figure as for the eighth (docs/kinds.md):
+# measure on the leave-one-kind-out figure as for the eighth (docs/kinds.md, *Pre-training on a GPU*:
+# none beat the eighth):
 #   python -c 'from roguenerf.checkpoint import blend_checkpoints as b; b(".gpu/sixth.safetensors", "A.safetensors", 0.5, "A_half.safetensors")'
 set -euo pipefail
 cd "$(dirname "$0")/.."
