@@ -68,6 +68,9 @@ def parse_args(argv=None):
                    help="neighbour pose refinement at inference (default on, as shipped)")
     p.add_argument("--colour", choices=["on", "off"], default="on",
                    help="colour matching to the neighbour photos at inference (default on, as shipped)")
+    p.add_argument("--trust", choices=["on", "off"], default="on",
+                   help="keep only part of the enhancer's change where the neighbours mostly disagree "
+                        "(roguenerf.geometry.trust; default on, as shipped)")
     p.add_argument("--finetune-depth-noise", type=float, default=0.0,
                    help="fine-tune with TrainConfig.depth_noise (log-depth error on half the target depths; "
                         "default 0, as shipped); cached apart")
@@ -189,7 +192,8 @@ def view_rows(report: dict, **condition) -> list[dict]:
                      "flip_change": round(e["flip"] - r["flip"], 5), "seconds": round(v["seconds"], 2),
                      "aligned": (None if v.get("aligned") is None
                                  else round(sum(v["aligned"]) / max(1, len(v["aligned"])), 3)),
-                     "colour_matched": v.get("colour_offset") is not None})
+                     "colour_matched": v.get("colour_offset") is not None,
+                     "agreement": v.get("agreement"), "trust_kept": v.get("trust")})
     return rows
 
 
@@ -236,11 +240,20 @@ def colour_cache_tag(config) -> str:
                                     if getattr(config, f) != getattr(then, f))
 
 
+def trust_cache_tag(config) -> str:
+    """``_trust`` plus each of ``config``'s fields as ``_FIELDVALUE``: results measured with trust
+    on (roguenerf.geometry.trust) are cached apart from those before it, and per setting."""
+    from roguenerf.geometry.trust import TrustConfig
+
+    return "_trust" + "".join(f"_{f}{getattr(config, f):g}" for f in TrustConfig.__dataclass_fields__)
+
+
 def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tuple[list[dict], dict]:
     """One held-out scene: fit (cached), zero-shot with each pose-noise level, fine-tunes (cached)."""
     from roguenerf.checkpoint import load_checkpoint
     from roguenerf.data.readers import load_scene
     from roguenerf.geometry.colour import ColourConfig
+    from roguenerf.geometry.trust import TrustConfig
     from roguenerf.training import TrainConfig, evaluate, finetune
 
     photos = downscaled_photo_set(args.data / name, args.runs / "photos" / f"{name}_s{args.scale}", args.scale)
@@ -258,9 +271,11 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
     rows: list[dict] = []
     align = args.align == "on"
     colour = args.colour == "on"
+    trust = args.trust == "on"
     # Results cached before pose refinement existed had it off, before colour matching that off
     # ("_colour": the first, view-wide offset only, before its local field).
-    suffix = ("_align" if align else "") + (colour_cache_tag(ColourConfig()) if colour else "")
+    suffix = (("_align" if align else "") + (colour_cache_tag(ColourConfig()) if colour else "")
+              + (trust_cache_tag(TrustConfig()) if trust else ""))
     plan = f"_depth{args.finetune_depth_noise:g}" if args.finetune_depth_noise else ""  # the fine-tune's options
 
     def note(new: list[dict]) -> None:
@@ -270,6 +285,7 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
             x.setdefault("aligned", None)
             x["align"] = align
             x["colour"] = colour
+            x["trust"] = trust
         rows.extend(new)
         gain = sum(x["gain_db"] for x in new) / len(new)
         flip = sum(x["flip_change"] for x in new) / len(new)
@@ -282,7 +298,7 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
     def zero_shot(k: int, deg: float, share: float, n: int | None = None) -> list[dict]:
         target = scene if deg == 0 and share == 0 else noisy_scene(scene, deg, share, seed=1000 + k)
         return view_rows(evaluate(target, model, max_views=args.max_views, num_neighbours=n, align=align,
-                                  colour=colour), **common,
+                                  colour=colour, trust=trust), **common,
                          stage="zero-shot", minutes=0.0, noise_deg=deg, noise_share=share,
                          neighbours=default_n if n is None else n)
 
@@ -291,7 +307,8 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
                           checkpoint=checkpoint,
                           config=TrainConfig(minutes=m, evaluate=False, depth_noise=args.finetune_depth_noise))
         tuned, _ = load_checkpoint(result.checkpoint)
-        return view_rows(evaluate(scene, tuned, max_views=args.max_views, align=align, colour=colour), **common,
+        return view_rows(evaluate(scene, tuned, max_views=args.max_views, align=align, colour=colour, trust=trust),
+                         **common,
                          stage=f"finetune {m:g} min" + (f", depth noise {args.finetune_depth_noise:g}" if plan else ""),
                          minutes=m, noise_deg=0.0, noise_share=0.0, neighbours=default_n, steps=result.steps)
 

@@ -196,6 +196,9 @@ def main() -> None:
     parser.add_argument("--colour", default="on",
                         help="colour matching to the neighbour photos: on (default, as shipped), off, or a "
                              "setting FIELD=VALUE[:FIELD=VALUE] of ColourConfig (bench.colour's --configs)")
+    parser.add_argument("--trust", choices=["on", "off"], default="on",
+                        help="keep only part of the enhancer's change where the neighbours mostly disagree "
+                             "(roguenerf.geometry.trust; default on, as shipped)")
     parser.add_argument("--photo-path", action="store_true", help=(
         "a path made only of the scene's views (train and test, in azimuth order, --steps 1): every "
         "frame has a photo, so the photos' own flicker is measured too"))
@@ -213,7 +216,8 @@ def main() -> None:
         except (InputError, ValueError) as exc:  # a field ColourConfig has not, a value that is no number
             parser.error(f"--colour: expected on, off or FIELD=VALUE[:FIELD=VALUE], got {args.colour!r} ({exc})")
     colour_tag = {"on": "", "off": "_nocolour"}.get(
-        args.colour, "_colour_" + args.colour.replace("=", "").replace(":", "_"))
+        args.colour, "_colour_" + args.colour.replace("=", "").replace(":", "_")) + (
+        "_notrust" if args.trust == "off" else "")
     if args.quick:
         args.keys, args.steps = 3, 4
     if args.photo_path:
@@ -233,12 +237,12 @@ def main() -> None:
     keys = key_views(scene, args.keys, "all" if args.photo_path else "test")
     checkpoint = args.checkpoint or default_checkpoint_path()
     model, _ = load_checkpoint(checkpoint)
-    enhancer = SceneEnhancer(scene, model, align=args.align == "on", colour=colour)
+    enhancer = SceneEnhancer(scene, model, align=args.align == "on", colour=colour, trust=args.trust == "on")
     camera_path = CameraPath(world_from_cam=poses, K=K.expand(len(poses), 3, 3).clone(), width=width,
                              height=height, fps=24.0)
     out = frames.parent / ("enhanced_" + frames.name + ("" if args.align == "on" else "_noalign") + colour_tag)
     result = enhance_path(scene, enhancer, camera_path, frames, out, quality=args.quality,
-                          checkpoint_id=f"{checkpoint}:align={args.align}:colour={args.colour}",
+                          checkpoint_id=f"{checkpoint}:align={args.align}:colour={args.colour}:trust={args.trust}",
                           progress=lambda d, n: print(f"enhanced {d}/{n}", flush=True))
     from roguenerf.video import read_video_info
 
@@ -260,7 +264,8 @@ def main() -> None:
     summary = {**base, "command": " ".join(["python -m bench.paths", *sys.argv[1:]]),
                "scene": "toy (exact geometry, Degradation per frame)" if args.toy else str(args.fit),
                "size": f"{width}x{height}", "frames": len(poses), "key_views": [scene.frames[i].name for i in keys],
-               "checkpoint": str(checkpoint), "align": args.align, "colour": args.colour, "flicker": fl, "psnr": ps_,
+               "checkpoint": str(checkpoint), "align": args.align, "colour": args.colour,
+               "trust": args.trust, "flicker": fl, "psnr": ps_,
                "flicker_ratio_ok": fl["ratio"] is not None and fl["ratio"] <= 1.05,
                "render_s": round(render_s, 1), "frames_rendered_now": rendered,
                "enhance_s": round(result.seconds, 1), "frames_enhanced_now": result.enhanced_now,

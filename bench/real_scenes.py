@@ -78,6 +78,9 @@ def parse_args(argv=None):
                    help="neighbour pose refinement at inference (default on, as shipped)")
     p.add_argument("--colour", choices=["on", "off"], default="on",
                    help="colour matching to the neighbour photos at inference (default on, as shipped)")
+    p.add_argument("--trust", choices=["on", "off"], default="on",
+                   help="keep only part of the enhancer's change where the neighbours mostly disagree "
+                        "(roguenerf.geometry.trust; default on, as shipped)")
     p.add_argument("--plans", type=lambda t: [x for x in t.split(",") if x], default=["default"],
                    help=f"comma-separated fine-tuning plans: {', '.join(PLANS)}")
     p.add_argument("--replot", type=Path, nargs="+", default=None, metavar="CSV",
@@ -134,7 +137,7 @@ def run(args, save=None) -> list[dict]:
 
     def measure(scene, model) -> dict:
         return evaluate(scene, model, max_views=args.max_views, align=args.align == "on",
-                        colour=args.colour == "on")
+                        colour=args.colour == "on", trust=args.trust == "on")
 
     for scene_dir in args.scenes:
         scene = load_scene(scene_dir)
@@ -143,7 +146,7 @@ def run(args, save=None) -> list[dict]:
         def record(kind: str, minutes: float, steps: int, seconds: float, report: dict, *, label: str = label,
                    **extra) -> None:
             row = {**base, "scene": label, "kind": kind, "minutes": minutes, "steps": steps, "align": args.align,
-                   "colour": args.colour,
+                   "colour": args.colour, "trust": args.trust,
                    "train_seconds": round(seconds, 1), **summarise(report), **extra}
             print(", ".join(f"{k}={v}" for k, v in row.items() if k not in base), flush=True)
             rows.append(row)

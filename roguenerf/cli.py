@@ -56,6 +56,9 @@ AlignOpt = Annotated[bool, typer.Option("--align/--no-align", help=(
 ColourOpt = Annotated[bool, typer.Option("--colour/--no-colour", help=(
     "Match the enhanced view's overall colour to the neighbour photos where two or more agree (the model's "
     "colour prior comes from its pre-training renders). Default on."))]
+TrustOpt = Annotated[bool, typer.Option("--trust/--no-trust", help=(
+    "Keep only part of the enhancer's change on a view where the neighbour photos mostly disagree (the "
+    "field's geometry is off there: floaters), in proportion to the share where they agree. Default on."))]
 FreezeOpt = Annotated[bool | None, typer.Option(
     "--freeze-neighbour-encoder/--train-neighbour-encoder",
     help="Keep conv_H (the neighbour-photo encoder) fixed and encode the training photos once, so each "
@@ -364,6 +367,7 @@ def evaluate(
     neighbours: NeighboursOpt = None,
     align: AlignOpt = True,
     colour: ColourOpt = True,
+    trust: TrustOpt = True,
 ) -> None:
     """PSNR/SSIM/FLIP of renders and enhanced renders against the photos, per view and mean (FLIP: lower is better)."""
     from roguenerf.training import evaluate as run_evaluate
@@ -375,7 +379,7 @@ def evaluate(
         model = _load_model(checkpoint)
         with _progress_bar(f"evaluating {split} views", "view") as progress:
             report = run_evaluate(scene, model, split=split, num_neighbours=neighbours, progress=progress,
-                                  align=align, colour=colour)
+                                  align=align, colour=colour, trust=trust)
     if as_json:
         from roguenerf.imageio import finite_for_json
 
@@ -402,6 +406,7 @@ def enhance(
     neighbours: NeighboursOpt = None,
     align: AlignOpt = True,
     colour: ColourOpt = True,
+    trust: TrustOpt = True,
 ) -> None:
     """Enhance one view's render (a training view never uses its own photo)."""
     from roguenerf.imageio import write_png
@@ -420,7 +425,7 @@ def enhance(
         model = _load_model(checkpoint)
         with _progress_bar(f"enhancing {view}", "tile") as progress:
             result = SceneEnhancer(scene, model, num_neighbours=neighbours,
-                                   align=align, colour=colour).enhance_view(index, progress=progress)
+                                   align=align, colour=colour, trust=trust).enhance_view(index, progress=progress)
         write_png(output, result.image)
         used = ", ".join(f"{n} (pose refined)" if done else n
                          for n, done in zip(result.neighbours, result.aligned or [False] * len(result.neighbours)))
@@ -595,6 +600,7 @@ def enhance_path_command(
     neighbours: NeighboursOpt = None,
     align: AlignOpt = True,
     colour: ColourOpt = True,
+    trust: TrustOpt = True,
     quality: Annotated[int, typer.Option("--quality", help="x264 CRF, 0 (lossless) .. 51; 18-23 look good.")] = 20,
     fps: Annotated[float | None, typer.Option(
         "--fps", help="Frame rate (default: the camera path's, else 24).")] = None,
@@ -647,7 +653,8 @@ def enhance_path_command(
         from roguenerf.checkpoint import load_checkpoint
 
         model, _meta = load_checkpoint(ckpt)
-        enhancer = SceneEnhancer(scene, model, num_neighbours=neighbours, align=align, colour=colour)
+        enhancer = SceneEnhancer(scene, model, num_neighbours=neighbours, align=align, colour=colour,
+                                 trust=trust)
         stat = ckpt.stat()
         with _progress_bar(f"enhancing {len(camera_path)} frames", "frame") as progress:
             result = enhance_path(scene, enhancer, camera_path, frames, output, depth_type=depth_type,

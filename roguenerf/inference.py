@@ -35,6 +35,10 @@ DEFAULT_COLOUR = True
 """Whether :class:`SceneEnhancer` matches the enhanced view's colour to the agreeing neighbour
 photos by default (``colour``; :mod:`roguenerf.geometry.colour`)."""
 
+DEFAULT_TRUST = True
+"""Whether :class:`SceneEnhancer` scales the enhancer's change down on views where the neighbours
+mostly disagree (``trust``; :mod:`roguenerf.geometry.trust`) by default."""
+
 DEFAULT_CACHE_BYTES = 2 << 30
 """Budget of the per-scene neighbour cache (features + depth, float32), least recently used
 first out. A photo whose entry alone would take more than budget / neighbours per request is
@@ -72,6 +76,15 @@ class EnhanceResult:
     """The view's RGB offset to the agreeing neighbours' colour (:mod:`roguenerf.geometry.colour`;
     what was added varies smoothly around it across the image); None where nothing was added
     (colour matching off, fewer than two neighbours, or too few pixels where they agree)."""
+    agreement: float | None = None
+    """Share of the view's pixels where two or more neighbours agree
+    (:func:`~roguenerf.geometry.colour.neighbour_agreement`, measured on the small copies of
+    colour matching); None where not measured (colour matching and trust both off, or fewer than
+    two neighbours)."""
+    trust: float | None = None
+    """Share of the enhancer's change that was kept (:mod:`roguenerf.geometry.trust`): 1 where the
+    neighbours agree on enough of the view, less where they mostly disagree; None where trust is
+    off or fewer than two neighbours were used (nothing to compare)."""
 
 
 def _check_image(x: Tensor, name: str, channels: int) -> Tensor:
@@ -123,11 +136,15 @@ class SceneEnhancer:
             model's colour prior comes from its pre-training renders, the photos are the camera's own.
             True, False, or a :class:`~roguenerf.geometry.colour.ColourConfig`; default
             :data:`DEFAULT_COLOUR`.
+        trust: keep only part of the enhancer's change on a view where the neighbours mostly
+            disagree (the field's geometry is off there, and the detail they bring would land in
+            the wrong place; :mod:`roguenerf.geometry.trust`). True, False, or a
+            :class:`~roguenerf.geometry.trust.TrustConfig`; default :data:`DEFAULT_TRUST`.
     """
 
     def __init__(self, scene, model, *, num_neighbours: int | None = None, tile: int | None = None,
                  device: str | torch.device = "cpu", cache_bytes: int = DEFAULT_CACHE_BYTES, align=None,
-                 colour=None):
+                 colour=None, trust=None):
         if num_neighbours is not None and int(num_neighbours) < 0:
             raise InputError(f"num_neighbours: expected >= 0, got {num_neighbours}")
         if tile is not None and int(tile) < 16:
@@ -165,6 +182,12 @@ class SceneEnhancer:
         if not isinstance(colour, (bool, ColourConfig)):
             raise InputError(f"colour: expected True, False or a ColourConfig, got {type(colour).__name__}")
         self.colour = ColourConfig() if colour is True else (colour or None)
+        from roguenerf.geometry.trust import TrustConfig
+
+        trust = DEFAULT_TRUST if trust is None else trust
+        if not isinstance(trust, (bool, TrustConfig)):
+            raise InputError(f"trust: expected True, False or a TrustConfig, got {type(trust).__name__}")
+        self.trust = TrustConfig() if trust is True else (trust or None)
         self._small: OrderedDict[int, tuple[Tensor, Tensor, Tensor, dict]] = OrderedDict()
         self.cache_bytes = int(cache_bytes)
         self._sources: OrderedDict[int, Tensor] = OrderedDict()
@@ -393,17 +416,36 @@ class SceneEnhancer:
             raise NonFiniteOutputError("the enhancer produced non-finite values for this view; the model or "
                                  "its inputs are broken (check the checkpoint and the depth)")
         image = out[0].clamp(0, 1).to("cpu", torch.float32)
-        match = None
-        if self.colour is not None and len(chosen) >= 2:
-            match = self.colour_match(positions, image, depth, K, world_from_cam, n_pose)
-            if match is not None:
-                from roguenerf.geometry.colour import apply_match
+        match = share = factor = None
+        if (self.colour is not None or self.trust is not None) and len(chosen) >= 2:
+            from roguenerf.geometry.colour import neighbour_agreement
 
-                image = apply_match(image, match)
+            seen, small_image = self._small_seen(positions, image, depth, K, world_from_cam, n_pose)
+            test = self.trust or self.colour  # the same test by default (TrustConfig's sigma, threshold)
+            agree, _ = neighbour_agreement(seen, small_image.shape[-2:], test.sigma, test.max_disagreement)
+            share = float(agree.float().mean())
+            if self.colour is not None:
+                from roguenerf.geometry.colour import apply_match, colour_match
+
+                match = colour_match(small_image[None], seen, self.colour)
+                if match is not None:
+                    image = apply_match(image, match)
+            if self.trust is not None:
+                from roguenerf.geometry.trust import trust_factor
+
+                factor = trust_factor(share, self.trust)
+                if factor < 1:
+                    base = render.to("cpu", torch.float32).clamp(0, 1)
+                    image = (base + factor * (image - base)).clamp(0, 1)
+                    if note is None:
+                        note = (f"the neighbours agree on {share:.0%} of this view (its geometry is off): "
+                                f"{factor:.0%} of the enhancer's change kept")
         names = [self.scene.frames[i].name for i in chosen]
         return EnhanceResult(image=image, neighbours=names, seconds=time.perf_counter() - start, note=note,
                              aligned=aligned if chosen else ([] if self.align is not None else None),
-                             colour_offset=None if match is None else [round(float(x), 6) for x in match.offset])
+                             colour_offset=None if match is None else [round(float(x), 6) for x in match.offset],
+                             agreement=None if share is None else round(share, 4),
+                             trust=None if factor is None else round(factor, 4))
 
     def colour_match(self, positions: list[int], image: Tensor, depth: Tensor, K: Tensor,
                      world_from_cam: Tensor, poses: Tensor):
@@ -412,12 +454,21 @@ class SceneEnhancer:
         copies no larger than :data:`ALIGN_SIDE` (the neighbours' are the pose fit's): a
         :class:`~roguenerf.geometry.colour.ColourMatch` whose field is at the small copy's size;
         None where there is no agreement to match, or colour matching is off."""
-        from roguenerf.geometry import reproject
-        from roguenerf.geometry.align import shrink
         from roguenerf.geometry.colour import colour_match
 
         if self.colour is None:
             return None
+        seen, small = self._small_seen(positions, image, depth, K, world_from_cam, poses)
+        return colour_match(small[None], seen, self.colour)
+
+    def _small_seen(self, positions: list[int], image: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,
+                    poses: Tensor) -> tuple[list[tuple[Tensor, Tensor]], Tensor]:
+        """The neighbours at training ``positions`` (seen from ``poses``) reprojected into the
+        view's copy no larger than :data:`ALIGN_SIDE`, as ``(colour, valid)`` pairs, and
+        ``image``'s copy at that size."""
+        from roguenerf.geometry import reproject
+        from roguenerf.geometry.align import shrink
+
         small, small_depth, small_K = shrink(image, depth, K, ALIGN_SIDE)
         leniency = getattr(self.model.config, "leniency", 0.25)
         pose = torch.as_tensor(world_from_cam).to(torch.float64)
@@ -428,7 +479,7 @@ class SceneEnhancer:
                 r = reproject(photo[None], photo_depth[None], small_depth[None], photo_K.float(), small_K.float(),
                               poses[j].cpu().to(torch.float64), pose, leniency=leniency)
                 seen.append((r.features, r.valid))
-            return colour_match(small[None], seen, self.colour)
+        return seen, small
 
     def _any_neighbour_sees(self, positions: list[int], depth_b: Tensor, K_b: Tensor, pose_b: Tensor) -> bool:
         """Whether any target pixel passes the reprojection test in any neighbour, checked on a

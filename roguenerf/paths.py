@@ -732,12 +732,13 @@ def enhance_path(
     output = Path(output)
     frame_dir = output / FRAME_FOLDER
     frame_dir.mkdir(parents=True, exist_ok=True)
-    # The enhancer's settings too: frames matched with another colour reach or pose refinement
+    # The enhancer's settings too: frames matched with another colour reach, trust or pose refinement
     # (a changed default after an upgrade) must not be mixed into this video.
     options = {"depth_type": depth_type, "depth_scale": depth_scale, "background": background,
                "neighbours": enhancer.num_neighbours,
                "align": None if enhancer.align is None else asdict(enhancer.align),
-               "colour": None if enhancer.colour is None else asdict(enhancer.colour)}
+               "colour": None if enhancer.colour is None else asdict(enhancer.colour),
+               "trust": None if enhancer.trust is None else asdict(enhancer.trust)}
     fingerprint = _fingerprint(camera_path, pairs, checkpoint_id, options)
     state_path = output / STATE_FILE
     if state_path.is_file():

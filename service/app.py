@@ -196,6 +196,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             allow_methods=["GET", "POST", "PATCH", "DELETE"],
             allow_headers=["Authorization", "Content-Type", "Idempotency-Key"],
             expose_headers=["X-Enhance-Seconds", "X-Total-Seconds", "X-Neighbours",
-                            "X-Enhance-Note", "X-Checkpoint-Version", "Location", "Retry-After"],
+                            "X-Enhance-Note", "X-Checkpoint-Version", "X-Pose-Refined", "X-Colour-Offset",
+                            "X-Trust", "X-Neighbour-Agreement", "Location", "Retry-After"],
         )
     return app

@@ -72,6 +72,25 @@ def test_evaluate_json_is_one_object_matching_the_library(scene_dir, checkpoint)
         float(flip(scene.render(first), scene.photo(first))[0]), abs=1e-6)
 
 
+def test_evaluate_reports_trust_and_no_trust_keeps_the_whole_change(scene_dir, checkpoint):
+    """Per view, the neighbours' agreement and the share of the change kept (as the library's
+    SceneEnhancer gives them); with --no-trust the whole change is kept."""
+    from roguenerf.data.readers import load_scene
+    from roguenerf.geometry.trust import TrustConfig, trust_factor
+
+    on = json.loads(_run("evaluate", scene_dir, "--checkpoint", checkpoint, "--json").stdout)
+    off = json.loads(_run("evaluate", scene_dir, "--checkpoint", checkpoint, "--json", "--no-trust").stdout)
+    model, _ = load_checkpoint(checkpoint)
+    direct = evaluate(load_scene(scene_dir), model, trust=False)
+    for v_on, v_off, v_direct in zip(on["views"], off["views"], direct["views"], strict=True):
+        assert 0 <= v_on["agreement"] <= 1
+        assert v_on["trust"] == pytest.approx(trust_factor(v_on["agreement"], TrustConfig()), abs=1e-3)
+        assert v_off["trust"] is None and v_off["agreement"] == v_on["agreement"]  # colour matching measured it
+        assert v_off["enhanced"]["psnr"] == pytest.approx(v_direct["enhanced"]["psnr"], abs=1e-4)
+        if v_on["trust"] == 1:
+            assert v_on["enhanced"]["psnr"] == pytest.approx(v_off["enhanced"]["psnr"], abs=1e-4)
+
+
 def test_evaluate_table(scene_dir, checkpoint):
     result = _run("evaluate", scene_dir, "--checkpoint", checkpoint, "--split", "train")
     assert result.exit_code == 0, result.output

@@ -134,6 +134,11 @@ def test_views_give_the_enhance_camera_of_each_view(client, toy, scene_id):
     else:
         sent = [float(x) for x in r.headers["X-Colour-Offset"].split(",")]
         assert sent == pytest.approx(direct.colour_offset, abs=1e-6)
+    if direct.trust is None:  # fewer than two neighbours: nothing compared
+        assert "X-Trust" not in r.headers and "X-Neighbour-Agreement" not in r.headers
+    else:
+        assert float(r.headers["X-Trust"]) == pytest.approx(direct.trust, abs=1e-4)
+        assert float(r.headers["X-Neighbour-Agreement"]) == pytest.approx(direct.agreement, abs=1e-4)
 
 
 def test_view_files_are_the_scene_pixels(client, toy, scene_id):

@@ -239,6 +239,11 @@ def test_3_compare_shows_what_enhance_returned_and_the_slider_moves(session, sit
         assert shown.startswith("yes, offset R "), shown
         values = [float(x.replace("−", "-")) for x in shown.split()[3::2]]
         assert values == pytest.approx([float(x) for x in sent.split(",")], abs=1e-4)
+    # Two neighbours were used, so the agreement was measured and the share kept is shown with it.
+    kept, agree = float(answer["headers"]["x-trust"]), float(answer["headers"]["x-neighbour-agreement"])
+    assert 0 <= kept <= 1 and 0 <= agree <= 1
+    assert _text(page, "#cmp-trust") == (f"{round(kept * 100)} % (the neighbours agree on "
+                                         f"{round(agree * 100)} % of the view)")
 
     # The enhanced view downloads as the PNG /enhance returned.
     with page.expect_download() as info:

@@ -85,6 +85,49 @@ def _blur(x: Tensor, sigma: float) -> Tensor:
     return gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="replicate")
 
 
+def neighbour_agreement(neighbours: list[tuple[Tensor, Tensor]], size, sigma: float,
+                        max_disagreement: float) -> tuple[Tensor, Tensor]:
+    """Where two or more reprojected neighbours agree at low frequency.
+
+    Args:
+        neighbours: per neighbour (two or more), its photo reprojected into the view
+            ``(1, 3, h, w)`` and where that is valid ``(1, 1, h, w)`` (0/1).
+        size: ``(h, w)`` expected of every neighbour.
+        sigma: Gaussian blur (pixels) of each neighbour over its valid pixels before comparing.
+        max_disagreement: two neighbours agree where their blurred colours differ by less than
+            this (mean over RGB); every pair seeing a pixel must agree there.
+    Returns:
+        ``agree`` ``(1, h, w)`` bool (two or more neighbours see the pixel and agree) and
+        ``mean`` ``(1, 3, h, w)``, the blurred neighbours' mean colour where they see.
+    """
+    if len(neighbours) < 2:
+        raise InputError(f"neighbours: expected two or more to compare, got {len(neighbours)}")
+    size = tuple(size)
+    blurred, valid = [], []
+    for colour, mask in neighbours:
+        if tuple(colour.shape[-2:]) != size or tuple(mask.shape[-2:]) != size:
+            raise InputError(f"neighbours: expected images of size {size}, got "
+                             f"{tuple(colour.shape[-2:])} and {tuple(mask.shape[-2:])}")
+        m = (mask.float() > 0.5).float()
+        # Blur over the valid pixels only (normalised convolution): no colour bleeds in from
+        # where the neighbour does not see.
+        weight = _blur(m, sigma)
+        blurred.append(_blur(colour.float() * m, sigma) / weight.clamp_min(1e-3))
+        valid.append(m[:, 0] > 0.5)
+    count = torch.stack(valid).sum(0)
+    total = torch.zeros_like(blurred[0])
+    for b, v in zip(blurred, valid, strict=True):
+        total += b * v[:, None]
+    mean = total / count[:, None].clamp_min(1)
+    disagreement = torch.zeros(count.shape, dtype=total.dtype)
+    for a in range(len(blurred)):
+        for b in range(a + 1, len(blurred)):
+            both = valid[a] & valid[b]
+            d = (blurred[a] - blurred[b]).abs().mean(1)
+            disagreement = torch.where(both, torch.maximum(disagreement, d), disagreement)
+    return (count >= 2) & (disagreement < max_disagreement), mean
+
+
 def colour_match(image: Tensor, neighbours: list[tuple[Tensor, Tensor]],
                  config: ColourConfig | None = None) -> ColourMatch | None:
     """How far ``image``'s colour is from the agreeing neighbours', as an offset and a field.
@@ -105,29 +148,7 @@ def colour_match(image: Tensor, neighbours: list[tuple[Tensor, Tensor]],
     if len(neighbours) < 2:
         return None
     image = image.float()
-    blurred, valid = [], []
-    for colour, mask in neighbours:
-        if colour.shape[-2:] != image.shape[-2:] or mask.shape[-2:] != image.shape[-2:]:
-            raise InputError(f"neighbours: expected images of size {tuple(image.shape[-2:])}, got "
-                             f"{tuple(colour.shape[-2:])} and {tuple(mask.shape[-2:])}")
-        m = (mask.float() > 0.5).float()
-        # Blur over the valid pixels only (normalised convolution): no colour bleeds in from
-        # where the neighbour does not see.
-        weight = _blur(m, config.sigma)
-        blurred.append(_blur(colour.float() * m, config.sigma) / weight.clamp_min(1e-3))
-        valid.append(m[:, 0] > 0.5)
-    count = torch.stack(valid).sum(0)
-    total = torch.zeros_like(blurred[0])
-    for b, v in zip(blurred, valid, strict=True):
-        total += b * v[:, None]
-    mean = total / count[:, None].clamp_min(1)
-    disagreement = torch.zeros_like(count, dtype=image.dtype)
-    for a in range(len(blurred)):
-        for b in range(a + 1, len(blurred)):
-            both = valid[a] & valid[b]
-            d = (blurred[a] - blurred[b]).abs().mean(1)
-            disagreement = torch.where(both, torch.maximum(disagreement, d), disagreement)
-    agree = (count >= 2) & (disagreement < config.max_disagreement)  # (1, h, w)
+    agree, mean = neighbour_agreement(neighbours, image.shape[-2:], config.sigma, config.max_disagreement)
     share = float(agree.float().mean())
     if share < config.min_share:
         return None

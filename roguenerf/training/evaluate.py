@@ -32,7 +32,7 @@ def _mean(views: list[dict], key: str) -> dict:
 def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = None,
              max_views: int | None = None, device: str | torch.device = "cpu",
              progress: Callable[[int, int], None] | None = None, align=None,
-             colour=None) -> dict:
+             colour=None, trust=None) -> dict:
     """Compare renders and enhanced renders of ``split`` views with their photos.
 
     Neighbours always come from the scene's TRAIN views (a train view never uses itself).
@@ -47,6 +47,8 @@ def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = 
             when ``model`` is a SceneEnhancer already.
         colour: colour matching to the neighbours (``SceneEnhancer``'s ``colour``; default on).
             Ignored when ``model`` is a SceneEnhancer already.
+        trust: scale the enhancer's change down where the neighbours mostly disagree
+            (``SceneEnhancer``'s ``trust``; default on). Ignored when ``model`` is a SceneEnhancer.
         progress: called as ``progress(done, total)`` before the first view and after each.
     Returns:
         ``{"split", "views": [{"name", "render": {"psnr", "ssim", "flip"}, "enhanced": {...},
@@ -66,7 +68,7 @@ def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = 
     else:
         was_training = model.training
         enhancer = SceneEnhancer(scene, model, num_neighbours=num_neighbours, device=device, align=align,
-                                 colour=colour)
+                                 colour=colour, trust=trust)
     views = []
     if progress is not None:
         progress(0, len(indices))
@@ -83,6 +85,8 @@ def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = 
                           "neighbours": result.neighbours,
                           "aligned": result.aligned,
                           "colour_offset": result.colour_offset,
+                          "agreement": result.agreement,
+                          "trust": result.trust,
                           "seconds": seconds})
             if progress is not None:
                 progress(len(views), len(indices))

@@ -138,6 +138,9 @@ async def create_enhancement(
     }
     if result.colour_offset is not None:  # the RGB offset matching the neighbours' colour (roguenerf.geometry.colour)
         headers["X-Colour-Offset"] = ",".join(f"{x:.6f}" for x in result.colour_offset)
+    if result.trust is not None:  # share of the enhancer's change kept (roguenerf.geometry.trust)
+        headers["X-Trust"] = f"{result.trust:.4f}"
+        headers["X-Neighbour-Agreement"] = f"{result.agreement:.4f}"
     if result.note:
         headers["X-Enhance-Note"] = result.note.encode("ascii", "replace").decode()
     return Response(content=png, media_type="image/png", headers=headers)

@@ -77,6 +77,10 @@
     colour: (rgb) => rgb && rgb.length === 3
       ? "yes, offset " + ["R", "G", "B"].map((c, k) => `${c} ${rgb[k] >= 0 ? "+" : "−"}${Math.abs(rgb[k]).toFixed(4)}`).join(" ")
       : "no (the neighbours did not agree enough)",
+    /** X-Trust (share of the enhancer's change kept) and X-Neighbour-Agreement, or none sent. */
+    trust: (kept, agree) => Number.isFinite(kept) && Number.isFinite(agree)
+      ? `${Math.round(kept * 100)} % (the neighbours agree on ${Math.round(agree * 100)} % of the view)`
+      : "all (fewer than two neighbours to compare)",
   };
 
   // ------------------------------------------------------------------ screens
@@ -529,6 +533,9 @@
       neighbours: (response.headers.get("X-Neighbours") || "").split(",").filter(Boolean),
       refined: (response.headers.get("X-Pose-Refined") || "").split(",").filter(Boolean),
       colour: (response.headers.get("X-Colour-Offset") || "").split(",").filter(Boolean).map(Number),
+      trust: response.headers.has("X-Trust") ? Number(response.headers.get("X-Trust")) : NaN,
+      agreement: response.headers.has("X-Neighbour-Agreement")
+        ? Number(response.headers.get("X-Neighbour-Agreement")) : NaN,
       seconds: Number(response.headers.get("X-Enhance-Seconds")),
       version: response.headers.get("X-Checkpoint-Version"),
       note: response.headers.get("X-Enhance-Note"),
@@ -583,6 +590,7 @@
         .map((n) => (out.refined.includes(n) ? `${n} (pose refined)` : n)).join(", ") || "none";
       $("cmp-version").textContent = fmt.version(Number(out.version));
       $("cmp-colour").textContent = fmt.colour(out.colour);
+      $("cmp-trust").textContent = fmt.trust(out.trust, out.agreement);
       $("cmp-seconds").textContent = out.cached ? `${out.seconds.toFixed(2)} s (cached result)` : `${out.seconds.toFixed(2)} s`;
       $("cmp-note").textContent = out.note || "–";
       status.textContent = `${view.name}: scoring…`;

@@ -1,0 +1,57 @@
+"""Trust: how much of the enhancer's change to keep, from how well the neighbours agree.
+
+The enhancer moves detail from the neighbour photos into the render through the render's
+depth. Where the field's geometry is right, two neighbours reprojected through that depth show
+the same colour; where it is wrong (floaters, a field that overfits its training views), they
+disagree, and the detail they bring lands in the wrong place: PSNR then falls below the
+render's, and a fine-tune on the field's own training views (whose geometry looks right to it)
+makes that worse, not better.
+
+The share of the view's pixels where two or more neighbours agree
+(:func:`~roguenerf.geometry.colour.neighbour_agreement`, the test colour matching uses) is
+measured on the small copies pose refinement already made. Below :attr:`TrustConfig.full_share`
+the enhancer's change is scaled down in proportion::
+
+    out = render + min(1, share / full_share) * (enhanced - render)
+
+On the leave-one-kind-out figure, views of fields with sound geometry have 57-82 % agreement
+(lego's test views 58-89 %), those of a hash field whose novel views are floaters 0-24 %; our
+own fitter's held-out views of dtu_scan37 and mary_rose 14-93 %. The setting was chosen side by
+side on the leave-one-kind-out figure (``python -m bench.trust``; docs/kinds.md, *Trusting the
+neighbours by their agreement*). With fewer than two neighbours there is nothing to compare,
+and the change is kept whole.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from roguenerf.errors import InputError
+
+
+@dataclass(frozen=True)
+class TrustConfig:
+    full_share: float = 0.5
+    """Share of the view's pixels with agreeing neighbours from which the enhancer's change is
+    kept whole; below it, the change is scaled by share / full_share."""
+    sigma: float = 2.0
+    """Blur (pixels of the small copies) before neighbours are compared: as colour matching."""
+    max_disagreement: float = 0.03
+    """Two neighbours agree where their blurred colours differ by less than this: as colour matching."""
+
+    def __post_init__(self):
+        for name in ("full_share", "sigma", "max_disagreement"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and 0 < value < float("inf")):
+                raise InputError(f"TrustConfig.{name}: expected a positive number, got {value!r}")
+        if self.full_share > 1:
+            raise InputError(f"TrustConfig.full_share: expected a share in (0, 1], got {self.full_share}")
+
+
+def trust_factor(share: float, config: TrustConfig | None = None) -> float:
+    """The share of the enhancer's change to keep, in [0, 1], for an agreement ``share``."""
+    config = config or TrustConfig()
+    share = float(share)
+    if not 0 <= share <= 1:
+        raise InputError(f"share: expected a share in [0, 1], got {share}")
+    return min(1.0, share / config.full_share)

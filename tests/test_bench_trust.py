@@ -1,0 +1,48 @@
+"""bench/trust.py end to end on a toy scene: one enhanced output per view, each full_share
+setting applied to it as the share of its change kept."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+
+import pytest
+
+from bench import trust
+from roguenerf.checkpoint import save_checkpoint
+from roguenerf.data.toy import make_toy_scene
+from roguenerf.models import Enhancer, make_config
+
+
+def test_settings_side_by_side_on_one_output(tmp_path):
+    from roguenerf.imageio import read_image, write_png
+
+    make_toy_scene(tmp_path / "toy", seed=2, n_train=6, n_test=2, height=72, width=96)
+    # Renders too bright: colour matching (on, as shipped) changes them, so there is a change to keep.
+    for png in (tmp_path / "toy" / "renders").glob("test_*.png"):
+        write_png(png, (read_image(png.read_bytes()) + 0.06).clamp(0, 1))
+    ckpt = save_checkpoint(tmp_path / "m.safetensors", Enhancer(make_config("nano", num_neighbours=2)))
+    out = tmp_path / "trust"
+    assert trust.main([str(tmp_path / "toy"), f"{tmp_path / 'toy'}={ckpt}", "--checkpoint", str(ckpt),
+                       "--settings", "off,0.5,1", "--max-views", "1", "--output", str(out)]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "trust.csv")))
+    assert [r["setting"] for r in rows] == ["off", "0.5", "1"] * 2
+    assert [r["scene"] for r in rows] == ["toy"] * 3 + ["toy (fine-tuned)"] * 3
+    off, half, whole = rows[:3]
+    agreement = float(off["agreement"])
+    assert 0.5 < agreement < 1  # exact geometry: the neighbours agree on most of the view
+    assert float(off["kept"]) == float(half["kept"]) == 1 and half["gain_db"] == off["gain_db"]
+    # full_share 1: the share kept is the agreement, and the gain of a colour shift falls with it.
+    assert float(whole["kept"]) == pytest.approx(agreement, abs=1e-4)
+    assert 0 < float(whole["gain_db"]) < float(off["gain_db"])
+    assert all(r["date"] and r["machine"] and r["commit"] for r in rows)
+    assert (tmp_path / "trust.png").stat().st_size > 1000
+    s = {x["setting"]: x for x in trust.summary([{**r, "gain_db": float(r["gain_db"]),
+                                                  "flip_change": float(r["flip_change"])} for r in rows])}
+    assert s["1"]["gain_db"] == pytest.approx(float(whole["gain_db"]))
+
+
+@pytest.mark.parametrize("spec", ["", "x", "0", "1.5", "off,-0.2"])
+def test_a_bad_setting_is_refused(spec):
+    with pytest.raises(argparse.ArgumentTypeError):
+        trust._settings(spec)
