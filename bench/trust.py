@@ -5,7 +5,9 @@ refinement and colour matching on); the share of its pixels where two or more ne
 is measured on the same small copies the enhancer uses. Each ``--settings`` value of
 :attr:`~roguenerf.geometry.trust.TrustConfig.full_share` then keeps ``min(1, share / value)`` of
 that output's change over the render (:func:`~roguenerf.geometry.trust.trust_factor`), so the
-settings differ in nothing else. A scene folder may name the checkpoint to use for it
+settings differ in nothing else. ``localS`` (e.g. ``local16``) instead keeps, per pixel, the
+share of agreeing pixels within about S pixels of it (Gaussian sigma, small copies) over 0.5: a
+per-pixel trust, measured against the shipped per-view one. A scene folder may name the checkpoint to use for it
 (``FOLDER=CHECKPOINT``: a fine-tuned model), else ``--checkpoint``. Per view and setting: PSNR
 gain over the render, FLIP change (lower is better), the agreement share and the share kept.
 CSV + plot with date, machine and commit.
@@ -30,7 +32,13 @@ def _settings(text: str) -> list[str]:
     if not out:
         raise argparse.ArgumentTypeError("--settings: expected at least one setting")
     for c in out:
-        if c != "off":
+        if c.startswith("local"):
+            try:
+                if float(c[5:]) <= 0:
+                    raise ValueError
+            except ValueError:
+                raise argparse.ArgumentTypeError(f"--settings: {c!r} is not localS with S > 0 pixels") from None
+        elif c != "off":
             try:
                 value = float(c)
             except ValueError:
@@ -51,17 +59,20 @@ def parse_args(argv=None):
                    help="scene folders (photos, renders, depths), each optionally =CHECKPOINT")
     p.add_argument("--checkpoint", type=Path, default=None, help="default: the shipped checkpoint")
     p.add_argument("--settings", type=_settings, default=_settings(DEFAULT_SETTINGS),
-                   help=f"comma-separated: off, or TrustConfig.full_share values (default {DEFAULT_SETTINGS})")
+                   help="comma-separated: off, TrustConfig.full_share values, or localS (per-pixel agreement "
+                        f"within S pixels) (default {DEFAULT_SETTINGS})")
     p.add_argument("--max-views", type=int, default=None)
     p.add_argument("--output", type=Path, default=RESULTS / "trust")
     return p.parse_args(argv)
 
 
 def measure(args) -> list[dict]:
+    import torch
+
     from roguenerf import metrics
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
-    from roguenerf.geometry.colour import neighbour_agreement
+    from roguenerf.geometry.colour import _blur, neighbour_agreement
     from roguenerf.geometry.trust import TrustConfig, trust_factor
     from roguenerf.inference import SceneEnhancer
 
@@ -82,7 +93,7 @@ def measure(args) -> list[dict]:
             result = enhancer.enhance_view(i)
             seconds = time.perf_counter() - t0
             positions = [enhancer.train.index(scene.index(n)) for n in result.neighbours]
-            share = None
+            share = agree = None
             if len(positions) >= 2:  # the refined poses the model saw (the fit is deterministic)
                 poses, _ = enhancer.neighbour_poses(positions, scene.render(i), depth, frame.K, frame.world_from_cam)
                 seen, small = enhancer._small_seen(positions, result.image, depth, frame.K, frame.world_from_cam,
@@ -91,8 +102,16 @@ def measure(args) -> list[dict]:
                 agree, _ = neighbour_agreement(seen, small.shape[-2:], config.sigma, config.max_disagreement)
                 share = float(agree.float().mean())
             for spec in args.settings:
-                kept = 1.0 if spec == "off" or share is None else trust_factor(share, TrustConfig(float(spec)))
-                out = render + kept * (result.image[None] - render)
+                if spec.startswith("local") and agree is not None:
+                    density = _blur(agree[:, None].float(), float(spec[5:]))
+                    keep = torch.nn.functional.interpolate((density / 0.5).clamp(0, 1), size=render.shape[-2:],
+                                                           mode="bilinear", align_corners=False)
+                    kept = float(keep.mean())
+                else:
+                    kept = (1.0 if spec == "off" or spec.startswith("local") or share is None
+                            else trust_factor(share, TrustConfig(float(spec))))
+                    keep = kept
+                out = render + keep * (result.image[None] - render)
                 rows.append({**base, "scene": label, "view": frame.name, "setting": spec,
                              "gain_db": round(float(metrics.psnr(out, photo)[0]) - r_psnr, 4),
                              "flip_change": round(float(metrics.flip(out, photo)[0]) - r_flip, 5),

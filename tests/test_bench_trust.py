@@ -24,17 +24,20 @@ def test_settings_side_by_side_on_one_output(tmp_path):
     ckpt = save_checkpoint(tmp_path / "m.safetensors", Enhancer(make_config("nano", num_neighbours=2)))
     out = tmp_path / "trust"
     assert trust.main([str(tmp_path / "toy"), f"{tmp_path / 'toy'}={ckpt}", "--checkpoint", str(ckpt),
-                       "--settings", "off,0.5,1", "--max-views", "1", "--output", str(out)]) == 0
+                       "--settings", "off,0.5,1,local4", "--max-views", "1", "--output", str(out)]) == 0
     rows = list(csv.DictReader(open(tmp_path / "trust.csv")))
-    assert [r["setting"] for r in rows] == ["off", "0.5", "1"] * 2
-    assert [r["scene"] for r in rows] == ["toy"] * 3 + ["toy (fine-tuned)"] * 3
-    off, half, whole = rows[:3]
+    assert [r["setting"] for r in rows] == ["off", "0.5", "1", "local4"] * 2
+    assert [r["scene"] for r in rows] == ["toy"] * 4 + ["toy (fine-tuned)"] * 4
+    off, half, whole, local = rows[:4]
     agreement = float(off["agreement"])
     assert 0.5 < agreement < 1  # exact geometry: the neighbours agree on most of the view
     assert float(off["kept"]) == float(half["kept"]) == 1 and half["gain_db"] == off["gain_db"]
     # full_share 1: the share kept is the agreement, and the gain of a colour shift falls with it.
     assert float(whole["kept"]) == pytest.approx(agreement, abs=1e-4)
     assert 0 < float(whole["gain_db"]) < float(off["gain_db"])
+    # Per pixel: all of the change where the neighbours agree around it, less where they do not
+    # see (the view's edges), so less than all of it on the whole.
+    assert 0.5 < float(local["kept"]) < 1 and 0 < float(local["gain_db"]) <= float(off["gain_db"])
     assert all(r["date"] and r["machine"] and r["commit"] for r in rows)
     assert (tmp_path / "trust.png").stat().st_size > 1000
     s = {x["setting"]: x for x in trust.summary([{**r, "gain_db": float(r["gain_db"]),
@@ -42,7 +45,7 @@ def test_settings_side_by_side_on_one_output(tmp_path):
     assert s["1"]["gain_db"] == pytest.approx(float(whole["gain_db"]))
 
 
-@pytest.mark.parametrize("spec", ["", "x", "0", "1.5", "off,-0.2"])
+@pytest.mark.parametrize("spec", ["", "x", "0", "1.5", "off,-0.2", "local", "local0", "localx"])
 def test_a_bad_setting_is_refused(spec):
     with pytest.raises(argparse.ArgumentTypeError):
         trust._settings(spec)
