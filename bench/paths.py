@@ -13,6 +13,13 @@ downscaled size. Everything is cached in ``--work``: a second run resumes.
     nice -n 15 .venv/bin/python -m bench.paths            # 5 keys x 15 steps = 61 frames
     nice -n 15 .venv/bin/python -m bench.paths --quick    # 3 keys x 4 steps = 9 frames
 
+``--fit`` takes any grid (``coarse``, ``fine``) or hash (``--preset hash``) make-pairs output;
+each frame is rendered within the fitter's own ray bounds (those of the photo set's view nearest
+the camera). A field whose novel views are floaters fails enhance_path's path check whatever the
+path; ``--force`` goes on and keeps the warning in the JSON:
+
+    python -m bench.paths --fit runs/kinds/pairs/ollie/hash_s2_400steps_1024rays_48samples --factor 1 --force
+
 Writes ``bench/results/paths[_quick].csv`` (one row per frame: flicker of the pair ending there,
 PSNR where a photo exists), ``.json`` (means, the stamp) and ``.png`` (per-frame flicker, render vs
 enhanced, and the per-frame gain), plus the MP4s in the work folder.
@@ -60,21 +67,59 @@ def downscale_scene(scene, out: Path, factor: int):
 
 
 def load_field(fit_dir: Path):
-    """The fitted GridField of a make-pairs output (``.fit/state.safetensors`` + ``fit.json``)."""
+    """The fitted field of a make-pairs output (``.fit/state.safetensors`` + ``fit.json``): a
+    GridField (``coarse``, ``fine``) or a HashField (``--preset hash``)."""
     from safetensors.torch import load_file
 
     from roguefit.field import GridField
+    from roguefit.hashfield import HashField
 
     meta = json.loads((fit_dir / ".fit" / "state.json").read_text())
     report = json.loads((fit_dir / "fit.json").read_text())
     tensors = load_file(str(fit_dir / ".fit" / "state.safetensors"))
     model = {k[6:]: v for k, v in tensors.items() if k.startswith("model.")}
-    field = GridField(torch.tensor(report["centre"]), float(report["radius"]), int(meta["resolution"]),
-                      features=int(meta["config"]["features"]))
-    field.use_mlp = int(meta["level"]) > 0
+    c = meta["config"]
+    if c.get("kind", "grid") == "hash":
+        field = HashField(torch.tensor(report["centre"]), float(report["radius"]), levels=int(c["hash_levels"]),
+                          log2_table=int(c["hash_log2_table"]), features=int(c["hash_features"]),
+                          base=int(c["hash_base"]), finest=int(c["resolution"]), sh_degree=int(c["sh_degree"]))
+    elif c.get("kind", "grid") == "grid":
+        field = GridField(torch.tensor(report["centre"]), float(report["radius"]), int(meta["resolution"]),
+                          features=int(c["features"]))
+        field.use_mlp = int(meta["level"]) > 0
+    else:
+        raise SystemExit(f"--fit {fit_dir}: a {c['kind']!r} fit has no field to render a path with here")
     field.occupancy = model["occupancy"].to(torch.bool)
     field.load_state_dict(model)
     return field.eval(), int(meta["config"]["samples"])
+
+
+def ray_bounds(fit_dir: Path, scene):
+    """``bounds(pose) -> (near, far)`` for a path camera. As the fitter's where its photo set
+    has them: the near x 0.9 and far x 1.2 of the photo set's view nearest the camera (a field
+    whose floaters reach the cameras, as ollie's hash fit, piles them up at its near bound, so
+    rendered from nearer its frames would not be the field's renders). Else one pair for every
+    camera from the scene's rendered depth, generously widened."""
+    from roguenerf.geometry import known_depth_mask
+
+    report = json.loads((fit_dir / "fit.json").read_text())
+    photos = Path(report.get("photos") or "")
+    if report.get("photos") and (photos / "transforms.json").is_file():
+        frames = [f for f in json.loads((photos / "transforms.json").read_text())["frames"]
+                  if f.get("near") is not None and f.get("far") is not None]
+        if frames:
+            centres = torch.tensor([[row[3] for row in f["transform_matrix"][:3]] for f in frames], dtype=torch.float64)
+            near = [0.9 * float(f["near"]) for f in frames]
+            far = [1.2 * float(f["far"]) for f in frames]
+
+            def nearest(pose):
+                k = int((centres - torch.as_tensor(pose, dtype=torch.float64)[:3, 3]).norm(dim=1).argmin())
+                return near[k], far[k]
+
+            return nearest
+    known = [scene.depth(i)[known_depth_mask(scene.depth(i))] for i in scene.indices("train")]
+    fixed = float(min(k.min() for k in known)) * 0.5, float(max(k.max() for k in known)) * 1.5
+    return lambda pose: fixed
 
 
 @torch.no_grad()
@@ -114,11 +159,12 @@ def key_views(scene, count: int, split: str = "test") -> list[int]:
 def field_frames(args):
     """Scene (downscaled make-pairs output) and the path frames rendered by its fitted field."""
     from roguenerf import load_scene
-    from roguenerf.geometry import known_depth_mask
     from roguenerf.imageio import atomic_write, encode_npy, write_png
     from roguenerf.paths import smooth_path
 
-    work = args.work / args.fit.parent.name / f"x{args.factor}"
+    # Per scene and fit (the coarse fit's cache keeps its first name).
+    work = args.work / args.fit.parent.name / (f"x{args.factor}" if args.fit.name == "coarse"
+                                               else f"{args.fit.name}_x{args.factor}")
     scene = downscale_scene(load_scene(args.fit), work / "scene", args.factor)
     keys = key_views(scene, args.keys, "all" if args.photo_path else "test")
     poses = smooth_path(scene.poses(keys), args.steps)
@@ -127,9 +173,7 @@ def field_frames(args):
     frames = work / (f"photo_frames_{args.keys}" if args.photo_path else f"frames_{args.keys}x{args.steps}")
     (frames / "rgb").mkdir(parents=True, exist_ok=True)
     (frames / "depth").mkdir(parents=True, exist_ok=True)
-    # Ray bounds from the scene's rendered depth (the field's own, generously widened).
-    known = [scene.depth(i)[known_depth_mask(scene.depth(i))] for i in scene.indices("train")]
-    near, far = float(min(k.min() for k in known)) * 0.5, float(max(k.max() for k in known)) * 1.5
+    bounds = ray_bounds(args.fit, scene)
     field, samples = load_field(args.fit)
     started = time.perf_counter()
     rendered = 0
@@ -137,7 +181,7 @@ def field_frames(args):
         rgb_path, depth_path = frames / "rgb" / f"{t:05d}.png", frames / "depth" / f"{t:05d}.npy"
         if rgb_path.is_file() and depth_path.is_file():
             continue
-        rgb, depth = render_frame(field, samples, K, pose, width, height, near, far)
+        rgb, depth = render_frame(field, samples, K, pose, width, height, *bounds(pose))
         atomic_write(depth_path, encode_npy(depth[0].numpy()))
         write_png(rgb_path, rgb)
         rendered += 1
@@ -199,6 +243,9 @@ def main() -> None:
     parser.add_argument("--trust", choices=["on", "off"], default="on",
                         help="keep only part of the enhancer's change where the neighbours mostly disagree "
                              "(roguenerf.geometry.trust; default on, as shipped)")
+    parser.add_argument("--force", action="store_true", help=(
+        "enhance a path that enhance_path's check refuses (a field whose novel views are floaters fails it "
+        "whatever the path): the problem is kept as a warning in the JSON"))
     parser.add_argument("--photo-path", action="store_true", help=(
         "a path made only of the scene's views (train and test, in azimuth order, --steps 1): every "
         "frame has a photo, so the photos' own flicker is measured too"))
@@ -243,7 +290,7 @@ def main() -> None:
     out = frames.parent / ("enhanced_" + frames.name + ("" if args.align == "on" else "_noalign") + colour_tag)
     result = enhance_path(scene, enhancer, camera_path, frames, out, quality=args.quality,
                           checkpoint_id=f"{checkpoint}:align={args.align}:colour={args.colour}:trust={args.trust}",
-                          progress=lambda d, n: print(f"enhanced {d}/{n}", flush=True))
+                          progress=lambda d, n: print(f"enhanced {d}/{n}", flush=True), force=args.force)
     from roguenerf.video import read_video_info
 
     info = read_video_info(result.video)
@@ -271,9 +318,12 @@ def main() -> None:
                "enhance_s": round(result.seconds, 1), "frames_enhanced_now": result.enhanced_now,
                "enhance_s_per_frame": (round(result.seconds / max(result.enhanced_now, 1), 3)
                                        if result.enhanced_now else None),
-               "cached_views": result.cached_views, "video": {"enhanced": info, "side_by_side": side},
+               "cached_views": result.cached_views, "warnings": list(result.warnings),
+               "video": {"enhanced": info, "side_by_side": side},
                "video_path": str(result.video)}
-    variant = (("_toy" if args.toy else "") + ("_photos" if args.photo_path else "")
+    variant = (("_toy" if args.toy else "")
+               + (f"_{args.fit.parent.name}_{args.fit.name}" if not args.toy and args.fit != DEFAULT_FIT else "")
+               + ("_photos" if args.photo_path else "")
                + ("_noalign" if args.align == "off" else "") + colour_tag)
     stem = "paths" + variant + ("_quick" if args.quick else "")
     write_json(RESULTS / f"{stem}.json", summary)

@@ -467,6 +467,21 @@ def _consistent(points: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor
     return inside & known & ((z - d).abs() <= tol * d.abs())
 
 
+def _held_out_seen(scene, train: list[int], train_depths: dict, neighbours: int, views: int = 3) -> list[float]:
+    """:func:`_seen_share` of up to ``views`` of the scene's held-out views that have a depth
+    (the field's own novel-view renders), evenly spread."""
+    held = [i for i in scene.indices("test") if scene.frames[i].depth_path is not None]
+    held = held[:: max(1, len(held) // views)][:views]
+    out = []
+    for i in held:
+        frame = scene.frames[i]
+        share = _seen_share(scene, train, train_depths, scene.depth(i).float(), frame.K,
+                            frame.world_from_cam.to(torch.float64), neighbours)
+        if share is not None:
+            out.append(share)
+    return out
+
+
 def _seen_share(scene, train: list[int], train_depths: dict, depth: Tensor, K: Tensor, pose: Tensor,
                 neighbours: int) -> float | None:
     """Share of the probed known-depth pixels of one camera whose surface point some chosen
@@ -596,6 +611,15 @@ def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: i
         causes.insert(0, axes)
     else:
         causes.append("OpenGL vs OpenCV axes (camera paths are read as OpenGL, as nerfstudio and Blender write them)")
+        # Do the field's own renders of the scene's held-out views pass the same test? When none
+        # does, the field's depth is off on every novel view (floaters), and the path may be right.
+        own = _held_out_seen(scene, train, train_depths, neighbours) if not far else []
+        if own and max(own) < MIN_SEEN:
+            causes.insert(0, "the field's own geometry: its renders of the scene's held-out views fail this test "
+                             f"too (at most {100 * max(own):.1f}% of their pixels land at their depth in the "
+                             "training photos), so its depth is off on novel views (e.g. floaters), whatever the "
+                             "path; --force goes on, and the enhancer then keeps little of its change where the "
+                             "neighbour photos disagree")
     causes.append("another coordinate space or unit than the scene's poses (e.g. the path of another "
                   "export, or depth in other units: --depth-scale)")
     message = (f"the camera path does not fit the scene: {summary}; worst: {what}. Likely causes: "

@@ -449,3 +449,28 @@ def test_a_far_path_without_depth_to_tell_is_refused_naming_the_camera(toy_path)
     assert all(check.distance[t] > FAR_FACTOR for t in check.far)
     assert check.problem.startswith("the camera path does not fit the scene: 3 of 7 checked cameras are far")
     assert "worst: camera 6 (camera_path[6]) lies" in check.problem
+
+
+def test_a_field_whose_own_novel_views_fail_the_check_is_named_as_the_likely_cause(tmp_path):
+    """A field with floaters: its depth is off on every novel view, its renders of the scene's
+    held-out views included. A path through them is refused as before, but the first likely cause
+    named is the field's geometry, not the path's coordinate space; with the held-out views' depth
+    right, that cause is not named."""
+    from roguenerf.data.readers import load_scene
+    from roguenerf.imageio import atomic_write, encode_npy
+    from roguenerf.paths import CameraPath, check_camera_path
+
+    root = tmp_path / "scene"
+    scene = make_toy_scene(root, seed=SEED, n_train=6, n_test=3, height=H, width=W, kind="orbit")
+    test = scene.indices("test")
+    poses, K = scene.poses(test), scene.intrinsics()[test].to(torch.float64)
+    path = CameraPath(world_from_cam=poses, K=K, width=W, height=H)
+    halved = {t: scene.depth(i) * 0.5 for t, i in enumerate(test)}  # floaters halfway to the camera
+    check = check_camera_path(scene, path, lambda t: halved[t])
+    assert check.problem is not None and "the field's own geometry" not in check.problem
+    for i in test:  # the field's own renders of its held-out views: the same floaters
+        atomic_write(scene.frames[i].depth_path, encode_npy((scene.depth(i)[0] * 0.5).numpy()))
+    check = check_camera_path(load_scene(root), path, lambda t: halved[t])
+    assert check.problem.startswith("the camera path does not fit the scene: 3 of 3 checked cameras see almost none")
+    assert "Likely causes: the field's own geometry: its renders of the scene's held-out views fail" in check.problem
+    assert "--force goes on" in check.problem
