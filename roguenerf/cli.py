@@ -386,15 +386,18 @@ def evaluate(
         typer.echo(json.dumps(finite_for_json(report)))
         return
     typer.echo(f"{'view':<24} {'render PSNR':>12} {'SSIM':>7} {'FLIP':>7} "
-               f"{'enhanced PSNR':>14} {'SSIM':>7} {'FLIP':>7}")
+               f"{'enhanced PSNR':>14} {'SSIM':>7} {'FLIP':>7} {'kept':>5}")
 
-    def row(name: str, r: dict, e: dict) -> str:
+    def row(name: str, r: dict, e: dict, kept: float | None = None) -> str:
+        # kept: the share of the enhancer's change kept (trust; "-" where none was measured)
         return (f"{name:<24} {r['psnr']:>12.2f} {r['ssim']:>7.4f} {r['flip']:>7.4f} "
-                f"{e['psnr']:>14.2f} {e['ssim']:>7.4f} {e['flip']:>7.4f}")
+                f"{e['psnr']:>14.2f} {e['ssim']:>7.4f} {e['flip']:>7.4f} "
+                f"{'-' if kept is None else format(kept, '.0%'):>5}")
 
     for v in report["views"]:
-        typer.echo(row(v["name"], v["render"], v["enhanced"]))
-    typer.echo(row("mean", report["render"], report["enhanced"]))
+        typer.echo(row(v["name"], v["render"], v["enhanced"], v.get("trust")))
+    kept = [v["trust"] for v in report["views"] if v.get("trust") is not None]
+    typer.echo(row("mean", report["render"], report["enhanced"], sum(kept) / len(kept) if kept else None))
 
 
 @app.command()

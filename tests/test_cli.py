@@ -96,8 +96,12 @@ def test_evaluate_table(scene_dir, checkpoint):
     assert result.exit_code == 0, result.output
     lines = result.stdout.strip().splitlines()
     assert len(lines) == 1 + 5 + 1 and lines[-1].startswith("mean")
-    assert lines[0].split()[1:] == ["render", "PSNR", "SSIM", "FLIP", "enhanced", "PSNR", "SSIM", "FLIP"]
-    assert len(lines[-1].split()) == 7
+    assert lines[0].split()[1:] == ["render", "PSNR", "SSIM", "FLIP", "enhanced", "PSNR", "SSIM", "FLIP", "kept"]
+    assert len(lines[-1].split()) == 8
+    # The share of the change kept, per view, as --json reports it.
+    report = json.loads(_run("evaluate", scene_dir, "--checkpoint", checkpoint, "--split", "train", "--json").stdout)
+    for line, view in zip(lines[1:-1], report["views"], strict=True):
+        assert line.split()[-1] == ("-" if view["trust"] is None else f"{view['trust']:.0%}")
 
 
 def test_bad_scene_dir_exits_2_naming_the_path(tmp_path, checkpoint):
