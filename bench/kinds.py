@@ -193,7 +193,8 @@ def view_rows(report: dict, **condition) -> list[dict]:
                      "aligned": (None if v.get("aligned") is None
                                  else round(sum(v["aligned"]) / max(1, len(v["aligned"])), 3)),
                      "colour_matched": v.get("colour_offset") is not None,
-                     "agreement": v.get("agreement"), "trust_kept": v.get("trust")})
+                     "agreement": v.get("agreement"), "trust_kept": v.get("trust"),
+                     "neighbours_used": len(v.get("neighbours") or [])})
     return rows
 
 
@@ -240,6 +241,14 @@ def colour_cache_tag(config) -> str:
                                     if getattr(config, f) != getattr(then, f))
 
 
+def near_cache_tag() -> str:
+    """``_nearEXTRAxDEGREES`` while SceneEnhancer adds near neighbours beyond the model's count
+    (roguenerf.inference.NEAR_EXTRA, NEAR_DEGREES): results before that are cached apart."""
+    from roguenerf.inference import NEAR_DEGREES, NEAR_EXTRA
+
+    return f"_near{NEAR_EXTRA}x{NEAR_DEGREES:g}" if NEAR_EXTRA else ""
+
+
 def trust_cache_tag(config) -> str:
     """``_trust`` plus each of ``config``'s fields as ``_FIELDVALUE``: results measured with trust
     on (roguenerf.geometry.trust) are cached apart from those before it, and per setting."""
@@ -254,6 +263,7 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
     from roguenerf.data.readers import load_scene
     from roguenerf.geometry.colour import ColourConfig
     from roguenerf.geometry.trust import TrustConfig
+    from roguenerf.inference import SceneEnhancer
     from roguenerf.training import TrainConfig, evaluate, finetune
 
     photos = downscaled_photo_set(args.data / name, args.runs / "photos" / f"{name}_s{args.scale}", args.scale)
@@ -275,12 +285,13 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
     # Results cached before pose refinement existed had it off, before colour matching that off
     # ("_colour": the first, view-wide offset only, before its local field).
     suffix = (("_align" if align else "") + (colour_cache_tag(ColourConfig()) if colour else "")
-              + (trust_cache_tag(TrustConfig()) if trust else ""))
+              + (trust_cache_tag(TrustConfig()) if trust else "") + near_cache_tag())
     plan = f"_depth{args.finetune_depth_noise:g}" if args.finetune_depth_noise else ""  # the fine-tune's options
 
     def note(new: list[dict]) -> None:
         for x in new:  # rows cached before the neighbour sweep existed used the model's count
             x.setdefault("neighbours", default_n)
+            x.setdefault("explicit_count", x["neighbours"] != default_n)  # rows cached before the near rule
             x.setdefault("model_neighbours", default_n)
             x.setdefault("aligned", None)
             x["align"] = align
@@ -300,7 +311,7 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
         return view_rows(evaluate(target, model, max_views=args.max_views, num_neighbours=n, align=align,
                                   colour=colour, trust=trust), **common,
                          stage="zero-shot", minutes=0.0, noise_deg=deg, noise_share=share,
-                         neighbours=default_n if n is None else n)
+                         neighbours=default_n if n is None else n, explicit_count=n is not None)
 
     def tune(m: float) -> list[dict]:
         result = finetune(scene, args.runs / "finetune" / name / tag / checkpoint.stem / f"{m:g}min{plan}",
@@ -315,8 +326,9 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
     for k, (deg, share) in enumerate(args.noise or [(0.0, 0.0)]):
         note(cached_rows(cache / f"zero_shot_noise{deg:g}_{share:g}{suffix}.json",
                          functools.partial(zero_shot, k, deg, share)))
+    near = SceneEnhancer(scene, model).near_extra  # the default may add a near neighbour: then n = default_n differs
     for n in args.neighbours:
-        if n != default_n:
+        if n != default_n or near:
             note(cached_rows(cache / f"zero_shot_{n}neighbours{suffix}.json",
                              functools.partial(zero_shot, 0, 0.0, 0.0, n)))
     for minutes in sorted(args.finetune):
@@ -329,12 +341,13 @@ def summary(rows: list[dict]) -> list[dict]:
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
         groups.setdefault((r["scene"], r["kind"], r["stage"], r["noise_deg"], r["noise_share"],
-                           r.get("neighbours")), []).append(r)
+                           r.get("neighbours"), bool(r.get("explicit_count"))), []).append(r)
     out = []
-    for (scene, kind, stage, deg, share, neighbours), rs in groups.items():
+    for (scene, kind, stage, deg, share, neighbours, explicit), rs in groups.items():
         n = len(rs)
         out.append({"scene": scene, "kind": kind, "stage": stage, "minutes": rs[0]["minutes"], "noise_deg": deg,
-                    "noise_share": share, "neighbours": neighbours,
+                    "noise_share": share, "neighbours": neighbours, "explicit_count": explicit,
+                    "neighbours_used": round(sum(r.get("neighbours_used") or 0 for r in rs) / n, 2),
                     "model_neighbours": rs[0].get("model_neighbours"), "align": rs[0].get("align", False),
                     "views": n,
                     "render_psnr": round(sum(r["render_psnr"] for r in rs) / n, 4),
@@ -358,7 +371,8 @@ def plot(rows: list[dict], path: Path) -> Path:
     fig, (left, middle, right) = plt.subplots(1, 3, figsize=(14, 4))
     for scene in dict.fromkeys(m["scene"] for m in means):
         mine = [m for m in means if m["scene"] == scene]
-        own = [m for m in mine if m["neighbours"] == m["model_neighbours"]]  # fine-tunes and noise use the model's
+        # Fine-tunes and noise use the enhancer's default count (the model's, plus near views).
+        own = [m for m in mine if m["neighbours"] == m["model_neighbours"] and not m["explicit_count"]]
         tune = sorted((m for m in own if m["noise_deg"] == 0 and m["noise_share"] == 0), key=lambda m: m["minutes"])
         line, = left.plot([m["minutes"] for m in tune], [m["gain_db"] for m in tune], "o-", label=scene)
         left.scatter([m["minutes"] for m in tune], [m["worst_view_gain_db"] for m in tune], marker="_",
@@ -367,12 +381,16 @@ def plot(rows: list[dict], path: Path) -> Path:
         labels = [f"{m['noise_deg']:g}°/{m['noise_share']:.0%}" for m in sweep]
         middle.plot(range(len(sweep)), [m["gain_db"] for m in sweep], "o-", color=line.get_color(), label=scene)
         middle.set_xticks(range(len(sweep)), labels, fontsize=7)
+        # Explicit counts; the default (which may add near views) at its mean count used.
         counted = sorted((m for m in mine if m["stage"] == "zero-shot" and m["noise_deg"] == 0
-                          and m["noise_share"] == 0), key=lambda m: m["neighbours"] or 0)
+                          and m["noise_share"] == 0 and m["explicit_count"]), key=lambda m: m["neighbours"] or 0)
         right.plot([m["neighbours"] for m in counted], [m["gain_db"] for m in counted], "o-",
                    color=line.get_color(), label=scene)
         right.scatter([m["neighbours"] for m in counted], [m["worst_view_gain_db"] for m in counted], marker="_",
                       color=line.get_color())
+        default = [m for m in own if m["stage"] == "zero-shot" and m["noise_deg"] == 0 and m["noise_share"] == 0]
+        right.scatter([m["neighbours_used"] or m["neighbours"] for m in default], [m["gain_db"] for m in default],
+                      marker="*", s=80, color=line.get_color())
     for ax in (left, middle, right):
         ax.axhline(0, color="grey", lw=0.8)
         ax.legend(fontsize=7)
@@ -380,7 +398,8 @@ def plot(rows: list[dict], path: Path) -> Path:
     left.set_xlabel("fine-tuning minutes (0 = zero-shot); dashes: worst view", fontsize=8)
     middle.set_xlabel("zero-shot, pose noise on the training views\n"
                       "(rotation RMS / translation RMS, share of the spread)", fontsize=8)
-    right.set_xlabel("zero-shot, neighbours per view; dashes: worst view", fontsize=8)
+    right.set_xlabel("zero-shot, neighbours per view (star: the default, at its mean count);\n"
+                     "dashes: worst view", fontsize=8)
     if rows:
         r = rows[0]
         fig.suptitle(f"{r['kind']} fields, checkpoint {r['checkpoint']} | {r['machine'][:60]} | {r['commit']} | "

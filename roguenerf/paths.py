@@ -758,8 +758,11 @@ def enhance_path(
     frame_dir.mkdir(parents=True, exist_ok=True)
     # The enhancer's settings too: frames matched with another colour reach, trust or pose refinement
     # (a changed default after an upgrade) must not be mixed into this video.
+    from roguenerf.inference import NEAR_DEGREES
+
     options = {"depth_type": depth_type, "depth_scale": depth_scale, "background": background,
-               "neighbours": enhancer.num_neighbours,
+               "neighbours": enhancer.num_neighbours, "near_extra": enhancer.near_extra,
+               "near_degrees": NEAR_DEGREES,
                "align": None if enhancer.align is None else asdict(enhancer.align),
                "colour": None if enhancer.colour is None else asdict(enhancer.colour),
                "trust": None if enhancer.trust is None else asdict(enhancer.trust)}

@@ -73,6 +73,55 @@ def test_num_neighbours_defaults_to_model_config(scene):
     assert SceneEnhancer(scene, model, num_neighbours=0).enhance_view("test_001").neighbours == []
 
 
+def _turned(pose: torch.Tensor, degrees: float, axis: int = 1) -> torch.Tensor:
+    """``pose`` rotated in place by ``degrees`` about its own camera axis ``axis``."""
+    a = math.radians(degrees)
+    R = torch.eye(3, dtype=torch.float64)
+    i, j = [k for k in range(3) if k != axis]
+    R[i, i], R[i, j], R[j, i], R[j, j] = math.cos(a), -math.sin(a), math.sin(a), math.cos(a)
+    out = pose.clone().to(torch.float64)
+    out[:3, :3] = out[:3, :3] @ R
+    return out
+
+
+@pytest.mark.parametrize(("third", "expected"), [(3.5, 3), (4.5, 2)])
+def test_a_third_neighbour_is_added_only_where_it_is_near(tmp_path, third, expected):
+    """Left at the model's count (2), the enhancer adds the next nearest training view only when
+    its rotation is within NEAR_DEGREES (4) of the view's; asked for 2, it takes exactly 2."""
+    from roguenerf.data.readers import load_scene
+    from roguenerf.data.writers import write_scene_folder
+    from roguenerf.geometry import rotation_angle
+    from roguenerf.inference import NEAR_DEGREES
+
+    assert NEAR_DEGREES == 4.0
+    toy = make_toy_scene(tmp_path / "toy", seed=3, n_train=5, n_test=1, height=16, width=20)
+    target = toy.frames[toy.indices("test")[0]].world_from_cam.to(torch.float64)
+    # Training cameras where the test camera stands, turned 1, 2 and `third` degrees, and two far ones.
+    poses = [_turned(target, 1.0), _turned(target, 2.0), _turned(target, third, axis=0),
+             _turned(target, 30.0), _turned(target, 60.0), target]
+    assert float(rotation_angle(target[:3, :3], poses[2][:3, :3])) == pytest.approx(third, abs=1e-6)
+    n = len(poses)
+    root = write_scene_folder(tmp_path / "near", names=[f"v{k}" for k in range(n)],
+                              photos=torch.rand(n, 3, 16, 20), renders=torch.rand(n, 3, 16, 20),
+                              depths=torch.ones(n, 1, 16, 20), world_from_cam=torch.stack(poses),
+                              K=toy.intrinsics()[:1].expand(n, 3, 3).clone(), splits=["train"] * (n - 1) + ["test"])
+    scene = load_scene(root)
+    model = _model(num_neighbours=2)
+    default = SceneEnhancer(scene, model)
+    assert [scene.frames[i].name for i in default.select(target)] == ["v0", "v1", "v2"][:expected]
+    assert [scene.frames[i].name for i in SceneEnhancer(scene, model, num_neighbours=2).select(target)] == ["v0", "v1"]
+    assert len(SceneEnhancer(scene, model, num_neighbours=4).select(target)) == 4
+
+
+def test_rotation_angle_is_the_geodesic_angle():
+    from roguenerf.geometry import rotation_angle
+
+    pose = torch.eye(4, dtype=torch.float64)
+    for degrees, axis in ((0.0, 0), (3.0, 1), (45.0, 2), (179.0, 0)):
+        assert float(rotation_angle(pose[:3, :3], _turned(pose, degrees, axis)[:3, :3])) == pytest.approx(degrees,
+                                                                                                         abs=1e-5)
+
+
 def test_features_are_encoded_once_and_reused(scene):
     model = _model()
     calls = _counting(model)

@@ -27,7 +27,7 @@ from roguenerf.geometry.cameras import (
     scale_intrinsics,
 )
 from roguenerf.geometry.depth import DEPTH_EPS, MAX_DEPTH, known_depth, known_depth_mask, median_known_depth
-from roguenerf.geometry.euler import angular_distance, euler_angles, euler_distance, wrap_angle
+from roguenerf.geometry.euler import angular_distance, euler_angles, euler_distance, rotation_angle, wrap_angle
 from roguenerf.geometry.neighbours import select_neighbours
 from roguenerf.geometry.reproject import Reprojection, reproject, sampling_source
 
@@ -51,6 +51,7 @@ __all__ = [
     "ray_to_z_depth",
     "relative_pose",
     "reproject",
+    "rotation_angle",
     "sampling_source",
     "scale_intrinsics",
     "select_neighbours",
