@@ -3,37 +3,51 @@ every test view of a scene on the CPU and on CUDA, images compared, seconds per 
 
 Here, a scene folder copied into an ignored folder that the device tool carries (with the kornia
 wheels of scripts/gpu_pretrain.sh in .whl/):
-    mkdir -p .gpucheck && cp -r runs/kinds/pairs/ollie/hash_s2_400steps_1024rays_48samples/{images,renders,depths,acc,transforms.json} .gpucheck/
+    S=runs/kinds/pairs/ollie/hash_s2_400steps_1024rays_48samples
+    mkdir -p .gpucheck && cp -r $S/images $S/renders $S/depths $S/acc $S/transforms.json .gpucheck/
 There (carry .gpucheck and .whl):
     python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl
     PYTHONPATH=/tmp/site:$PWD ROGUENERF_THREADS=8 python3 scripts/gpu_inference_check.py .gpucheck
 """
-import sys, time
+
+import sys
+import time
 from pathlib import Path
+
 import torch
+
 from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
 from roguenerf.data.readers import load_scene
 from roguenerf.inference import SceneEnhancer
 
-scene = load_scene(Path(sys.argv[1]))
-model, _ = load_checkpoint(default_checkpoint_path())
-print(torch.__version__, torch.cuda.get_device_name() if torch.cuda.is_available() else "no cuda", flush=True)
-out = {}
-for dev in ("cpu", "cuda"):
-    enh = SceneEnhancer(scene, load_checkpoint(default_checkpoint_path())[0], device=dev)
-    enh.enhance_view(scene.indices("test")[0])  # warm-up (encodes, kernels)
-    if dev == "cuda":
-        torch.cuda.synchronize()
-    t0 = time.perf_counter()
-    res = [enh.enhance_view(i) for i in scene.indices("test")]
-    if dev == "cuda":
-        torch.cuda.synchronize()
-    out[dev] = (res, (time.perf_counter() - t0) / len(res))
-def psnr(a, b):
+
+def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return float(-10 * torch.log10(((a - b) ** 2).mean().clamp_min(1e-12)))
-for i, (c, g) in zip(scene.indices("test"), zip(out["cpu"][0], out["cuda"][0])):
-    photo, render = scene.photo(i), scene.render(i)
-    print(scene.frames[i].name, "neighbours", c.neighbours, g.neighbours, "trust", c.trust, g.trust,
-          "gain cpu %+.3f cuda %+.3f" % (psnr(c.image, photo) - psnr(render, photo), psnr(g.image, photo) - psnr(render, photo)),
-          "max |cpu-cuda| %.4f" % float((c.image - g.image).abs().max()), flush=True)
-print("seconds per view: cpu %.3f, cuda %.3f" % (out["cpu"][1], out["cuda"][1]))
+
+
+def main(folder: str) -> None:
+    scene = load_scene(Path(folder))
+    if not torch.cuda.is_available():
+        raise SystemExit("no CUDA device")
+    print(torch.__version__, torch.cuda.get_device_name(), flush=True)
+    views = scene.indices("test")
+    out = {}
+    for dev in ("cpu", "cuda"):
+        enhancer = SceneEnhancer(scene, load_checkpoint(default_checkpoint_path())[0], device=dev)
+        enhancer.enhance_view(views[0])  # warm-up: encodes the neighbours, loads the kernels
+        torch.cuda.synchronize()
+        start = time.perf_counter()
+        results = [enhancer.enhance_view(i) for i in views]
+        torch.cuda.synchronize()
+        out[dev] = (results, (time.perf_counter() - start) / len(views))
+    for i, c, g in zip(views, out["cpu"][0], out["cuda"][0], strict=True):
+        photo, render = scene.photo(i), scene.render(i)
+        base = psnr(render, photo)
+        print(f"{scene.frames[i].name} neighbours {c.neighbours} {g.neighbours} trust {c.trust} {g.trust} "
+              f"gain cpu {psnr(c.image, photo) - base:+.3f} cuda {psnr(g.image, photo) - base:+.3f} "
+              f"max |cpu-cuda| {float((c.image - g.image).abs().max()):.4f}", flush=True)
+    print(f"seconds per view: cpu {out['cpu'][1]:.3f}, cuda {out['cuda'][1]:.3f}")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1])
