@@ -17,7 +17,7 @@ import argparse
 import time
 from pathlib import Path
 
-from bench.common import RESULTS, save_figure, scene_label, stamp, write_outputs
+from bench.common import RESULTS, save_figure, scene_label, stamp, summary_by_setting, write_outputs
 
 DEFAULT_CONFIGS = "off,local_sigma=0:min_share=0.05,local_sigma=0,local_sigma=4,local_sigma=8,local_sigma=16"
 
@@ -110,16 +110,7 @@ def measure(args) -> list[dict]:
 
 def summary(rows: list[dict]) -> list[dict]:
     """Per setting: the mean over scenes of each scene's mean gain, views with a better FLIP, worst view."""
-    out = []
-    for spec in dict.fromkeys(r["config"] for r in rows):
-        mine = [r for r in rows if r["config"] == spec]
-        scenes: dict[str, list[float]] = {}
-        for r in mine:
-            scenes.setdefault(r["scene"], []).append(r["gain_db"])
-        out.append({"config": spec, "gain_db": sum(sum(g) / len(g) for g in scenes.values()) / len(scenes),
-                    "views_flip_better": sum(r["flip_change"] < 0 for r in mine), "views": len(mine),
-                    "worst_view_gain_db": min(r["gain_db"] for r in mine)})
-    return out
+    return summary_by_setting(rows, "config")
 
 
 def plot(rows: list[dict], path: Path) -> Path:

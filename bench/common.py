@@ -148,3 +148,21 @@ def scene_metrics(report: dict) -> dict:
             "render_ssim": round(r["ssim"], 5), "enhanced_ssim": round(e["ssim"], 5),
             "render_flip": round(r["flip"], 5), "enhanced_flip": round(e["flip"], 5),
             "latency_s_per_view": round(report["seconds_per_view"], 4)}
+
+
+def summary_by_setting(rows: list[dict], key: str) -> list[dict]:
+    """Per value of ``rows[...][key]`` (in first-seen order): the mean over scenes of each scene's
+    mean ``gain_db``, the views with a better FLIP (``flip_change`` < 0), the worst view and the
+    worst scene's mean gain. Rows need ``scene``, ``gain_db`` and ``flip_change``."""
+    out = []
+    for spec in dict.fromkeys(r[key] for r in rows):
+        mine = [r for r in rows if r[key] == spec]
+        scenes: dict[str, list[float]] = {}
+        for r in mine:
+            scenes.setdefault(r["scene"], []).append(r["gain_db"])
+        means = [sum(g) / len(g) for g in scenes.values()]
+        out.append({key: spec, "gain_db": sum(means) / len(means),
+                    "views_flip_better": sum(r["flip_change"] < 0 for r in mine), "views": len(mine),
+                    "worst_view_gain_db": min(r["gain_db"] for r in mine), "worst_scene_gain_db": min(means)})
+    return out
+

@@ -71,27 +71,22 @@ def load_field(fit_dir: Path):
     GridField (``coarse``, ``fine``) or a HashField (``--preset hash``)."""
     from safetensors.torch import load_file
 
-    from roguefit.field import GridField
-    from roguefit.hashfield import HashField
+    from roguefit.fit import FitConfig, new_field
 
     meta = json.loads((fit_dir / ".fit" / "state.json").read_text())
     report = json.loads((fit_dir / "fit.json").read_text())
     tensors = load_file(str(fit_dir / ".fit" / "state.safetensors"))
     model = {k[6:]: v for k, v in tensors.items() if k.startswith("model.")}
-    c = meta["config"]
-    if c.get("kind", "grid") == "hash":
-        field = HashField(torch.tensor(report["centre"]), float(report["radius"]), levels=int(c["hash_levels"]),
-                          log2_table=int(c["hash_log2_table"]), features=int(c["hash_features"]),
-                          base=int(c["hash_base"]), finest=int(c["resolution"]), sh_degree=int(c["sh_degree"]))
-    elif c.get("kind", "grid") == "grid":
-        field = GridField(torch.tensor(report["centre"]), float(report["radius"]), int(meta["resolution"]),
-                          features=int(c["features"]))
+    kind = meta["config"].get("kind", "grid")
+    if kind not in ("grid", "hash"):
+        raise SystemExit(f"--fit {fit_dir}: a {kind!r} fit has no field to render a path with here")
+    config = FitConfig(**meta["config"])
+    field = new_field(config, torch.tensor(report["centre"]), float(report["radius"]), int(meta["resolution"]))
+    if config.kind == "grid":
         field.use_mlp = int(meta["level"]) > 0
-    else:
-        raise SystemExit(f"--fit {fit_dir}: a {c['kind']!r} fit has no field to render a path with here")
     field.occupancy = model["occupancy"].to(torch.bool)
     field.load_state_dict(model)
-    return field.eval(), int(meta["config"]["samples"])
+    return field.eval(), config.samples
 
 
 def ray_bounds(fit_dir: Path, scene):

@@ -22,7 +22,7 @@ import argparse
 import time
 from pathlib import Path
 
-from bench.common import RESULTS, save_figure, scene_label, stamp, write_outputs
+from bench.common import RESULTS, save_figure, scene_label, stamp, summary_by_setting, write_outputs
 
 DEFAULT_SETTINGS = "off,0.3,0.4,0.5,0.6,0.7"
 
@@ -92,15 +92,16 @@ def measure(args) -> list[dict]:
             t0 = time.perf_counter()
             result = enhancer.enhance_view(i)
             seconds = time.perf_counter() - t0
-            positions = [enhancer.train.index(scene.index(n)) for n in result.neighbours]
-            share = agree = None
-            if len(positions) >= 2:  # the refined poses the model saw (the fit is deterministic)
+            share, agree = result.agreement, None  # measured by the enhancer (colour matching's test)
+            if share is not None and any(spec.startswith("local") for spec in args.settings):
+                # Per pixel: the agreement map itself, from the refined poses the model saw (the fit is
+                # deterministic).
+                positions = [enhancer.train.index(scene.index(n)) for n in result.neighbours]
                 poses, _ = enhancer.neighbour_poses(positions, scene.render(i), depth, frame.K, frame.world_from_cam)
                 seen, small = enhancer._small_seen(positions, result.image, depth, frame.K, frame.world_from_cam,
                                                    poses)
                 config = TrustConfig()
                 agree, _ = neighbour_agreement(seen, small.shape[-2:], config.sigma, config.max_disagreement)
-                share = float(agree.float().mean())
             for spec in args.settings:
                 if spec.startswith("local") and agree is not None:
                     density = _blur(agree[:, None].float(), float(spec[5:]))
@@ -124,17 +125,7 @@ def measure(args) -> list[dict]:
 
 def summary(rows: list[dict]) -> list[dict]:
     """Per setting: the mean over scenes of each scene's mean gain, views with a better FLIP, worst view."""
-    out = []
-    for spec in dict.fromkeys(r["setting"] for r in rows):
-        mine = [r for r in rows if r["setting"] == spec]
-        scenes: dict[str, list[float]] = {}
-        for r in mine:
-            scenes.setdefault(r["scene"], []).append(r["gain_db"])
-        out.append({"setting": spec, "gain_db": sum(sum(g) / len(g) for g in scenes.values()) / len(scenes),
-                    "views_flip_better": sum(r["flip_change"] < 0 for r in mine), "views": len(mine),
-                    "worst_view_gain_db": min(r["gain_db"] for r in mine),
-                    "worst_scene_gain_db": min(sum(g) / len(g) for g in scenes.values())})
-    return out
+    return summary_by_setting(rows, "setting")
 
 
 def plot(rows: list[dict], path: Path) -> Path:

@@ -170,6 +170,20 @@ PRESETS: dict[str, FitConfig | SplatConfig] = {
 }
 
 
+def new_field(config: FitConfig, centre: Tensor, radius: float, resolution: int | None = None) -> GridField:
+    """The untrained field a fit with ``config`` trains over the contraction ``centre``, ``radius``:
+    a :class:`~roguefit.hashfield.HashField` (finest level ``config.resolution``) for kind "hash",
+    else a :class:`GridField` at ``resolution`` (default ``config.resolution``)."""
+    if config.kind == "hash":
+        from roguefit.hashfield import HashField
+
+        return HashField(centre, radius, levels=config.hash_levels, log2_table=config.hash_log2_table,
+                         features=config.hash_features, base=config.hash_base, finest=config.resolution,
+                         sh_degree=config.sh_degree)
+    return GridField(centre, radius, config.resolution if resolution is None else resolution,
+                     features=config.features)
+
+
 def camera_rays(K: Tensor, world_from_cam: Tensor, v: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
     """Rays through pixel centres ``(v, u)`` (row, col) of cameras ``K (B,3,3)``, ``world_from_cam (B,4,4)``.
 
@@ -202,15 +216,11 @@ class _Fitter:
         centre, radius = scene_frame(pose, ps.near[self.train])
         self.levels = _grow_plan(config)
         if config.kind == "hash":
-            from roguefit.hashfield import HashField
-
             with torch.random.fork_rng(devices=[]):  # random initial weights from the config's seed alone
                 torch.manual_seed(config.seed)
-                self.field = HashField(centre, radius, levels=config.hash_levels,
-                                       log2_table=config.hash_log2_table, features=config.hash_features,
-                                       base=config.hash_base, finest=config.resolution, sh_degree=config.sh_degree)
+                self.field = new_field(config, centre, radius)
         else:
-            self.field = GridField(centre, radius, self.levels[0], features=config.features)
+            self.field = new_field(config, centre, radius, self.levels[0])
         self.seen = seen_by_cameras(self.field, pose, ps.K[self.train], self.near[self.train],
                                     self.far[self.train], ps.height, ps.width)
         self.field.occupancy = self.seen.clone()

@@ -445,12 +445,13 @@ class SceneEnhancer:
 
             seen, small_image = self._small_seen(positions, image, depth, K, world_from_cam, n_pose)
             test = self.trust or self.colour  # the same test by default (TrustConfig's sigma, threshold)
-            agree, _ = neighbour_agreement(seen, small_image.shape[-2:], test.sigma, test.max_disagreement)
-            share = float(agree.float().mean())
+            agreement = neighbour_agreement(seen, small_image.shape[-2:], test.sigma, test.max_disagreement)
+            share = float(agreement[0].float().mean())
             if self.colour is not None:
                 from roguenerf.geometry.colour import apply_match, colour_match
 
-                match = colour_match(small_image[None], seen, self.colour)
+                same = (self.colour.sigma, self.colour.max_disagreement) == (test.sigma, test.max_disagreement)
+                match = colour_match(small_image[None], seen, self.colour, agreement=agreement if same else None)
                 if match is not None:
                     image = apply_match(image, match)
             if self.trust is not None:

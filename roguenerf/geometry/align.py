@@ -37,6 +37,7 @@ from torch import Tensor
 from roguenerf.errors import InputError
 from roguenerf.geometry.cameras import check_intrinsics, check_pose, relative_pose, scale_intrinsics
 from roguenerf.geometry.depth import known_depth_mask, median_known_depth
+from roguenerf.geometry.euler import rotation_angle
 from roguenerf.geometry.noise import axis_angle_to_matrix
 from roguenerf.geometry.reproject import reproject
 
@@ -136,11 +137,6 @@ def _rays(K: Tensor, size: tuple[int, int]) -> Tensor:
     v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64) + 0.5, torch.arange(w, dtype=torch.float64) + 0.5,
                           indexing="ij")
     return torch.stack([u, v, torch.ones_like(u)], dim=-1) @ torch.linalg.inv(K.to(torch.float64)).T
-
-
-def _angle_deg(R: Tensor) -> float:
-    cos = ((torch.diagonal(R).sum() - 1.0) / 2.0).clamp(-1.0, 1.0)
-    return math.degrees(float(torch.arccos(cos)))
 
 
 MIN_OVERLAP = 0.9
@@ -283,7 +279,7 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
 
     def within(pose: Tensor) -> bool:
         motion = pose @ start_inverse
-        return (_angle_deg(motion[:3, :3]) <= config.max_rotation_deg
+        return (float(rotation_angle(motion[:3, :3])) <= config.max_rotation_deg
                 and float(motion[:3, 3].norm()) <= config.max_translation)
 
     with torch.no_grad():
@@ -333,7 +329,7 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
         before = finest.error(start_sampled, both, both, c)
         after = finest.error(sampled, both, both, c)
     motion = pose @ start_inverse  # the fitted motion, in the neighbour's frame
-    rotation_deg = _angle_deg(motion[:3, :3])
+    rotation_deg = float(rotation_angle(motion[:3, :3]))
     translation = float(motion[:3, 3].norm())
     # A fit that ends against the trust region's edge has no minimum near the dataset pose
     # (wrong geometry, a render unlike the photo): refused.

@@ -129,7 +129,8 @@ def neighbour_agreement(neighbours: list[tuple[Tensor, Tensor]], size, sigma: fl
 
 
 def colour_match(image: Tensor, neighbours: list[tuple[Tensor, Tensor]],
-                 config: ColourConfig | None = None) -> ColourMatch | None:
+                 config: ColourConfig | None = None, *,
+                 agreement: tuple[Tensor, Tensor] | None = None) -> ColourMatch | None:
     """How far ``image``'s colour is from the agreeing neighbours', as an offset and a field.
 
     Args:
@@ -138,6 +139,8 @@ def colour_match(image: Tensor, neighbours: list[tuple[Tensor, Tensor]],
             where that is valid ``(1, 1, h, w)`` (0/1), as :func:`~roguenerf.geometry.reproject`
             gives them.
         config: thresholds; default :class:`ColourConfig`.
+        agreement: :func:`neighbour_agreement` of ``neighbours`` with ``config``'s ``sigma`` and
+            ``max_disagreement``, when the caller has it already (not measured again).
     Returns:
         A :class:`ColourMatch`, or None where fewer than two neighbours agree on at least
         ``config.min_share`` of the pixels.
@@ -148,7 +151,8 @@ def colour_match(image: Tensor, neighbours: list[tuple[Tensor, Tensor]],
     if len(neighbours) < 2:
         return None
     image = image.float()
-    agree, mean = neighbour_agreement(neighbours, image.shape[-2:], config.sigma, config.max_disagreement)
+    agree, mean = agreement or neighbour_agreement(neighbours, image.shape[-2:], config.sigma,
+                                                   config.max_disagreement)
     share = float(agree.float().mean())
     if share < config.min_share:
         return None

@@ -71,14 +71,15 @@ def angular_distance(R_a: Tensor, R_b: Tensor) -> Tensor:
     return torch.minimum(euler_distance(R_a, R_b), rel)
 
 
-def rotation_angle(R_a: Tensor, R_b: Tensor) -> Tensor:
-    """The geodesic angle between two rotations, in degrees: the angle of ``R_a^T R_b``.
+def rotation_angle(R_a: Tensor, R_b: Tensor | None = None) -> Tensor:
+    """The geodesic angle between two rotations, in degrees: the angle of ``R_a^T R_b`` (of
+    ``R_a`` itself when ``R_b`` is None).
 
     Args:
         R_a, R_b: ``(..., 3, 3)`` broadcastable.
     Returns:
         ``(...)`` degrees in [0, 180]; computed in the inputs' dtype (pass float64 near 0).
     """
-    relative = R_a.transpose(-1, -2) @ R_b
+    relative = R_a if R_b is None else R_a.transpose(-1, -2) @ R_b
     cos = ((relative.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
     return torch.rad2deg(torch.acos(cos))
