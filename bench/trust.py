@@ -7,7 +7,10 @@ is measured on the same small copies the enhancer uses. Each ``--settings`` valu
 that output's change over the render (:func:`~roguenerf.geometry.trust.trust_factor`), so the
 settings differ in nothing else. ``localS`` (e.g. ``local16``) instead keeps, per pixel, the
 share of agreeing pixels within about S pixels of it (Gaussian sigma, small copies) over 0.5: a
-per-pixel trust, measured against the shipped per-view one. A scene folder may name the checkpoint to use for it
+per-pixel trust, measured against the per-view one. ``belowX`` (e.g. ``below0.1``) is the
+shipped rule with :attr:`~roguenerf.geometry.trust.TrustConfig.local_below` = X: per view, and
+per pixel (``local_sigma``) on views whose agreement is under X
+(:func:`~roguenerf.geometry.trust.kept_change`); plain numbers are per view on every view. A scene folder may name the checkpoint to use for it
 (``FOLDER=CHECKPOINT``: a fine-tuned model), else ``--checkpoint``. Per view and setting: PSNR
 gain over the render, FLIP change (lower is better), the agreement share and the share kept.
 CSV + plot with date, machine and commit.
@@ -25,6 +28,7 @@ from pathlib import Path
 from bench.common import RESULTS, save_figure, scene_label, stamp, summary_by_setting, write_outputs
 
 DEFAULT_SETTINGS = "off,0.3,0.4,0.5,0.6,0.7"
+PREFIXES = {"local": "S > 0 pixels", "below": "X a share in [0, 1]"}
 
 
 def _settings(text: str) -> list[str]:
@@ -32,12 +36,15 @@ def _settings(text: str) -> list[str]:
     if not out:
         raise argparse.ArgumentTypeError("--settings: expected at least one setting")
     for c in out:
-        if c.startswith("local"):
+        if c.startswith(tuple(PREFIXES)):
+            prefix = c[:5]
             try:
-                if float(c[5:]) <= 0:
+                value = float(c[5:])
+                if not (value > 0 if prefix == "local" else 0 <= value <= 1):
                     raise ValueError
             except ValueError:
-                raise argparse.ArgumentTypeError(f"--settings: {c!r} is not localS with S > 0 pixels") from None
+                raise argparse.ArgumentTypeError(f"--settings: {c!r} is not {prefix}"
+                                                 f"{'S' if prefix == 'local' else 'X'} with {PREFIXES[prefix]}") from None
         elif c != "off":
             try:
                 value = float(c)
@@ -59,8 +66,9 @@ def parse_args(argv=None):
                    help="scene folders (photos, renders, depths), each optionally =CHECKPOINT")
     p.add_argument("--checkpoint", type=Path, default=None, help="default: the shipped checkpoint")
     p.add_argument("--settings", type=_settings, default=_settings(DEFAULT_SETTINGS),
-                   help="comma-separated: off, TrustConfig.full_share values, or localS (per-pixel agreement "
-                        f"within S pixels) (default {DEFAULT_SETTINGS})")
+                   help="comma-separated: off, TrustConfig.full_share values (per view), localS (per-pixel "
+                        "agreement within S pixels), belowX (the shipped rule with local_below X) "
+                        f"(default {DEFAULT_SETTINGS})")
     p.add_argument("--max-views", type=int, default=None)
     p.add_argument("--output", type=Path, default=RESULTS / "trust")
     return p.parse_args(argv)
@@ -72,8 +80,8 @@ def measure(args) -> list[dict]:
     from roguenerf import metrics
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
-    from roguenerf.geometry.colour import _blur, neighbour_agreement
-    from roguenerf.geometry.trust import TrustConfig, trust_factor
+    from roguenerf.geometry.colour import blur, neighbour_agreement
+    from roguenerf.geometry.trust import TrustConfig, kept_change, trust_factor
     from roguenerf.inference import SceneEnhancer
 
     base = stamp()
@@ -93,7 +101,7 @@ def measure(args) -> list[dict]:
             result = enhancer.enhance_view(i)
             seconds = time.perf_counter() - t0
             share, agree = result.agreement, None  # measured by the enhancer (colour matching's test)
-            if share is not None and any(spec.startswith("local") for spec in args.settings):
+            if share is not None and any(spec.startswith(tuple(PREFIXES)) for spec in args.settings):
                 # Per pixel: the agreement map itself, from the refined poses the model saw (the fit is
                 # deterministic).
                 positions = [enhancer.train.index(scene.index(n)) for n in result.neighbours]
@@ -104,12 +112,15 @@ def measure(args) -> list[dict]:
                 agree, _ = neighbour_agreement(seen, small.shape[-2:], config.sigma, config.max_disagreement)
             for spec in args.settings:
                 if spec.startswith("local") and agree is not None:
-                    density = _blur(agree[:, None].float(), float(spec[5:]))
+                    density = blur(agree[:, None].float(), float(spec[5:]))
                     keep = torch.nn.functional.interpolate((density / 0.5).clamp(0, 1), size=render.shape[-2:],
                                                            mode="bilinear", align_corners=False)
                     kept = float(keep.mean())
+                elif spec.startswith("below") and agree is not None:
+                    keep = kept_change(agree, render.shape[-2:], TrustConfig(local_below=float(spec[5:])))
+                    kept = keep if isinstance(keep, float) else float(keep.mean())
                 else:
-                    kept = (1.0 if spec == "off" or spec.startswith("local") or share is None
+                    kept = (1.0 if spec == "off" or spec.startswith(tuple(PREFIXES)) or share is None
                             else trust_factor(share, TrustConfig(float(spec))))
                     keep = kept
                 out = render + keep * (result.image[None] - render)

@@ -58,7 +58,8 @@ ColourOpt = Annotated[bool, typer.Option("--colour/--no-colour", help=(
     "colour prior comes from its pre-training renders). Default on."))]
 TrustOpt = Annotated[bool, typer.Option("--trust/--no-trust", help=(
     "Keep only part of the enhancer's change on a view where the neighbour photos mostly disagree (the "
-    "field's geometry is off there: floaters), in proportion to the share where they agree. Default on."))]
+    "field's geometry is off there: floaters), in proportion to the share where they agree; where they agree on "
+    "under a tenth of it, only where they agree nearby. Default on."))]
 FreezeOpt = Annotated[bool | None, typer.Option(
     "--freeze-neighbour-encoder/--train-neighbour-encoder",
     help="Keep conv_H (the neighbour-photo encoder) fixed and encode the training photos once, so each "

@@ -96,8 +96,9 @@ class EnhanceResult:
     two neighbours)."""
     trust: float | None = None
     """Share of the enhancer's change that was kept (:mod:`roguenerf.geometry.trust`): 1 where the
-    neighbours agree on enough of the view, less where they mostly disagree; None where trust is
-    off or fewer than two neighbours were used (nothing to compare)."""
+    neighbours agree on enough of the view, less where they mostly disagree (the mean over the
+    image where it was set per pixel: agreement under ``TrustConfig.local_below``); None where
+    trust is off or fewer than two neighbours were used (nothing to compare)."""
 
 
 def _check_image(x: Tensor, name: str, channels: int) -> Tensor:
@@ -455,15 +456,17 @@ class SceneEnhancer:
                 if match is not None:
                     image = apply_match(image, match)
             if self.trust is not None:
-                from roguenerf.geometry.trust import trust_factor
+                from roguenerf.geometry.trust import kept_change
 
-                factor = trust_factor(share, self.trust)
+                keep = kept_change(agreement[0], image.shape[-2:], self.trust)
+                factor = keep if isinstance(keep, float) else float(keep.mean())
                 if factor < 1:
                     base = render.to("cpu", torch.float32).clamp(0, 1)
-                    image = (base + factor * (image - base)).clamp(0, 1)
+                    image = (base + keep * (image - base)).clamp(0, 1)
                     if note is None:
+                        where = "" if isinstance(keep, float) else ", where they agree"
                         note = (f"the neighbours agree on {share:.0%} of this view (its geometry is off): "
-                                f"{factor:.0%} of the enhancer's change kept")
+                                f"{factor:.0%} of the enhancer's change kept{where}")
         names = [self.scene.frames[i].name for i in chosen]
         return EnhanceResult(image=image, neighbours=names, seconds=time.perf_counter() - start, note=note,
                              aligned=aligned if chosen else ([] if self.align is not None else None),

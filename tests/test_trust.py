@@ -9,7 +9,7 @@ import torch
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.errors import InputError
 from roguenerf.geometry.colour import neighbour_agreement
-from roguenerf.geometry.trust import TrustConfig, trust_factor
+from roguenerf.geometry.trust import TrustConfig, kept_change, trust_factor
 from tests.test_colour import Biased, textured
 
 
@@ -27,10 +27,45 @@ def test_the_share_kept_rises_with_the_agreement_up_to_full_share():
 
 
 @pytest.mark.parametrize("bad", [{"full_share": 0}, {"full_share": 1.5}, {"full_share": float("nan")},
-                                 {"sigma": -1}, {"max_disagreement": 0}])
+                                 {"sigma": -1}, {"max_disagreement": 0}, {"local_below": -0.1},
+                                 {"local_below": 1.5}, {"local_sigma": 0}])
 def test_the_config_is_checked(bad):
     with pytest.raises(InputError, match="TrustConfig"):
         TrustConfig(**bad)
+
+
+def test_where_almost_nothing_agrees_the_change_is_kept_only_where_neighbours_agree_nearby():
+    size = (96, 128)
+    # Half the view agrees: one share for the whole view, 1 (at full_share 0.5).
+    half = torch.zeros(1, 48, 64, dtype=torch.bool)
+    half[..., :32] = True
+    assert kept_change(half, size) == 1.0
+    # A quarter: half the change, everywhere (above local_below).
+    quarter = torch.zeros(1, 48, 64, dtype=torch.bool)
+    quarter[..., :16] = True
+    assert kept_change(quarter, size) == pytest.approx(0.5)
+    # A 6 x 8 patch (1.6 %): under local_below, so per pixel. Far from the patch nothing is kept;
+    # at its centre, the agreement within a Gaussian of 2 px around it over full_share: all of it.
+    patch = torch.zeros(1, 48, 64, dtype=torch.bool)
+    patch[..., 20:26, 40:48] = True
+    keep = kept_change(patch, size, TrustConfig(local_sigma=2.0))
+    assert isinstance(keep, torch.Tensor) and keep.shape == (1, 96, 128)
+    assert float(keep.min()) >= 0 and float(keep.max()) <= 1
+    assert float(keep[0, :20, :40].max()) < 1e-3 and float(keep[0, 80:, :].max()) < 1e-3
+    assert float(keep[0, 46, 88]) == pytest.approx(1.0, abs=0.02)  # the patch's centre, doubled
+    # With the default reach (16 px) the kept change is spread around the patch; its mean is
+    # about the agreement's share over full_share (a blur keeps the total, less what spills past
+    # the image's edge: this reach is wider than the 48 x 64 copy).
+    wide = kept_change(patch, size)
+    assert 0.6 * (48 / 3072 / 0.5) < float(wide.mean()) < 48 / 3072 / 0.5
+    assert float(wide[0, 46, 88]) < 0.5  # too little agreement around it to keep it whole
+    # local_below 0: one share for the view, as before.
+    assert kept_change(patch, size, TrustConfig(local_below=0)) == pytest.approx(48 / 3072 / 0.5)
+    # Nothing agrees: nothing kept.
+    none = kept_change(torch.zeros(1, 48, 64, dtype=torch.bool), size)
+    assert float(none.abs().max()) == 0
+    with pytest.raises(InputError, match="agree"):
+        kept_change(torch.zeros(48, 64, dtype=torch.bool), size)
 
 
 def test_agreement_is_where_two_neighbours_see_the_same_colour():
@@ -90,6 +125,14 @@ def test_the_scene_enhancer_keeps_the_change_in_proportion_to_the_agreement(tmp_
     strict = SceneEnhancer(scene, model, colour=False, align=False, trust=TrustConfig(full_share=1.0)).enhance(
         render, wrong, frame.K, frame.world_from_cam)
     assert strict.trust == pytest.approx(on.agreement, abs=1e-3)
+    # Per pixel (every share under local_below): the change is kept where the neighbours agree
+    # nearby, so unevenly, and the share reported is its mean.
+    local = SceneEnhancer(scene, model, colour=False, align=False, trust=TrustConfig(local_below=1.0)).enhance(
+        render, wrong, frame.K, frame.world_from_cam)
+    kept = ((local.image - render) / (full - render).clamp_min(1e-6))[:, (full - render).amin(0) > 0.03]
+    assert float(kept.max()) - float(kept.min()) > 0.2
+    assert local.trust == pytest.approx(float(kept.mean()), abs=0.02) and 0 < local.trust < 1
+    assert "where they agree" in local.note
 
     # One neighbour: nothing to compare, the change is kept whole and nothing is reported.
     one = SceneEnhancer(scene, model, colour=False, align=False, num_neighbours=1).enhance(

@@ -80,7 +80,8 @@ class ColourMatch:
     """Share of the pixels where two or more neighbours agree."""
 
 
-def _blur(x: Tensor, sigma: float) -> Tensor:
+def blur(x: Tensor, sigma: float) -> Tensor:
+    """``(B, C, h, w)`` Gaussian blur of ``sigma`` pixels (kernel out to 3 sigma, edges replicated)."""
     k = 2 * int(3 * sigma) + 1
     return gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="replicate")
 
@@ -111,8 +112,8 @@ def neighbour_agreement(neighbours: list[tuple[Tensor, Tensor]], size, sigma: fl
         m = (mask.float() > 0.5).float()
         # Blur over the valid pixels only (normalised convolution): no colour bleeds in from
         # where the neighbour does not see.
-        weight = _blur(m, sigma)
-        blurred.append(_blur(colour.float() * m, sigma) / weight.clamp_min(1e-3))
+        weight = blur(m, sigma)
+        blurred.append(blur(colour.float() * m, sigma) / weight.clamp_min(1e-3))
         valid.append(m[:, 0] > 0.5)
     count = torch.stack(valid).sum(0)
     total = torch.zeros_like(blurred[0])
@@ -156,15 +157,15 @@ def colour_match(image: Tensor, neighbours: list[tuple[Tensor, Tensor]],
     share = float(agree.float().mean())
     if share < config.min_share:
         return None
-    diff = mean - _blur(image, config.sigma)  # (1, 3, h, w)
+    diff = mean - blur(image, config.sigma)  # (1, 3, h, w)
     offset = torch.stack([diff[0, c][agree[0]].median() for c in range(3)])
     if not bool(torch.isfinite(offset).all()):
         return None
     field = offset.view(1, 3, 1, 1).expand_as(image).clone()
     if config.local_sigma > 0:
         a = agree[:, None].float()
-        support = _blur(a, config.local_sigma)
-        local = _blur(diff * a, config.local_sigma) / support.clamp_min(1e-3)
+        support = blur(a, config.local_sigma)
+        local = blur(diff * a, config.local_sigma) / support.clamp_min(1e-3)
         w = (support / config.local_support).clamp(0, 1)
         field = w * local + (1 - w) * field
     return ColourMatch(offset=offset, field=field, share=share)

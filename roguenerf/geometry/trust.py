@@ -20,11 +20,21 @@ own fitter's held-out views of dtu_scan37 and mary_rose 14-93 %. The setting was
 side on the leave-one-kind-out figure (``python -m bench.trust``; docs/kinds.md, *Trusting the
 neighbours by their agreement*). With fewer than two neighbours there is nothing to compare,
 and the change is kept whole.
+
+Below :attr:`TrustConfig.local_below` (10 %) the view's geometry is broken almost everywhere,
+and the little change kept, spread evenly, still lands mostly where it is wrong. There the
+share kept is set per pixel instead, by the share of agreeing pixels around it (a Gaussian of
+:attr:`TrustConfig.local_sigma` pixels of the small copy) over ``full_share``: the change is
+kept where the neighbours agree nearby, and the render elsewhere (:func:`kept_change`;
+docs/kinds.md, *Where almost nothing agrees*).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+import torch
+from torch import Tensor
 
 from roguenerf.errors import InputError
 
@@ -38,14 +48,21 @@ class TrustConfig:
     """Blur (pixels of the small copies) before neighbours are compared: as colour matching."""
     max_disagreement: float = 0.03
     """Two neighbours agree where their blurred colours differ by less than this: as colour matching."""
+    local_below: float = 0.1
+    """Below this share of agreeing pixels the share kept is set per pixel (agreement nearby over
+    ``full_share``), not once for the view; 0 never."""
+    local_sigma: float = 16.0
+    """Reach (Gaussian sigma, pixels of the small copy) of "nearby" for ``local_below``."""
 
     def __post_init__(self):
-        for name in ("full_share", "sigma", "max_disagreement"):
+        for name in ("full_share", "sigma", "max_disagreement", "local_sigma"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and 0 < value < float("inf")):
                 raise InputError(f"TrustConfig.{name}: expected a positive number, got {value!r}")
         if self.full_share > 1:
             raise InputError(f"TrustConfig.full_share: expected a share in (0, 1], got {self.full_share}")
+        if not (isinstance(self.local_below, (int, float)) and 0 <= self.local_below <= 1):
+            raise InputError(f"TrustConfig.local_below: expected a share in [0, 1], got {self.local_below!r}")
 
 
 def trust_factor(share: float, config: TrustConfig | None = None) -> float:
@@ -55,3 +72,31 @@ def trust_factor(share: float, config: TrustConfig | None = None) -> float:
     if not 0 <= share <= 1:
         raise InputError(f"share: expected a share in [0, 1], got {share}")
     return min(1.0, share / config.full_share)
+
+
+def kept_change(agree: Tensor, size, config: TrustConfig | None = None) -> float | Tensor:
+    """How much of the enhancer's change to keep on a view, from its agreement map.
+
+    Args:
+        agree: ``(1, h, w)`` bool, where two or more neighbours agree (the small copy;
+            :func:`~roguenerf.geometry.colour.neighbour_agreement`).
+        size: ``(H, W)`` of the image the change is kept on.
+        config: default :class:`TrustConfig`.
+    Returns:
+        A float in [0, 1] (:func:`trust_factor` of the share of agreeing pixels), or where that
+        share is under ``config.local_below``, a ``(1, H, W)`` map in [0, 1]: the agreement
+        around each pixel over ``full_share``.
+    """
+    from roguenerf.geometry.colour import blur
+
+    config = config or TrustConfig()
+    if agree.ndim != 3 or agree.shape[0] != 1:
+        raise InputError(f"agree: expected shape (1, h, w), got {tuple(agree.shape)}")
+    share = float(agree.float().mean())
+    factor = trust_factor(share, config)
+    if factor >= 1 or share >= config.local_below:
+        return factor
+    density = blur(agree[None].float(), config.local_sigma)
+    keep = (density / config.full_share).clamp(0, 1)
+    keep = torch.nn.functional.interpolate(keep, size=tuple(size), mode="bilinear", align_corners=False)
+    return keep[0].clamp(0, 1)
