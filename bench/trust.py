@@ -5,13 +5,14 @@ refinement and colour matching on); the share of its pixels where two or more ne
 is measured on the same small copies the enhancer uses. Each ``--settings`` value of
 :attr:`~roguenerf.geometry.trust.TrustConfig.full_share` then keeps ``min(1, share / value)`` of
 that output's change over the render (:func:`~roguenerf.geometry.trust.trust_factor`), so the
-settings differ in nothing else. ``localS`` (e.g. ``local16``) instead keeps, per pixel, the
-share of agreeing pixels within about S pixels of it (Gaussian sigma, small copies) over 0.5: a
-per-pixel trust, measured against the per-view one. ``belowX`` (e.g. ``below0.1``) is the
-shipped rule with :attr:`~roguenerf.geometry.trust.TrustConfig.local_below` = X: per view, and
-per pixel (``local_sigma``) on views whose agreement is under X
-(:func:`~roguenerf.geometry.trust.kept_change`); plain numbers are per view on every view. A scene folder may name the checkpoint to use for it
-(``FOLDER=CHECKPOINT``: a fine-tuned model), else ``--checkpoint``. Per view and setting: PSNR
+settings differ in nothing else; plain numbers are per view on every view. ``localS`` (e.g.
+``local16``) instead keeps, per pixel, the share of agreeing pixels within about S pixels of it
+(Gaussian sigma, small copies) over 0.5: a per-pixel trust on every view. ``belowX`` (e.g.
+``below0.1``) is the shipped rule with
+:attr:`~roguenerf.geometry.trust.TrustConfig.local_below` = X: per view, and per pixel
+(``local_sigma``) on views whose agreement is under X
+(:func:`~roguenerf.geometry.trust.kept_change`). A scene folder may name the checkpoint to use
+for it (``FOLDER=CHECKPOINT``: a fine-tuned model), else ``--checkpoint``. Per view and setting: PSNR
 gain over the render, FLIP change (lower is better), the agreement share and the share kept.
 CSV + plot with date, machine and commit.
 
