@@ -11,7 +11,9 @@ settings differ in nothing else; plain numbers are per view on every view. ``loc
 ``below0.1``) is the shipped rule with
 :attr:`~roguenerf.geometry.trust.TrustConfig.local_below` = X: per view, and per pixel
 (``local_sigma``) on views whose agreement is under X
-(:func:`~roguenerf.geometry.trust.kept_change`). A scene folder may name the checkpoint to use
+(:func:`~roguenerf.geometry.trust.kept_change`). ``alone`` keeps the shipped rule's share but
+takes the rest of the change from the model run without neighbours instead of the render (a
+fallback measured, not shipped). A scene folder may name the checkpoint to use
 for it (``FOLDER=CHECKPOINT``: a fine-tuned model), else ``--checkpoint``. Per view and setting: PSNR
 gain over the render, FLIP change (lower is better), the agreement share and the share kept.
 CSV + plot with date, machine and commit.
@@ -30,6 +32,8 @@ from bench.common import RESULTS, save_figure, scene_label, stamp, summary_by_se
 
 DEFAULT_SETTINGS = "off,0.3,0.4,0.5,0.6,0.7"
 PREFIXES = {"local": "S > 0 pixels", "below": "X a share in [0, 1]"}
+MAPS = (*PREFIXES, "alone")
+"""Settings that need the view's agreement map (measured again from the refined poses)."""
 
 
 def _settings(text: str) -> list[str]:
@@ -46,7 +50,7 @@ def _settings(text: str) -> list[str]:
             except ValueError:
                 raise argparse.ArgumentTypeError(f"--settings: {c!r} is not {prefix}"
                                                  f"{'S' if prefix == 'local' else 'X'} with {PREFIXES[prefix]}") from None
-        elif c != "off":
+        elif c not in ("off", "alone"):
             try:
                 value = float(c)
             except ValueError:
@@ -68,7 +72,8 @@ def parse_args(argv=None):
     p.add_argument("--checkpoint", type=Path, default=None, help="default: the shipped checkpoint")
     p.add_argument("--settings", type=_settings, default=_settings(DEFAULT_SETTINGS),
                    help="comma-separated: off, TrustConfig.full_share values (per view), localS (per-pixel "
-                        "agreement within S pixels), belowX (the shipped rule with local_below X) "
+                        "agreement within S pixels), belowX (the shipped rule with local_below X), alone (the shipped share, the rest from "
+                        "the model without neighbours) "
                         f"(default {DEFAULT_SETTINGS})")
     p.add_argument("--max-views", type=int, default=None)
     p.add_argument("--output", type=Path, default=RESULTS / "trust")
@@ -81,6 +86,7 @@ def measure(args) -> list[dict]:
     from roguenerf import metrics
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
+    from roguenerf.geometry import as_world_from_cam
     from roguenerf.geometry.colour import blur, neighbour_agreement
     from roguenerf.geometry.trust import TrustConfig, kept_change, trust_factor
     from roguenerf.inference import SceneEnhancer
@@ -102,7 +108,7 @@ def measure(args) -> list[dict]:
             result = enhancer.enhance_view(i)
             seconds = time.perf_counter() - t0
             share, agree = result.agreement, None  # measured by the enhancer (colour matching's test)
-            if share is not None and any(spec.startswith(tuple(PREFIXES)) for spec in args.settings):
+            if share is not None and any(spec.startswith(MAPS) for spec in args.settings):
                 # Per pixel: the agreement map itself, from the refined poses the model saw (the fit is
                 # deterministic).
                 positions = [enhancer.train.index(scene.index(n)) for n in result.neighbours]
@@ -112,19 +118,26 @@ def measure(args) -> list[dict]:
                 config = TrustConfig()
                 agree, _ = neighbour_agreement(seen, small.shape[-2:], config.sigma, config.max_disagreement)
             for spec in args.settings:
+                fallback = render  # what the change not kept leaves
                 if spec.startswith("local") and agree is not None:
                     density = blur(agree[:, None].float(), float(spec[5:]))
                     keep = torch.nn.functional.interpolate((density / 0.5).clamp(0, 1), size=render.shape[-2:],
                                                            mode="bilinear", align_corners=False)
                     kept = float(keep.mean())
+                elif spec == "alone" and agree is not None:
+                    keep = kept_change(agree, render.shape[-2:], TrustConfig())
+                    kept = keep if isinstance(keep, float) else float(keep.mean())
+                    with torch.inference_mode():  # the model alone: no neighbours
+                        fallback = model(render, depth[None], torch.as_tensor(frame.K, dtype=torch.float32)[None],
+                                         as_world_from_cam(frame.world_from_cam)[None], None).clamp(0, 1)
                 elif spec.startswith("below") and agree is not None:
                     keep = kept_change(agree, render.shape[-2:], TrustConfig(local_below=float(spec[5:])))
                     kept = keep if isinstance(keep, float) else float(keep.mean())
                 else:
-                    kept = (1.0 if spec == "off" or spec.startswith(tuple(PREFIXES)) or share is None
+                    kept = (1.0 if spec == "off" or spec.startswith(MAPS) or share is None
                             else trust_factor(share, TrustConfig(float(spec))))
                     keep = kept
-                out = render + keep * (result.image[None] - render)
+                out = fallback + keep * (result.image[None] - fallback)
                 rows.append({**base, "scene": label, "view": frame.name, "setting": spec,
                              "gain_db": round(float(metrics.psnr(out, photo)[0]) - r_psnr, 4),
                              "flip_change": round(float(metrics.flip(out, photo)[0]) - r_flip, 5),

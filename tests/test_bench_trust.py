@@ -24,11 +24,11 @@ def test_settings_side_by_side_on_one_output(tmp_path):
     ckpt = save_checkpoint(tmp_path / "m.safetensors", Enhancer(make_config("nano", num_neighbours=2)))
     out = tmp_path / "trust"
     assert trust.main([str(tmp_path / "toy"), f"{tmp_path / 'toy'}={ckpt}", "--checkpoint", str(ckpt),
-                       "--settings", "off,0.5,1,local4,below1", "--max-views", "1", "--output", str(out)]) == 0
+                       "--settings", "off,0.5,1,local4,below1,alone", "--max-views", "1", "--output", str(out)]) == 0
     rows = list(csv.DictReader(open(tmp_path / "trust.csv")))
-    assert [r["setting"] for r in rows] == ["off", "0.5", "1", "local4", "below1"] * 2
-    assert [r["scene"] for r in rows] == ["toy"] * 5 + ["toy (fine-tuned)"] * 5
-    off, half, whole, local, below = rows[:5]
+    assert [r["setting"] for r in rows] == ["off", "0.5", "1", "local4", "below1", "alone"] * 2
+    assert [r["scene"] for r in rows] == ["toy"] * 6 + ["toy (fine-tuned)"] * 6
+    off, half, whole, local, below, alone = rows[:6]
     agreement = float(off["agreement"])
     assert 0.5 < agreement < 1  # exact geometry: the neighbours agree on most of the view
     assert float(off["kept"]) == float(half["kept"]) == 1 and half["gain_db"] == off["gain_db"]
@@ -40,6 +40,8 @@ def test_settings_side_by_side_on_one_output(tmp_path):
     assert 0.5 < float(local["kept"]) < 1 and 0 < float(local["gain_db"]) <= float(off["gain_db"])
     # The shipped rule, per pixel under any share: per view still where it keeps the change whole.
     assert float(below["kept"]) == 1 and below["gain_db"] == off["gain_db"]
+    # The model alone as the fallback: nothing to fall back on where the whole change is kept.
+    assert float(alone["kept"]) == 1 and alone["gain_db"] == off["gain_db"]
     assert all(r["date"] and r["machine"] and r["commit"] for r in rows)
     assert (tmp_path / "trust.png").stat().st_size > 1000
     s = {x["setting"]: x for x in trust.summary([{**r, "gain_db": float(r["gain_db"]),
