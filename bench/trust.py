@@ -87,8 +87,8 @@ def measure(args) -> list[dict]:
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
     from roguenerf.geometry import as_world_from_cam
-    from roguenerf.geometry.colour import blur, neighbour_agreement
-    from roguenerf.geometry.trust import TrustConfig, kept_change, trust_factor
+    from roguenerf.geometry.colour import neighbour_agreement
+    from roguenerf.geometry.trust import TrustConfig, kept_change, local_keep, share_kept, trust_factor
     from roguenerf.inference import SceneEnhancer
 
     base = stamp()
@@ -120,19 +120,17 @@ def measure(args) -> list[dict]:
             for spec in args.settings:
                 fallback = render  # what the change not kept leaves
                 if spec.startswith("local") and agree is not None:
-                    density = blur(agree[:, None].float(), float(spec[5:]))
-                    keep = torch.nn.functional.interpolate((density / 0.5).clamp(0, 1), size=render.shape[-2:],
-                                                           mode="bilinear", align_corners=False)
-                    kept = float(keep.mean())
+                    keep = local_keep(agree, render.shape[-2:], float(spec[5:]), 0.5)
+                    kept = share_kept(keep)
                 elif spec == "alone" and agree is not None:
                     keep = kept_change(agree, render.shape[-2:], TrustConfig())
-                    kept = keep if isinstance(keep, float) else float(keep.mean())
+                    kept = share_kept(keep)
                     with torch.inference_mode():  # the model alone: no neighbours
                         fallback = model(render, depth[None], torch.as_tensor(frame.K, dtype=torch.float32)[None],
                                          as_world_from_cam(frame.world_from_cam)[None], None).clamp(0, 1)
                 elif spec.startswith("below") and agree is not None:
                     keep = kept_change(agree, render.shape[-2:], TrustConfig(local_below=float(spec[5:])))
-                    kept = keep if isinstance(keep, float) else float(keep.mean())
+                    kept = share_kept(keep)
                 else:
                     kept = (1.0 if spec == "off" or spec.startswith(MAPS) or share is None
                             else trust_factor(share, TrustConfig(float(spec))))

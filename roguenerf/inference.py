@@ -456,10 +456,10 @@ class SceneEnhancer:
                 if match is not None:
                     image = apply_match(image, match)
             if self.trust is not None:
-                from roguenerf.geometry.trust import kept_change
+                from roguenerf.geometry.trust import kept_change, share_kept
 
                 keep = kept_change(agreement[0], image.shape[-2:], self.trust)
-                factor = keep if isinstance(keep, float) else float(keep.mean())
+                factor = share_kept(keep)
                 if factor < 1:
                     base = render.to("cpu", torch.float32).clamp(0, 1)
                     image = (base + keep * (image - base)).clamp(0, 1)

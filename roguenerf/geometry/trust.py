@@ -87,8 +87,6 @@ def kept_change(agree: Tensor, size, config: TrustConfig | None = None) -> float
         share is under ``config.local_below``, a ``(1, H, W)`` map in [0, 1]: the agreement
         around each pixel over ``full_share``.
     """
-    from roguenerf.geometry.colour import blur
-
     config = config or TrustConfig()
     if agree.ndim != 3 or agree.shape[0] != 1:
         raise InputError(f"agree: expected shape (1, h, w), got {tuple(agree.shape)}")
@@ -96,7 +94,21 @@ def kept_change(agree: Tensor, size, config: TrustConfig | None = None) -> float
     factor = trust_factor(share, config)
     if factor >= 1 or share >= config.local_below:
         return factor
-    density = blur(agree[None].float(), config.local_sigma)
-    keep = (density / config.full_share).clamp(0, 1)
+    return local_keep(agree, size, config.local_sigma, config.full_share)
+
+
+def local_keep(agree: Tensor, size, sigma: float, full_share: float) -> Tensor:
+    """``(1, H, W)`` share of the change to keep per pixel: the share of agreeing pixels of
+    ``agree`` ``(1, h, w)`` within a Gaussian of ``sigma`` (pixels of ``agree``) over
+    ``full_share``, clamped to [0, 1] and bilinearly resized to ``size``."""
+    from roguenerf.geometry.colour import blur
+
+    density = blur(agree[None].float(), sigma)
+    keep = (density / full_share).clamp(0, 1)
     keep = torch.nn.functional.interpolate(keep, size=tuple(size), mode="bilinear", align_corners=False)
     return keep[0].clamp(0, 1)
+
+
+def share_kept(keep: float | Tensor) -> float:
+    """The mean share of the change kept, for :func:`kept_change`'s float or map."""
+    return keep if isinstance(keep, float) else float(keep.mean())
