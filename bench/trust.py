@@ -48,8 +48,9 @@ def _settings(text: str) -> list[str]:
                 if not (value > 0 if prefix == "local" else 0 <= value <= 1):
                     raise ValueError
             except ValueError:
-                raise argparse.ArgumentTypeError(f"--settings: {c!r} is not {prefix}"
-                                                 f"{'S' if prefix == 'local' else 'X'} with {PREFIXES[prefix]}") from None
+                letter = "S" if prefix == "local" else "X"
+                raise argparse.ArgumentTypeError(
+                    f"--settings: {c!r} is not {prefix}{letter} with {PREFIXES[prefix]}") from None
         elif c not in ("off", "alone"):
             try:
                 value = float(c)
@@ -72,8 +73,8 @@ def parse_args(argv=None):
     p.add_argument("--checkpoint", type=Path, default=None, help="default: the shipped checkpoint")
     p.add_argument("--settings", type=_settings, default=_settings(DEFAULT_SETTINGS),
                    help="comma-separated: off, TrustConfig.full_share values (per view), localS (per-pixel "
-                        "agreement within S pixels), belowX (the shipped rule with local_below X), alone (the shipped share, the rest from "
-                        "the model without neighbours) "
+                        "agreement within S pixels), belowX (the shipped rule with local_below X), "
+                        "alone (the shipped share, the rest from the model without neighbours) "
                         f"(default {DEFAULT_SETTINGS})")
     p.add_argument("--max-views", type=int, default=None)
     p.add_argument("--output", type=Path, default=RESULTS / "trust")

@@ -49,7 +49,8 @@ def test_settings_side_by_side_on_one_output(tmp_path):
     assert s["1"]["gain_db"] == pytest.approx(float(whole["gain_db"]))
 
 
-@pytest.mark.parametrize("spec", ["", "x", "0", "1.5", "off,-0.2", "local", "local0", "localx", "below", "below2", "below-1"])
+@pytest.mark.parametrize("spec", ["", "x", "0", "1.5", "off,-0.2", "local", "local0", "localx",
+                                  "below", "below2", "below-1"])
 def test_a_bad_setting_is_refused(spec):
     with pytest.raises(argparse.ArgumentTypeError):
         trust._settings(spec)
