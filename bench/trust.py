@@ -33,7 +33,7 @@ from bench.common import RESULTS, save_figure, scene_label, stamp, summary_by_se
 DEFAULT_SETTINGS = "off,0.3,0.4,0.5,0.6,0.7"
 PREFIXES = {"local": "S > 0 pixels", "below": "X a share in [0, 1]"}
 MAPS = (*PREFIXES, "alone")
-"""Settings that need the view's agreement map (measured again from the refined poses)."""
+"""Settings that keep the change by the view's agreement map (:attr:`EnhanceResult.agreement_map`)."""
 
 
 def _settings(text: str) -> list[str]:
@@ -88,7 +88,6 @@ def measure(args) -> list[dict]:
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
     from roguenerf.geometry import as_world_from_cam
-    from roguenerf.geometry.colour import neighbour_agreement
     from roguenerf.geometry.trust import TrustConfig, kept_change, local_keep, share_kept, trust_factor
     from roguenerf.inference import SceneEnhancer
 
@@ -108,30 +107,21 @@ def measure(args) -> list[dict]:
             t0 = time.perf_counter()
             result = enhancer.enhance_view(i)
             seconds = time.perf_counter() - t0
-            share, agree = result.agreement, None  # measured by the enhancer (colour matching's test)
-            if share is not None and any(spec.startswith(MAPS) for spec in args.settings):
-                # Per pixel: the agreement map itself, from the refined poses the model saw (the fit is
-                # deterministic).
-                positions = [enhancer.train.index(scene.index(n)) for n in result.neighbours]
-                poses, _ = enhancer.neighbour_poses(positions, scene.render(i), depth, frame.K, frame.world_from_cam)
-                seen, small = enhancer._small_seen(positions, result.image, depth, frame.K, frame.world_from_cam,
-                                                   poses)
-                config = TrustConfig()
-                agree, _ = neighbour_agreement(seen, small.shape[-2:], config.sigma, config.max_disagreement)
+            share, agree = result.agreement, result.agreement_map  # the enhancer's (colour matching's test)
             for spec in args.settings:
                 fallback = render  # what the change not kept leaves
                 if spec.startswith("local") and agree is not None:
                     keep = local_keep(agree, render.shape[-2:], float(spec[5:]), 0.5)
                     kept = share_kept(keep)
-                elif spec == "alone" and agree is not None:
-                    keep = kept_change(agree, render.shape[-2:], TrustConfig())
+                elif spec.startswith(("below", "alone")) and agree is not None:
+                    config = TrustConfig() if spec == "alone" else TrustConfig(local_below=float(spec[5:]))
+                    keep = kept_change(agree, render.shape[-2:], config)
                     kept = share_kept(keep)
-                    with torch.inference_mode():  # the model alone: no neighbours
-                        fallback = model(render, depth[None], torch.as_tensor(frame.K, dtype=torch.float32)[None],
-                                         as_world_from_cam(frame.world_from_cam)[None], None).clamp(0, 1)
-                elif spec.startswith("below") and agree is not None:
-                    keep = kept_change(agree, render.shape[-2:], TrustConfig(local_below=float(spec[5:])))
-                    kept = share_kept(keep)
+                    if spec == "alone":
+                        with torch.inference_mode():  # the model alone: no neighbours
+                            K = torch.as_tensor(frame.K, dtype=torch.float32)[None]
+                            fallback = model(render, depth[None], K, as_world_from_cam(frame.world_from_cam)[None],
+                                             None).clamp(0, 1)
                 else:
                     kept = (1.0 if spec == "off" or spec.startswith(MAPS) or share is None
                             else trust_factor(share, TrustConfig(float(spec))))

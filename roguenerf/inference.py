@@ -94,6 +94,9 @@ class EnhanceResult:
     (:func:`~roguenerf.geometry.colour.neighbour_agreement`, measured on the small copies of
     colour matching); None where not measured (colour matching and trust both off, or fewer than
     two neighbours)."""
+    agreement_map: Tensor | None = None
+    """Where two or more neighbours agree, ``(1, h, w)`` bool on the small copy that gave
+    ``agreement`` (its mean); None where ``agreement`` is."""
     trust: float | None = None
     """Share of the enhancer's change that was kept (:mod:`roguenerf.geometry.trust`): 1 where the
     neighbours agree on enough of the view, less where they mostly disagree (the mean over the
@@ -440,7 +443,7 @@ class SceneEnhancer:
             raise NonFiniteOutputError("the enhancer produced non-finite values for this view; the model or "
                                  "its inputs are broken (check the checkpoint and the depth)")
         image = out[0].clamp(0, 1).to("cpu", torch.float32)
-        match = share = factor = None
+        match = share = factor = agreement = None
         if (self.colour is not None or self.trust is not None) and len(chosen) >= 2:
             from roguenerf.geometry.colour import neighbour_agreement
 
@@ -472,6 +475,7 @@ class SceneEnhancer:
                              aligned=aligned if chosen else ([] if self.align is not None else None),
                              colour_offset=None if match is None else [round(float(x), 6) for x in match.offset],
                              agreement=None if share is None else round(share, 4),
+                             agreement_map=None if share is None else agreement[0],
                              trust=None if factor is None else round(factor, 4))
 
     def colour_match(self, positions: list[int], image: Tensor, depth: Tensor, K: Tensor,
