@@ -283,3 +283,33 @@ def test_gaussians_refuse_bad_shapes():
         Gaussians(g.means, g.sh[:, :3], g.opacity, g.log_scales, g.quats)
     with pytest.raises(InputError, match="quats"):
         Gaussians(g.means, g.sh, g.opacity, g.log_scales, g.quats[:, :3])
+
+
+def test_ply_count_beyond_the_file_is_refused_before_reading(tmp_path):
+    """A header claiming ten billion vertices: an InputError naming the counts, not MemoryError."""
+    row = [0, 0, 1, 0.1, 0.2, 0.3, 0.0, -2, -2, -2, 1, 0, 0, 0]
+    path = write_raw_ply(tmp_path / "big.ply", BASE, [row, row])
+    path.write_bytes(path.read_bytes().replace(b"element vertex 2\n", b"element vertex 10000000000\n"))
+    with pytest.raises(InputError) as err:
+        read_ply(path)
+    assert str(err.value) == (f"{path}: file is truncated: the header claims 10000000000 vertices of 56 bytes "
+                              "(560000000000 bytes), the file holds 112 after the header")
+    # The CLI: one line, exit status 2.
+    from typer.testing import CliRunner
+
+    from roguenerf.cli import app
+    from roguenerf.data.colmap import write_colmap
+    from roguenerf.imageio import write_png
+
+    data = tmp_path / "data"
+    (data / "images").mkdir(parents=True)
+    write_png(data / "images" / "a.png", torch.zeros(3, 24, 32))
+    pose, K = camera(32, 24)
+    write_colmap(data / "sparse" / "0", names=["a.png"], K=K, world_from_cam=pose[None], widths=32, heights=24)
+    result = CliRunner().invoke(app, ["import-3dgs", str(data), "--ply", str(path), "--output", str(tmp_path / "o"),
+                                      "--backend", "cpu"])
+    assert result.exit_code == 2, result.output
+    assert "10000000000 vertices" in result.output and "MemoryError" not in result.output
+    # Two vertices the header claims and the file holds are read.
+    path.write_bytes(path.read_bytes().replace(b"element vertex 10000000000\n", b"element vertex 2\n"))
+    assert len(read_ply(path)) == 2
