@@ -884,7 +884,7 @@ def write_colmap(
         Ks = np.broadcast_to(Ks, (m, 3, 3))
     if Ks.shape != (m, 3, 3):
         raise InputError(f"K: expected shape (3, 3) or ({m}, 3, 3), got {Ks.shape}")
-    check_intrinsics(torch.from_numpy(np.ascontiguousarray(Ks)))
+    check_intrinsics(torch.from_numpy(np.array(Ks)))
     widths = _sizes(widths, m, "widths", "width")
     heights = _sizes(heights, m, "heights", "height")
     cameras: dict[int, ColmapCamera] = {}
