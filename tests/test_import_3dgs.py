@@ -293,6 +293,12 @@ def test_an_inria_cameras_json_path_follows_the_dataset_order_and_image_size(spl
         assert (pose - opencv_to_opengl(scene.frames[t].world_from_cam)).abs().max() < 1e-9
     pairs = find_path_frames(out / "path", VIEWS)
     assert torch.equal(read_image(pairs[8][0]), scene.render(8))
+    video = tmp_path / "video"
+    enhanced = runner.invoke(app, ["enhance-path", str(out), "--frames", str(out / "path"), "--cameras",
+                                   str(out / "path" / "transforms.json"), "--output", str(video), "--no-video"])
+    assert enhanced.exit_code == 0, enhanced.output
+    flicker = json.loads((video / "flicker.json").read_text())
+    assert flicker["psnr"]["frames_with_photos"] == VIEWS  # every frame is its view: a PSNR each
 
 
 def inria_model(root, poses, names, folder):
