@@ -15,6 +15,7 @@ from roguenerf import runtime as _runtime
 _runtime.prefer_passive_wait()
 
 from roguenerf.errors import (  # noqa: E402
+    CameraMismatchError,
     CheckpointError,
     InputError,
     NonFiniteOutputError,
@@ -69,6 +70,7 @@ _LAZY = {
 }
 
 __all__ = [
+    "CameraMismatchError",
     "CheckpointError",
     "InputError",
     "NonFiniteOutputError",
