@@ -164,6 +164,11 @@ def _add_ui(app: FastAPI) -> None:
     async def web_page() -> FileResponse:
         return FileResponse(UI_DIR / "index.html", media_type="text/html", headers=UI_HEADERS)
 
+    @app.get("/favicon.ico", include_in_schema=False)
+    async def favicon() -> FileResponse:
+        # The page names /ui/favicon.svg; browsers and tools that ask for /favicon.ico get it too.
+        return FileResponse(UI_DIR / "favicon.svg", media_type="image/svg+xml", headers=UI_HEADERS)
+
     app.mount("/ui", _UiFiles(directory=UI_DIR), name="ui")
 
 

@@ -277,9 +277,18 @@
     if (!id) return;
     try {
       const scene = await getJSON("/scenes/" + id);
-      const jobId = scene.active_job || rememberedJob(id);
+      // The job this tab started, else the scene's newest fine-tuning job from the API (a reload
+      // in a new tab, or a job started by another client, keeps its results on screen).
+      const jobId = scene.active_job || rememberedJob(id) || await newestFinetuneJob(id);
+      if ($("ft-scene").value !== id) return;   // another scene was picked meanwhile
       if (jobId) watchJob(jobId); else { stopWatching(); $("job").hidden = true; $("ft-cancel").disabled = true; }
     } catch (err) { showError("ft-error", err); }
+  }
+
+  async function newestFinetuneJob(sceneId) {
+    const jobs = await getJSON(`/jobs?scene_id=${encodeURIComponent(sceneId)}&limit=50`);
+    const job = jobs.items.find((j) => (j.request || {}).kind !== "path");
+    return job ? job.id : null;
   }
 
   async function startJob(event) {
@@ -766,6 +775,8 @@
       const id = document.createElement("code"); id.className = "scene-id"; id.textContent = job.id;
       cell(tr, id, "Job");
       const state = document.createElement("div"); state.className = "video-state";
+      const stateWord = document.createElement("span"); stateWord.className = "job-state";
+      stateWord.textContent = job.state;
       const label = document.createElement("label");
       label.htmlFor = "vp-" + job.id; label.className = "sr-only"; label.textContent = `progress of job ${job.id}`;
       const bar = document.createElement("progress");
@@ -773,9 +784,17 @@
       const words = document.createElement("span");
       const frames = job.step ? ` · frame ${job.step} of ${job.total_steps}` : "";
       const eta = job.state === "running" && job.eta_s !== null ? ` · ${fmt.seconds(job.eta_s)} left` : "";
-      words.textContent = jobPhase(job) + frames + eta + (job.error ? `: ${job.error.message}` : "");
-      state.append(words, label, bar);
+      const doing = job.state === "queued" || job.state === "running" ? ` · ${jobPhase(job)}` : "";
+      words.textContent = (job.error ? `: ${job.error.message} (${job.error.code})` : "") + doing + frames + eta;
+      const line = document.createElement("span");
+      line.append(stateWord, words);
+      state.append(line, label, bar);
       cell(tr, state, "State");
+      const flicker = ((job.result || {}).flicker) || {};
+      cell(tr, Number.isFinite(flicker.render) && Number.isFinite(flicker.enhanced)
+        ? `${flicker.render.toFixed(4)} → ${flicker.enhanced.toFixed(4)}`
+          + (Number.isFinite(flicker.ratio) ? ` (×${flicker.ratio.toFixed(2)})` : "")
+        : "–", "Flicker");
       cell(tr, fmt.date(job.created_at), "Created");
       const actions = cell(tr, "", "Video");
       for (const [text, handler] of [["Play", () => playVideo(job)], ["Download", () => downloadVideo(job)]]) {
