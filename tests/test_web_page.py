@@ -21,7 +21,7 @@ import httpx
 import pytest
 
 from tests.browser_helpers import browser, embedded_server, path_zip, pixels_of_img, wait_for
-from tests.service_helpers import make_checkpoint, make_scene, wait_until, zip_folder
+from tests.service_helpers import make_checkpoint, make_scene, splat_dataset, wait_until, zip_folder
 
 KEY = "page-key-4c2e9a71d0"
 AUTH = {"Authorization": f"Bearer {KEY}"}
@@ -794,5 +794,36 @@ def test_c_finetune_tab_keeps_a_finished_job_after_a_reload_and_no_404(chromium,
             r = httpx.get(site["url"] + path, timeout=30)   # no key: a public file, like the page
             assert r.status_code == 200 and r.headers["content-type"].startswith("image/"), (path, r.text)
         assert not failures, failures
+    finally:
+        context.close()
+
+
+def test_d_a_3dgs_dataset_zip_and_its_ply_upload_as_a_scene(chromium, site, tmp_path):
+    """Issue 49: the page took only a ready scene zip; a COLMAP dataset zip plus its trained
+    point_cloud.ply now become a scene (POST /scenes/import: the worker renders every view)."""
+    api = site["api"]
+    splats = splat_dataset(tmp_path)
+    archive = tmp_path / "Splat garden.zip"
+    archive.write_bytes(zip_folder(splats["dataset"], prefix="garden"))
+    context, page = _open(chromium, site)
+    try:
+        page.get_by_label("Scene zip").set_input_files(str(archive))
+        page.get_by_label("3DGS .ply").set_input_files(str(splats["ply"]))
+        page.get_by_role("button", name="Upload", exact=True).click()
+        wait_for(page, "() => document.getElementById('upload-status').textContent.startsWith('imported') || "
+                       "!document.getElementById('scenes-error').hidden", timeout_s=180)
+        assert page.locator("#scenes-error").is_hidden(), _text(page, "#scenes-error")
+        assert _text(page, "#upload-status") == 'imported "Splat garden" (9 views)'
+        scene = next(s for s in api.get("/scenes").json()["items"] if s["name"] == "Splat garden")
+        assert (scene["views"], scene["train_views"], scene["test_views"]) == (9, 7, 2)
+        row = page.locator(f"#scenes-table tr[data-scene='{scene['id']}']")
+        assert row.locator("td").first.inner_text() == f"Splat garden\n{scene['id']}"
+        assert page.locator("#finetune").get_by_label("Scene", exact=True).input_value() == scene["id"]
+        # The same dataset zip without its .ply: refused, saying where it goes.
+        page.get_by_label("Scene zip").set_input_files(str(archive))
+        page.get_by_role("button", name="Upload", exact=True).click()
+        page.locator("#scenes-error").wait_for(state="visible", timeout=30_000)
+        assert _text(page, "#scenes-error .code") == "invalid_scene"
+        assert "POST /scenes/import" in _text(page, "#scenes-error .msg")
     finally:
         context.close()
