@@ -34,8 +34,7 @@ class _Stopped(Exception):
 
 
 def run_import_job(ctx, job: dict, lease: str, beat) -> str:
-    from roguenerf import RoGUENeRFError, load_scene, unusable_views
-    from roguenerf.splats.importer import import_3dgs
+    from roguenerf import RoGUENeRFError, import_3dgs, load_scene, unusable_views
 
     store, layout = ctx.store, ctx.layout
     job_id, scene_id, request = job["id"], job["scene_id"], job["request"]

@@ -106,7 +106,7 @@ def _enhance(services: Services, scene: dict, render_bytes: bytes, depth_bytes: 
         if enhancer.use_neighbours and enhancer.num_neighbours:
             # The test enhance-path runs on its cameras: a pose in the wrong convention, unit or
             # world sees none of the neighbours, and its "enhanced" image is worse than the render.
-            from roguenerf.paths import check_camera
+            from roguenerf import check_camera
 
             try:
                 warning = check_camera(enhancer.scene, depth, K, world_from_cam, neighbours=enhancer.num_neighbours,

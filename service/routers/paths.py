@@ -31,9 +31,10 @@ def validate_path_upload(services, row: dict, root: Path, *, max_pixels: int, de
     """Check an extracted path upload with the library, the checks ``enhance_path`` runs before
     its first frame included (``check_path``: depth type, cameras in the scene's world); returns
     its frame count (ApiError otherwise)."""
+    from roguenerf import check_path
     from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
     from roguenerf.imageio import read_image_size
-    from roguenerf.paths import check_path, find_camera_file, find_path_frames, read_camera_path
+    from roguenerf.paths import find_camera_file, find_path_frames, read_camera_path
 
     scene_id = row["id"]
     try:
