@@ -819,6 +819,10 @@ def test_d_a_3dgs_dataset_zip_and_its_ply_upload_as_a_scene(chromium, site, tmp_
         row = page.locator(f"#scenes-table tr[data-scene='{scene['id']}']")
         assert row.locator("td").first.inner_text() == f"Splat garden\n{scene['id']}"
         assert page.locator("#finetune").get_by_label("Scene", exact=True).input_value() == scene["id"]
+        page.get_by_role("link", name="Fine-tuning").click()   # the import job is not a fine-tuning job
+        page.wait_for_timeout(1000)
+        assert page.locator("#job").is_hidden()
+        page.get_by_role("link", name="Scenes").click()
         # The same dataset zip without its .ply: refused, saying where it goes.
         page.get_by_label("Scene zip").set_input_files(str(archive))
         page.get_by_role("button", name="Upload", exact=True).click()

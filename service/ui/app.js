@@ -322,7 +322,7 @@
 
   async function newestFinetuneJob(sceneId) {
     const jobs = await getJSON(`/jobs?scene_id=${encodeURIComponent(sceneId)}&limit=50`);
-    const job = jobs.items.find((j) => (j.request || {}).kind !== "path");
+    const job = jobs.items.find((j) => !(j.request || {}).kind);   // not a camera path, not an import
     return job ? job.id : null;
   }
 
