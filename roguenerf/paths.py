@@ -641,7 +641,7 @@ def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: i
             causes.insert(0, "the field's own geometry: its renders of the scene's held-out views fail this test "
                              f"too (at most {100 * max(own):.1f}% of their pixels land at their depth in the "
                              f"training photos), so its depth is off on novel views (e.g. floaters), whatever the "
-                             f"{'camera' if one else 'path'}; {override} goes on, and the enhancer then keeps "
+                             f"{'camera' if one else 'path'}; with {override} it goes on, and the enhancer then keeps "
                              "little of its change where the neighbour photos disagree")
     causes.append(f"another coordinate space or unit than the scene's poses (e.g. the {'pose' if one else 'path'} "
                   "of another export, or depth in other units: depth_scale)")

@@ -473,7 +473,7 @@ def test_a_field_whose_own_novel_views_fail_the_check_is_named_as_the_likely_cau
     check = check_camera_path(load_scene(root), path, lambda t: halved[t])
     assert check.problem.startswith("the camera path does not fit the scene: 3 of 3 checked cameras see almost none")
     assert "Likely causes: the field's own geometry: its renders of the scene's held-out views fail" in check.problem
-    assert "--force (force=True) goes on" in check.problem
+    assert "with --force (force=True) it goes on" in check.problem
 
 
 def test_check_camera_names_the_likely_cause_for_one_view(toy_path):

@@ -346,7 +346,8 @@ def test_enhance_refuses_a_camera_that_does_not_fit_the_scene(client, scene_id, 
     message = assert_error(enhance(client, scene_id, wrong), 422, code)
     assert message.startswith("the camera does not fit the scene: the camera "), message
     assert needle in message and fix in message, message
-    assert "send force=true" in message and "--force" not in message, message
+    assert message.endswith("; to enhance it anyway: force=true (a form field of this request)"), message
+    assert "--force" not in message, message
     assert stored(server) == before
     forced = enhance(client, scene_id, wrong, force="true")
     assert forced.status_code == 200, forced.text

@@ -127,7 +127,7 @@ def test_a_path_in_the_wrong_axes_is_refused_at_upload_saying_why(setup):
     message = error["message"]
     assert message.startswith("the camera path does not fit the scene: ") and "worst: camera" in message
     assert "OpenGL vs OpenCV" in message and "with the y and z axes flipped" in message
-    assert message.endswith("To enhance it anyway: send force=true (a form field of this upload)"), message
+    assert message.endswith("To enhance it anyway: force=true (a form field of this upload)"), message
     assert "--force" not in message and str(data) not in message
     assert stored(data) == before and jobs_of(client, scene_id) == jobs_before
     forced = post_path(client, scene_id, archive, force="true")

@@ -64,7 +64,7 @@ def camera_tensors(camera: Camera):
     return K, pose
 
 
-FORCE_ADVICE = "send force=true (a form field of this request)"
+FORCE_ADVICE = "force=true (a form field of this request)"
 """How a client goes on when the camera does not fit the scene (the library names it in its message)."""
 
 

@@ -22,7 +22,7 @@ log = logging.getLogger("roguenerf.service")
 router = APIRouter(prefix="/scenes", tags=["paths"])
 
 
-FORCE_ADVICE = "send force=true (a form field of this upload)"
+FORCE_ADVICE = "force=true (a form field of this upload)"
 """How a client goes on when the path does not fit the scene (the library names it in its message)."""
 
 
