@@ -32,7 +32,7 @@ import math
 import re
 import shutil
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 import torch
@@ -429,7 +429,7 @@ def import_renders(
     final = Path(output)
     # Built in a temporary sibling folder and renamed at the end: a failed import (a bad depth
     # file half-way) leaves no half-written scene folder behind.
-    with atomic_folder(final, replaceable=_is_import) as output:
+    with atomic_folder(final, replaceable=_is_import, owned=written_files) as output:
         _write_import(source, frames, found, output, tool=tool, dataset=dataset, renders=renders,
                       depth_type=depth_type, depth_scale=depth_scale, background=background,
                       parser=parser, skipped=[name for name, _ in missing], progress=progress)
@@ -677,6 +677,24 @@ def _is_import(folder: Path) -> bool:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         return False
     return isinstance(doc, dict) and isinstance(doc.get("source"), dict) and doc["source"].get("tool") in TOOLS
+
+
+SCENE_FILE_KEYS = ("file_path", "render_path", "depth_path", "acc_path")
+
+
+def written_files(folder: Path) -> set[str]:
+    """The files of the scene folder ``folder`` that an importer wrote (relative POSIX paths): its
+    ``transforms.json``, the files its frames name, and the dataparser transforms."""
+    try:
+        doc = json.loads((Path(folder) / "transforms.json").read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return set()
+    files = {"transforms.json", DATAPARSER_FILE}
+    frames = doc.get("frames") if isinstance(doc, dict) else None
+    for frame in frames if isinstance(frames, list) else []:
+        if isinstance(frame, dict):
+            files.update(str(PurePosixPath(frame[key])) for key in SCENE_FILE_KEYS if isinstance(frame.get(key), str))
+    return files
 
 
 def _write_import(source, frames, found, output: Path, *, tool, dataset, renders, depth_type, depth_scale,
