@@ -242,6 +242,9 @@ def finetune(
                                lr_schedule=lr_schedule, evaluate=not no_eval,
                                freeze_neighbour_encoder=freeze_neighbour_encoder, render_warp=render_warp,
                                depth_noise=depth_noise)
+        from roguenerf.training.loop import check_training_output
+
+        check_training_output(output)
         scene = _load_scene(scene_dir)
         start = None if scratch else _checkpoint_path(checkpoint)
         result = run_finetune(scene, output, checkpoint=start, config=config)
@@ -311,8 +314,11 @@ def pretrain(
                 position[key] = len(dirs)
                 dirs.append(d)
             held.append(position[key])
+        from roguenerf.training.loop import TOY_FOLDER, check_training_output
+
+        check_training_output(output)  # before the toy scenes are written into it
         scenes = [_load_scene(d) for d in dirs]
-        scenes += make_toy_scenes(output / "toy", toy, seed=seed)
+        scenes += make_toy_scenes(output / TOY_FOLDER, toy, seed=seed)
         if not scenes:
             raise InputError("no scenes to pre-train on: give SCENE_DIR arguments and/or --toy N")
         if checkpoint is not None:

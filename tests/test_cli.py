@@ -232,6 +232,34 @@ def test_finetune_bad_flags_exit_2(scene_dir, tmp_path, args, message):
     assert message in result.stderr and "Traceback" not in result.output
 
 
+def _files(folder: Path) -> dict:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+def test_training_and_make_pairs_never_write_into_a_folder_they_did_not_write(scene_dir, tmp_path):
+    """Issue 49: a dataset (or any folder of the user's) given as --output is refused before any work,
+    in one line naming it; nothing in it is written or deleted."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "transforms.json").write_text('{"frames": []}')
+    (mine / "model.safetensors").write_bytes(b"someone else's model")
+    scene_before, mine_before = _files(scene_dir), _files(mine)
+    for output in (scene_dir, mine):
+        for args in (["finetune", scene_dir, "--scratch", "--steps", "1", *FAST],
+                     ["pretrain", "--toy", "1", "--steps", "1", *FAST]):
+            result = _run(*args, "--output", output)
+            assert result.exit_code == 2, result.output
+            assert result.stderr.splitlines() == [
+                f"error: output: {output} exists and is not empty: it holds other files, not an earlier training "
+                "run (which would be resumed); choose a new folder"]
+        result = _run("make-pairs", scene_dir, "--output", output, "--steps", "1")
+        assert result.exit_code == 2, result.output
+        assert result.stderr.splitlines()[-1] == (
+            f"error: output: {output} exists and is not empty: it holds other files, not an earlier output of "
+            "this command (which would be replaced); choose a new folder")
+    assert _files(scene_dir) == scene_before and _files(mine) == mine_before
+
+
 def test_pretrain_without_scenes_exits_2(tmp_path):
     result = _run("pretrain", "--output", tmp_path / "x", "--steps", "1")
     assert result.exit_code == 2 and "no scenes" in result.stderr
