@@ -633,7 +633,7 @@ def enhance_path_command(
     """
     from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
     from roguenerf.inference import SceneEnhancer
-    from roguenerf.paths import FLICKER_FILE, enhance_path, read_camera_path
+    from roguenerf.paths import FLICKER_FILE, check_path_output, enhance_path, read_camera_path
 
     with _errors():
         if depth_type not in ("z", "ray"):
@@ -648,7 +648,8 @@ def enhance_path_command(
             from roguenerf.video import require_av
 
             require_av()
-        scene = _load_scene(scene_dir)
+        # The output folder and the cameras (every pose checked) first: before the scene and model load.
+        check_path_output(output)
         camera_path = read_camera_path(cameras)
         if camera_path.source == "nerfstudio":
             parser_file = dataparser_transforms or (scene_dir / DATAPARSER_FILE)
@@ -659,6 +660,7 @@ def enhance_path_command(
             else:
                 typer.echo("note: nerfstudio camera path and no dataparser_transforms.json: its poses are "
                            "taken as the scene's own", err=True)
+        scene = _load_scene(scene_dir)
         ckpt = _checkpoint_path(checkpoint)
         from roguenerf.checkpoint import load_checkpoint
 
@@ -672,7 +674,7 @@ def enhance_path_command(
                                   quality=quality, fps=fps,
                                   checkpoint_id=f"{ckpt.resolve()}:{stat.st_size}:{stat.st_mtime_ns}"
                                   + ("" if align else ":no-align") + ("" if colour else ":no-colour"),
-                                  progress=progress, force=force)
+                                  progress=progress, force=force, force_hint="--force")
         for warning in result.warnings:
             typer.echo(f"warning: {warning}", err=True)
         f, p = result.flicker["flicker"], result.flicker["psnr"]

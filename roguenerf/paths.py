@@ -660,6 +660,20 @@ def _fingerprint(camera_path: CameraPath, pairs: list[tuple[Path, Path]], checkp
     return h.hexdigest()
 
 
+def check_path_output(output: str | Path) -> None:
+    """``enhance_path``'s output may be new, empty, or an earlier run's (its resume state): any
+    other folder is refused, since its ``frames/``, videos and flicker report would be written over
+    (and frames already there taken for enhanced ones)."""
+    output = Path(output)
+    if not output.exists():
+        return
+    if not output.is_dir():
+        raise InputError(f"output: {output} exists and is not a folder; choose a new folder")
+    if any(output.iterdir()) and not (output / STATE_FILE).is_file():
+        raise InputError(f"output: {output} exists and is not empty: it holds other files, not an earlier "
+                         "enhance-path output (which would be resumed); choose a new folder")
+
+
 def enhance_path(
     scene,
     enhancer,
@@ -677,6 +691,7 @@ def enhance_path(
     progress=None,
     should_stop=None,
     force: bool = False,
+    force_hint: str | None = "force=True",
 ) -> PathResult:
     """Enhance every frame of a camera path; write frames, MP4s and the flicker report.
 
@@ -702,6 +717,7 @@ def enhance_path(
         force: go on when :func:`check_camera_path` finds that the path does not fit the scene
             (its message is logged and kept in ``PathResult.warnings``); otherwise that is an
             :class:`~roguenerf.errors.InputError`, before any frame is enhanced.
+        force_hint: how that error tells the caller to force it (the CLI: ``--force``; None: not at all).
     """
     from roguenerf.data.exports import background_to_unknown
     from roguenerf.geometry.cameras import ray_to_z_depth
@@ -710,6 +726,7 @@ def enhance_path(
     from roguenerf.video import Mp4Writer, check_quality, require_av, side_by_side
 
     start = time.perf_counter()
+    check_path_output(output)
     if depth_type not in ("z", "ray"):
         raise InputError(f"depth_type: expected 'z' or 'ray', got {depth_type!r}")
     if not (isinstance(depth_scale, (int, float)) and math.isfinite(depth_scale) and depth_scale > 0):
@@ -740,14 +757,14 @@ def enhance_path(
     warnings: list[str] = []
     problem = _depth_type_problem(scene, camera_path, lambda t: load_frame(t, raw=True)[1], depth_type)
     if problem is not None and not force:
-        raise InputError(f"{problem}. To enhance it anyway: --force (force=True)")
+        raise InputError(f"{problem}." + (f" To enhance it anyway: {force_hint}" if force_hint else ""))
     if problem is not None:
         log.warning("camera path: %s", problem)
         warnings.append(problem)
     check = check_camera_path(scene, camera_path, lambda t: load_frame(t)[1],
                               neighbours=max(1, enhancer.num_neighbours or 1))
     if check.problem is not None and not force:
-        raise InputError(f"{check.problem}. To enhance it anyway: --force (force=True)")
+        raise InputError(f"{check.problem}." + (f" To enhance it anyway: {force_hint}" if force_hint else ""))
     for message in (check.problem, check.warning):
         if message is not None:
             log.warning("camera path: %s", message)

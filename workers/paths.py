@@ -79,7 +79,7 @@ def run_path_job(ctx, job: dict, lease: str, beat) -> str:
             depth_type=request.get("depth_type", "z"), depth_scale=float(request.get("depth_scale", 1.0)),
             background=request.get("background", "zero"), quality=int(request.get("quality", 20)),
             checkpoint_id=f"{checkpoint}:{stat.st_size}:{stat.st_mtime_ns}", progress=progress,
-            should_stop=should_stop)
+            should_stop=should_stop, force_hint=None)  # the API has no way to force a path
         zip_frames(job_dir / "output" / "frames", job_dir / "output" / "frames.zip")
     except PathCancelled as exc:
         if beat.lost.is_set():
