@@ -533,6 +533,18 @@ def _depth_type_problem(scene, camera_path: CameraPath, raw_of, given: str, fram
     return depth_type_problem(check, given, "the path's depths", "its frames and the nearest training views")
 
 
+def _convention(source: str) -> tuple[str, str]:
+    """How a camera file of ``source`` format is read, and how to convert poses of the other convention."""
+    if source == "inria":
+        return ("Inria's cameras.json is read as OpenCV camera-to-world (rotation and position, as 3DGS's "
+                "train.py writes them)", "convert OpenGL poses (columns 1 and 2 negated)")
+    if source == "colmap":
+        return ("COLMAP's images.txt / images.bin is read as OpenCV world-to-camera (qvec, tvec, as COLMAP "
+                "writes them)", "convert OpenGL poses (columns 1 and 2 of camera-to-world negated)")
+    return ("camera paths and transforms-style lists are read as OpenGL (nerfstudio, Blender)",
+            "convert OpenCV poses (columns 1 and 2 negated)")
+
+
 def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: int = 4,
                       frames: int = CHECK_FRAMES) -> PathCheck:
     """Does the path live in the scene's world? A cheap check before any enhancement.
@@ -604,13 +616,15 @@ def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: i
     # Would the other axis convention fit? Then say so first.
     flipped = opengl_to_opencv(camera_path.world_from_cam[worst])
     share = _seen_share(scene, train, train_depths, depths[worst], camera_path.K[worst], flipped, neighbours)
+    read_as, fix = _convention(camera_path.source)
     axes = ("OpenGL vs OpenCV axes: with the y and z axes flipped this camera sees "
-            f"{100 * (share or 0):.0f}% of its pixels; camera paths and transforms-style lists are read "
-            "as OpenGL (nerfstudio, Blender): convert OpenCV poses (columns 1 and 2 negated)")
+            f"{100 * (share or 0):.0f}% of its pixels; {read_as}: {fix}")
     if share is not None and share >= max(2 * MIN_SEEN, 2 * (seen.get(worst) or 0.0)):
         causes.insert(0, axes)
+    elif camera_path.source == "inria":
+        causes.append(f"a rotation written world-to-camera (transposed) or with OpenGL axes ({read_as})")
     else:
-        causes.append("OpenGL vs OpenCV axes (camera paths are read as OpenGL, as nerfstudio and Blender write them)")
+        causes.append(f"OpenGL vs OpenCV axes ({read_as})")
         # Do the field's own renders of the scene's held-out views pass the same test? When none
         # does, the field's depth is off on every novel view (floaters), and the path may be right.
         own = _held_out_seen(scene, train, train_depths, neighbours) if not far else []

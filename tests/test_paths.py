@@ -504,3 +504,22 @@ def test_enhance_path_refuses_an_output_folder_it_did_not_write_and_a_bad_pose_b
     result = CliRunner().invoke(app, ["enhance-path", str(missing), "--frames", str(root / "frames"), "--cameras",
                                       str(bad), "--output", str(tmp_path / "out"), "--no-video"])
     assert result.exit_code == 2 and "frames[1]" in result.output and "does not exist" not in result.output
+
+
+def test_a_transposed_inria_cameras_json_is_refused_in_its_own_convention(toy_path, enhancer, tmp_path):
+    """Issue 49: Inria's cameras.json is OpenCV camera-to-world; the refusal used to say that camera
+    paths "are read as OpenGL"."""
+    root, scene = toy_path["root"], toy_path["scene"]
+    K = scene.frames[0].K
+    cams = [{"id": t, "img_name": f"frame_{t}", "width": W, "height": H, "position": pose[:3, 3].tolist(),
+             "rotation": pose[:3, :3].T.tolist(),  # world-to-camera: the transposed rotation
+             "fx": float(K[0, 0]), "fy": float(K[1, 1])} for t, pose in enumerate(toy_path["poses"])]
+    (tmp_path / "cameras.json").write_text(json.dumps(cams))
+    cp = read_camera_path(tmp_path / "cameras.json")
+    assert cp.source == "inria"
+    with pytest.raises(InputError) as err:
+        enhance_path(scene, enhancer, cp, root / "frames", tmp_path / "out", depth_type="ray", video=False)
+    message = str(err.value)
+    assert "a rotation written world-to-camera (transposed) or with OpenGL axes (Inria's cameras.json is read as " \
+           "OpenCV camera-to-world (rotation and position, as 3DGS's train.py writes them))" in message
+    assert "read as OpenGL" not in message
