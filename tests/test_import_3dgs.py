@@ -278,3 +278,22 @@ def test_render_camera_path_never_replaces_a_folder_it_did_not_write(splat_data,
     with pytest.raises(InputError, match=r"did not write \(depth/notes.txt\)"):
         render_camera_path(ply, path, out, backend="cpu")
     assert (out / "depth" / "notes.txt").read_text() == "mine"
+
+
+def test_a_missing_images_folder_is_named_with_the_ones_there(splat_data, tmp_path):
+    """Issue 49: --images images_4 where there is no such folder used to say "pass --images"."""
+    root, _, poses, K = splat_data
+    data = tmp_path / "colmap"
+    names = [f"view_{i:02d}.png" for i in range(VIEWS)]
+    for folder in ("images", "images_2"):
+        (data / folder).mkdir(parents=True)
+        for name in names:
+            (data / folder / name).write_bytes((root / "data" / "images" / name).read_bytes())
+    write_colmap(data / "sparse" / "0", names=names, K=K, world_from_cam=poses, widths=W, heights=H)
+    result = runner.invoke(app, ["import-3dgs", str(data), "--ply", str(root / "point_cloud.ply"), "--output",
+                                 str(tmp_path / "out"), "--backend", "cpu", "--images", "images_4"])
+    assert result.exit_code == 2
+    assert result.output.strip().splitlines() == [
+        f"error: {data / 'images_4'}: image folder not found (--images images_4); image folders in {data}: "
+        "images, images_2: pass one with --images"]
+    assert not (tmp_path / "out").exists()
