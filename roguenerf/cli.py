@@ -3,7 +3,8 @@ import-gsplat, import-3dgs, pretrain (``python -m roguenerf``). The ``roguenerf`
 (:mod:`roguecli`) builds on this app and adds ``serve`` and ``make-pairs``.
 
 Errors are one line on stderr and an exit code: 2 for bad input (missing scene, bad
-checkpoint, bad flag values), 1 for failures (divergence, cancellation, anything else).
+checkpoint, bad flag values), 130 after Ctrl-C ("interrupted"), 1 for failures (divergence,
+cancellation, anything else).
 Progress and logs go to stderr, so ``evaluate --json`` prints exactly one JSON object.
 """
 
@@ -74,6 +75,24 @@ RenderWarpOpt = Annotated[float | None, typer.Option(
                           "shift up to this size, so the training views look like novel views (default: the plan's).")]
 
 
+INTERRUPTED = 130
+"""Exit status after Ctrl-C (128 + SIGINT), as shells report it."""
+_reported = {"interrupted": False}
+"""Whether a command's error handling has said "interrupted" already (:func:`run_app`)."""
+
+
+def run_app(typer_app) -> None:
+    """Run ``typer_app``; Ctrl-C outside a command's error handling (typer exits 130 silently) gets
+    its one line too."""
+    _reported["interrupted"] = False
+    try:
+        typer_app()
+    except SystemExit as exc:
+        if exc.code == INTERRUPTED and not _reported["interrupted"]:
+            typer.echo("error: interrupted", err=True)
+        raise
+
+
 def _fail(message: str, code: int) -> None:
     typer.echo(f"error: {message}", err=True)
     raise typer.Exit(code)
@@ -94,8 +113,9 @@ def _errors():
         _fail(str(exc), 2)
     except RoGUENeRFError as exc:
         _fail(str(exc), 1)
-    except KeyboardInterrupt:
-        _fail("interrupted", 1)
+    except KeyboardInterrupt:  # Ctrl-C: the shell's status for SIGINT, one line, no traceback
+        _reported["interrupted"] = True
+        _fail("interrupted", INTERRUPTED)
     except Exception as exc:  # noqa: BLE001 - the CLI promises no stack traces
         _fail(f"{type(exc).__name__}: {exc}", 1)
 
@@ -713,7 +733,7 @@ def main() -> None:
         typer.echo(f"error: `{command}` runs {ABOVE_THE_LIBRARY[command]}, above the library: use the "
                    f"console script (`roguenerf {command}`) or `python -m roguecli {command}`", err=True)
         raise SystemExit(2)
-    app()
+    run_app(app)
 
 
 if __name__ == "__main__":

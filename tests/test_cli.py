@@ -550,3 +550,24 @@ def test_a_view_with_unusable_depth_is_loaded_with_a_warning_naming_it(scene_dir
     assert f"{frame.name} (train): depth has no usable values (all zeros" in result.stderr
     clean = _run("evaluate", scene_dir, "--checkpoint", checkpoint)
     assert "warning" not in clean.stderr
+
+
+INTERRUPT_PROBE = """
+import _thread, sys, threading
+from roguecli import main
+threading.Timer(float(sys.argv[1]), _thread.interrupt_main).start()  # what Ctrl-C does
+sys.argv = ["roguenerf", *sys.argv[2:]]
+main()
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("after", [0.3, 6.0])  # in the start-up (before the error handling), training
+def test_ctrl_c_exits_130_with_one_line(scene_dir, tmp_path, after):
+    """Issue 49: Ctrl-C gave exit status 1 (in a command) or a silent 130 (before it)."""
+    proc = subprocess.run([sys.executable, "-c", INTERRUPT_PROBE, str(after), "finetune", str(scene_dir), "--scratch",
+                           "--minutes", "5", "--output", str(tmp_path / "out"), "--no-eval", *FAST],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == "error: interrupted"
+    assert proc.stderr.count("error: interrupted") == 1 and "Traceback" not in proc.stderr
