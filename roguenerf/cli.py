@@ -492,7 +492,7 @@ def _import_command(tool: str, dataset: Path, renders: Path, output: Path, depth
                                    depth_scale=depth_scale, depth_units=depth_units,
                                    dataparser_transforms=dataparser_transforms, background=background,
                                    progress=progress, skip_missing=skip_missing, check_depth=not force,
-                                   **split)
+                                   hints={"skip_missing": "--skip-missing", "check_depth": "--force"}, **split)
         skipped = scene.meta.get("skipped_views") or []
         if skipped:
             typer.echo(f"warning: skipped {len(skipped)} views without a render or depth: {', '.join(skipped)}",

@@ -220,13 +220,15 @@ def test_a_missing_depth_file_is_refused_with_its_name(ours, tmp_path):
     missing = tmp_path / "renders" / gone.split / "raw-depth" / f"{gone.name}.npy.gz"
     missing.unlink()
     expected = rf"1 of 5 views .*lack a file: missing {gone.name}: {re.escape(str(missing))}"
-    with pytest.raises(InputError, match=expected):
+    with pytest.raises(InputError, match=expected + r"\. Render them, or pass skip_missing=True to import"):
         import_renders(tmp_path / "ds", tmp_path / "renders", tmp_path / "out")
     assert not (tmp_path / "out").exists()
     args = ["import-nerfstudio", str(tmp_path / "ds"), "--renders", str(tmp_path / "renders"),
             "--output", str(tmp_path / "cli")]
     refused = CliRunner().invoke(app, args)
-    assert refused.exit_code == 2 and f"{gone.name}.npy.gz" in refused.output and "--skip-missing" in refused.output
+    assert refused.exit_code == 2 and f"{gone.name}.npy.gz" in refused.output
+    assert "Render them, or pass --skip-missing to import" in refused.output  # the flag, not the keyword
+    assert "skip_missing=True" not in refused.output
     assert not (tmp_path / "cli").exists()
     # --skip-missing imports the others and says which it skipped.
     done = CliRunner().invoke(app, [*args, "--skip-missing"])
@@ -321,6 +323,7 @@ def test_a_depth_type_that_disagrees_with_the_scene_is_found_by_multi_view_consi
             str(tmp_path / "cli"), "--depth-type"]
     refused = CliRunner().invoke(app, [*args, given])
     assert refused.exit_code == 2 and f"--depth-type {stored}" in refused.output
+    assert refused.output.strip().endswith("to import them as given anyway: --force")
     assert CliRunner().invoke(app, [*args, stored]).exit_code == 0
     scene = load_scene(tmp_path / "cli")
     torch.testing.assert_close(scene.depth(0), ours.depth(0), rtol=2e-6, atol=1e-6)

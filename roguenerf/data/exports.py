@@ -316,6 +316,7 @@ def import_renders(
     progress=None,
     skip_missing: bool = False,
     check_depth: bool = True,
+    hints: dict[str, str] | None = None,
 ):
     """Write a scene folder from a dataset (poses + photos) and a tool's renders.
 
@@ -352,12 +353,15 @@ def import_renders(
             missing their render or depth; otherwise a missing file is an InputError naming it.
         check_depth: refuse a ``depth_type`` that disagrees with the depths themselves
             (:func:`check_depth_type`: neighbouring views' depths must agree under it).
+        hints: how the errors name the switches above to the caller: ``{"skip_missing": ...,
+            "check_depth": ...}``; default their Python keywords (the CLI: its flags).
     Returns:
         The written scene, loaded (:func:`~roguenerf.data.readers.load_scene`);
         ``scene.meta["skipped_views"]`` lists the views skipped.
     """
     from roguenerf.data.readers import load_scene
 
+    hints = {"skip_missing": "skip_missing=True", "check_depth": "check_depth=False", **(hints or {})}
     if tool not in TOOLS:
         raise InputError(f"tool: expected one of {', '.join(TOOLS)}, got {tool!r}")
     depth_type = depth_type or ("ray" if tool == "nerfstudio" else "z")
@@ -415,7 +419,7 @@ def import_renders(
         listed = "; ".join(f"{name}: {what}" for name, what in missing[:5])
         more = f" (and {len(missing) - 5} more)" if len(missing) > 5 else ""
         raise InputError(f"{len(missing)} of {len(source.frames)} views of {dataset} lack a file: missing "
-                         f"{listed}{more}. Render them, or pass --skip-missing (skip_missing=True) to "
+                         f"{listed}{more}. Render them, or pass {hints['skip_missing']} to "
                          "import the others without them")
     if missing:
         log.warning("skipped %d views without a render or depth: %s", len(missing),
@@ -425,7 +429,7 @@ def import_renders(
         check = check_depth_type(_depth_type_views(source, frames, found, depth_scale, background))
         problem = depth_type_problem(check, depth_type, "the depths", "neighbouring views")
         if problem is not None:
-            raise InputError(f"{problem}; to import them as given anyway: --force (check_depth=False)")
+            raise InputError(f"{problem}; to import them as given anyway: {hints['check_depth']}")
     final = Path(output)
     # Built in a temporary sibling folder and renamed at the end: a failed import (a bad depth
     # file half-way) leaves no half-written scene folder behind.
