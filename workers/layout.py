@@ -30,15 +30,16 @@ SERVER_PATH = "<server path>"
 """What a server path still left in a client message is replaced with."""
 
 
-def public_message(message: str, *, root: Path | None = None, data_dir: Path | None = None) -> str:
-    """``message`` (from a library exception) fit for a client: paths inside the scene folder
-    ``root`` become relative to it (``depths/train_r_0.npy``), the folder itself "the scene",
-    and anything else under ``data_dir`` becomes :data:`SERVER_PATH`. Clients never learn
-    the server's filesystem."""
+def public_message(message: str, *, root: Path | None = None, data_dir: Path | None = None,
+                   root_name: str = "the scene") -> str:
+    """``message`` (from a library exception) fit for a client: paths inside the uploaded folder
+    ``root`` become relative to it (``depths/train_r_0.npy``), the folder itself ``root_name``
+    ("the scene", or "the path archive" for a camera path's upload), and anything else under
+    ``data_dir`` becomes :data:`SERVER_PATH`. Clients never learn the server's filesystem."""
     if root is not None:
         for base in dict.fromkeys((str(Path(root)), str(Path(root).resolve()))):
-            message = message.replace(base + os.sep, "").replace("scene " + base, "the scene")
-            message = re.sub(re.escape(base) + r"(?![\w.-])", "the scene", message)
+            message = message.replace(base + os.sep, "").replace("scene " + base, root_name)
+            message = re.sub(re.escape(base) + r"(?![\w.-])", root_name, message)
     if data_dir is not None:
         for base in dict.fromkeys((str(Path(data_dir)), str(Path(data_dir).resolve()))):
             message = re.sub(re.escape(base) + r"[^\s'\",;)]*", SERVER_PATH, message)

@@ -40,7 +40,7 @@ def run_path_job(ctx, job: dict, lease: str, beat) -> str:
 
     def fail(code: str, message: str) -> str:
         log.warning("path job %s failed: %s: %s", job_id, code, message)
-        public = public_message(message, root=job_dir / "input", data_dir=layout.root)
+        public = public_message(message, root=job_dir / "input", data_dir=layout.root, root_name="the path archive")
         store.finish(job_id, lease, "failed", error_code=code, error_message=public)
         return "failed"
 

@@ -20,6 +20,8 @@ from workers.queue import QueueUnavailable
 
 log = logging.getLogger("roguenerf.service")
 router = APIRouter(prefix="/scenes", tags=["paths"])
+PATH_ARCHIVE = "the path archive"
+"""What error messages call the uploaded path folder (never "the scene", nor a server path)."""
 
 
 def validate_path_upload(services, scene_id: str, root: Path, *, max_pixels: int) -> int:
@@ -43,7 +45,7 @@ def validate_path_upload(services, scene_id: str, root: Path, *, max_pixels: int
                 raise ApiError(422, "invalid_path", f"{rgb.relative_to(root)}: render is {size[0]}x{size[1]}, the "
                                                     f"camera path says {camera_path.width}x{camera_path.height}")
     except RoGUENeRFError as exc:
-        raise library_error(exc, root=root) from None
+        raise library_error(exc, root=root, root_name=PATH_ARCHIVE) from None
     return len(pairs)
 
 
