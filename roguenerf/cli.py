@@ -471,12 +471,12 @@ def enhance(
 
 def _import_command(tool: str, dataset: Path, renders: Path, output: Path, depth_type, depth_scale: float,
                     depth_units: str, dataparser_transforms, background, skip_missing: bool = False,
-                    force: bool = False, **split) -> None:
+                    force: bool = False, hold_flag: str = "--hold", **split) -> None:
     from roguenerf.data.exports import import_renders
 
     with _errors():
         if split.get("test_every") is not None and split["test_every"] < 0:
-            raise InputError(f"--test-every: expected >= 0, got {split['test_every']}")
+            raise InputError(f"{hold_flag}: expected >= 0 (0: no test views), got {split['test_every']}")
         if split.get("split_file") is not None and not split["split_file"].is_file():
             raise InputError(f"--split-file: {split['split_file']} does not exist")
         if depth_type not in (None, "z", "ray"):
@@ -515,6 +515,8 @@ SkipMissingOpt = Annotated[bool, typer.Option("--skip-missing", help=(
 ImportForceOpt = Annotated[bool, typer.Option("--force", help=(
     "Import with the --depth-type given even when the depths of neighbouring views disagree under it "
     "and agree under the other type (checked by reprojecting a few hundred pixels)."))]
+HOLD_HELP = ("COLMAP dataset: every N-th view in name order is a test view, the split of the 3DGS and gsplat "
+             "trainers' --eval (Inria's --eval, gsplat's default --test-every 8); 0: none, every view trains.")
 DataparserOpt = Annotated[Path | None, typer.Option("--dataparser-transforms", help=(
     "The trained model's dataparser_transforms.json: kept in the scene for camera paths from nerfstudio's viewer."))]
 
@@ -554,22 +556,30 @@ def import_gsplat(
     background: BackgroundOpt = None,
     images: Annotated[str, typer.Option("--images", help=(
         "COLMAP dataset: the image folder (images_2 for gsplat's --data-factor 2)."))] = "images",
+    hold: Annotated[int | None, typer.Option("--hold", help=(
+        HOLD_HELP + " Default 8; Inria's numbered renders: their own split (test renders: 8, none: 0). A "
+        "transforms.json dataset keeps its own split unless --hold is given."))] = None,
     eval_split: Annotated[bool, typer.Option("--eval", help=(
-        "The model was trained with a held-out split: every 8th view in name order is a test view "
-        "(Inria's --eval, gsplat's default --test-every 8)."))] = False,
+        "Same as --hold 8, now the default (kept for old scripts)."))] = False,
     test_every: Annotated[int | None, typer.Option("--test-every", help=(
-        "Every N-th view in name order is a test view (0: all train). Overrides --eval."))] = None,
+        "Same as --hold N (kept for old scripts)."))] = None,
     split_file: Annotated[Path | None, typer.Option("--split-file", help=(
         'Test views by name: JSON {"train": [...], "test": [...]} or one name per line '
-        "(Inria's sparse/0/test.txt). Overrides --eval and --test-every."))] = None,
+        "(Inria's sparse/0/test.txt). Overrides --hold."))] = None,
     skip_missing: SkipMissingOpt = False,
     force: ImportForceOpt = False,
 ) -> None:
     """Turn gsplat renders + expected depth (and the dataset's poses) into a scene folder."""
+    with _errors():
+        if hold is not None and test_every is not None and hold != test_every:
+            raise InputError(f"--hold {hold} and --test-every {test_every} disagree: give one (--hold)")
+    flag = "--hold" if hold is not None else "--test-every"
+    test_every = hold if hold is not None else test_every
     if test_every is None and eval_split:
         test_every = 8
     _import_command("gsplat", dataset, renders, output, depth_type, depth_scale, "dataset", None, background,
-                    skip_missing, force, images=images, test_every=test_every, split_file=split_file)
+                    skip_missing, force, images=images, test_every=test_every, split_file=split_file,
+                    hold_flag=flag)
 
 
 @app.command("import-3dgs")
@@ -584,8 +594,8 @@ def import_3dgs_command(
         "cameras.json, COLMAP images.txt) into OUTPUT/path for enhance-path."))] = None,
     backend: Annotated[str, typer.Option(
         "--backend", help="auto (gsplat with CUDA, else CPU), cpu or gsplat.")] = "auto",
-    hold: Annotated[int, typer.Option(
-        "--hold", help="COLMAP: every N-th view (name order) is a test view, as --eval; 0: none.")] = 8,
+    hold: Annotated[int, typer.Option("--hold", help=HOLD_HELP + " A transforms.json dataset keeps its own "
+                                      "split.")] = 8,
     images: Annotated[str, typer.Option(
         "--images", help="COLMAP: image folder in the dataset (images_2 for half size).")] = "images",
     dataparser_transforms: Annotated[Path | None, typer.Option("--dataparser-transforms", help=(

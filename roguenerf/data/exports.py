@@ -344,8 +344,9 @@ def import_renders(
         images: the COLMAP dataset's image folder (``images_2`` for a 2x downscaled copy).
         test_every: held-out views, the trainers' way (:func:`~roguenerf.data.colmap.split_views`:
             names sorted, every ``test_every``-th from the first is ``test``; 8 is Inria's
-            ``--eval`` and gsplat's default); 0: all train. None: the dataset's own split (a
-            COLMAP dataset: all train; with Inria's numbered test renders: 8).
+            ``--eval`` and gsplat's default); 0: all train. None: a COLMAP dataset's every 8th
+            view (as ``import_3dgs``'s ``hold``; with Inria's numbered renders, theirs: 8 when
+            there are test renders, else 0); a nerfstudio dataset's own split.
         split_file: test-view names (JSON ``{"train": [...], "test": [...]}`` or one name per
             line, as Inria's ``sparse/0/test.txt``); wins over ``test_every``.
         progress: ``callback(done, total)`` per view.
@@ -393,6 +394,10 @@ def import_renders(
     if source.meta.get("format") not in ("nerfstudio", "colmap"):
         raise InputError(f"{dataset}: expected a nerfstudio dataset (transforms.json with the photos' poses) "
                          f"or a COLMAP dataset (images/ + sparse/0/), got a {source.meta.get('format')} scene")
+    if test_every is None and split_file is None and source.meta.get("format") == "colmap":
+        # The trainers' --eval split (import-3dgs's default too); Inria's numbered renders without
+        # test renders: trained without it.
+        test_every = 0 if indexed is not None else TRAINER_TEST_EVERY
     if test_every is not None or split_file is not None:
         names = source.meta.get("colmap_names") or [f.name for f in source.frames]
         for frame, split in zip(source.frames, split_views(names, test_every=test_every or 0,
@@ -765,8 +770,8 @@ def _match_indexed(indexed: dict[str, list[tuple[Path, Path]]], source, renders)
         if len(files) != len(views):
             raise InputError(
                 f"{renders}: {len(files)} {split} renders, but the dataset has {len(views)} {split} views "
-                f"with this split; pass the split the model was trained with (--test-every 8 for "
-                f"Inria's --eval, 0 without it, or --split-file)")
+                f"with this split; pass the split the model was trained with (--hold 8 for "
+                f"Inria's --eval, --hold 0 without it, or --split-file)")
         for name, (rgb, depth) in zip(views, files, strict=True):
             out[name] = (rgb, depth, split)
     return out
