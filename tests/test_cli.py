@@ -272,6 +272,37 @@ def test_serve_without_the_service_is_a_clear_error(monkeypatch):
     assert "roguenerf[service]" in result.stderr
 
 
+def test_serve_refuses_a_data_dir_it_did_not_make(tmp_path):
+    """Issue 49: `serve --data-dir ~` swept ~/tmp of entries older than six hours."""
+    from workers.layout import Layout
+
+    home = tmp_path / "home"
+    (home / "tmp").mkdir(parents=True)
+    (home / "tmp" / "old.txt").write_text("mine")
+    os.utime(home / "tmp" / "old.txt", (0, 0))  # 1970: "stale" to the sweep
+    (home / "notes.txt").write_text("mine")
+    from roguenerf.errors import InputError
+
+    with pytest.raises(InputError, match="not a RoGUENeRF data directory"):
+        Layout(home).ensure()  # the API's and the workers' start-up
+    result = _run("serve", "--data-dir", home, "--port", "8124")
+    assert result.exit_code == 2, result.output
+    assert result.stderr.splitlines()[-1] == (
+        f"error: data directory {home} exists and is not empty: it holds other files, not a RoGUENeRF data "
+        "directory (whose tmp/ is swept and whose scenes/ and jobs/ are removed as jobs end); choose a new "
+        "folder (--data-dir)")
+    assert sorted(p.relative_to(home).as_posix() for p in home.rglob("*")) == ["notes.txt", "tmp", "tmp/old.txt"]
+    # Ours: new, or made by an older version (scenes/ jobs/ tmp/, no marker): the marker is added.
+    Layout(tmp_path / "new").ensure()
+    old = tmp_path / "old"
+    for sub in ("scenes", "jobs", "tmp"):
+        (old / sub).mkdir(parents=True)
+    (old / "roguenerf.db").write_bytes(b"")
+    Layout(old).ensure()
+    assert (tmp_path / "new" / ".roguenerf-data").is_file() and (old / ".roguenerf-data").is_file()
+    assert Layout(old).sweep_stale_temp(1.0) == []
+
+
 def test_console_entry_point_runs_as_a_module(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "roguenerf", "evaluate", str(tmp_path / "nope"), "--json"],
                           capture_output=True, text=True, timeout=120)
