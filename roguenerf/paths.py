@@ -786,7 +786,7 @@ def enhance_path(
 
     output = Path(output)
     frame_dir = output / FRAME_FOLDER
-    frame_dir.mkdir(parents=True, exist_ok=True)
+    output.mkdir(parents=True, exist_ok=True)  # frames/ only once the state marks the folder as ours
     # The enhancer's settings too: frames matched with another colour reach, trust or pose refinement
     # (a changed default after an upgrade) must not be mixed into this video.
     from roguenerf.inference import NEAR_DEGREES
@@ -809,6 +809,7 @@ def enhance_path(
                              "choose another output folder or delete it")
     else:
         atomic_write(state_path, json.dumps({"fingerprint": fingerprint, "frames": len(pairs)}).encode())
+    frame_dir.mkdir(exist_ok=True)
     per_pair, per_frame = [], []
     prev = None
     done_now = 0
