@@ -253,7 +253,7 @@ def test_import_3dgs_replaces_its_own_output_but_never_a_file_it_did_not_write(s
 
 def test_render_camera_path_never_replaces_a_folder_it_did_not_write(splat_data, tmp_path):
     from roguenerf.errors import InputError
-    from roguenerf.splats.importer import render_camera_path
+    from roguenerf.splats.importer import import_3dgs, render_camera_path
 
     root, _, _, _ = splat_data
     path_poses, _ = cameras(3)
@@ -278,6 +278,14 @@ def test_render_camera_path_never_replaces_a_folder_it_did_not_write(splat_data,
     with pytest.raises(InputError, match=r"did not write \(depth/notes.txt\)"):
         render_camera_path(ply, path, out, backend="cpu")
     assert (out / "depth" / "notes.txt").read_text() == "mine"
+    # A rendered path is no scene folder, and a scene folder no rendered path: each refused as foreign.
+    (out / "depth" / "notes.txt").unlink()
+    with pytest.raises(InputError, match="not an earlier output of this command"):
+        import_3dgs(root / "data", ply, out, backend="cpu")
+    scene = tmp_path / "scene"
+    import_3dgs(root / "data", ply, scene, backend="cpu")
+    with pytest.raises(InputError, match="not an earlier output of this command"):
+        render_camera_path(ply, path, scene, backend="cpu")
 
 
 def test_a_missing_images_folder_is_named_with_the_ones_there(splat_data, tmp_path):

@@ -135,14 +135,15 @@ def _source(doc_file: Path) -> dict:
 
 def _is_ours(folder: Path) -> bool:
     """An earlier scene folder of ``import-3dgs`` (its own marker: ``source.tool``): replaced whole."""
-    return _source(folder / "transforms.json").get("tool") == TOOL
+    source = _source(folder / "transforms.json")
+    return source.get("tool") == TOOL and "camera_path" not in source  # not a rendered path
 
 
 def _is_our_path(folder: Path) -> bool:
     """An earlier rendered path (``render_camera_path``, ``import-3dgs --path``): replaced whole."""
     source = _source(folder / PATH_CAMERAS)
     # Without "tool": written before the marker was (its only keys were these two).
-    return source.get("tool") == TOOL or set(source) == {"camera_path", "format"}
+    return (source.get("tool") == TOOL and "camera_path" in source) or set(source) == {"camera_path", "format"}
 
 
 def _our_path_files(folder: Path) -> set[str]:
