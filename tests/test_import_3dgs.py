@@ -424,8 +424,12 @@ def test_import_3dgs_replaces_its_own_output_but_never_a_file_it_did_not_write(s
     assert runner.invoke(app, args).exit_code == 0
     assert json.loads((out / "path" / "transforms.json").read_text())["source"]["tool"] == "3dgs"
     (out / "renders" / "view_00.png").write_bytes(b"stale")
-    again = runner.invoke(app, args)  # an earlier output of import-3dgs: replaced whole
+    # An earlier output of import-3dgs, with another option (the same ones would render only the
+    # path): replaced whole.
+    args += ["--depth-threshold", "0.4"]
+    again = runner.invoke(app, args)
     assert again.exit_code == 0, again.output
+    assert "only the path" not in again.output
     assert (out / "renders" / "view_00.png").read_bytes() != b"stale"
     for extra in ("notes.txt", "images/extra.png", "path/rgb/mine.png"):
         (out / extra).write_text("mine")
