@@ -281,6 +281,8 @@ class _SplatFitter:
         c = self.config
         view = self.train[int(torch.randint(0, len(self.train), (1,), generator=self.generator))]
         background = torch.rand(3, generator=self.generator)
+        if not all(bool(torch.isfinite(p).all()) for p in self.params.values()):
+            return math.nan  # the last step diverged: render refuses non-finite splats, the run calls it divergence
         rgb, _, _, info = render(self.gaussians(), self.ps.world_from_cam[view], self.K[view], self.height,
                                  self.width, background=background, depth_threshold=1.0, return_info=True)
         target = self.photos[view]

@@ -550,12 +550,14 @@ def import_gsplat(
 def import_3dgs_command(
     dataset: Annotated[Path, typer.Argument(
         help="The dataset the splats were trained on: COLMAP (images/ + sparse/0) or transforms.json.")],
-    ply: Annotated[Path, typer.Option("--ply", help="Inria 3DGS point_cloud.ply (point_cloud/iteration_30000/).")],
+    ply: Annotated[Path | None, typer.Option("--ply", help=(
+        "Inria 3DGS point_cloud.ply (point_cloud/iteration_30000/); default: --model's latest."))] = None,
     output: Annotated[Path, typer.Option(
-        "--output", help="Scene folder to write (renders, z-depth, opacity, photos).")],
+        "--output", help="Scene folder to write (renders, z-depth, opacity, photos).")] = ...,
     path: Annotated[Path | None, typer.Option("--path", help=(
         "Also render this camera path (any enhance-path --cameras format: camera_path.json, transforms-style, "
-        "cameras.json, COLMAP images.txt) into OUTPUT/path for enhance-path."))] = None,
+        "cameras.json (read in image-name order, at the dataset views' size), COLMAP images.txt) into "
+        "OUTPUT/path for enhance-path. OUTPUT already holding this import: only the path is rendered."))] = None,
     backend: Annotated[str, typer.Option(
         "--backend", help="auto (gsplat with CUDA, else CPU), cpu or gsplat.")] = "auto",
     hold: Annotated[int, typer.Option(
@@ -566,27 +568,43 @@ def import_3dgs_command(
         "splatfacto exports: nerfstudio's dataparser_transforms.json (the .ply is in its model's world)."))] = None,
     depth_threshold: Annotated[float, typer.Option(
         "--depth-threshold", help="Depth is known where the splats' opacity reaches this.")] = 0.5,
+    model: Annotated[Path | None, typer.Option("--model", help=(
+        "Inria's model folder (cameras.json, point_cloud/iteration_*/point_cloud.ply): the latest iteration's "
+        ".ply, and without --path a smooth fly-through through the dataset's views into OUTPUT/path."))] = None,
+    frames: Annotated[int, typer.Option(
+        "--frames", help="--model without --path: frames of the fly-through (24 per second).")] = 120,
+    force: Annotated[bool, typer.Option("--force", help=(
+        "Render even when the splats do not lie in the dataset's views (another world: gsplat's normalised "
+        "one, a splatfacto export without --dataparser-transforms) or the path sees none of them; the "
+        "problem is printed as a warning."))] = False,
 ) -> None:
     """Render a trained 3DGS scene's .ply at every dataset view (RGB, z-depth, opacity) into a scene folder."""
     from roguenerf.splats.importer import PATH_CAMERAS, PATH_FOLDER, import_3dgs
 
     with _errors():
-        if not ply.is_file():
+        if ply is None and model is None:
+            raise InputError("give the splats: --ply point_cloud.ply or --model MODEL (Inria's model folder)")
+        if ply is not None and not ply.is_file():
             raise InputError(f"--ply: {ply} does not exist")
         if path is not None and not path.is_file():
             raise InputError(f"--path: {path} does not exist")
         if not 0 <= depth_threshold <= 1:
             raise InputError(f"--depth-threshold: expected 0..1, got {depth_threshold}")
+        if frames < 2:
+            raise InputError(f"--frames: expected at least 2, got {frames}")
+        fly = frames if model is not None and path is None else None
         with _progress_bar("rendering splats", "view") as progress:
             scene = import_3dgs(dataset, ply, output, backend=backend, hold=hold, images=images,
                                 dataparser_transforms=dataparser_transforms, depth_threshold=depth_threshold,
-                                camera_path=path, progress=progress)
+                                camera_path=path, model=model, fly_through_frames=fly, force=force,
+                                messages=lambda line: typer.echo(line, err=True), progress=progress)
         typer.echo(f"wrote {scene!r}", err=True)
-        if path is not None:
-            frames = output / PATH_FOLDER
-            cams = frames / PATH_CAMERAS
-            typer.echo(f"next: roguenerf enhance-path {output} --frames {frames} --cameras {cams} --output OUT",
-                       err=True)
+        if path is not None or fly is not None:
+            frames_dir = output / PATH_FOLDER
+            cams = frames_dir / PATH_CAMERAS
+            video = output.with_name(output.name + "_video")
+            typer.echo(f"next: roguenerf enhance-path {output} --frames {frames_dir} --cameras {cams} "
+                       f"--output {video}", err=True)
         typer.echo(str(output))
 
 

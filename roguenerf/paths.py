@@ -61,6 +61,10 @@ class CameraPath:
     or ``"colmap"`` (``images.txt`` / ``images.bin`` with the cameras file beside it)."""
     labels: list[str] = field(default_factory=list)
     """How messages name each camera: ``camera_path[3]`` or ``frames[3] (NAME)``."""
+    names: list[str] = field(default_factory=list)
+    """Each camera's image name (file stem) where the file gives one (Inria ``img_name``, COLMAP's
+    image names), else empty: how :func:`~roguenerf.splats.importer.import_3dgs` matches a path
+    camera with the dataset view it is."""
 
     def label(self, t: int) -> str:
         return self.labels[t] if t < len(self.labels) else f"camera {t}"
@@ -90,7 +94,8 @@ def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
     ``{"id", "img_name", "width", "height", "position", "rotation", "fx", "fy"}``, where
     ``rotation`` (3x3) and ``position`` are the OpenCV **camera-to-world** rotation and camera
     centre (``camera_to_JSON`` inverts COLMAP's world-to-camera), the principal point at the
-    image centre; cameras in list order.
+    image centre; cameras in the dataset's order, the natural order of ``img_name`` (``train.py``
+    lists the test cameras first, which as a path would jump back and forth), else in list order.
 
     COLMAP ``images.txt`` (or ``images.bin``) with ``cameras.txt`` / ``cameras.bin`` beside it:
     world-to-camera ``qvec`` (w first) and ``tvec`` per image, pinhole cameras; cameras in
@@ -209,7 +214,7 @@ def _is_inria_cameras(data) -> bool:
 
 
 def _checked_path(path: Path, poses: list[Tensor], Ks: list[Tensor], sizes: list[tuple[int, int]],
-                  labels: list[str], source: str) -> CameraPath:
+                  labels: list[str], source: str, names: list[str] | None = None) -> CameraPath:
     """One size, proper rotations, valid intrinsics; errors name the camera (``labels``)."""
     from roguenerf.geometry.cameras import as_world_from_cam, check_intrinsics
 
@@ -229,12 +234,17 @@ def _checked_path(path: Path, poses: list[Tensor], Ks: list[Tensor], sizes: list
     if width < 1 or height < 1:
         raise _fail(path, f"render size must be positive, got {width}x{height}")
     return CameraPath(world_from_cam=torch.stack(checked), K=torch.stack(Ks), width=width, height=height,
-                      fps=24.0, source=source, labels=list(labels))
+                      fps=24.0, source=source, labels=list(labels), names=list(names or []))
 
 
 def _read_inria_cameras(path: Path, data: list) -> CameraPath:
     poses, Ks, sizes, labels = [], [], [], []
-    for n, cam in enumerate(data):
+    order = list(range(len(data)))
+    named = all(isinstance(cam, dict) and isinstance(cam.get("img_name"), str) for cam in data)
+    if named:  # the dataset's order: train.py writes the test cameras first
+        order.sort(key=lambda n: _natural_key(data[n]["img_name"]))
+    for n in order:
+        cam = data[n]
         label = f"cameras[{n}]"
         if isinstance(cam, dict) and isinstance(cam.get("img_name"), str):
             label += f" ({cam['img_name']})"
@@ -259,7 +269,8 @@ def _read_inria_cameras(path: Path, data: list) -> CameraPath:
         Ks.append(torch.tensor([[fx, 0, width / 2], [0, fy, height / 2], [0, 0, 1]], dtype=torch.float64))
         sizes.append((width, height))
         labels.append(label)
-    return _checked_path(path, poses, Ks, sizes, labels, "inria")
+    names = [data[n]["img_name"] for n in order] if named else None
+    return _checked_path(path, poses, Ks, sizes, labels, "inria", names)
 
 
 def _read_colmap_path(path: Path) -> CameraPath:
@@ -292,7 +303,8 @@ def _read_colmap_path(path: Path) -> CameraPath:
             raise _fail(path, f"{label}: {exc}") from None
         sizes.append((camera.width, camera.height))
         labels.append(label)
-    return _checked_path(path, poses, Ks, sizes, labels, "colmap")
+    names = [Path(image.name).stem for image in sorted(model.images.values(), key=lambda im: im.name)]
+    return _checked_path(path, poses, Ks, sizes, labels, "colmap", names)
 
 
 def find_camera_file(folder: str | Path) -> Path:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import shutil
+import struct
 
 import numpy as np
 import pytest
@@ -22,7 +23,7 @@ from roguenerf.data.colmap import (
     write_colmap_model,
 )
 from roguenerf.data.toy import make_toy_scene
-from roguenerf.errors import SceneFormatError
+from roguenerf.errors import InputError, SceneFormatError
 from roguenerf.imageio import write_png
 
 
@@ -388,3 +389,115 @@ def test_colliding_stems_keep_their_folders(tmp_path):
 
     assert view_names(["b.png", "a.jpg"]) == ["b", "a"]
     assert view_names(["cam0/0001.jpg", "cam1/0001.jpg"]) == ["cam0_0001", "cam1_0001"]
+
+
+def _camera_bin(*cams) -> bytes:
+    """cameras.bin of PINHOLE cameras ``(id, fx)`` (32x24, centre 16, 12)."""
+    out = [struct.pack("<Q", len(cams))]
+    for cam_id, f in cams:
+        out.append(struct.pack("<iiQQdddd", cam_id, 1, 32, 24, f, f, 16.0, 12.0))
+    return b"".join(out)
+
+
+def _images_bin(*images) -> bytes:
+    """images.bin of identity poses ``(id, name)`` on camera 1, no keypoints."""
+    out = [struct.pack("<Q", len(images))]
+    for image_id, name in images:
+        out.append(struct.pack("<idddddddi", image_id, 1, 0, 0, 0, 0, 0, 0, 1))
+        out.append(name.encode() + b"\x00" + struct.pack("<Q", 0))
+    return b"".join(out)
+
+
+def test_binary_model_refuses_duplicate_ids_as_the_text_one(tmp_path):
+    sparse = tmp_path / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    (sparse / "cameras.bin").write_bytes(_camera_bin((1, 30.0)))
+    (sparse / "images.bin").write_bytes(_images_bin((2, "a.png"), (3, "b.png")))
+    assert read_colmap(tmp_path, check_files=False).names == ["a.png", "b.png"]
+    # Two images of id 2: the first view would disappear in silence.
+    (sparse / "images.bin").write_bytes(_images_bin((2, "a.png"), (2, "b.png")))
+    with pytest.raises(SceneFormatError) as err:
+        read_colmap(tmp_path, check_files=False)
+    assert str(err.value) == f"{sparse / 'images.bin'}: image 1: image id 2 appears twice"
+    # Two cameras of id 1: which focal length is meant?
+    (sparse / "images.bin").write_bytes(_images_bin((2, "a.png")))
+    (sparse / "cameras.bin").write_bytes(_camera_bin((1, 30.0), (1, 60.0)))
+    with pytest.raises(SceneFormatError) as err:
+        read_colmap(tmp_path, check_files=False)
+    assert str(err.value) == f"{sparse / 'cameras.bin'}: camera 1: camera id 1 appears twice"
+    # The text reader says the same of cameras.
+    (sparse / "cameras.bin").unlink()
+    (sparse / "images.bin").unlink()
+    (sparse / "cameras.txt").write_text("1 PINHOLE 32 24 30 30 16 12\n1 PINHOLE 32 24 60 60 16 12\n")
+    (sparse / "images.txt").write_text("2 1 0 0 0 0 0 0 1 a.png\n\n")
+    with pytest.raises(SceneFormatError) as err:
+        read_colmap(tmp_path, check_files=False)
+    assert str(err.value) == f"{sparse / 'cameras.txt'}: line 2: camera id 1 appears twice"
+
+
+def test_points_bin_count_beyond_the_file_is_refused(tmp_path):
+    sparse = tmp_path / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    (sparse / "cameras.bin").write_bytes(_camera_bin((1, 30.0)))
+    (sparse / "images.bin").write_bytes(_images_bin((2, "a.png")))
+    point = struct.pack("<QdddBBBdQ", 1, 0.5, 0.25, 2.0, 1, 2, 3, 0.0, 0)
+    (sparse / "points3D.bin").write_bytes(struct.pack("<Q", 1) + point)
+    data = read_colmap(tmp_path, points=True, check_files=False)
+    assert data.points_xyz.tolist() == [[0.5, 0.25, 2.0]]
+    (sparse / "points3D.bin").write_bytes(struct.pack("<Q", 2**62) + point)
+    with pytest.raises(SceneFormatError) as err:
+        read_colmap(tmp_path, points=True, check_files=False)
+    assert str(err.value) == (
+        f"{sparse / 'points3D.bin'}: the header claims {2**62} points, but the file's 51 bytes "
+        f"after it hold at most 1 (51 bytes each): the file is truncated or not a COLMAP points3D.bin"
+    )
+
+
+def _write_one(folder, **changes):
+    args = dict(
+        names=["a.png", "b.png"],
+        K=torch.tensor([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]], dtype=torch.float64),
+        world_from_cam=torch.eye(4, dtype=torch.float64).repeat(2, 1, 1),
+        widths=32,
+        heights=24,
+    )
+    args.update(changes)
+    return write_colmap(folder, **args)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_write_colmap_refuses_what_it_cannot_represent(tmp_path, binary):
+    eye = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+    mirrored = eye.clone()
+    mirrored[1, 0, 0] = -1.0
+    scaled = eye.clone()
+    scaled[1, :3, :3] *= 2.0
+    bottom = eye.clone()
+    bottom[1, 3] = torch.tensor([0.0, 0.0, 0.5, 1.0])
+    K = torch.tensor([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]], dtype=torch.float64)
+    nan_K = K.clone()
+    nan_K[0, 0] = math.nan
+    negative_K = K.clone()
+    negative_K[1, 1] = -30.0
+    cases = [
+        (dict(world_from_cam=mirrored), "world_from_cam[1]: expected a proper rotation (det +1), got det -1"),
+        (dict(world_from_cam=scaled), "world_from_cam[1]: expected an orthonormal rotation"),
+        (dict(world_from_cam=bottom), "world_from_cam[1]: expected bottom row (0, 0, 0, 1), got [0.0, 0.0, 0.5, 1.0]"),
+        (dict(K=nan_K), "K: expected finite intrinsics, got non-finite values"),
+        (dict(K=negative_K), "K: expected focal lengths fx > 0 and fy > 0, got fx=30, fy=-30 (min)"),
+        (dict(widths=[32]), "widths: expected one width for all views or one per view (2), got 1"),
+        (dict(heights=[24, 24, 24]), "heights: expected one height for all views or one per view (2), got 3"),
+        (dict(widths=[32, 0]), "widths[1]: expected a positive integer size in pixels, got 0"),
+        (dict(heights=24.5), "heights: expected a positive integer size in pixels, got 24.5"),
+    ]
+    for n, (change, message) in enumerate(cases):
+        folder = tmp_path / f"case{n}" / "sparse" / "0"
+        with pytest.raises(InputError) as err:
+            _write_one(folder, binary=binary, **change)
+        assert str(err.value).startswith(message), (change, str(err.value))
+        assert not (tmp_path / f"case{n}").exists(), change  # nothing written
+    # The good model still writes and reads back; the same pose within rounding of a rotation too.
+    _write_one(tmp_path / "good", binary=binary, widths=[32, 32], heights=np.int64(24))
+    data = read_colmap(tmp_path / "good", check_files=False)
+    assert torch.equal(data.world_from_cam, torch.eye(4, dtype=torch.float64).repeat(2, 1, 1))
+    assert data.widths == [32, 32] and data.heights == [24, 24]

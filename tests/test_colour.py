@@ -142,3 +142,18 @@ def test_the_scene_enhancer_takes_a_colour_bias_back_out(tmp_path):
     assert report["enhanced"]["psnr"] > evaluate(scene, model, colour=False)["enhanced"]["psnr"] + 3
     with pytest.raises(InputError, match="colour"):
         SceneEnhancer(scene, model, colour="yes")
+
+
+def test_values_where_a_neighbour_does_not_see_are_ignored_even_nan():
+    photo = textured(4)
+    seen = torch.zeros(1, 1, 48, 64)
+    seen[..., 4:44, 6:58] = 1
+    image = photo + SHIFT.view(1, 3, 1, 1)
+    zeros = torch.where(seen > 0, photo, torch.zeros_like(photo))
+    nan = torch.where(seen > 0, photo, torch.full_like(photo, float("nan")))  # NaN × 0 must not spread
+    want = colour_match(image, [(zeros, seen), (zeros, seen)])
+    got = colour_match(image, [(nan, seen), (zeros, seen)])
+    assert want is not None and got is not None
+    assert torch.allclose(want.offset, -SHIFT, atol=1e-4)
+    assert torch.equal(got.offset, want.offset) and torch.equal(got.field, want.field)
+    assert got.share == want.share

@@ -191,3 +191,191 @@ def test_a_splatfacto_export_in_the_model_world_renders_the_dataset_views(splat_
         got = scene.depth(i)
         assert torch.equal(got > 0, depth > 0)
         assert ((got - depth).abs() / depth.clamp_min(1e-6)).max() < 1e-4
+
+
+def normalised(g: Gaussians, centre: torch.Tensor, scale: float) -> Gaussians:
+    """The splats as gsplat's trainer saves them with its default normalize_world_space (recentred
+    on the cameras, scaled down): another world than the dataset's."""
+    return Gaussians(means=(g.means - centre) * scale, sh=g.sh, opacity=g.opacity,
+                     log_scales=g.log_scales + math.log(scale), quats=g.quats)
+
+
+def test_a_ply_in_another_world_is_refused_before_rendering(splat_data, tmp_path):
+    root, g, poses, K = splat_data
+    ply = tmp_path / "normalised.ply"
+    write_ply(ply, normalised(g, poses[:, :3, 3].mean(0).float(), 1 / 20))
+    out = tmp_path / "scene"
+    args = ["import-3dgs", str(root / "data"), "--ply", str(ply), "--output", str(out), "--backend", "cpu"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 2, result.output
+    assert "--ply: the splats do not lie in the dataset's world" in result.output
+    assert "--no-normalize-world-space" in result.output and "--dataparser-transforms" in result.output
+    assert "--force" in result.output and "Traceback" not in result.output
+    assert not out.exists() and not list(tmp_path.glob(".scene.*"))
+    forced = runner.invoke(app, args + ["--force"])
+    assert forced.exit_code == 0, forced.output
+    assert "warning: --ply: the splats do not lie in the dataset's world" in forced.output
+    assert len(load_scene(out).frames) == VIEWS
+
+
+def test_the_world_check_passes_the_right_ply_cheaply(splat_data):
+    from roguenerf.splats.importer import check_world, read_dataset_views
+
+    root, g, poses, K = splat_data
+    views, _ = read_dataset_views(root / "data")
+    check = check_world(g, views)
+    assert check.problem is None and min(check.coverage) > 0.2
+    moved = check_world(normalised(g, poses[:, :3, 3].mean(0).float(), 1 / 20), views)
+    assert moved.problem is not None and max(moved.coverage) < 0.05
+
+
+def test_a_path_that_sees_nothing_is_refused_before_rendering(splat_data, tmp_path):
+    root, g, poses, K = splat_data
+    path_poses, _ = cameras(5)
+    path = tmp_path / "path.json"  # OpenCV poses written as OpenGL: every camera looks away
+    path.write_text(json.dumps({"fl_x": 40.0, "fl_y": 40.0, "cx": W / 2, "cy": H / 2, "w": W, "h": H,
+                                "frames": [{"transform_matrix": p.tolist()} for p in path_poses]}))
+    out = tmp_path / "scene"
+    args = ["import-3dgs", str(root / "data"), "--ply", str(root / "point_cloud.ply"), "--output", str(out),
+            "--path", str(path), "--backend", "cpu"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 2, result.output
+    assert "--path: the camera path does not fit the scene" in result.output
+    assert "none of the 5 checked cameras sees a splat" in result.output and "--force" in result.output
+    assert not out.exists() and not list(tmp_path.glob(".scene.*"))
+    forced = runner.invoke(app, args + ["--force"])
+    assert forced.exit_code == 0, forced.output
+    assert "warning: --path: the camera path does not fit the scene" in forced.output
+    assert len(find_path_frames(out / "path", 5)) == 5
+
+
+def inria_cameras(poses, names, width, height, focal, hold=8) -> list[dict]:
+    """Inria's cameras.json: test cameras (every hold-th in name order) first, then the rest."""
+    order = [i for i in range(len(names)) if i % hold == 0] + [i for i in range(len(names)) if i % hold]
+    out = []
+    for j, i in enumerate(order):
+        p = poses[i]
+        out.append({"id": j, "img_name": names[i], "width": width, "height": height, "position": p[:3, 3].tolist(),
+                    "rotation": p[:3, :3].tolist(), "fx": focal, "fy": focal})
+    return out
+
+
+def half_size_colmap(root, poses, K, folder):
+    """A COLMAP dataset at twice the photos' size whose images_2/ holds them (gsplat/Inria -r 2)."""
+    names = [f"view_{i:02d}.png" for i in range(VIEWS)]
+    (folder / "images_2").mkdir(parents=True)
+    for name in names:
+        (folder / "images_2" / name).write_bytes((root / "data" / "images" / name).read_bytes())
+    K2 = K.clone()
+    K2[:2] *= 2
+    write_colmap(folder / "sparse" / "0", names=names, K=K2, world_from_cam=poses, widths=2 * W, heights=2 * H)
+    return [n[:-4] for n in names]
+
+
+def test_an_inria_cameras_json_path_follows_the_dataset_order_and_image_size(splat_data, tmp_path):
+    root, g, poses, K = splat_data
+    data = tmp_path / "colmap"
+    names = half_size_colmap(root, poses, K, data)
+    cams = tmp_path / "cameras.json"
+    cams.write_text(json.dumps(inria_cameras(poses, names, 2 * W, 2 * H, 80.0)))
+    out = tmp_path / "scene"
+    result = runner.invoke(app, ["import-3dgs", str(data), "--images", "images_2", "--ply",
+                                 str(root / "point_cloud.ply"), "--output", str(out), "--path", str(cams),
+                                 "--backend", "cpu"])
+    assert result.exit_code == 0, result.output
+    scene = load_scene(out)
+    doc = json.loads((out / "path" / "transforms.json").read_text())
+    assert len(doc["frames"]) == VIEWS
+    for t, frame in enumerate(doc["frames"]):  # frame t is view t: same pose, intrinsics and size
+        assert (frame["w"], frame["h"]) == (W, H)
+        assert (frame["fl_x"], frame["cx"]) == (40.0, W / 2)
+        pose = torch.tensor(frame["transform_matrix"], dtype=torch.float64)
+        assert (pose - opencv_to_opengl(scene.frames[t].world_from_cam)).abs().max() < 1e-9
+    pairs = find_path_frames(out / "path", VIEWS)
+    assert torch.equal(read_image(pairs[8][0]), scene.render(8))
+    video = tmp_path / "video"
+    enhanced = runner.invoke(app, ["enhance-path", str(out), "--frames", str(out / "path"), "--cameras",
+                                   str(out / "path" / "transforms.json"), "--output", str(video), "--no-video"])
+    assert enhanced.exit_code == 0, enhanced.output
+    flicker = json.loads((video / "flicker.json").read_text())
+    assert flicker["psnr"]["frames_with_photos"] == VIEWS  # every frame is its view: a PSNR each
+
+
+def inria_model(root, poses, names, folder):
+    """An Inria model folder: cameras.json, cfg_args and two iterations' point clouds."""
+    for it in (7000, 30000):
+        (folder / "point_cloud" / f"iteration_{it}").mkdir(parents=True)
+    (folder / "point_cloud" / "iteration_7000" / "point_cloud.ply").write_bytes(b"not the latest")
+    (folder / "point_cloud" / "iteration_30000" / "point_cloud.ply").write_bytes(
+        (root / "point_cloud.ply").read_bytes())
+    (folder / "cameras.json").write_text(json.dumps(inria_cameras(poses, names, W, H, 40.0)))
+    (folder / "cfg_args").write_text("Namespace(eval=True, images='images', resolution=-1, sh_degree=1)")
+    return folder
+
+
+def test_a_model_folder_goes_to_a_fly_through_in_one_command(splat_data, tmp_path):
+    root, g, poses, K = splat_data
+    model = inria_model(root, poses, [f"view_{i:02d}" for i in range(VIEWS)], tmp_path / "model")
+    out = tmp_path / "scene"
+    result = runner.invoke(app, ["import-3dgs", str(root / "data"), "--model", str(model), "--output", str(out),
+                                 "--backend", "cpu", "--frames", "17"])
+    assert result.exit_code == 0, result.output
+    meta = json.loads((out / "transforms.json").read_text())["source"]
+    assert meta["ply"] == str(model / "point_cloud" / "iteration_30000" / "point_cloud.ply")
+    scene = load_scene(out)
+    doc = json.loads((out / "path" / "transforms.json").read_text())
+    assert len(doc["frames"]) == 17 and doc["source"]["format"] == "fly-through"
+    for t, i in ((0, 0), (2, 1), (16, 8)):  # every 2nd frame is a view (9 keys, 2 steps each)
+        pose = torch.tensor(doc["frames"][t]["transform_matrix"], dtype=torch.float64)
+        assert (pose - opencv_to_opengl(poses[i])).abs().max() < 1e-12
+    steps = [torch.tensor(f["transform_matrix"])[:3, 3] for f in doc["frames"]]
+    gaps = torch.stack([(b - a).norm() for a, b in zip(steps, steps[1:])])
+    assert gaps.max() < 1.5 * gaps.min()  # no jumps
+    pairs = find_path_frames(out / "path", 17)
+    assert torch.equal(read_image(pairs[2][0]), scene.render(1))
+    video = tmp_path / "scene_video"
+    assert (f"next: roguenerf enhance-path {out} --frames {out / 'path'} --cameras "
+            f"{out / 'path' / 'transforms.json'} --output {video}") in result.output
+
+
+def test_a_new_path_for_an_earlier_import_renders_only_the_path(splat_data, tmp_path):
+    root, g, poses, K = splat_data
+    model = inria_model(root, poses, [f"view_{i:02d}" for i in range(VIEWS)], tmp_path / "model")
+    out = tmp_path / "scene"
+    base = ["import-3dgs", str(root / "data"), "--model", str(model), "--output", str(out), "--backend", "cpu"]
+    assert runner.invoke(app, base + ["--frames", "9"]).exit_code == 0
+    before = {p: p.stat().st_mtime_ns for p in (out / "renders").iterdir()}
+    marker = out / "renders" / "view_03.png"
+    marker.write_bytes(marker.read_bytes())  # a re-render would write it anew (new inode)
+    inode = marker.stat().st_ino
+    again = runner.invoke(app, base + ["--frames", "5"])
+    assert again.exit_code == 0, again.output
+    assert "only the path" in again.output
+    assert marker.stat().st_ino == inode and len(before) == VIEWS
+    assert len(find_path_frames(out / "path", 5)) == 5
+    # Another .ply: everything again.
+    other = tmp_path / "other.ply"
+    other.write_bytes((root / "point_cloud.ply").read_bytes())
+    third = runner.invoke(app, ["import-3dgs", str(root / "data"), "--ply", str(other), "--output", str(out),
+                                "--backend", "cpu"])
+    assert third.exit_code == 0, third.output
+    assert "only the path" not in third.output and marker.stat().st_ino != inode
+    assert not (out / "path").exists()
+
+
+def test_a_model_folder_is_checked(splat_data, tmp_path):
+    root, g, poses, K = splat_data
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    result = runner.invoke(app, ["import-3dgs", str(root / "data"), "--model", str(empty), "--output",
+                                 str(tmp_path / "o1"), "--backend", "cpu"])
+    assert result.exit_code == 2
+    assert "--model: " in result.output and "no point_cloud/iteration_*/point_cloud.ply" in result.output
+    other = inria_model(root, poses, [f"IMG_{i:04d}" for i in range(VIEWS)], tmp_path / "other")
+    result = runner.invoke(app, ["import-3dgs", str(root / "data"), "--model", str(other), "--output",
+                                 str(tmp_path / "o2"), "--backend", "cpu"])
+    assert result.exit_code == 2
+    assert "cameras.json names none of the dataset's views" in result.output
+    result = runner.invoke(app, ["import-3dgs", str(root / "data"), "--output", str(tmp_path / "o3")])
+    assert result.exit_code == 2 and "--ply point_cloud.ply or --model MODEL" in result.output
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith((".o", "o1", "o2", "o3"))]

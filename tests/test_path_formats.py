@@ -166,3 +166,16 @@ def test_enhance_path_cli_same_frames_from_every_camera_format(tmp_path):
         frames[label] = [p.read_bytes() for p in sorted((out / "frames").iterdir())]
     assert len(frames["transforms"]) == len(poses)
     assert frames["inria"] == frames["transforms"] and frames["colmap"] == frames["transforms"]
+
+
+def test_inria_cameras_json_is_read_in_image_name_order(poses, tmp_path):
+    """Inria's train.py lists the test cameras first (every 8th view, here every 4th): read in the
+    dataset's order (natural order of img_name), the path is smooth; labels keep the file position."""
+    names = [f"view_{i}" for i in range(6)]
+    order = [0, 4, 1, 2, 3, 5]
+    cams = [_inria_entry(j, names[i], poses[i], 33.0, 34.0) for j, i in enumerate(order)]
+    (tmp_path / "cameras.json").write_text(json.dumps(cams))
+    path = read_camera_path(tmp_path / "cameras.json")
+    assert (path.world_from_cam - poses).abs().max() < 1e-9
+    assert path.names == names
+    assert path.label(1) == "cameras[2] (view_1)" and path.label(4) == "cameras[1] (view_4)"

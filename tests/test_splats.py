@@ -56,8 +56,9 @@ def brute_force(g: Gaussians, pose, K, height, width, background=(0.0, 0.0, 0.0)
                             [2 * (a * c - w_ * b), 2 * (b * c + w_ * a), 1 - 2 * (a * a + b * b)]], dtype=torch.float64)
         s = torch.exp(g.log_scales[i].double())
         cov3 = rot @ torch.diag(s * s) @ rot.T
-        limx_pos, limx_neg = (width - cx) / fx + 0.3 * width / fx, cx / fx + 0.3 * width / fx
-        limy_pos, limy_neg = (height - cy) / fy + 0.3 * height / fy, cy / fy + 0.3 * height / fy
+        tan_fovx, tan_fovy = width / (2 * fx), height / (2 * fy)  # gsplat's clamp: 0.3 tan(fov/2) past the edges
+        limx_pos, limx_neg = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
+        limy_pos, limy_neg = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
         tx = z * min(max(x / z, -limx_neg), limx_pos)
         ty = z * min(max(y / z, -limy_neg), limy_pos)
         J = torch.tensor([[fx / z, 0, -fx * tx / z ** 2], [0, fy / z, -fy * ty / z ** 2]], dtype=torch.float64)
@@ -283,3 +284,132 @@ def test_gaussians_refuse_bad_shapes():
         Gaussians(g.means, g.sh[:, :3], g.opacity, g.log_scales, g.quats)
     with pytest.raises(InputError, match="quats"):
         Gaussians(g.means, g.sh, g.opacity, g.log_scales, g.quats[:, :3])
+
+
+def test_ply_count_beyond_the_file_is_refused_before_reading(tmp_path):
+    """A header claiming ten billion vertices: an InputError naming the counts, not MemoryError."""
+    row = [0, 0, 1, 0.1, 0.2, 0.3, 0.0, -2, -2, -2, 1, 0, 0, 0]
+    path = write_raw_ply(tmp_path / "big.ply", BASE, [row, row])
+    path.write_bytes(path.read_bytes().replace(b"element vertex 2\n", b"element vertex 10000000000\n"))
+    with pytest.raises(InputError) as err:
+        read_ply(path)
+    assert str(err.value) == (f"{path}: file is truncated: the header claims 10000000000 vertices of 56 bytes "
+                              "(560000000000 bytes), the file holds 112 after the header")
+    # The CLI: one line, exit status 2.
+    from typer.testing import CliRunner
+
+    from roguenerf.cli import app
+    from roguenerf.data.colmap import write_colmap
+    from roguenerf.imageio import write_png
+
+    data = tmp_path / "data"
+    (data / "images").mkdir(parents=True)
+    write_png(data / "images" / "a.png", torch.zeros(3, 24, 32))
+    pose, K = camera(32, 24)
+    write_colmap(data / "sparse" / "0", names=["a.png"], K=K, world_from_cam=pose[None], widths=32, heights=24)
+    result = CliRunner().invoke(app, ["import-3dgs", str(data), "--ply", str(path), "--output", str(tmp_path / "o"),
+                                      "--backend", "cpu"])
+    assert result.exit_code == 2, result.output
+    assert "10000000000 vertices" in result.output and "MemoryError" not in result.output
+    # Two vertices the header claims and the file holds are read.
+    path.write_bytes(path.read_bytes().replace(b"element vertex 10000000000\n", b"element vertex 2\n"))
+    assert len(read_ply(path)) == 2
+
+
+def one_gaussian(mean, log_scales, quat=(1.0, 0.0, 0.0, 0.0), opacity=0.8, dc=(0.6, -0.2, 0.1)):
+    return Gaussians(means=torch.tensor([mean]), sh=torch.tensor([[dc]]), opacity=torch.tensor([logit(opacity)]),
+                     log_scales=torch.tensor([log_scales]), quats=torch.tensor([quat]))
+
+
+def test_off_screen_centres_are_clamped_to_1_3_times_the_field_of_view():
+    """3DGS: ``limx = 1.3 tan_fovx`` (centred ``cx``); gsplat: ``(W - cx)/fx + 0.3 tan_fovx``;
+    ``tan_fovx = W/(2 fx)``."""
+    from roguenerf.splats import project
+
+    W, H, f, z, s = 64, 48, 50.0, 4.0, 0.5
+    K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]], dtype=torch.float64)
+    pose = torch.eye(4, dtype=torch.float64)
+    # Far to the right (x/z = 2 > 1.3 W/(2f) = 0.832): J is taken at x/z = 0.832.
+    g = one_gaussian([2.0 * z, 0.0, z], [math.log(s)] * 3, opacity=0.99)
+    proj = project(g, pose, K, H, W)
+    lim = 1.3 * W / (2 * f)
+    assert lim == pytest.approx(0.832)
+    cxx = (f / z) ** 2 * s * s * (1 + lim * lim) + 0.3  # J = [[f/z, 0, -f lim/z], [0, f/z, 0]], Σ = s² I
+    cyy = (f / z) ** 2 * s * s + 0.3
+    assert proj.cov2d[0].tolist() == pytest.approx([cxx, 0.0, cyy], rel=1e-6, abs=1e-6)
+    # Its footprint reaches the image's right edge: the edge pixels' α is that of this conic.
+    g = one_gaussian([0.95 * z, 0.0, z], [math.log(1.2)] * 3, opacity=0.9, dc=(0.5 / C0, 0.0, 0.0))
+    rgb, _, acc = render(g, pose, K, H, W)
+    u0 = f * 0.95 + W / 2  # the centre, off the image (u = 79.5)
+    lim_y = 1.3 * H / (2 * f)
+    assert lim < 0.95 and lim_y > 0
+    a = (f / z) ** 2 * 1.44 * (1 + lim * lim) + 0.3
+    c = (f / z) ** 2 * 1.44 + 0.3
+    for v in (0, 20, 24, 47):
+        dx, dy = W - 0.5 - u0, v + 0.5 - H / 2
+        maha = dx * dx / a + dy * dy / c
+        alpha = min(0.99, 0.9 * math.exp(-0.5 * maha))
+        assert maha <= 9 and alpha >= 1 / 255
+        assert float(acc[0, v, W - 1]) == pytest.approx(alpha, rel=1e-5), v
+        assert float(rgb[0, v, W - 1]) == pytest.approx(alpha * 1.0, rel=1e-5), v
+
+
+def test_render_refuses_what_it_would_draw_wrongly():
+    g = random_gaussians(20, degree=1, seed=4)
+    pose, K = camera(16, 12)
+    mirrored = pose.clone()
+    mirrored[:3, 0] *= -1
+    scaled = pose.clone()
+    scaled[:3, :3] *= 2.0
+    bad_sh = Gaussians(g.means, g.sh.clone(), g.opacity, g.log_scales, g.quats)
+    bad_sh.sh[3, 1, 2] = float("inf")
+    cases = [
+        (dict(world_from_cam=mirrored), "world_from_cam: expected a proper rotation (det +1), got det -1"),
+        (dict(world_from_cam=scaled), "world_from_cam: expected an orthonormal rotation"),
+        (dict(gaussians=bad_sh), "gaussians: sh holds NaN or infinite values"),
+        (dict(near=float("nan")), "near: expected a finite distance >= 0 (centres at camera z <= near are culled), "
+                                  "got nan"),
+        (dict(near=-1.0), "near: expected a finite distance >= 0 (centres at camera z <= near are culled), got -1.0"),
+        (dict(background=(float("nan"), 0.0, 0.0)), "background: expected 3 finite values (RGB), got [nan, 0.0, 0.0]"),
+        (dict(background=(0.0, 1.0)), "background: expected 3 finite values (RGB), got [0.0, 1.0]"),
+    ]
+    for change, message in cases:
+        args = dict(gaussians=g, world_from_cam=pose, K=K, height=12, width=16)
+        args.update(change)
+        with pytest.raises(InputError) as err:
+            render(**args)
+        assert str(err.value).startswith(message), (change, str(err.value))
+    rgb, _, _ = render(g, pose, K, 12, 16, near=0.0, background=(0.1, 0.2, 0.3))
+    assert torch.isfinite(rgb).all()
+
+
+def test_huge_scales_cover_the_view_as_the_closed_form_says():
+    W, H, f, z = 32, 24, 40.0, 3.0
+    K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]], dtype=torch.float64)
+    pose = torch.eye(4, dtype=torch.float64)
+    background = (0.1, 0.2, 0.3)
+    colour = [max(v * C0 + 0.5, 0.0) for v in (0.6, -0.2, 0.1)]
+    # Isotropic, e^50 wide: the whole view is covered, α = o everywhere.
+    for log_scale in (50.0, 200.0):
+        rgb, depth, acc = render(one_gaussian([0.0, 0.0, z], [log_scale] * 3), pose, K, H, W, background=background)
+        assert (acc - 0.8).abs().max() < 1e-6, log_scale
+        assert (depth - z).abs().max() < 1e-5
+        for ch in range(3):
+            assert (rgb[ch] - (0.8 * colour[ch] + 0.2 * background[ch])).abs().max() < 1e-6
+    # A line e^50 long, 0.05 thin, turned 30° in the image plane: a band across the view whose
+    # α follows the distance to the line, maha = (n·d)² / ((f/z)² 0.05² + 0.3) (+ (u·d)² / ~e^100).
+    theta = math.radians(30)
+    quat = (math.cos(theta / 2), 0.0, 0.0, math.sin(theta / 2))
+    g = one_gaussian([0.0, 0.0, z], [50.0, math.log(0.05), math.log(0.05)], quat=quat)
+    rgb, _, acc = render(g, pose, K, H, W, background=background)
+    band = (f / z) ** 2 * 0.05 ** 2 + 0.3
+    n = (-math.sin(theta), math.cos(theta))
+    want = torch.zeros(H, W, dtype=torch.float64)
+    for v in range(H):
+        for u in range(W):
+            maha = ((u + 0.5 - W / 2) * n[0] + (v + 0.5 - H / 2) * n[1]) ** 2 / band
+            alpha = min(0.99, 0.8 * math.exp(-0.5 * maha))
+            want[v, u] = alpha if maha <= 9 and alpha >= 1 / 255 else 0.0
+    assert float(want.max()) > 0.7 and float((want == 0).float().mean()) > 0.5  # a band, not the whole view
+    assert (acc[0].double() - want).abs().max() < 1e-5
+    assert (rgb[0].double() - (want * colour[0] + (1 - want) * background[0])).abs().max() < 1e-5

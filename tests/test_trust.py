@@ -143,3 +143,27 @@ def test_the_scene_enhancer_keeps_the_change_in_proportion_to_the_agreement(tmp_
     assert report["views"][0]["trust"] == exact.trust and report["views"][0]["agreement"] == exact.agreement
     with pytest.raises(InputError, match="trust"):
         SceneEnhancer(scene, model, trust="yes")
+
+
+def test_the_public_helpers_check_their_arguments_as_the_config_does():
+    from roguenerf.geometry.trust import local_keep
+
+    patch = torch.zeros(1, 12, 16, dtype=torch.bool)
+    patch[..., 4:8, 6:10] = True
+    for sigma in (float("nan"), float("inf"), 0.0, -2.0):
+        with pytest.raises(InputError) as err:
+            local_keep(patch, (24, 32), sigma, 0.5)
+        assert str(err.value) == f"sigma: expected a positive number, got {sigma!r}"
+    for full_share in (float("nan"), 0.0, 1.5):
+        with pytest.raises(InputError) as err:
+            local_keep(patch, (24, 32), 2.0, full_share)
+        assert str(err.value) == f"full_share: expected a share in (0, 1], got {full_share!r}"
+    for size in ((), (0, 32), (24,), (24, -1), (24.5, 32)):
+        with pytest.raises(InputError) as err:
+            kept_change(patch, size)
+        assert str(err.value) == f"size: expected (H, W), two integers >= 1, got {size!r}"
+        with pytest.raises(InputError):
+            local_keep(patch, size, 2.0, 0.5)
+    keep = local_keep(patch, (24, 32), 2.0, 0.5)
+    assert keep.shape == (1, 24, 32) and float(keep[0, :, :4].max()) < 0.05 and float(keep.max()) > 0.8
+    assert torch.equal(keep, kept_change(patch, (24, 32), TrustConfig(local_sigma=2.0)))  # 8 %: per pixel

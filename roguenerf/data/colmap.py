@@ -345,6 +345,8 @@ def _read_cameras_bin(path: Path) -> dict[int, ColmapCamera]:
             raise SceneFormatError(path, f"camera {cam_id}: unknown camera model id {model_id}")
         model, n_params = _MODEL_BY_ID[model_id]
         params = r.take("d" * n_params, f"camera {cam_id} parameters")
+        if cam_id in cameras:
+            raise SceneFormatError(path, f"camera {n}: camera id {cam_id} appears twice")
         cameras[cam_id] = ColmapCamera(cam_id, model, int(width), int(height), tuple(params))
     r.done()
     return cameras
@@ -362,6 +364,8 @@ def _read_images_bin(path: Path, keypoints: bool) -> dict[int, ColmapImage]:
         block = r.array(
             [("x", "f8"), ("y", "f8"), ("id", "i8")], n_points, f"image {image_id} keypoints"
         )
+        if image_id in images:
+            raise SceneFormatError(path, f"image {n}: image id {image_id} appears twice")
         image = ColmapImage(image_id, tuple(qvec), tuple(tvec), camera_id, name)
         if keypoints:
             image.xys = np.stack([block["x"], block["y"]], axis=-1).astype(np.float64)
@@ -374,12 +378,20 @@ def _read_images_bin(path: Path, keypoints: bool) -> dict[int, ColmapImage]:
 def _read_points_bin(path: Path, tracks: bool) -> ColmapPoints:
     r = _Reader(path)
     (count,) = r.take("Q", "the point count")
+    head = struct.Struct("<QdddBBBdQ")
+    room = len(r.data) - r.pos
+    if count > room // head.size:  # before allocating: a corrupt count would ask for exabytes
+        raise SceneFormatError(
+            path,
+            f"the header claims {count} points, but the file's {room} bytes after it hold at most "
+            f"{room // head.size} ({head.size} bytes each): the file is truncated or not a COLMAP "
+            "points3D.bin",
+        )
     ids = np.empty(count, np.int64)
     xyz = np.empty((count, 3))
     rgb = np.empty((count, 3), np.uint8)
     error = np.empty(count)
     all_tracks = [] if tracks else None
-    head = struct.Struct("<QdddBBBdQ")
     data = r.data
     for n in range(count):
         if r.pos + head.size > len(data):
@@ -429,6 +441,8 @@ def _read_cameras_txt(path: Path) -> dict[int, ColmapCamera]:
             path, [tokens[0], tokens[2], tokens[3]], int, lineno, "id and size"
         )
         params = _numbers(path, tokens[4:], float, lineno, "parameters")
+        if cam_id in cameras:
+            raise SceneFormatError(path, f"line {lineno}: camera id {cam_id} appears twice")
         cameras[cam_id] = ColmapCamera(cam_id, tokens[1], width, height, tuple(params))
     return cameras
 
@@ -720,10 +734,10 @@ def write_colmap_model(folder: str | Path, model: ColmapModel, *, binary: bool =
     from roguenerf.imageio import atomic_write
 
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     pts = model.points if model.points is not None else ColmapPoints.empty()
     for cam in model.cameras.values():
         _check_camera(folder / "cameras", cam, f"camera {cam.id}")
+    folder.mkdir(parents=True, exist_ok=True)
     if binary:
         out = [struct.pack("<Q", len(model.cameras))]
         for cam in model.cameras.values():
@@ -811,6 +825,21 @@ def write_colmap_model(folder: str | Path, model: ColmapModel, *, binary: bool =
     return folder
 
 
+def _sizes(value, m: int, name: str, what: str) -> list[int]:
+    """One size per view from ``value`` (one for all or one per view), checked."""
+    values = [value] * m if np.ndim(value) == 0 else list(value)
+    if len(values) != m:
+        raise InputError(
+            f"{name}: expected one {what} for all views or one per view ({m}), got {len(values)}"
+        )
+    for i, v in enumerate(values):
+        ok = isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0
+        if not ok:
+            where = name if np.ndim(value) == 0 else f"{name}[{i}]"
+            raise InputError(f"{where}: expected a positive integer size in pixels, got {v!r}")
+    return [int(v) for v in values]
+
+
 def write_colmap(
     folder: str | Path,
     *,
@@ -831,21 +860,33 @@ def write_colmap(
         K: ``(3, 3)`` or ``(M, 3, 3)``; world_from_cam: ``(M, 4, 4)`` OpenCV camera-to-world.
         widths, heights: one per view or one for all.
         points_xyz, points_rgb: optional ``(N, 3)`` sparse points (float, uint8).
+    Raises:
+        InputError: before anything is written, for what COLMAP cannot represent: a pose that is
+            not a rigid camera-to-world matrix (checked as :func:`as_world_from_cam` does: a
+            reflection, a scaled rotation, a bottom row other than ``0 0 0 1``), intrinsics that
+            are not finite or have a focal length <= 0, sizes that are not positive integers or
+            not one per view.
     """
+    from roguenerf.geometry.cameras import as_world_from_cam, check_intrinsics
+
+    # Everything is checked before anything is written: COLMAP stores a rotation as a unit
+    # quaternion, so a reflection or a scaled rotation would read back as another pose.
+    m = len(names)
     poses = np.asarray(
         world_from_cam.double() if isinstance(world_from_cam, Tensor) else world_from_cam,
         dtype=np.float64,
     )
-    Ks = np.asarray(K.double() if isinstance(K, Tensor) else K, dtype=np.float64)
-    m = len(names)
     if poses.shape != (m, 4, 4):
         raise InputError(f"world_from_cam: expected shape ({m}, 4, 4), got {poses.shape}")
+    poses = as_world_from_cam(torch.from_numpy(poses)).numpy()
+    Ks = np.asarray(K.double() if isinstance(K, Tensor) else K, dtype=np.float64)
     if Ks.shape == (3, 3):
         Ks = np.broadcast_to(Ks, (m, 3, 3))
     if Ks.shape != (m, 3, 3):
         raise InputError(f"K: expected shape (3, 3) or ({m}, 3, 3), got {Ks.shape}")
-    widths = [widths] * m if isinstance(widths, int) else list(widths)
-    heights = [heights] * m if isinstance(heights, int) else list(heights)
+    check_intrinsics(torch.from_numpy(np.array(Ks)))
+    widths = _sizes(widths, m, "widths", "width")
+    heights = _sizes(heights, m, "heights", "height")
     cameras: dict[int, ColmapCamera] = {}
     by_key: dict[tuple, int] = {}
     images: dict[int, ColmapImage] = {}

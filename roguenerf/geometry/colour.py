@@ -111,9 +111,10 @@ def neighbour_agreement(neighbours: list[tuple[Tensor, Tensor]], size, sigma: fl
                              f"{tuple(colour.shape[-2:])} and {tuple(mask.shape[-2:])}")
         m = (mask.float() > 0.5).float()
         # Blur over the valid pixels only (normalised convolution): no colour bleeds in from
-        # where the neighbour does not see.
+        # where the neighbour does not see; what is there is ignored, NaN included (NaN × 0 is NaN).
         weight = blur(m, sigma)
-        blurred.append(blur(colour.float() * m, sigma) / weight.clamp_min(1e-3))
+        seen = torch.where(m > 0, colour.float(), torch.zeros((), dtype=torch.float32))
+        blurred.append(blur(seen, sigma) / weight.clamp_min(1e-3))
         valid.append(m[:, 0] > 0.5)
     count = torch.stack(valid).sum(0)
     total = torch.zeros_like(blurred[0])

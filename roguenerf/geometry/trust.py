@@ -31,6 +31,7 @@ docs/kinds.md, *Where almost nothing agrees*).
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 
 import torch
@@ -57,12 +58,24 @@ class TrustConfig:
     def __post_init__(self):
         for name in ("full_share", "sigma", "max_disagreement", "local_sigma"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and 0 < value < float("inf")):
+            if not _positive(value):
                 raise InputError(f"TrustConfig.{name}: expected a positive number, got {value!r}")
         if self.full_share > 1:
             raise InputError(f"TrustConfig.full_share: expected a share in (0, 1], got {self.full_share}")
         if not (isinstance(self.local_below, (int, float)) and 0 <= self.local_below <= 1):
             raise InputError(f"TrustConfig.local_below: expected a share in [0, 1], got {self.local_below!r}")
+
+
+def _positive(value) -> bool:
+    """A finite number > 0 (as :class:`TrustConfig` takes its settings)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and 0 < value < float("inf")
+
+
+def _check_size(size) -> None:
+    ok = isinstance(size, (tuple, list)) and len(size) == 2 and all(
+        isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= 1 for v in size)
+    if not ok:
+        raise InputError(f"size: expected (H, W), two integers >= 1, got {size!r}")
 
 
 def trust_factor(share: float, config: TrustConfig | None = None) -> float:
@@ -80,7 +93,7 @@ def kept_change(agree: Tensor, size, config: TrustConfig | None = None) -> float
     Args:
         agree: ``(1, h, w)`` bool, where two or more neighbours agree (the small copy;
             :func:`~roguenerf.geometry.colour.neighbour_agreement`).
-        size: ``(H, W)`` of the image the change is kept on.
+        size: ``(H, W)`` of the image the change is kept on (two integers >= 1).
         config: default :class:`TrustConfig`.
     Returns:
         A float in [0, 1] (:func:`trust_factor` of the share of agreeing pixels), or where that
@@ -90,6 +103,7 @@ def kept_change(agree: Tensor, size, config: TrustConfig | None = None) -> float
     config = config or TrustConfig()
     if agree.ndim != 3 or agree.shape[0] != 1:
         raise InputError(f"agree: expected shape (1, h, w), got {tuple(agree.shape)}")
+    _check_size(size)
     share = float(agree.float().mean())
     factor = trust_factor(share, config)
     if factor >= 1 or share >= config.local_below:
@@ -100,9 +114,17 @@ def kept_change(agree: Tensor, size, config: TrustConfig | None = None) -> float
 def local_keep(agree: Tensor, size, sigma: float, full_share: float) -> Tensor:
     """``(1, H, W)`` share of the change to keep per pixel: the share of agreeing pixels of
     ``agree`` ``(1, h, w)`` within a Gaussian of ``sigma`` (pixels of ``agree``) over
-    ``full_share``, clamped to [0, 1] and bilinearly resized to ``size``."""
+    ``full_share``, clamped to [0, 1] and bilinearly resized to ``size``.
+
+    ``sigma`` must be a positive number and ``full_share`` a share in (0, 1], as
+    :class:`TrustConfig`'s ``local_sigma`` and ``full_share`` (else :class:`InputError`)."""
     from roguenerf.geometry.colour import blur
 
+    _check_size(size)
+    if not _positive(sigma):
+        raise InputError(f"sigma: expected a positive number, got {sigma!r}")
+    if not (_positive(full_share) and full_share <= 1):
+        raise InputError(f"full_share: expected a share in (0, 1], got {full_share!r}")
     density = blur(agree[None].float(), sigma)
     keep = (density / full_share).clamp(0, 1)
     keep = torch.nn.functional.interpolate(keep, size=tuple(size), mode="bilinear", align_corners=False)

@@ -115,11 +115,14 @@ def read_ply(path: str | os.PathLike) -> Gaussians:
         dtype = np.dtype(props)
         if count == 0:
             raise _fail(path, "the point cloud holds no Gaussians")
+        need = count * dtype.itemsize
+        held = max(0, os.fstat(f.fileno()).st_size - offset - skip)
+        if need > held:  # before reading: a corrupt count would ask for more memory than there is
+            raise _fail(path, f"file is truncated: the header claims {count} vertices of {dtype.itemsize} bytes "
+                              f"({need} bytes), the file holds {held} after the header"
+                              f"{' and the elements before vertex' if skip else ''}")
         f.seek(offset + skip)
-        data = f.read(count * dtype.itemsize)
-        if len(data) < count * dtype.itemsize:
-            raise _fail(path, f"file is truncated: {count} vertices need {count * dtype.itemsize} bytes, "
-                              f"found {len(data)}")
+        data = f.read(need)
     v = np.frombuffer(data, dtype=dtype, count=count)
 
     def cols(keys):

@@ -5,8 +5,11 @@ What it computes (the 3DGS image formation, Kerbl et al. 2023, as Inria's CUDA c
 1. **Projection.** World covariances ``Σ = R S Sᵀ Rᵀ`` (quaternion ``R``, ``S = diag(exp(log_scales))``)
    are taken to the camera (``W = R_cwᵀ``) and projected with the pinhole's Jacobian at the centre
    (EWA splatting; the centre's ``x/z``, ``y/z`` clamped to 1.3 × the field of view as 3DGS and
-   gsplat do): ``Σ' = J W Σ Wᵀ Jᵀ + 0.3 I`` (the 0.3 px² low-pass). Centres with camera
-   ``z <= near`` are culled. Colour is the SH seen from the camera centre, ``max(SH + 0.5, 0)``.
+   gsplat do: ``0.3 tan(fov/2)`` past each edge, ``tan(fov_x/2) = W / (2 fx)``):
+   ``Σ' = J W Σ Wᵀ Jᵀ + 0.3 I`` (the 0.3 px² low-pass), formed in float64 with its determinant
+   as a sum of squares (Cauchy-Binet), so a huge or long thin Gaussian keeps its footprint (scales
+   above ``e^80`` count as ``e^80``: flat across any view). Centres with camera ``z <= near`` are
+   culled. Colour is the SH seen from the camera centre, ``max(SH + 0.5, 0)``.
 2. **Footprint.** A Gaussian reaches a pixel (centre at ``(u + 0.5, v + 0.5)``) when the pixel lies
    inside its 3σ ellipse (``dᵀ Σ'⁻¹ d <= 9``) and ``α = min(0.99, o · exp(-½ dᵀ Σ'⁻¹ d)) >= 1/255``.
    Every such pixel lies in the ellipse's bounding box, so binning Gaussians into tiles by that
@@ -36,6 +39,7 @@ import torch
 from torch import Tensor
 
 from roguenerf.errors import InputError
+from roguenerf.geometry.cameras import as_world_from_cam
 from roguenerf.splats.gaussians import Gaussians, quat_to_rotmat
 from roguenerf.splats.sh import eval_sh
 
@@ -45,7 +49,11 @@ T_MIN = 1e-4
 LOG_T_MIN = math.log(T_MIN)
 LOW_PASS = 0.3
 SIGMA_CUT = 3.0
-FOV_CLAMP = 1.3
+FOV_MARGIN = 0.3
+"""Off-screen centres: ``x/z`` clamped ``0.3 tan(fov_x/2)`` past the image's edges (1.3 × the field of view)."""
+LOG_SCALE_MAX = 80.0
+"""Scales above ``e^80`` are taken as ``e^80`` in the projection: already flat across any view (conic ~ 0)."""
+EXTENT_MAX = 1e20
 DEFAULT_DEPTH_THRESHOLD = 0.5
 """Expected depth is reported where the splats cover at least this share of the pixel."""
 
@@ -72,7 +80,7 @@ class Projected:
     """``(N, 3)`` the 2D covariance ``(Σ'xx, Σ'xy, Σ'yy)`` with the low-pass."""
 
 
-def _check_camera(world_from_cam: Tensor, K: Tensor, height: int, width: int) -> tuple[Tensor, Tensor]:
+def _check_camera(world_from_cam: Tensor, K: Tensor, height: int, width: int, near: float) -> tuple[Tensor, Tensor]:
     world_from_cam = torch.as_tensor(world_from_cam)
     K = torch.as_tensor(K)
     if world_from_cam.shape not in ((4, 4), (3, 4)):
@@ -81,44 +89,80 @@ def _check_camera(world_from_cam: Tensor, K: Tensor, height: int, width: int) ->
         raise InputError(f"K: expected shape (3, 3), got {tuple(K.shape)}")
     if int(height) < 1 or int(width) < 1:
         raise InputError(f"height, width: expected >= 1, got {height}x{width}")
-    if not (torch.isfinite(world_from_cam).all() and torch.isfinite(K).all()) or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise InputError("world_from_cam and K must be finite, with positive focal lengths")
+    if not torch.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise InputError(f"K: expected finite intrinsics with focal lengths > 0, got {K.tolist()}")
+    # A reflection would mirror the image, a scaled rotation scale the depth: refused, as every entry does.
+    world_from_cam = as_world_from_cam(world_from_cam)
+    try:
+        near_ok = math.isfinite(float(near)) and float(near) >= 0
+    except (TypeError, ValueError):
+        near_ok = False
+    if not near_ok:
+        raise InputError(f"near: expected a finite distance >= 0 (centres at camera z <= near are culled), "
+                         f"got {near!r}")
     return world_from_cam.to(torch.float64), K.to(torch.float64)
+
+
+def _check_background(background) -> Tensor:
+    try:
+        bg = torch.as_tensor(background).reshape(-1)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise InputError(f"background: expected 3 finite values (RGB), got {background!r} ({exc})") from None
+    if bg.numel() != 3 or bg.dtype == torch.bool or bg.is_complex() or not torch.isfinite(bg.detach()).all():
+        raise InputError(f"background: expected 3 finite values (RGB), got {bg.detach().tolist()}")
+    return bg
 
 
 def project(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int, width: int, *,
             near: float = 0.01, sh_degree: int | None = None) -> Projected:
     """Project ``gaussians`` into the OpenCV camera ``world_from_cam`` ``(4, 4)`` with intrinsics ``K``."""
-    world_from_cam, K = _check_camera(world_from_cam, K, height, width)
+    world_from_cam, K = _check_camera(world_from_cam, K, height, width, near)
     g = gaussians
+    g.check_finite("gaussians")
     dtype = g.means.dtype
     rot = world_from_cam[:3, :3]
     origin = world_from_cam[:3, 3]
     # Camera coordinates in float64 first (scenes far from the origin), then the working dtype.
-    cam = ((g.means.to(torch.float64) - origin.to(g.means.device)) @ rot.to(g.means.device)).to(dtype)
+    cam64 = (g.means.to(torch.float64) - origin.to(g.means.device)) @ rot.to(g.means.device)
+    cam = cam64.to(dtype)
     x, y, z = cam.unbind(-1)
     fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
     in_front = z > near
     zs = torch.where(in_front, z, torch.ones_like(z))
-    lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * width / fx, cx / fx + 0.3 * width / fx
-    lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * height / fy, cy / fy + 0.3 * height / fy
+    # 3DGS and gsplat: the centre's x/z, y/z clamped 0.3 tan(fov/2) past the image's edges
+    # (1.3 tan(fov/2) with a centred principal point), tan(fov_x/2) = W / (2 fx).
+    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+    lim_x_pos, lim_x_neg = (width - cx) / fx + FOV_MARGIN * tan_fovx, cx / fx + FOV_MARGIN * tan_fovx
+    lim_y_pos, lim_y_neg = (height - cy) / fy + FOV_MARGIN * tan_fovy, cy / fy + FOV_MARGIN * tan_fovy
     lim_x_pos, lim_x_neg = max(lim_x_pos, 0.0), max(lim_x_neg, 0.0)
-    tx = zs * (x / zs).clamp(-lim_x_neg, lim_x_pos)
-    ty = zs * (y / zs).clamp(-lim_y_neg, lim_y_pos)
-    zero = torch.zeros_like(zs)
-    J = torch.stack([fx / zs, zero, -fx * tx / (zs * zs), zero, fy / zs, -fy * ty / (zs * zs)], -1).reshape(-1, 2, 3)
-    R = quat_to_rotmat(g.quats)
-    M = R * torch.exp(g.log_scales)[:, None, :]
-    W = rot.T.to(dtype=dtype, device=g.means.device)  # camera_from_world rotation
-    T = J @ (W @ M)  # (N, 2, 3): Σ' = T Tᵀ
+    lim_y_pos, lim_y_neg = max(lim_y_pos, 0.0), max(lim_y_neg, 0.0)
+    # The 2D covariance in float64, its determinant without cancellation (below): a Gaussian
+    # e^50 wide (or a long thin one) keeps its footprint instead of overflowing float32.
+    x64, y64, z64 = cam64.unbind(-1)
+    zs64 = torch.where(in_front, z64, torch.ones_like(z64))
+    tx = zs64 * (x64 / zs64).clamp(-lim_x_neg, lim_x_pos)
+    ty = zs64 * (y64 / zs64).clamp(-lim_y_neg, lim_y_pos)
+    zero = torch.zeros_like(zs64)
+    J = torch.stack([fx / zs64, zero, -fx * tx / (zs64 * zs64), zero, fy / zs64, -fy * ty / (zs64 * zs64)],
+                    -1).reshape(-1, 2, 3)
+    R = quat_to_rotmat(g.quats.to(torch.float64))
+    W = rot.T.to(device=g.means.device)  # camera_from_world rotation
+    A = J @ (W @ R)  # (N, 2, 3): Σ' = A S² Aᵀ + 0.3 I
+    scales = torch.exp(g.log_scales.to(torch.float64).clamp(max=LOG_SCALE_MAX))
+    T = A * scales[:, None, :]
     cov = T @ T.transpose(1, 2)
     cxx = cov[:, 0, 0] + LOW_PASS
     cxy = cov[:, 0, 1]
     cyy = cov[:, 1, 1] + LOW_PASS
-    det = cxx * cyy - cxy * cxy
+    # det(T Tᵀ + c I) = det(T Tᵀ) + c tr(T Tᵀ) + c², det(T Tᵀ) the sum of the squared 2x2 minors
+    # of T (Cauchy-Binet), each s_i s_j times a minor of A: every term >= 0, no cancellation.
+    minors = torch.stack([A[:, 0, i] * A[:, 1, j] - A[:, 0, j] * A[:, 1, i] for i, j in ((0, 1), (0, 2), (1, 2))],
+                         -1)
+    pairs = torch.stack([scales[:, 0] * scales[:, 1], scales[:, 0] * scales[:, 2], scales[:, 1] * scales[:, 2]], -1)
+    det = ((minors * pairs) ** 2).sum(-1) + LOW_PASS * (cov[:, 0, 0] + cov[:, 1, 1]) + LOW_PASS * LOW_PASS
     ok = in_front & (det > 0)
     det_safe = torch.where(ok, det, torch.ones_like(det))
-    conics = torch.stack([cyy / det_safe, -cxy / det_safe, cxx / det_safe], -1)
+    conics = torch.stack([cyy / det_safe, -cxy / det_safe, cxx / det_safe], -1).to(dtype)
     means2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], -1)
     opac = torch.sigmoid(g.opacity)
     # Beyond this many σ, α < 1/255 (so no pixel there is drawn): the box may shrink to it.
@@ -126,7 +170,7 @@ def project(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int
     reach = torch.clamp(reach, max=SIGMA_CUT)
     ok = ok & (opac.detach() >= ALPHA_MIN)
     ext = torch.stack([reach * torch.sqrt(cxx.detach().clamp_min(0)),
-                       reach * torch.sqrt(cyy.detach().clamp_min(0))], -1)
+                       reach * torch.sqrt(cyy.detach().clamp_min(0))], -1).clamp(max=EXTENT_MAX).to(dtype)
     m2 = means2d.detach()
     on_image = (m2[:, 0] + ext[:, 0] > 0) & (m2[:, 0] - ext[:, 0] < width) & \
                (m2[:, 1] + ext[:, 1] > 0) & (m2[:, 1] - ext[:, 1] < height)
@@ -134,7 +178,8 @@ def project(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int
     dirs = g.means - origin.to(dtype=dtype, device=g.means.device)
     colours = eval_sh(g.sh, dirs, sh_degree)
     return Projected(means2d=means2d, conics=conics, depths=z, opacities=opac, colours=colours,
-                     extents=ext, visible=visible, cov2d=torch.stack([cxx, cxy, cyy], -1))
+                     extents=ext, visible=visible,
+                     cov2d=torch.stack([cxx, cxy, cyy], -1).clamp(max=torch.finfo(dtype).max).to(dtype))
 
 
 def _bin(proj: Projected, height: int, width: int, tile: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -270,19 +315,25 @@ def render(gaussians: Gaussians, world_from_cam: Tensor, K: Tensor, height: int,
     Returns:
         ``rgb`` ``(3, H, W)``, ``depth`` ``(1, H, W)`` (z, 0 where unknown), ``opacity`` ``(1, H, W)``
         (and ``info`` when asked).
+    Raises:
+        InputError: a pose that is not a rigid camera-to-world matrix (a reflection would mirror
+            the image, a scaled rotation scale the depth: checked as :func:`as_world_from_cam`),
+            non-finite ``K`` or a focal length <= 0, splats holding NaN or inf, ``near`` not a
+            finite distance >= 0, a ``background`` that is not 3 finite values.
     """
     if tile < 1 or chunk < 1 or group < 1:
         raise InputError(f"tile, chunk, group: expected >= 1, got {tile}, {chunk}, {group}")
     if not (0.0 <= depth_threshold <= 1.0):
         raise InputError(f"depth_threshold: expected a share in [0, 1], got {depth_threshold}")
     height, width = int(height), int(width)
+    bg = None if background is None else _check_background(background)
     proj = project(gaussians, world_from_cam, K, height, width, near=near, sh_degree=sh_degree)
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()
     device, dtype = proj.means2d.device, proj.means2d.dtype
     if device.type != "cpu":
         raise InputError("render: the rasterizer runs on the CPU (gsplat renders on a GPU)")
-    bg = torch.zeros(3, dtype=dtype) if background is None else torch.as_tensor(background, dtype=dtype).reshape(3)
+    bg = torch.zeros(3, dtype=dtype) if bg is None else bg.to(dtype)
     vis, pair_gid, start, count = _bin(proj, height, width, tile)
     tiles_x, tiles_y = math.ceil(width / tile), math.ceil(height / tile)
     n_tiles, tp = tiles_x * tiles_y, tile * tile
