@@ -66,6 +66,7 @@ def measure(args) -> list[dict]:
     from roguenerf import metrics
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
+    from roguenerf.enhance import EnhanceOptions
     from roguenerf.geometry.colour import apply_match
     from roguenerf.inference import SceneEnhancer
 
@@ -75,7 +76,7 @@ def measure(args) -> list[dict]:
     rows = []
     for scene_dir in args.scenes:
         scene = load_scene(scene_dir)
-        enhancer = SceneEnhancer(scene, model, colour=False)
+        enhancer = SceneEnhancer(scene, model, options=EnhanceOptions(colour=None))
         views = scene.indices("test")[: args.max_views] if args.max_views else scene.indices("test")
         for i in views:
             frame = scene.frames[i]

@@ -87,6 +87,7 @@ def measure(args) -> list[dict]:
     from roguenerf import metrics
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
+    from roguenerf.enhance import EnhanceOptions
     from roguenerf.geometry import as_world_from_cam
     from roguenerf.geometry.trust import TrustConfig, kept_change, local_keep, share_kept, trust_factor
     from roguenerf.inference import SceneEnhancer
@@ -97,7 +98,7 @@ def measure(args) -> list[dict]:
         checkpoint = own or args.checkpoint or default_checkpoint_path()
         model, _ = load_checkpoint(checkpoint)
         scene = load_scene(scene_dir)
-        enhancer = SceneEnhancer(scene, model, trust=False)
+        enhancer = SceneEnhancer(scene, model, options=EnhanceOptions(trust=None))
         label = scene_label(scene_dir) + (" (fine-tuned)" if own else "")
         views = scene.indices("test")[: args.max_views] if args.max_views else scene.indices("test")
         for i in views:

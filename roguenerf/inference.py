@@ -20,12 +20,11 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from roguenerf.enhance.options import DEFAULT_TILE, NEAR_DEGREES, NEAR_EXTRA, EnhanceOptions  # noqa: F401 (re-exported)
 from roguenerf.errors import InputError, NonFiniteOutputError
 from roguenerf.images import check_float_image
 from roguenerf.models.layers import receptive_radius
 from roguenerf.runtime import release_freed_memory
-
-from roguenerf.enhance.options import DEFAULT_TILE, NEAR_DEGREES, NEAR_EXTRA, EnhanceOptions  # noqa: F401 (re-exported)
 
 DEFAULT_CACHE_BYTES = 2 << 30
 """Budget of the per-scene neighbour cache (features + depth, float32), least recently used

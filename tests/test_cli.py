@@ -18,6 +18,7 @@ import roguenerf.checkpoint
 from roguecli import app
 from roguenerf.checkpoint import load_checkpoint, save_checkpoint
 from roguenerf.data.toy import make_toy_scene
+from roguenerf.enhance import EnhanceOptions
 from roguenerf.models import build_enhancer
 from roguenerf.training import evaluate
 
@@ -81,7 +82,7 @@ def test_evaluate_reports_trust_and_no_trust_keeps_the_whole_change(scene_dir, c
     on = json.loads(_run("evaluate", scene_dir, "--checkpoint", checkpoint, "--json").stdout)
     off = json.loads(_run("evaluate", scene_dir, "--checkpoint", checkpoint, "--json", "--no-trust").stdout)
     model, _ = load_checkpoint(checkpoint)
-    direct = evaluate(load_scene(scene_dir), model, trust=False)
+    direct = evaluate(load_scene(scene_dir), model, options=EnhanceOptions(trust=None))
     for v_on, v_off, v_direct in zip(on["views"], off["views"], direct["views"], strict=True):
         assert 0 <= v_on["agreement"] <= 1
         if v_on["agreement"] >= TrustConfig().local_below:

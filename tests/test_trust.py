@@ -97,6 +97,7 @@ def test_the_scene_enhancer_keeps_the_change_in_proportion_to_the_agreement(tmp_
     toy world's exact depth its two neighbours agree on most of the view and all of the change is
     kept; with the depth halved (a field whose geometry is off) they agree on less, and the change
     kept is share / full_share of it, everywhere."""
+    from roguenerf.enhance import EnhanceOptions
     from roguenerf.inference import SceneEnhancer
     from roguenerf.models import Enhancer, make_config
     from roguenerf.training import evaluate
@@ -139,7 +140,7 @@ def test_the_scene_enhancer_keeps_the_change_in_proportion_to_the_agreement(tmp_
         render, wrong, frame.K, frame.world_from_cam)
     assert one.trust is None and one.agreement is None and torch.equal(one.image, full)
 
-    report = evaluate(scene, model, colour=False, align=False)
+    report = evaluate(scene, model, options=EnhanceOptions(colour=None, align=None))
     assert report["views"][0]["trust"] == exact.trust and report["views"][0]["agreement"] == exact.agreement
     with pytest.raises(InputError, match="trust"):
         SceneEnhancer(scene, model, trust="yes")
