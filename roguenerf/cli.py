@@ -49,6 +49,13 @@ LrOpt = Annotated[float | None, typer.Option("--lr", help=(
     "1e-4 on a GPU, the paper's)."))]
 LrScheduleOpt = Annotated[str | None, typer.Option(
     "--lr-schedule", help="cosine (the lr falls to 0 over the budget; the default) or constant.")]
+def _enhance_options(neighbours, align: bool, colour: bool, trust: bool):
+    """The one :class:`~roguenerf.enhance.EnhanceOptions` of evaluate, enhance and enhance-path."""
+    from roguenerf.enhance import EnhanceOptions
+
+    return EnhanceOptions.from_flags(neighbours=neighbours, align=align, colour=colour, trust=trust)
+
+
 NeighboursOpt = Annotated[int | None, typer.Option("--neighbours", help="Neighbours per view (default: model's).")]
 AlignOpt = Annotated[bool, typer.Option("--align/--no-align", help=(
     "Refine each neighbour's pose against the render before using its photo (for dataset poses that are a "
@@ -379,8 +386,8 @@ def evaluate(
         scene = _load_scene(scene_dir)
         model = _load_model(checkpoint)
         with _progress_bar(f"evaluating {split} views", "view") as progress:
-            report = run_evaluate(scene, model, split=split, num_neighbours=neighbours, progress=progress,
-                                  align=align, colour=colour, trust=trust)
+            report = run_evaluate(scene, model, split=split, progress=progress,
+                                  options=_enhance_options(neighbours, align, colour, trust))
     if as_json:
         from roguenerf.imageio import finite_for_json
 
@@ -428,8 +435,8 @@ def enhance(
         index = scene.index(view)
         model = _load_model(checkpoint)
         with _progress_bar(f"enhancing {view}", "tile") as progress:
-            result = SceneEnhancer(scene, model, num_neighbours=neighbours,
-                                   align=align, colour=colour, trust=trust).enhance_view(index, progress=progress)
+            options = _enhance_options(neighbours, align, colour, trust)
+            result = SceneEnhancer(scene, model, options=options).enhance_view(index, progress=progress)
         write_png(output, result.image)
         used = ", ".join(f"{n} (pose refined)" if done else n
                          for n, done in zip(result.neighbours, result.aligned or [False] * len(result.neighbours)))
@@ -675,8 +682,7 @@ def enhance_path_command(
         from roguenerf.checkpoint import load_checkpoint
 
         model, _meta = load_checkpoint(ckpt)
-        enhancer = SceneEnhancer(scene, model, num_neighbours=neighbours, align=align, colour=colour,
-                                 trust=trust)
+        enhancer = SceneEnhancer(scene, model, options=_enhance_options(neighbours, align, colour, trust))
         stat = ckpt.stat()
         with _progress_bar(f"enhancing {len(camera_path)} frames", "frame") as progress:
             result = enhance_path(scene, enhancer, camera_path, frames, output, depth_type=depth_type,
