@@ -15,6 +15,7 @@ from roguenerf import runtime as _runtime
 _runtime.prefer_passive_wait()
 
 from roguenerf.errors import (  # noqa: E402
+    CameraMismatchError,
     CheckpointError,
     InputError,
     NonFiniteOutputError,
@@ -62,6 +63,9 @@ _LAZY = {
     "PathResult": "roguenerf.paths",
     "read_camera_path": "roguenerf.paths",
     "enhance_path": "roguenerf.paths",
+    "check_path": "roguenerf.paths",
+    "check_camera": "roguenerf.paths",
+    "import_3dgs": "roguenerf.splats.importer",
     "import_renders": "roguenerf.data.exports",
     "DataparserTransform": "roguenerf.data.exports",
     "read_colmap": "roguenerf.data.colmap",
@@ -69,6 +73,7 @@ _LAZY = {
 }
 
 __all__ = [
+    "CameraMismatchError",
     "CheckpointError",
     "InputError",
     "NonFiniteOutputError",

@@ -53,6 +53,21 @@ class TrainingCancelled(RoGUENeRFError):
         super().__init__(f"training cancelled at step {step}")
 
 
+class CameraMismatchError(InputError):
+    """A camera (one view's, or a camera path's) does not fit the scene's world: its pixels land
+    nowhere near the training photos' surfaces at their depth (:func:`roguenerf.paths.check_camera`,
+    :func:`roguenerf.paths.check_path`). ``problem`` says what was found and the likely causes,
+    ``cause`` names the likeliest: ``"convention"`` (OpenGL vs OpenCV axes), ``"scale"`` (another
+    unit), ``"world"`` (another coordinate space), ``"geometry"`` (the field's own depth is off on
+    novel views) or ``"depth_type"`` (z vs ray depth); ``override`` is how the caller goes on anyway."""
+
+    def __init__(self, problem: str, cause: str, override: str = "--force (force=True)"):
+        self.problem = problem
+        self.cause = cause
+        self.override = override
+        super().__init__(f"{problem}. To enhance it anyway: {override}")
+
+
 class PathCancelled(RoGUENeRFError):
     """Enhancing a camera path stopped because its ``should_stop`` callback asked it to; the
     frames done so far are kept and a later call resumes after them."""

@@ -31,7 +31,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from roguenerf.errors import InputError, PathCancelled
+from roguenerf.errors import CameraMismatchError, InputError, PathCancelled
 
 log = logging.getLogger("roguenerf.paths")
 
@@ -443,6 +443,8 @@ class PathCheck:
     worst: int | None
     problem: str | None = None
     warning: str | None = None
+    cause: str | None = None
+    """The likeliest cause when ``problem`` or ``warning`` is set (:class:`~roguenerf.errors.CameraMismatchError`)."""
 
 
 def _probe(depth: Tensor, K: Tensor, pixels: int = CHECK_PIXELS) -> tuple[Tensor, Tensor]:
@@ -546,7 +548,7 @@ def _depth_type_problem(scene, camera_path: CameraPath, raw_of, given: str, fram
 
 
 def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: int = 4,
-                      frames: int = CHECK_FRAMES) -> PathCheck:
+                      frames: int = CHECK_FRAMES, override: str = "--force (force=True)") -> PathCheck:
     """Does the path live in the scene's world? A cheap check before any enhancement.
 
     A path in another coordinate space (a nerfstudio ``camera_path.json`` in the model's world
@@ -561,7 +563,11 @@ def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: i
     every scene camera and does not see the photos (or has no known depth to tell), or when at
     least half of the checked cameras with known depth see less than :data:`MIN_SEEN` of their
     pixels; ``warning`` when fewer do. Both name the worst camera
-    (index and label) and the likely cause.
+    (index and label) and the likely causes; ``cause`` the likeliest (see
+    :class:`~roguenerf.errors.CameraMismatchError`): the other axis convention or another unit
+    when the worst camera, flipped or rescaled, sees the photos. ``override`` is how the caller
+    goes on anyway (named in the messages). A path with ``source == "camera"`` is one view's
+    camera (:func:`check_camera`) and is worded so.
     """
     from roguenerf.geometry import known_depth_mask
     from roguenerf.geometry.cameras import opengl_to_opencv
@@ -569,6 +575,7 @@ def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: i
     train = scene.indices("train")
     if not train:
         raise InputError("the scene has no training views: a camera path has nothing to be enhanced with")
+    one = camera_path.source == "camera"
     T = len(camera_path)
     n = max(1, min(frames, T))
     checked = sorted({round(k * (T - 1) / max(n - 1, 1)) for k in range(n)})
@@ -603,44 +610,162 @@ def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: i
     result = PathCheck(checked=checked, seen=seen, distance=distance, lost=lost, far=far, worst=worst)
     if worst is None:
         return result
-    what = (f"camera {worst} ({camera_path.label(worst)}) lies {distance[worst]:.1f} scene sizes from the "
-            f"nearest scene camera" if far else
-            f"camera {worst} ({camera_path.label(worst)}) sees almost none of the training photos (only "
+    name = "the camera" if one else f"camera {worst} ({camera_path.label(worst)})"
+    what = (f"{name} lies {distance[worst]:.1f} scene sizes from the nearest scene camera" if far else
+            f"{name} sees almost none of the training photos (only "
             f"{100 * seen[worst]:.1f}% of its pixels land at their depth in the photos nearest it)")
-    summary = (f"{len(far)} of {len(checked)} checked cameras are far from the scene's cameras" if far else
-               f"{len(lost)} of {len(with_depth)} checked cameras see almost none of the training photos")
+    summary = ("" if one else
+               f"{len(far)} of {len(checked)} checked cameras are far from the scene's cameras; worst: " if far else
+               f"{len(lost)} of {len(with_depth)} checked cameras see almost none of the training photos; worst: ")
     causes = []
+    cause = "world"
     if camera_path.source == "nerfstudio":
         causes.append("a nerfstudio camera_path.json is in the model's world: it needs the trained model's "
                       "dataparser_transforms.json (--dataparser-transforms, or put it in the scene folder)")
-    # Would the other axis convention fit? Then say so first.
+    # Would the other axis convention fit, or another unit? Then say so first.
+    enough = max(2 * MIN_SEEN, 2 * (seen.get(worst) or 0.0))
     flipped = opengl_to_opencv(camera_path.world_from_cam[worst])
     share = _seen_share(scene, train, train_depths, depths[worst], camera_path.K[worst], flipped, neighbours)
-    axes = ("OpenGL vs OpenCV axes: with the y and z axes flipped this camera sees "
-            f"{100 * (share or 0):.0f}% of its pixels; camera paths and transforms-style lists are read "
-            "as OpenGL (nerfstudio, Blender): convert OpenCV poses (columns 1 and 2 negated)")
-    if share is not None and share >= max(2 * MIN_SEEN, 2 * (seen.get(worst) or 0.0)):
-        causes.insert(0, axes)
+    scaled = _rescaled_fit(scene, train, train_depths, depths[worst], camera_path.K[worst],
+                           camera_path.world_from_cam[worst], neighbours, positions)
+    if share is not None and share >= enough:
+        cause = "convention"
+        causes.insert(0, ("OpenGL vs OpenCV axes: with the y and z axes flipped this camera sees "
+                          f"{100 * share:.0f}% of its pixels; " + (
+                              "its pose is in the other convention (columns 1 and 2 negated)" if one else
+                              "camera paths and transforms-style lists are read as OpenGL (nerfstudio, Blender): "
+                              "convert OpenCV poses (columns 1 and 2 negated)")))
+    elif scaled is not None and scaled[0] >= enough:
+        cause = "scale"
+        fit, factor, depth_too, here, typical = scaled
+        causes.insert(0, (f"another unit: with its position{' and depth' if depth_too else ''} scaled by "
+                          f"{factor:.3g} this camera sees {100 * fit:.0f}% of its pixels (it lies {here:.3g} from "
+                          f"the world's origin, the scene's cameras about {typical:.3g}); give its pose"
+                          f"{' and depth' if depth_too else ''} in the scene's units"))
     else:
-        causes.append("OpenGL vs OpenCV axes (camera paths are read as OpenGL, as nerfstudio and Blender write them)")
+        causes.append("OpenGL vs OpenCV axes (" + ("the pose's convention" if one else
+                      "camera paths are read as OpenGL, as nerfstudio and Blender write them") + ")")
         # Do the field's own renders of the scene's held-out views pass the same test? When none
         # does, the field's depth is off on every novel view (floaters), and the path may be right.
         own = _held_out_seen(scene, train, train_depths, neighbours) if not far else []
         if own and max(own) < MIN_SEEN:
+            cause = "geometry"
             causes.insert(0, "the field's own geometry: its renders of the scene's held-out views fail this test "
                              f"too (at most {100 * max(own):.1f}% of their pixels land at their depth in the "
-                             "training photos), so its depth is off on novel views (e.g. floaters), whatever the "
-                             "path; --force goes on, and the enhancer then keeps little of its change where the "
-                             "neighbour photos disagree")
-    causes.append("another coordinate space or unit than the scene's poses (e.g. the path of another "
-                  "export, or depth in other units: --depth-scale)")
-    message = (f"the camera path does not fit the scene: {summary}; worst: {what}. Likely causes: "
+                             f"training photos), so its depth is off on novel views (e.g. floaters), whatever the "
+                             f"{'camera' if one else 'path'}; with {override} it goes on, and the enhancer then keeps "
+                             "little of its change where the neighbour photos disagree")
+    causes.append(f"another coordinate space or unit than the scene's poses (e.g. the {'pose' if one else 'path'} "
+                  "of another export, or depth in other units: depth_scale)")
+    message = (f"the {'camera' if one else 'camera path'} does not fit the scene: {summary}{what}. Likely causes: "
                + "; ".join(causes))
+    result.cause = cause
     if far or len(lost) * 2 >= max(len(with_depth), 1):
         result.problem = message
     else:
         result.warning = message
     return result
+
+
+def _rescaled_fit(scene, train, train_depths, depth: Tensor, K: Tensor, pose: Tensor, neighbours: int,
+                  positions: Tensor) -> tuple[float, float, bool, float, float] | None:
+    """Would the camera see the photos in another unit? Its position (and depth) scaled by the
+    ratio of the scene cameras' typical distance from the world's origin to its own, and by the
+    power of ten nearest it: ``(share seen, factor, depth scaled too, its distance, typical)`` of
+    the best try, or None when the distances agree within 1.5x."""
+    here = float(pose[:3, 3].to(torch.float64).norm())
+    typical = float(positions.norm(dim=-1).median())
+    if not (here > 0 and typical > 0) or abs(math.log10(typical / here)) < math.log10(1.5):
+        return None
+    ratio = typical / here
+    best = None
+    for factor in {ratio, 10.0 ** round(math.log10(ratio))}:
+        moved = pose.to(torch.float64).clone()
+        moved[:3, 3] *= factor
+        for depth_too in (False, True):
+            share = _seen_share(scene, train, train_depths, depth * factor if depth_too else depth, K, moved,
+                                neighbours)
+            if share is not None and (best is None or share > best[0]):
+                best = (share, factor, depth_too, here, typical)
+    return best
+
+
+def check_camera(scene, depth: Tensor, K: Tensor, world_from_cam: Tensor, *, neighbours: int = 4,
+                 force: bool = False, override: str = "--force (force=True)") -> str | None:
+    """Does one view's camera live in the scene's world? :func:`check_camera_path` for a single
+    camera (``depth`` ``(1, H, W)`` z-depth, ``K``, OpenCV ``world_from_cam``), the test the
+    service's ``/enhance`` runs before enhancing.
+
+    Raises :class:`~roguenerf.errors.CameraMismatchError` (``cause``: ``"convention"``,
+    ``"scale"``, ``"world"``) when its pixels land nowhere near the training photos' surfaces; with
+    ``force``, or when the likeliest cause is the field's own geometry (its held-out renders fail
+    the test too: the enhancer's trust handles that), returns that message instead (a warning).
+    None when it fits, or when the scene has no training views to compare with.
+    """
+    from roguenerf.geometry import as_world_from_cam
+
+    if not scene.indices("train"):
+        return None
+    pose = as_world_from_cam(torch.as_tensor(world_from_cam).to(torch.float64), "world_from_cam")
+    h, w = depth.shape[-2:]
+    single = CameraPath(world_from_cam=pose[None], K=torch.as_tensor(K).to(torch.float64)[None], width=int(w),
+                        height=int(h), source="camera", labels=["the camera"])
+    check = check_camera_path(scene, single, lambda t: depth, neighbours=neighbours, frames=1, override=override)
+    if check.problem is None:
+        return check.warning
+    if force or check.cause == "geometry":
+        log.warning("camera: %s", check.problem)
+        return check.problem
+    raise CameraMismatchError(check.problem, check.cause, override)
+
+
+def check_path(scene, camera_path: CameraPath, frames: str | Path, *, depth_type: str = "z",
+               depth_scale: float = 1.0, background: str = "zero", neighbours: int = 4, force: bool = False,
+               override: str = "--force (force=True)") -> list[str]:
+    """The checks :func:`enhance_path` runs before any frame is enhanced, on their own: the
+    frames' depth type (z vs ray) and :func:`check_camera_path`, reading the frames it needs from
+    ``frames`` (:func:`find_path_frames`). Raises :class:`~roguenerf.errors.CameraMismatchError`
+    (its ``cause``, and ``override`` as the way to go on) unless ``force``; returns the warnings
+    (with ``force``, the problems too). Nothing is written."""
+    from roguenerf.data.exports import background_to_unknown
+    from roguenerf.geometry.cameras import ray_to_z_depth
+    from roguenerf.imageio import read_depth, read_image_size
+
+    if depth_type not in ("z", "ray"):
+        raise InputError(f"depth_type: expected 'z' or 'ray', got {depth_type!r}")
+    if not (isinstance(depth_scale, (int, float)) and math.isfinite(depth_scale) and depth_scale > 0):
+        raise InputError(f"depth_scale: expected a finite number > 0, got {depth_scale!r}")
+    pairs = find_path_frames(frames, len(camera_path))
+
+    def depth_of(t: int, *, raw: bool = False) -> Tensor:
+        rgb_path, depth_path = pairs[t]
+        width, height = read_image_size(rgb_path)
+        if (width, height) != (camera_path.width, camera_path.height):
+            raise InputError(f"{rgb_path}: render is {width}x{height}, the camera path says "
+                             f"{camera_path.width}x{camera_path.height}")
+        depth = background_to_unknown(read_depth(depth_path, scale=float(depth_scale)), background)
+        if depth.shape[1:] != (height, width):
+            raise InputError(f"{depth_path}: depth is {depth.shape[2]}x{depth.shape[1]}, its render "
+                             f"{width}x{height}")
+        if depth_type == "ray" and not raw:
+            depth = ray_to_z_depth(depth.double(), camera_path.K[t]).float()
+        return depth
+
+    warnings: list[str] = []
+    problem = _depth_type_problem(scene, camera_path, lambda t: depth_of(t, raw=True), depth_type)
+    if problem is not None and not force:
+        raise CameraMismatchError(problem, "depth_type", override)
+    if problem is not None:
+        log.warning("camera path: %s", problem)
+        warnings.append(problem)
+    check = check_camera_path(scene, camera_path, depth_of, neighbours=neighbours, override=override)
+    if check.problem is not None and not force:
+        raise CameraMismatchError(check.problem, check.cause, override)
+    for message in (check.problem, check.warning):
+        if message is not None:
+            log.warning("camera path: %s", message)
+            warnings.append(message)
+    return warnings
 
 
 @dataclass
@@ -713,7 +838,7 @@ def enhance_path(
             :class:`~roguenerf.errors.PathCancelled` (frames written so far are kept).
         force: go on when :func:`check_camera_path` finds that the path does not fit the scene
             (its message is logged and kept in ``PathResult.warnings``); otherwise that is an
-            :class:`~roguenerf.errors.InputError`, before any frame is enhanced.
+            :class:`~roguenerf.errors.CameraMismatchError`, before any frame is enhanced (:func:`check_path`).
     """
     from roguenerf.data.exports import background_to_unknown
     from roguenerf.geometry.cameras import ray_to_z_depth
@@ -734,7 +859,7 @@ def enhance_path(
     matches = _match_views(scene, camera_path)
     total = len(pairs)
 
-    def load_frame(t: int, *, raw: bool = False) -> tuple[Tensor, Tensor]:
+    def load_frame(t: int) -> tuple[Tensor, Tensor]:
         rgb_path, depth_path = pairs[t]
         render = read_image(rgb_path)
         if render.shape[1:] != (camera_path.height, camera_path.width):
@@ -745,25 +870,12 @@ def enhance_path(
             raise InputError(f"{depth_path}: depth is {depth.shape[2]}x{depth.shape[1]}, its render "
                              f"{render.shape[2]}x{render.shape[1]}")
         depth = background_to_unknown(depth, background)
-        if depth_type == "ray" and not raw:
+        if depth_type == "ray":
             depth = ray_to_z_depth(depth.double(), camera_path.K[t]).float()
         return render, depth
 
-    warnings: list[str] = []
-    problem = _depth_type_problem(scene, camera_path, lambda t: load_frame(t, raw=True)[1], depth_type)
-    if problem is not None and not force:
-        raise InputError(f"{problem}. To enhance it anyway: --force (force=True)")
-    if problem is not None:
-        log.warning("camera path: %s", problem)
-        warnings.append(problem)
-    check = check_camera_path(scene, camera_path, lambda t: load_frame(t)[1],
-                              neighbours=max(1, enhancer.num_neighbours or 1))
-    if check.problem is not None and not force:
-        raise InputError(f"{check.problem}. To enhance it anyway: --force (force=True)")
-    for message in (check.problem, check.warning):
-        if message is not None:
-            log.warning("camera path: %s", message)
-            warnings.append(message)
+    warnings = check_path(scene, camera_path, frames, depth_type=depth_type, depth_scale=depth_scale,
+                          background=background, neighbours=max(1, enhancer.num_neighbours or 1), force=force)
 
     output = Path(output)
     frame_dir = output / FRAME_FOLDER

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import threading
 from contextlib import asynccontextmanager
@@ -13,7 +14,7 @@ from pathlib import Path
 
 from fastapi import FastAPI
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, Response
 from starlette.middleware.cors import CORSMiddleware
 from starlette.staticfiles import StaticFiles
 
@@ -155,6 +156,23 @@ class _UiFiles(StaticFiles):
         return response
 
 
+@functools.cache
+def _icon_png() -> bytes:
+    """The page's icon: 32x32 PNG, a white "R" on the header's blue (drawn once, no file)."""
+    import io
+
+    from PIL import Image, ImageDraw
+
+    image = Image.new("RGB", (32, 32), (31, 78, 121))
+    draw = ImageDraw.Draw(image)
+    draw.line([(10, 26), (10, 6), (18, 6)], fill="white", width=4)
+    draw.arc([(12, 6), (24, 18)], start=270, end=90, fill="white", width=4)
+    draw.line([(10, 17), (18, 17), (24, 26)], fill="white", width=4)
+    buf = io.BytesIO()
+    image.save(buf, format="PNG")
+    return buf.getvalue()
+
+
 def _add_ui(app: FastAPI) -> None:
     """``/``: the web page; ``/ui/``: its script and style sheet. Both are public files with
     no data in them (no key needed to load them, see service/auth.py); everything the page
@@ -163,6 +181,11 @@ def _add_ui(app: FastAPI) -> None:
     @app.get("/", include_in_schema=False)
     async def web_page() -> FileResponse:
         return FileResponse(UI_DIR / "index.html", media_type="text/html", headers=UI_HEADERS)
+
+    @app.get("/favicon.ico", include_in_schema=False)
+    async def favicon() -> Response:
+        # The page's <link rel="icon"> names it; browsers ask for it anyway (no 404 in their console).
+        return Response(_icon_png(), media_type="image/png", headers=UI_HEADERS)
 
     app.mount("/ui", _UiFiles(directory=UI_DIR), name="ui")
 

@@ -4,8 +4,8 @@ A pure ASGI middleware (not a dependency) so unknown paths, /docs and /openapi.j
 covered too and an unauthenticated caller learns nothing, not even which routes exist.
 The key is compared with ``hmac.compare_digest`` and never logged.
 
-Open without the key: ``/healthz`` and the web page's static files (``/`` and ``/ui/...``:
-HTML, script and style sheet that hold no data; the page asks the user for the key and
+Open without the key: ``/healthz`` and the web page's static files (``/``, ``/favicon.ico`` and
+``/ui/...``: HTML, script, style sheet and icon that hold no data; the page asks the user for the key and
 sends it with every API call like any other client).
 """
 
@@ -19,7 +19,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from service.errors import error_response
 
 OPEN_PATHS = frozenset({"/healthz"})
-PAGE_PATHS = frozenset({"/"})
+PAGE_PATHS = frozenset({"/", "/favicon.ico"})
 PAGE_PREFIXES = ("/ui/",)
 """The web page's files: open to GET and HEAD only."""
 

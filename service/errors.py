@@ -14,7 +14,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from roguenerf.errors import CheckpointError, InputError, RoGUENeRFError, SceneFormatError
+from roguenerf.errors import CameraMismatchError, CheckpointError, InputError, RoGUENeRFError, SceneFormatError
 from workers.layout import public_message
 
 log = logging.getLogger("roguenerf.service")
@@ -68,6 +68,8 @@ def library_error(exc: RoGUENeRFError, *, root=None) -> ApiError:
         return ApiError(422, "invalid_scene", message)
     if isinstance(exc, CheckpointError):
         return ApiError(422, "invalid_checkpoint", message)
+    if isinstance(exc, CameraMismatchError):  # wrong_convention, wrong_scale, wrong_world, wrong_depth_type
+        return ApiError(422, "field_geometry" if exc.cause == "geometry" else f"wrong_{exc.cause}", message)
     if isinstance(exc, InputError):
         return ApiError(422, "invalid_input", message)
     # Not the caller's input (e.g. the model produced NaN/inf): a server-side failure.

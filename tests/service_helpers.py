@@ -58,6 +58,47 @@ def wait_until(predicate, *, timeout: float, interval: float = 0.1, what: str = 
 
 
 # ----------------------------------------------------------------------------- library data
+def splat_dataset(root: Path, *, views: int = 9, height: int = 36, width: int = 48, seed: int = 0) -> dict:
+    """What a 3DGS user has: a COLMAP dataset (``images/`` + ``sparse/0/``) whose photos are a few
+    hundred Gaussians' renders (on a wall and a box) plus a little noise, and the trained
+    ``point_cloud.ply``. Returns ``dataset``, ``ply``, ``gaussians``, ``poses`` (OpenCV), ``K``."""
+    import math
+
+    import torch
+
+    from roguenerf.data.colmap import write_colmap
+    from roguenerf.data.toy import look_at
+    from roguenerf.imageio import write_png
+    from roguenerf.splats import Gaussians, logit, render, write_ply
+
+    g = torch.Generator().manual_seed(seed)
+    n = 300
+    wall = torch.rand(n // 2, 3, generator=g) * torch.tensor([3.0, 0.05, 2.2]) + torch.tensor([-1.5, 1.5, -1.1])
+    box = torch.rand(n - n // 2, 3, generator=g) * 0.8 + torch.tensor([-0.4, 0.0, -0.4])
+    sh = torch.randn(n, 4, 3, generator=g) * 0.15
+    sh[:, 0] = (torch.rand(n, 3, generator=g) - 0.5) * 2.5
+    gaussians = Gaussians(means=torch.cat([wall, box]), sh=sh,
+                          opacity=logit(torch.rand(n, generator=g) * 0.3 + 0.69),
+                          log_scales=torch.log(torch.rand(n, 3, generator=g) * 0.12 + 0.08),
+                          quats=torch.randn(n, 4, generator=g))
+    ply = write_ply(root / "point_cloud.ply", gaussians)
+    poses = []
+    for i in range(views):
+        a = math.radians(-25 + 50 * i / max(views - 1, 1))
+        eye = torch.tensor([3.0 * math.sin(a), -3.0 * math.cos(a), 0.4], dtype=torch.float64)
+        poses.append(look_at(eye, torch.tensor([0.0, 0.5, 0.0], dtype=torch.float64)))
+    poses = torch.stack(poses)
+    K = torch.tensor([[40.0, 0, width / 2], [0, 40.0, height / 2], [0, 0, 1]], dtype=torch.float64)
+    dataset = root / "colmap"
+    names = [f"view_{i:02d}.png" for i in range(views)]
+    (dataset / "images").mkdir(parents=True)
+    for i, name in enumerate(names):
+        rgb, _, _ = render(gaussians, poses[i], K, height, width)
+        write_png(dataset / "images" / name, (rgb + 0.03 * torch.randn(rgb.shape, generator=g)).clamp(0, 1))
+    write_colmap(dataset / "sparse" / "0", names=names, K=K, world_from_cam=poses, widths=width, heights=height)
+    return {"dataset": dataset, "ply": ply, "gaussians": gaussians, "poses": poses, "K": K}
+
+
 def make_scene(root: Path, *, seed: int = 0, height: int = 48, width: int = 64, n_train: int = 6,
                n_test: int = 2):
     from roguenerf import make_toy_scene

@@ -473,4 +473,35 @@ def test_a_field_whose_own_novel_views_fail_the_check_is_named_as_the_likely_cau
     check = check_camera_path(load_scene(root), path, lambda t: halved[t])
     assert check.problem.startswith("the camera path does not fit the scene: 3 of 3 checked cameras see almost none")
     assert "Likely causes: the field's own geometry: its renders of the scene's held-out views fail" in check.problem
-    assert "--force goes on" in check.problem
+    assert "with --force (force=True) it goes on" in check.problem
+
+
+def test_check_camera_names_the_likely_cause_for_one_view(toy_path):
+    """check_camera, the test /enhance runs on one view's camera (issue 49): an OpenCV pose read
+    as OpenGL, a pose in other units (depth too, or not) and one in another world are refused
+    with the likeliest cause first; force returns the problem instead."""
+    from roguenerf.errors import CameraMismatchError
+    from roguenerf.geometry import opengl_to_opencv
+    from roguenerf.paths import check_camera
+
+    scene = toy_path["scene"]
+    i = scene.indices("test")[0]
+    pose, K, depth = scene.frames[i].world_from_cam.to(torch.float64), scene.frames[i].K, scene.depth(i).float()
+    assert check_camera(scene, depth, K, pose) is None
+    scaled = pose.clone()
+    scaled[:3, 3] *= 10
+    shifted = pose.clone()
+    shifted[:3, 3] += torch.tensor([30.0, -20.0, 25.0], dtype=torch.float64)
+    cases = [(opengl_to_opencv(pose), depth, "convention", "Likely causes: OpenGL vs OpenCV axes: with the y and z "
+                                                            "axes flipped this camera sees"),
+             (scaled, depth, "scale", "Likely causes: another unit: with its position scaled by 0.1 this camera sees"),
+             (scaled, depth * 10, "scale", "Likely causes: another unit: with its position and depth scaled by"),
+             (shifted, depth, "world", "Likely causes: OpenGL vs OpenCV axes (the pose's convention); another "
+                                       "coordinate space")]
+    for wrong, d, cause, needle in cases:
+        with pytest.raises(CameraMismatchError) as err:
+            check_camera(scene, d, K, wrong)
+        assert err.value.cause == cause and needle in str(err.value), str(err.value)
+        assert str(err.value).startswith("the camera does not fit the scene: the camera ")
+        assert str(err.value).endswith(". To enhance it anyway: --force (force=True)")
+        assert check_camera(scene, d, K, wrong, force=True) == err.value.problem

@@ -322,6 +322,40 @@ def test_enhance_takes_3x4_poses_and_checks_their_rotation(client, scene_id, toy
     assert "orthonormal" in assert_error(enhance(client, scene_id, bad), 422, "invalid_input")
 
 
+@pytest.mark.parametrize("mistake, code, needle, fix", [
+    ("convention", "wrong_convention", "with the y and z axes flipped", '"convention": "opengl"'),
+    ("scale", "wrong_scale", "another unit: with its position scaled by 0.1", "in the scene's units"),
+    ("world", "wrong_world", "lies", "GET /scenes/{id}/views"),
+])
+def test_enhance_refuses_a_camera_that_does_not_fit_the_scene(client, scene_id, toy, server, mistake, code,
+                                                              needle, fix):
+    """Issue 49: an OpenGL pose sent as "opencv", a pose translated x10 or one in another world
+    gave 200 and an image worse than the render; now a 422 naming the likely cause and the fix
+    (the library's check_camera, the test enhance-path runs), and force=true goes on."""
+    view = view_request(toy["scene"], 6)
+    pose = np.array(view["camera"]["transform_matrix"])
+    camera = dict(view["camera"])
+    if mistake == "convention":
+        camera["convention"] = "opencv"
+    elif mistake == "scale":
+        pose[:3, 3] *= 10
+    else:
+        pose[:3, 3] += [40.0, -25.0, 30.0]
+    wrong = {**view, "camera": {**camera, "transform_matrix": pose.tolist()}}
+    before = stored(server)
+    message = assert_error(enhance(client, scene_id, wrong), 422, code)
+    assert message.startswith("the camera does not fit the scene: the camera "), message
+    assert needle in message and fix in message, message
+    assert message.endswith("; to enhance it anyway: force=true (a form field of this request)"), message
+    assert "--force" not in message, message
+    assert stored(server) == before
+    forced = enhance(client, scene_id, wrong, force="true")
+    assert forced.status_code == 200, forced.text
+    assert forced.headers["X-Enhance-Note"].startswith("forced: the camera does not fit the scene")
+    right = enhance(client, scene_id, view)
+    assert right.status_code == 200 and "X-Enhance-Note" not in right.headers
+
+
 def _png_of(array: np.ndarray) -> bytes:
     from PIL import Image
 

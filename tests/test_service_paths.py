@@ -113,17 +113,27 @@ def test_path_job_round_trip(setup, tmp_path):
     assert client.get(f"/jobs/{job['id']}/result", params={"what": "nope"}).status_code == 422
 
 
-def test_a_path_job_in_the_wrong_axes_fails_saying_why(setup):
-    """The library's camera-path check reaches the service's path jobs (issue 38)."""
-    client, scene_id = setup["client"], setup["scene_id"]
+def test_a_path_in_the_wrong_axes_is_refused_at_upload_saying_why(setup):
+    """The library's camera-path check runs in the router, before anything is stored (issue 49:
+    it answered 202 and the job failed 2 s later, advising a --force the API did not have);
+    its advice names the API's field, and force=true goes on."""
+    client, scene_id, data = setup["client"], setup["scene_id"], setup["data"]
+    before, jobs_before = stored(data), jobs_of(client, scene_id)
     archive, _frames = path_zip(setup["scene"], opencv_axes=True)
     r = post_path(client, scene_id, archive)
-    assert r.status_code == 202, r.text
-    assert run_job(setup["ctx"], r.json()["id"]) == "failed"
-    job = client.get(f"/jobs/{r.json()['id']}").json()
-    assert job["error"]["code"] == "invalid_input", job
-    assert "does not fit the scene" in job["error"]["message"] and "OpenGL vs OpenCV" in job["error"]["message"]
-    assert "worst: camera" in job["error"]["message"]
+    assert r.status_code == 422, r.text
+    error = r.json()["error"]
+    assert error["code"] == "wrong_convention", error
+    message = error["message"]
+    assert message.startswith("the camera path does not fit the scene: ") and "worst: camera" in message
+    assert "OpenGL vs OpenCV" in message and "with the y and z axes flipped" in message
+    assert message.endswith("To enhance it anyway: force=true (a form field of this upload)"), message
+    assert "--force" not in message and str(data) not in message
+    assert stored(data) == before and jobs_of(client, scene_id) == jobs_before
+    forced = post_path(client, scene_id, archive, force="true")
+    assert forced.status_code == 202, forced.text
+    assert forced.json()["request"]["force"] is True
+    assert run_job(setup["ctx"], forced.json()["id"]) == "succeeded"
 
 
 @pytest.mark.parametrize("case", ["no_camera", "missing_frame", "not_zip", "bad_quality", "unknown_scene"])

@@ -21,7 +21,7 @@ import httpx
 import pytest
 
 from tests.browser_helpers import browser, embedded_server, path_zip, pixels_of_img, wait_for
-from tests.service_helpers import make_checkpoint, make_scene, wait_until, zip_folder
+from tests.service_helpers import make_checkpoint, make_scene, splat_dataset, wait_until, zip_folder
 
 KEY = "page-key-4c2e9a71d0"
 AUTH = {"Authorization": f"Bearer {KEY}"}
@@ -708,5 +708,126 @@ def test_a_delete_a_scene_refused_while_busy(chromium, site, toy):
         assert _text(page, "#upload-status") == 'deleted "Doomed, renamed"'
         assert page.locator("#scenes-error").is_hidden()
         assert not (site["data"] / "scenes" / sid).exists()
+    finally:
+        context.close()
+
+
+def test_b_videos_tab_shows_each_jobs_state_and_flicker(chromium, site, session, toy):
+    """Issue 49: a finished path job showed "–" for its state; now succeeded, failed or cancelled
+    in words, and the flicker figure (render -> enhanced, the ratio) of a succeeded one. The failed
+    and cancelled rows are the real job's answer with those states put in (as test 7 does)."""
+    sid, api = session["scene_id"], site["api"]
+    archive, frames = path_zip(toy["scene"], seed=2)
+    r = api.post(f"/scenes/{sid}/paths", files={"archive": ("path.zip", archive, "application/zip")})
+    assert r.status_code == 202, r.text
+    job_id = r.json()["id"]
+    job = wait_until(lambda: (j := api.get(f"/jobs/{job_id}").json())["state"] in ("succeeded", "failed") and j,
+                     timeout=180, what="the path job finished")
+    assert job["state"] == "succeeded", job
+    failed = {**job, "id": "f" * 32, "state": "failed", "result": None,
+              "error": {"code": "invalid_input", "message": "frames[2] (0002.png): not a PNG"}}
+    cancelled = {**job, "id": "c" * 32, "state": "cancelled", "result": None,
+                 "error": {"code": "cancelled", "message": "cancelled after 2 frames"}}
+
+    def listed(route):
+        answer = route.fetch()
+        body = answer.json()
+        body["items"] = [failed, cancelled] + body["items"]
+        route.fulfill(response=answer, body=json.dumps(body))
+
+    context, page = _open(chromium, site, hash_="#videos")
+    try:
+        page.route(lambda url: "/jobs?" in url, listed)
+        page.get_by_role("link", name="Videos").click()
+        page.get_by_role("button", name="Refresh").click()
+        row = page.locator(f"#videos-table tr[data-job='{job_id}']")
+        row.wait_for(timeout=30_000)
+        flicker = job["result"]["flicker"]
+        assert row.locator(".job-state").inner_text() == "succeeded"
+        assert f"frame {frames} of {frames}" in row.inner_text()
+        want = f"{flicker['render']:.4f} → {flicker['enhanced']:.4f} (×{flicker['ratio']:.2f})"
+        assert row.locator("td[data-label='Flicker']").inner_text() == want
+        bad = page.locator("#videos-table tr[data-job='" + "f" * 32 + "']")
+        assert bad.locator(".job-state").inner_text() == "failed"
+        assert "failed: frames[2] (0002.png): not a PNG (invalid_input)" in bad.inner_text()
+        assert bad.locator("td[data-label='Flicker']").inner_text() == "–"
+        stopped = page.locator("#videos-table tr[data-job='" + "c" * 32 + "']")
+        assert stopped.locator(".job-state").inner_text() == "cancelled"
+        assert "cancelled: cancelled after 2 frames" in stopped.inner_text()
+        assert page.get_by_role("columnheader", name="Flicker (render → enhanced)").count() == 1
+    finally:
+        context.close()
+
+
+def test_c_finetune_tab_keeps_a_finished_job_after_a_reload_and_no_404(chromium, site, session):
+    """Issue 49: a tab that did not start the job (a reload in a new tab, a job started by another
+    client) showed nothing for a finished fine-tuning job; the page now asks the API for the
+    scene's newest fine-tuning job. And the page's icon is served: no 404 for /favicon.ico."""
+    sid, api = session["scene_id"], site["api"]
+    started = api.post(f"/scenes/{sid}/finetune", json={"steps": 1})
+    assert started.status_code == 202, started.text
+    job_id = started.json()["id"]
+    job = wait_until(lambda: (j := api.get(f"/jobs/{job_id}").json())["state"] not in ("queued", "running") and j,
+                     timeout=240, what="the fine-tuning job finished")
+    assert job["state"] == "succeeded" and job["before"] and job["after"], job
+    context, page = _open(chromium, site)
+    failures: list = []
+    page.on("response", lambda r: failures.append((r.status, r.url)) if r.status >= 400 else None)
+    try:
+        for reloaded in (False, True):
+            if reloaded:
+                page.reload()
+            page.get_by_role("link", name="Fine-tuning").click()
+            page.locator("#finetune").get_by_label("Scene", exact=True).select_option(sid)
+            wait_for(page, "(id) => document.getElementById('job-id').textContent === id && "
+                           "!document.getElementById('job').hidden", arg=job_id, timeout_s=30)
+            assert _text(page, "#job-state") == "succeeded"
+            assert _text(page, "#job-step") == "1 of 1"
+            rows = page.locator("#job-metrics tbody tr")
+            assert rows.count() == 3
+            shown = [rows.nth(i).locator("td").all_inner_texts() for i in range(3)]
+            wanted = [job["before"]["render"], job["before"]["enhanced"], job["after"]["enhanced"]]
+            assert shown == [[f"{m['psnr']:.2f}", f"{m['ssim']:.4f}"] for m in wanted]
+            assert page.locator("#loss-curve").get_attribute("data-points") == "1"
+        icon = page.locator("link[rel='icon']").get_attribute("href")
+        for path in (icon, "/favicon.ico"):
+            r = httpx.get(site["url"] + path, timeout=30)   # no key: a public file, like the page
+            assert r.status_code == 200 and r.headers["content-type"].startswith("image/"), (path, r.text)
+        assert not failures, failures
+    finally:
+        context.close()
+
+
+def test_d_a_3dgs_dataset_zip_and_its_ply_upload_as_a_scene(chromium, site, tmp_path):
+    """Issue 49: the page took only a ready scene zip; a COLMAP dataset zip plus its trained
+    point_cloud.ply now become a scene (POST /scenes/import: the worker renders every view)."""
+    api = site["api"]
+    splats = splat_dataset(tmp_path)
+    archive = tmp_path / "Splat garden.zip"
+    archive.write_bytes(zip_folder(splats["dataset"], prefix="garden"))
+    context, page = _open(chromium, site)
+    try:
+        page.get_by_label("Scene zip").set_input_files(str(archive))
+        page.get_by_label("3DGS .ply").set_input_files(str(splats["ply"]))
+        page.get_by_role("button", name="Upload", exact=True).click()
+        wait_for(page, "() => document.getElementById('upload-status').textContent.startsWith('imported') || "
+                       "!document.getElementById('scenes-error').hidden", timeout_s=180)
+        assert page.locator("#scenes-error").is_hidden(), _text(page, "#scenes-error")
+        assert _text(page, "#upload-status") == 'imported "Splat garden" (9 views)'
+        scene = next(s for s in api.get("/scenes").json()["items"] if s["name"] == "Splat garden")
+        assert (scene["views"], scene["train_views"], scene["test_views"]) == (9, 7, 2)
+        row = page.locator(f"#scenes-table tr[data-scene='{scene['id']}']")
+        assert row.locator("td").first.inner_text() == f"Splat garden\n{scene['id']}"
+        assert page.locator("#finetune").get_by_label("Scene", exact=True).input_value() == scene["id"]
+        page.get_by_role("link", name="Fine-tuning").click()   # the import job is not a fine-tuning job
+        page.wait_for_timeout(1000)
+        assert page.locator("#job").is_hidden()
+        page.get_by_role("link", name="Scenes").click()
+        # The same dataset zip without its .ply: refused, saying where it goes.
+        page.get_by_label("Scene zip").set_input_files(str(archive))
+        page.get_by_role("button", name="Upload", exact=True).click()
+        page.locator("#scenes-error").wait_for(state="visible", timeout=30_000)
+        assert _text(page, "#scenes-error .code") == "invalid_scene"
+        assert "POST /scenes/import" in _text(page, "#scenes-error .msg")
     finally:
         context.close()

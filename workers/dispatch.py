@@ -1,11 +1,12 @@
-"""Claim a job and hand it to its task: fine-tuning (:mod:`workers.tasks`) or a camera path
-(:mod:`workers.paths`), under a heartbeat (:mod:`workers.runtime`)."""
+"""Claim a job and hand it to its task: fine-tuning (:mod:`workers.tasks`), a camera path
+(:mod:`workers.paths`) or a 3DGS import (:mod:`workers.imports`), under a heartbeat (:mod:`workers.runtime`)."""
 
 from __future__ import annotations
 
 import logging
 import uuid
 
+from workers.imports import run_import_job
 from workers.paths import run_path_job
 from workers.runtime import Heartbeat, WorkerContext
 from workers.tasks import run_finetune_job
@@ -24,8 +25,11 @@ def run_job(ctx: WorkerContext, job_id: str) -> str:
     beat = Heartbeat(ctx.store, job_id, lease, ctx.settings.heartbeat_period)
     beat.start()
     try:
-        if (job.get("request") or {}).get("kind") == "path":
+        kind = (job.get("request") or {}).get("kind")
+        if kind == "path":
             return run_path_job(ctx, job, lease, beat)
+        if kind == "import":
+            return run_import_job(ctx, job, lease, beat)
         return run_finetune_job(ctx, job, lease, beat)
     finally:
         beat.stop.set()

@@ -45,6 +45,13 @@ def public_message(message: str, *, root: Path | None = None, data_dir: Path | N
     return message
 
 
+IMPORT_DATASET = "dataset"
+IMPORT_PLY = "point_cloud.ply"
+IMPORT_CHECKPOINT = "checkpoint.safetensors"
+"""Names inside an import job's ``input/`` folder: written by the API (``POST /scenes/import``),
+read by :mod:`workers.imports`."""
+
+
 def new_id() -> str:
     return uuid.uuid4().hex
 

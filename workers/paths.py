@@ -30,7 +30,7 @@ def zip_frames(frame_dir: Path, destination: Path) -> None:
 
 
 def run_path_job(ctx, job: dict, lease: str, beat) -> str:
-    from roguenerf import PathCancelled, RoGUENeRFError, SceneEnhancer, load_checkpoint, load_scene
+    from roguenerf import CameraMismatchError, PathCancelled, RoGUENeRFError, SceneEnhancer, load_checkpoint, load_scene
     from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
     from roguenerf.paths import enhance_path, find_camera_file, read_camera_path
 
@@ -79,7 +79,7 @@ def run_path_job(ctx, job: dict, lease: str, beat) -> str:
             depth_type=request.get("depth_type", "z"), depth_scale=float(request.get("depth_scale", 1.0)),
             background=request.get("background", "zero"), quality=int(request.get("quality", 20)),
             checkpoint_id=f"{checkpoint}:{stat.st_size}:{stat.st_mtime_ns}", progress=progress,
-            should_stop=should_stop)
+            should_stop=should_stop, force=bool(request.get("force", False)))
         zip_frames(job_dir / "output" / "frames", job_dir / "output" / "frames.zip")
     except PathCancelled as exc:
         if beat.lost.is_set():
@@ -96,6 +96,8 @@ def run_path_job(ctx, job: dict, lease: str, beat) -> str:
                 ctx.enqueue(job_id)
             return "requeued"
         return fail("internal_error", f"path stopped without a reason after {exc.frame} frames")
+    except CameraMismatchError as exc:  # the API checked it at upload; the scene changed since
+        return fail("invalid_input", f"{exc.problem}. To enhance it anyway: upload the path again with force=true")
     except RoGUENeRFError as exc:
         return fail("invalid_input", str(exc))
     except Exception as exc:

@@ -11,7 +11,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 from pydantic import ValidationError
 
-from roguenerf.errors import InputError, RoGUENeRFError
+from roguenerf.errors import CameraMismatchError, InputError, RoGUENeRFError
 from service.deps import scene_or_404
 from service.errors import ApiError, error_responses, library_error
 from service.limits import check_depth_coverage, decode_field
@@ -64,8 +64,23 @@ def camera_tensors(camera: Camera):
     return K, pose
 
 
+FORCE_ADVICE = "force=true (a form field of this request)"
+"""How a client goes on when the camera does not fit the scene (the library names it in its message)."""
+
+
+def camera_fix(exc: CameraMismatchError, camera: Camera, scene_id: str) -> str:
+    """The fix of a camera that does not fit the scene, in the request's own fields."""
+    if exc.cause == "convention":
+        other = "opengl" if camera.convention == "opencv" else "opencv"
+        return f'send "convention": "{other}" in camera (it said "{camera.convention}")'
+    if exc.cause == "scale":
+        return "send the pose (and depth) in the scene's units, those of GET /scenes/{id}/views"
+    return ("send a pose in the scene's world: GET /scenes/{id}/views lists its views' cameras in this form "
+            f"(scene {scene_id})")
+
+
 def _enhance(services: Services, scene: dict, render_bytes: bytes, depth_bytes: bytes,
-             camera: Camera, depth_scale: float) -> tuple[bytes, object, int]:
+             camera: Camera, depth_scale: float, force: bool = False) -> tuple[bytes, object, int, str | None]:
     from roguenerf.geometry import ray_to_z_depth
     from roguenerf.imageio import encode_png, read_depth, read_image
 
@@ -87,8 +102,21 @@ def _enhance(services: Services, scene: dict, render_bytes: bytes, depth_bytes: 
             depth = ray_to_z_depth(depth[0], K)[None].to(depth.dtype)
         version = scene["active_version"]
         enhancer = services.enhancers.get(scene["id"], version)
+        warning = None
+        if enhancer.use_neighbours and enhancer.num_neighbours:
+            # The test enhance-path runs on its cameras: a pose in the wrong convention, unit or
+            # world sees none of the neighbours, and its "enhanced" image is worse than the render.
+            from roguenerf import check_camera
+
+            try:
+                warning = check_camera(enhancer.scene, depth, K, world_from_cam, neighbours=enhancer.num_neighbours,
+                                       force=force, override=FORCE_ADVICE)
+            except CameraMismatchError as exc:
+                raise ApiError(422, library_error(exc).code,
+                               f"{exc.problem}. Fix: {camera_fix(exc, camera, scene['id'])}; to enhance it "
+                               f"anyway: {FORCE_ADVICE}") from None
         result = enhancer.enhance(render, depth, K, world_from_cam)
-        return encode_png(result.image, **RESPONSE_PNG), result, version
+        return encode_png(result.image, **RESPONSE_PNG), result, version, warning
     except RoGUENeRFError as exc:
         raise library_error(exc) from None
 
@@ -112,6 +140,10 @@ async def create_enhancement(
     camera: Annotated[str, Form(
         min_length=1, description="JSON: transform_matrix, convention, fl_x, fl_y, cx, cy, depth_type")],
     depth_scale: Annotated[float, Form(gt=0, description="multiplier for 16-bit PNG depth (e.g. 0.001 for mm)")] = 1.0,
+    force: Annotated[bool, Form(description=(
+        "enhance even when the camera does not fit the scene (its pixels land nowhere near the training photos' "
+        "surfaces: wrong convention, unit or world; a 422 otherwise); the problem comes back in X-Enhance-Note"))
+    ] = False,
 ) -> Response:
     start = time.perf_counter()
     slots = services.enhance_slots
@@ -126,8 +158,8 @@ async def create_enhancement(
     async with slots:
         render_bytes = await render.read()
         depth_bytes = await depth.read()
-        png, result, version = await run_in_threadpool(
-            _enhance, services, scene, render_bytes, depth_bytes, cam, depth_scale)
+        png, result, version, warning = await run_in_threadpool(
+            _enhance, services, scene, render_bytes, depth_bytes, cam, depth_scale, force)
     headers = {
         "X-Enhance-Seconds": f"{result.seconds:.4f}",
         "X-Total-Seconds": f"{time.perf_counter() - start:.4f}",
@@ -141,6 +173,7 @@ async def create_enhancement(
     if result.trust is not None:  # share of the enhancer's change kept (roguenerf.geometry.trust)
         headers["X-Trust"] = f"{result.trust:.4f}"
         headers["X-Neighbour-Agreement"] = f"{result.agreement:.4f}"
-    if result.note:
-        headers["X-Enhance-Note"] = result.note.encode("ascii", "replace").decode()
+    note = "; ".join(n for n in (f"forced: {warning}" if warning and force else warning, result.note) if n)
+    if note:
+        headers["X-Enhance-Note"] = note.encode("ascii", "replace").decode()
     return Response(content=png, media_type="image/png", headers=headers)

@@ -22,12 +22,21 @@ log = logging.getLogger("roguenerf.service")
 router = APIRouter(prefix="/scenes", tags=["paths"])
 
 
-def validate_path_upload(services, scene_id: str, root: Path, *, max_pixels: int) -> int:
-    """Check an extracted path upload with the library; returns its frame count (ApiError otherwise)."""
+FORCE_ADVICE = "force=true (a form field of this upload)"
+"""How a client goes on when the path does not fit the scene (the library names it in its message)."""
+
+
+def validate_path_upload(services, row: dict, root: Path, *, max_pixels: int, depth_type: str = "z",
+                         depth_scale: float = 1.0, background: str = "zero", force: bool = False) -> int:
+    """Check an extracted path upload with the library, the checks ``enhance_path`` runs before
+    its first frame included (``check_path``: depth type, cameras in the scene's world); returns
+    its frame count (ApiError otherwise)."""
+    from roguenerf import check_path
     from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
     from roguenerf.imageio import read_image_size
     from roguenerf.paths import find_camera_file, find_path_frames, read_camera_path
 
+    scene_id = row["id"]
     try:
         camera_file = find_camera_file(root)
         parser_file = services.layout.scene_files(scene_id) / DATAPARSER_FILE
@@ -42,6 +51,10 @@ def validate_path_upload(services, scene_id: str, root: Path, *, max_pixels: int
             if size != (camera_path.width, camera_path.height):
                 raise ApiError(422, "invalid_path", f"{rgb.relative_to(root)}: render is {size[0]}x{size[1]}, the "
                                                     f"camera path says {camera_path.width}x{camera_path.height}")
+        enhancer = services.enhancers.get(scene_id, row["active_version"])  # the job's scene and neighbours
+        check_path(enhancer.scene, camera_path, root, depth_type=depth_type, depth_scale=depth_scale,
+                   background=background, neighbours=max(1, enhancer.num_neighbours or 1), force=force,
+                   override=FORCE_ADVICE)
     except RoGUENeRFError as exc:
         raise library_error(exc, root=root) from None
     return len(pairs)
@@ -61,6 +74,9 @@ def create_path_job(
     depth_scale: Annotated[float, Form(gt=0, lt=1e9, description="multiplies the stored depth")] = 1.0,
     background: Annotated[Literal["zero", "max"], Form(description="what no-surface pixels hold")] = "zero",
     quality: Annotated[int, Form(ge=0, le=51, description="x264 CRF (lower is better)")] = 20,
+    force: Annotated[bool, Form(description=(
+        "enhance the path even when its cameras do not fit the scene (far from its cameras or seeing none of its "
+        "training photos: OpenGL vs OpenCV, another unit or world, z vs ray depth; a 422 otherwise)"))] = False,
 ) -> JobPublic:
     settings, layout = services.settings, services.layout
     row = scene_or_404(services, scene_id)
@@ -68,9 +84,11 @@ def create_path_job(
     try:
         root = extract_scene_zip(archive.file, tmp / "input",
                                  ZipLimits(settings.max_scene_files, settings.max_scene_bytes))
-        frames = validate_path_upload(services, scene_id, root, max_pixels=settings.max_upload_pixels)
+        frames = validate_path_upload(services, row, root, max_pixels=settings.max_upload_pixels,
+                                      depth_type=depth_type, depth_scale=depth_scale, background=background,
+                                      force=force)
         request = {"kind": "path", "frames": frames, "depth_type": depth_type, "depth_scale": depth_scale,
-                   "background": background, "quality": quality}
+                   "background": background, "quality": quality, "force": force}
         try:
             job, _ = services.store.create_job(scene_id, request, base_version=row["active_version"],
                                                max_queued=settings.max_queued_jobs)

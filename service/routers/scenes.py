@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import unicodedata
-from pathlib import PurePosixPath, PureWindowsPath
+from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Annotated
 
 from fastapi import APIRouter, File, Form, Header, Response, UploadFile
@@ -18,7 +18,7 @@ from service.schemas import JobCreate, JobPublic, ScenePage, ScenePublic, SceneU
 from service.state import Services, ServicesDep
 from service.storage import ZipLimits, discard, extract_scene_zip, place, save_upload
 from workers.jobs import ActiveJobExists, IdempotencyMismatch, QueueFull, SceneBusy
-from workers.layout import new_id, public_message
+from workers.layout import IMPORT_CHECKPOINT, IMPORT_DATASET, IMPORT_PLY, new_id, public_message
 from workers.queue import QueueUnavailable
 
 log = logging.getLogger("roguenerf.service")
@@ -51,6 +51,27 @@ def scene_name(given: str | None, filename: str | None) -> str | None:
     return name
 
 
+IMPORT_ADVICE = ("a scene also holds a radiance field's render and depth of every view. Send it with the "
+                 "trained 3DGS point_cloud.ply to POST /scenes/import (on the page: the upload's \"3DGS .ply\" "
+                 "field), or run `roguenerf import-3dgs DATASET --ply point_cloud.ply --output SCENE` (or "
+                 "import-nerfstudio / import-gsplat with your field's renders) and upload SCENE zipped")
+COLMAP_ZIP = f"archive: a COLMAP dataset (photos and poses), not a scene: {IMPORT_ADVICE}"
+PHOTOS_ONLY_ZIP = (f"archive: photos and poses only (no view has a render or a depth), a dataset, not a scene: "
+                   f"{IMPORT_ADVICE}")
+"""The answers to a dataset sent to ``POST /scenes``."""
+
+
+def _unwrapped(tmp: Path, root: Path, folder: Path) -> Path:
+    """The extracted upload at ``folder``: ``root`` itself, or its single top-level folder moved
+    there (``zip -r lego.zip lego/``)."""
+    if root != folder:
+        staging = tmp / "unwrapped"
+        root.rename(staging)
+        folder.rmdir()
+        staging.rename(folder)
+    return folder
+
+
 def _register(services: Services, archive: UploadFile, checkpoint: UploadFile | None,
               name: str | None = None) -> ScenePublic:
     from roguenerf import load_checkpoint, load_scene
@@ -62,17 +83,18 @@ def _register(services: Services, archive: UploadFile, checkpoint: UploadFile | 
     try:
         root = extract_scene_zip(archive.file, tmp / "scene",
                                  ZipLimits(settings.max_scene_files, settings.max_scene_bytes))
-        if root != tmp / "scene":
-            # zip -r lego.zip lego/: the scene folder is the single top-level directory.
-            staging = tmp / "unwrapped"
-            root.rename(staging)
-            (tmp / "scene").rmdir()
-            staging.rename(tmp / "scene")
+        _unwrapped(tmp, root, tmp / "scene")
+        from roguenerf.data.colmap import is_colmap_dataset
+
+        if not (tmp / "scene" / "transforms.json").is_file() and is_colmap_dataset(tmp / "scene"):
+            raise ApiError(422, "invalid_scene", COLMAP_ZIP)
         try:
             # confine: an uploaded transforms.json must not name files outside the upload.
             scene = load_scene(tmp / "scene", confine=True)
         except RoGUENeRFError as exc:
             raise library_error(exc, root=tmp / "scene") from None
+        if all(f.render_path is None and f.depth_path is None for f in scene.frames):
+            raise ApiError(422, "invalid_scene", PHOTOS_ONLY_ZIP)
         train = len(scene.indices("train"))
         if train == 0:
             raise ApiError(422, "invalid_scene", "scene has no 'train' views: neighbours come from them")
@@ -124,6 +146,96 @@ def create_scene(
         "default: the zip's file name without .zip"))] = None,
 ) -> ScenePublic:
     return _register(services, archive, checkpoint, name)
+
+
+def _validate_import(services: Services, tmp: Path, archive: UploadFile, ply: UploadFile,
+                     checkpoint: UploadFile | None, hold: int) -> int:
+    """Store an import upload under ``tmp/input`` and check it with the library (the dataset's
+    views and photos, the .ply, the checkpoint); returns the number of views."""
+    from roguenerf import load_checkpoint, load_scene
+    from roguenerf.splats.importer import read_dataset_views
+    from roguenerf.splats.ply import read_ply
+
+    settings = services.settings
+    inputs = tmp / "input"
+    dataset = _unwrapped(tmp, extract_scene_zip(archive.file, inputs / IMPORT_DATASET,
+                                                ZipLimits(settings.max_scene_files, settings.max_scene_bytes)),
+                         inputs / IMPORT_DATASET)
+    ply_path = save_upload(ply.file, inputs / IMPORT_PLY, max_bytes=settings.max_scene_bytes, what="ply")
+    try:
+        read_ply(ply_path)
+    except RoGUENeRFError as exc:
+        raise ApiError(422, "invalid_input", "ply: " + str(exc).replace(f"{ply_path}: ", "")) from None
+    try:
+        if (dataset / "transforms.json").is_file():
+            load_scene(dataset, confine=True)  # an uploaded transforms.json names files inside the upload only
+        views, _format = read_dataset_views(dataset, hold=hold)
+    except RoGUENeRFError as exc:
+        raise library_error(exc, root=dataset) from None
+    inside = dataset.resolve()
+    for view in views:
+        if not view.photo.resolve().is_relative_to(inside):
+            raise ApiError(422, "invalid_archive", f"archive: view {view.name}'s photo lies outside the upload")
+    if not any(view.split == "train" for view in views):
+        raise ApiError(422, "invalid_input", f"hold: {hold} makes every one of the {len(views)} views a test view, "
+                                             "and the scene has no 'train' views: neighbours come from them")
+    if checkpoint is not None:
+        path = save_upload(checkpoint.file, inputs / IMPORT_CHECKPOINT, max_bytes=settings.max_checkpoint_bytes,
+                           what="checkpoint")
+        try:
+            load_checkpoint(path, max_bytes=settings.max_checkpoint_bytes)
+        except RoGUENeRFError as exc:
+            raise checkpoint_error(exc, path) from None
+    return len(views)
+
+
+@router.post("/import", status_code=202, response_model=JobPublic,
+             summary="Import a 3DGS scene: its dataset (zip) and trained point_cloud.ply; returns a job",
+             responses=error_responses(400, 413, 422, 503))
+def import_scene(
+    services: ServicesDep,
+    response: Response,
+    archive: Annotated[UploadFile, File(description=(
+        "zip of the dataset the splats were trained on: COLMAP (images/ + sparse/0/) or a transforms.json "
+        "with its photos"))],
+    ply: Annotated[UploadFile, File(description="the trained 3DGS point_cloud.ply (Inria format)")],
+    checkpoint: Annotated[UploadFile, File(description="optional enhancer checkpoint (.safetensors)")] = None,
+    name: Annotated[str, Form(max_length=1000, description=(
+        f"optional label of the new scene (at most {MAX_NAME_CHARS} characters); default: the zip's file name "
+        "without .zip"))] = None,
+    hold: Annotated[int, Form(ge=0, le=10_000, description=(
+        "COLMAP datasets: every N-th view (name order) is a test view, as the 3DGS trainer's --eval; 0: none"))] = 8,
+) -> JobPublic:
+    """The worker renders every view from the splats (RGB, z-depth, opacity; the library's
+    ``import_3dgs``, as ``roguenerf import-3dgs``) and registers the scene; the job's
+    ``scene_id`` is the new scene's id, and its ``result`` says so once it succeeded."""
+    settings, layout = services.settings, services.layout
+    name = scene_name(name, archive.filename)
+    scene_id = new_id()
+    tmp = layout.temp_dir()
+    try:
+        views = _validate_import(services, tmp, archive, ply, checkpoint, hold)
+        request = {"kind": "import", "name": name, "hold": hold, "views": views}
+        try:
+            job, _ = services.store.create_job(scene_id, request, max_queued=settings.max_queued_jobs)
+        except QueueFull as exc:
+            raise queue_full(exc) from None
+        try:
+            job_dir = layout.job_dir(job["id"])
+            job_dir.mkdir(parents=True, exist_ok=True)
+            place(tmp / "input", job_dir / "input")
+            services.queue.enqueue(job["id"])
+        except BaseException as exc:
+            services.store.delete_job(job["id"])
+            layout.remove_tree(layout.job_dir(job["id"]))
+            if isinstance(exc, QueueUnavailable):
+                raise ApiError(503, "queue_unavailable", str(exc), headers={"Retry-After": "5"}) from None
+            raise
+    finally:
+        discard(tmp)
+    log.info("import job %s queued: scene %s (%r), %d views", job["id"], scene_id, name, views)
+    response.headers["Location"] = f"/jobs/{job['id']}"
+    return JobPublic.from_row(job)
 
 
 @router.get("", response_model=ScenePage, summary="List scenes, newest first (paginated)",

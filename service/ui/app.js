@@ -224,6 +224,8 @@
     if (name) form.append("name", name);
     const ckpt = $("upload-checkpoint").files[0];
     if (ckpt) form.append("checkpoint", ckpt, ckpt.name);
+    const ply = $("upload-ply").files[0];   // a 3DGS .ply: the zip is its dataset, imported by a worker
+    if (ply) form.append("ply", ply, ply.name);
     const xhr = new XMLHttpRequest();       // fetch cannot report upload progress
     const bar = $("upload-progress"), status = $("upload-status"), button = $("upload-submit");
     bar.value = 0; status.textContent = "uploading…"; button.disabled = true;
@@ -231,7 +233,8 @@
     xhr.upload.addEventListener("progress", (e) => {
       if (e.lengthComputable) {
         bar.value = Math.round(100 * e.loaded / e.total);
-        status.textContent = `${bar.value}% of ${(e.total / 1e6).toFixed(1)} MB` + (bar.value === 100 ? ", checking the scene…" : "");
+        status.textContent = `${bar.value}% of ${(e.total / 1e6).toFixed(1)} MB`
+          + (bar.value === 100 ? (ply ? ", checking the dataset…" : ", checking the scene…") : "");
       }
     });
     xhr.addEventListener("loadend", async () => {
@@ -246,6 +249,12 @@
         selectScene(scene.id);
         return;
       }
+      if (xhr.status === 202) {   // POST /scenes/import: a job renders the views, then the scene exists
+        const job = JSON.parse(xhr.responseText);
+        $("upload-form").reset();
+        watchImport(job);
+        return;
+      }
       status.textContent = "failed";
       let err = new ApiError(xhr.status, "network_error", "the upload did not reach the server");
       if (xhr.status) {
@@ -256,10 +265,36 @@
       }
       showError("scenes-error", err);
     });
-    xhr.open("POST", "/scenes");
+    xhr.open("POST", ply ? "/scenes/import" : "/scenes");
     const key = apiKey();
     if (key) xhr.setRequestHeader("Authorization", "Bearer " + key);
     xhr.send(form);
+  }
+
+  /** An import job (a dataset + .ply) until its scene exists: its progress in the upload's status. */
+  function watchImport(job) {
+    const status = $("upload-status"), label = job.request.name || job.scene_id.slice(0, 8);
+    const poll = async () => {
+      try {
+        job = await getJSON("/jobs/" + job.id);
+      } catch (err) { showError("scenes-error", err); setTimeout(poll, 3000); return; }
+      if (job.state === "queued" || job.state === "running") {
+        status.textContent = `importing "${label}": ` + (job.state === "queued" ? "waiting for a worker"
+          : job.step ? `rendering view ${job.step} of ${job.total_steps}` : "loading the splats");
+        setTimeout(poll, 1000);
+        return;
+      }
+      if (job.state === "succeeded") {
+        status.textContent = `imported "${label}" (${job.result.views} views)`;
+        await loadScenes();
+        selectScene(job.scene_id);
+        return;
+      }
+      status.textContent = "import " + job.state;
+      showError("scenes-error", new ApiError(0, job.error ? job.error.code : job.state,
+                                             job.error ? job.error.message : "the import " + job.state));
+    };
+    poll();
   }
 
   // ------------------------------------------------------------------ fine-tuning
@@ -277,9 +312,18 @@
     if (!id) return;
     try {
       const scene = await getJSON("/scenes/" + id);
-      const jobId = scene.active_job || rememberedJob(id);
+      // The job this tab started, else the scene's newest fine-tuning job from the API (a reload
+      // in a new tab, or a job started by another client, keeps its results on screen).
+      const jobId = scene.active_job || rememberedJob(id) || await newestFinetuneJob(id);
+      if ($("ft-scene").value !== id) return;   // another scene was picked meanwhile
       if (jobId) watchJob(jobId); else { stopWatching(); $("job").hidden = true; $("ft-cancel").disabled = true; }
     } catch (err) { showError("ft-error", err); }
+  }
+
+  async function newestFinetuneJob(sceneId) {
+    const jobs = await getJSON(`/jobs?scene_id=${encodeURIComponent(sceneId)}&limit=50`);
+    const job = jobs.items.find((j) => !(j.request || {}).kind);   // not a camera path, not an import
+    return job ? job.id : null;
   }
 
   async function startJob(event) {
@@ -766,6 +810,8 @@
       const id = document.createElement("code"); id.className = "scene-id"; id.textContent = job.id;
       cell(tr, id, "Job");
       const state = document.createElement("div"); state.className = "video-state";
+      const stateWord = document.createElement("span"); stateWord.className = "job-state";
+      stateWord.textContent = job.state;
       const label = document.createElement("label");
       label.htmlFor = "vp-" + job.id; label.className = "sr-only"; label.textContent = `progress of job ${job.id}`;
       const bar = document.createElement("progress");
@@ -773,9 +819,17 @@
       const words = document.createElement("span");
       const frames = job.step ? ` · frame ${job.step} of ${job.total_steps}` : "";
       const eta = job.state === "running" && job.eta_s !== null ? ` · ${fmt.seconds(job.eta_s)} left` : "";
-      words.textContent = jobPhase(job) + frames + eta + (job.error ? `: ${job.error.message}` : "");
-      state.append(words, label, bar);
+      const doing = job.state === "queued" || job.state === "running" ? ` · ${jobPhase(job)}` : "";
+      words.textContent = (job.error ? `: ${job.error.message} (${job.error.code})` : "") + doing + frames + eta;
+      const line = document.createElement("span");
+      line.append(stateWord, words);
+      state.append(line, label, bar);
       cell(tr, state, "State");
+      const flicker = ((job.result || {}).flicker) || {};
+      cell(tr, Number.isFinite(flicker.render) && Number.isFinite(flicker.enhanced)
+        ? `${flicker.render.toFixed(4)} → ${flicker.enhanced.toFixed(4)}`
+          + (Number.isFinite(flicker.ratio) ? ` (×${flicker.ratio.toFixed(2)})` : "")
+        : "–", "Flicker");
       cell(tr, fmt.date(job.created_at), "Created");
       const actions = cell(tr, "", "Video");
       for (const [text, handler] of [["Play", () => playVideo(job)], ["Download", () => downloadVideo(job)]]) {
