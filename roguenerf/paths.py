@@ -25,7 +25,7 @@ import logging
 import math
 import re
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -880,16 +880,12 @@ def enhance_path(
     output = Path(output)
     frame_dir = output / FRAME_FOLDER
     frame_dir.mkdir(parents=True, exist_ok=True)
-    # The enhancer's settings too: frames matched with another colour reach, trust or pose refinement
+    # The enhancer's options too (EnhanceOptions.fingerprint, with the count they resolve to for
+    # this model): frames made with another neighbour rule, colour reach, trust or pose refinement
     # (a changed default after an upgrade) must not be mixed into this video.
-    from roguenerf.inference import NEAR_DEGREES
-
     options = {"depth_type": depth_type, "depth_scale": depth_scale, "background": background,
                "neighbours": enhancer.num_neighbours, "near_extra": enhancer.near_extra,
-               "near_degrees": NEAR_DEGREES,
-               "align": None if enhancer.align is None else asdict(enhancer.align),
-               "colour": None if enhancer.colour is None else asdict(enhancer.colour),
-               "trust": None if enhancer.trust is None else asdict(enhancer.trust)}
+               "enhance": enhancer.options.fingerprint()}
     fingerprint = _fingerprint(camera_path, pairs, checkpoint_id, options)
     state_path = output / STATE_FILE
     if state_path.is_file():
