@@ -30,8 +30,15 @@ def zip_frames(frame_dir: Path, destination: Path) -> None:
 
 
 def run_path_job(ctx, job: dict, lease: str, beat) -> str:
-    from roguenerf import (CameraMismatchError, EnhanceOptions, PathCancelled, RoGUENeRFError, SceneEnhancer,
-                           load_checkpoint, load_scene)
+    from roguenerf import (
+        CameraMismatchError,
+        EnhanceOptions,
+        PathCancelled,
+        RoGUENeRFError,
+        SceneEnhancer,
+        load_checkpoint,
+        load_scene,
+    )
     from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
     from roguenerf.paths import enhance_path, find_camera_file, read_camera_path
 
