@@ -40,7 +40,7 @@ def measure(args) -> list[dict]:
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
     from roguenerf.enhance import EnhanceOptions
-    from roguenerf.geometry.align import AlignConfig
+    from roguenerf.enhance.align import AlignConfig
     from roguenerf.inference import SceneEnhancer
 
     checkpoint = args.checkpoint or default_checkpoint_path()

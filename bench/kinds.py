@@ -70,7 +70,7 @@ def parse_args(argv=None):
                    help="colour matching to the neighbour photos at inference (default on, as shipped)")
     p.add_argument("--trust", choices=["on", "off"], default="on",
                    help="keep only part of the enhancer's change where the neighbours mostly disagree "
-                        "(roguenerf.geometry.trust; default on, as shipped)")
+                        "(roguenerf.enhance.trust; default on, as shipped)")
     p.add_argument("--finetune-depth-noise", type=float, default=0.0,
                    help="fine-tune with TrainConfig.depth_noise (log-depth error on half the target depths; "
                         "default 0, as shipped); cached apart")
@@ -234,7 +234,7 @@ FIELD_CONFIG = {"local_sigma": 8.0}
 def colour_cache_tag(config) -> str:
     """``_colourfield``, plus ``_FIELDVALUE`` for each field where ``config`` differs from the
     setting cached results without it were measured with (:data:`FIELD_CONFIG`)."""
-    from roguenerf.geometry.colour import ColourConfig
+    from roguenerf.enhance.colour import ColourConfig
 
     then = ColourConfig(**FIELD_CONFIG)
     return "_colourfield" + "".join(f"_{f}{getattr(config, f):g}" for f in ColourConfig.__dataclass_fields__
@@ -251,8 +251,8 @@ def near_cache_tag() -> str:
 
 def trust_cache_tag(config) -> str:
     """``_trust`` plus each of ``config``'s fields as ``_FIELDVALUE``: results measured with trust
-    on (roguenerf.geometry.trust) are cached apart from those before it, and per setting."""
-    from roguenerf.geometry.trust import TrustConfig
+    on (roguenerf.enhance.trust) are cached apart from those before it, and per setting."""
+    from roguenerf.enhance.trust import TrustConfig
 
     return "_trust" + "".join(f"_{f}{getattr(config, f):g}" for f in TrustConfig.__dataclass_fields__)
 
@@ -262,8 +262,8 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
     from roguenerf.checkpoint import load_checkpoint
     from roguenerf.data.readers import load_scene
     from roguenerf.enhance import EnhanceOptions
-    from roguenerf.geometry.colour import ColourConfig
-    from roguenerf.geometry.trust import TrustConfig
+    from roguenerf.enhance.colour import ColourConfig
+    from roguenerf.enhance.trust import TrustConfig
     from roguenerf.training import TrainConfig, evaluate, finetune
 
     photos = downscaled_photo_set(args.data / name, args.runs / "photos" / f"{name}_s{args.scale}", args.scale)

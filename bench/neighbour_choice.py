@@ -53,7 +53,7 @@ def _agreement(scene, enhancer, target: _Target, position: int) -> float:
     """Mean |block mean of the reprojected neighbour photo - block mean of the render| (8x8
     blocks, valid pixels only): low where the neighbour's photo, warped by the rendered depth,
     looks like the render. Needs no photo of the target."""
-    from roguenerf.geometry import reproject
+    from roguenerf.reprojection import reproject
 
     i = enhancer.train[position]
     render = target.render

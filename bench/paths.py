@@ -237,7 +237,7 @@ def main() -> None:
                              "setting FIELD=VALUE[:FIELD=VALUE] of ColourConfig (bench.colour's --configs)")
     parser.add_argument("--trust", choices=["on", "off"], default="on",
                         help="keep only part of the enhancer's change where the neighbours mostly disagree "
-                             "(roguenerf.geometry.trust; default on, as shipped)")
+                             "(roguenerf.enhance.trust; default on, as shipped)")
     parser.add_argument("--force", action="store_true", help=(
         "enhance a path that enhance_path's check refuses (a field whose novel views are floaters fails it "
         "whatever the path): the problem is kept as a warning in the JSON"))

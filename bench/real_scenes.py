@@ -80,7 +80,7 @@ def parse_args(argv=None):
                    help="colour matching to the neighbour photos at inference (default on, as shipped)")
     p.add_argument("--trust", choices=["on", "off"], default="on",
                    help="keep only part of the enhancer's change where the neighbours mostly disagree "
-                        "(roguenerf.geometry.trust; default on, as shipped)")
+                        "(roguenerf.enhance.trust; default on, as shipped)")
     p.add_argument("--plans", type=lambda t: [x for x in t.split(",") if x], default=["default"],
                    help=f"comma-separated fine-tuning plans: {', '.join(PLANS)}")
     p.add_argument("--replot", type=Path, nargs="+", default=None, metavar="CSV",

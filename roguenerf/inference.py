@@ -38,7 +38,7 @@ PROBE_PIXELS = 128 * 128
 NO_NEIGHBOUR_NOTE = "no neighbour sees this view: enhanced without neighbours"
 
 ALIGN_SIDE = 512
-"""Pose refinement (:mod:`roguenerf.geometry.align`) works on copies of the neighbour photos and
+"""Pose refinement (:mod:`roguenerf.enhance.align`) works on copies of the neighbour photos and
 depths no larger than this (long side), the last :data:`ALIGN_CACHE` of them cached (about 3 MB
 a photo)."""
 
@@ -58,21 +58,21 @@ class EnhanceResult:
     """Why the result differs from the usual path, e.g. no neighbour sees the view."""
     aligned: list[bool] | None = None
     """Per neighbour (as ``neighbours``): whether its pose was refined for this view
-    (:mod:`roguenerf.geometry.align`); None when pose refinement is off."""
+    (:mod:`roguenerf.enhance.align`); None when pose refinement is off."""
     colour_offset: list[float] | None = None
-    """The view's RGB offset to the agreeing neighbours' colour (:mod:`roguenerf.geometry.colour`;
+    """The view's RGB offset to the agreeing neighbours' colour (:mod:`roguenerf.enhance.colour`;
     what was added varies smoothly around it across the image); None where nothing was added
     (colour matching off, fewer than two neighbours, or too few pixels where they agree)."""
     agreement: float | None = None
     """Share of the view's pixels where two or more neighbours agree
-    (:func:`~roguenerf.geometry.colour.neighbour_agreement`, measured on the small copies of
+    (:func:`~roguenerf.enhance.colour.neighbour_agreement`, measured on the small copies of
     colour matching); None where not measured (colour matching and trust both off, or fewer than
     two neighbours)."""
     agreement_map: Tensor | None = None
     """Where two or more neighbours agree, ``(1, h, w)`` bool on the small copy that gave
     ``agreement`` (its mean); None where ``agreement`` is."""
     trust: float | None = None
-    """Share of the enhancer's change that was kept (:mod:`roguenerf.geometry.trust`): 1 where the
+    """Share of the enhancer's change that was kept (:mod:`roguenerf.enhance.trust`): 1 where the
     neighbours agree on enough of the view, less where they mostly disagree (the mean over the
     image where it was set per pixel: agreement under ``TrustConfig.local_below``); None where
     trust is off or fewer than two neighbours were used (nothing to compare)."""
@@ -218,7 +218,7 @@ class SceneEnhancer:
         """Photo ``(3, h, w)``, depth ``(1, h, w)`` and K of a training position, no larger than
         :data:`ALIGN_SIDE`, and the fit's cache of its levels (all cached): what the pose
         refinement reads."""
-        from roguenerf.geometry.align import shrink
+        from roguenerf.enhance.align import shrink
 
         with self._lock:
             if position not in self._small:
@@ -235,7 +235,7 @@ class SceneEnhancer:
         """``(N, 4, 4)`` float64 poses of the neighbours at training ``positions`` for this view:
         refined against the render where :attr:`align` is on and the fit is accepted, else the
         dataset's; and, per neighbour, whether it was refined."""
-        from roguenerf.geometry.align import align_neighbour, shrink
+        from roguenerf.enhance.align import align_neighbour, shrink
 
         poses = self.train_poses[positions].clone()
         if self.align is None:
@@ -254,8 +254,8 @@ class SceneEnhancer:
         """Per-tile neighbours for photos too large to cache: for each tile, each neighbour's
         features are computed on just the part of its photo the tile projects into (plus the
         bilinear and conv_H margins), which gives the same values as the whole photo's."""
-        from roguenerf.geometry import reproject, sampling_source
         from roguenerf.models import NeighbourBatch
+        from roguenerf.reprojection import reproject, sampling_source
 
         photos = [self.scene.photo(self.train[p]).to(self.device, torch.float32) for p in positions]
         depths = [self._depth(p) for p in positions]
@@ -412,8 +412,8 @@ class SceneEnhancer:
         image = out[0].clamp(0, 1).to("cpu", torch.float32)
         state = None
         if self.stages and len(chosen) >= 2:
+            from roguenerf.enhance.colour import neighbour_agreement
             from roguenerf.enhance.stages import ViewState
-            from roguenerf.geometry.colour import neighbour_agreement
 
             seen, small_image = self._small_seen(positions, image, depth, K, world_from_cam, n_pose)
             agreement = neighbour_agreement(seen, small_image.shape[-2:], *self._agreement_test)
@@ -435,11 +435,11 @@ class SceneEnhancer:
     def colour_match(self, positions: list[int], image: Tensor, depth: Tensor, K: Tensor,
                      world_from_cam: Tensor, poses: Tensor):
         """How far ``image`` (an enhanced view) is from the colour of the neighbours at training
-        ``positions`` seen from ``poses`` (:func:`~roguenerf.geometry.colour.colour_match`), on
+        ``positions`` seen from ``poses`` (:func:`~roguenerf.enhance.colour.colour_match`), on
         copies no larger than :data:`ALIGN_SIDE` (the neighbours' are the pose fit's): a
-        :class:`~roguenerf.geometry.colour.ColourMatch` whose field is at the small copy's size;
+        :class:`~roguenerf.enhance.colour.ColourMatch` whose field is at the small copy's size;
         None where there is no agreement to match, or colour matching is off."""
-        from roguenerf.geometry.colour import colour_match
+        from roguenerf.enhance.colour import colour_match
 
         if self.colour is None:
             return None
@@ -451,8 +451,8 @@ class SceneEnhancer:
         """The neighbours at training ``positions`` (seen from ``poses``) reprojected into the
         view's copy no larger than :data:`ALIGN_SIDE`, as ``(colour, valid)`` pairs, and
         ``image``'s copy at that size."""
-        from roguenerf.geometry import reproject
-        from roguenerf.geometry.align import shrink
+        from roguenerf.enhance.align import shrink
+        from roguenerf.reprojection import reproject
 
         small, small_depth, small_K = shrink(image, depth, K, ALIGN_SIDE)
         leniency = getattr(self.model.config, "leniency", 0.25)
@@ -469,7 +469,7 @@ class SceneEnhancer:
     def _any_neighbour_sees(self, positions: list[int], depth_b: Tensor, K_b: Tensor, pose_b: Tensor) -> bool:
         """Whether any target pixel passes the reprojection test in any neighbour, checked on a
         regular subsample of about :data:`PROBE_PIXELS` target pixels (cheap at any size)."""
-        from roguenerf.geometry import reproject
+        from roguenerf.reprojection import reproject
 
         h, w = depth_b.shape[-2:]
         step = max(1, int((h * w / PROBE_PIXELS) ** 0.5))

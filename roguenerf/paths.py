@@ -11,7 +11,7 @@ encodes ``enhanced.mp4`` and ``side_by_side.mp4`` (render | enhanced, each half 
 frame by frame.
 
 **Flicker** (:func:`pair_flicker`): for consecutive frames t, t+1, frame t is reprojected into
-t+1 with t+1's depth, t's depth (visibility) and both poses (:func:`~roguenerf.geometry.reproject`,
+t+1 with t+1's depth, t's depth (visibility) and both poses (:func:`~roguenerf.reprojection.reproject`,
 with its validity mask); the figure is the mean absolute RGB difference over the valid pixels.
 The same mask is used for the renders, the enhanced frames and, where both frames coincide with
 views that have photos, the photos. Memory is bounded: two frames are held at a time.
@@ -370,7 +370,7 @@ def pair_flicker(images_t: list[Tensor | None], images_t1: list[Tensor | None], 
     Returns:
         ``(errors, valid_fraction)``; an error is None when its images are missing or no pixel is valid.
     """
-    from roguenerf.geometry import reproject
+    from roguenerf.reprojection import reproject
 
     present = [i for i, (a, b) in enumerate(zip(images_t, images_t1)) if a is not None and b is not None]
     out: list[float | None] = [None] * len(images_t)

@@ -1,4 +1,4 @@
-"""Neighbour pose refinement (roguenerf.geometry.align) on the toy world's exact geometry."""
+"""Neighbour pose refinement (roguenerf.enhance.align) on the toy world's exact geometry."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import torch
 from kornia.filters import gaussian_blur2d
 
 from roguenerf.data.toy import make_toy_scene, make_toy_world, render_toy_view, toy_camera_path, toy_intrinsics
+from roguenerf.enhance.align import AlignConfig, align_neighbour, shrink
 from roguenerf.errors import InputError
-from roguenerf.geometry import reproject
-from roguenerf.geometry.align import AlignConfig, align_neighbour, shrink
 from roguenerf.geometry.noise import perturb_poses
+from roguenerf.reprojection import reproject
 
 H, W = 96, 128
 

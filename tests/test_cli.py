@@ -77,7 +77,7 @@ def test_evaluate_reports_trust_and_no_trust_keeps_the_whole_change(scene_dir, c
     """Per view, the neighbours' agreement and the share of the change kept (as the library's
     SceneEnhancer gives them); with --no-trust the whole change is kept."""
     from roguenerf.data.readers import load_scene
-    from roguenerf.geometry.trust import TrustConfig, trust_factor
+    from roguenerf.enhance.trust import TrustConfig, trust_factor
 
     on = json.loads(_run("evaluate", scene_dir, "--checkpoint", checkpoint, "--json").stdout)
     off = json.loads(_run("evaluate", scene_dir, "--checkpoint", checkpoint, "--json", "--no-trust").stdout)

@@ -1,4 +1,4 @@
-"""Colour matching to the neighbour photos (roguenerf.geometry.colour) on known answers and the
+"""Colour matching to the neighbour photos (roguenerf.enhance.colour) on known answers and the
 toy world's exact geometry."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from roguenerf.data.toy import make_toy_scene
+from roguenerf.enhance.colour import ColourConfig, colour_match, colour_offset
 from roguenerf.errors import InputError
-from roguenerf.geometry.colour import ColourConfig, colour_match, colour_offset
 
 SHIFT = torch.tensor([0.02, -0.01, 0.03])
 

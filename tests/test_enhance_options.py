@@ -11,10 +11,10 @@ import torch
 
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.enhance import EnhanceOptions, NeighbourRule
+from roguenerf.enhance.align import AlignConfig
+from roguenerf.enhance.colour import ColourConfig
+from roguenerf.enhance.trust import TrustConfig
 from roguenerf.errors import InputError
-from roguenerf.geometry.align import AlignConfig
-from roguenerf.geometry.colour import ColourConfig
-from roguenerf.geometry.trust import TrustConfig
 
 
 def test_the_defaults_are_every_stage_on_and_the_models_count_plus_a_near_one():

@@ -14,10 +14,10 @@ import torch
 import torch.nn.functional as F
 
 from roguenerf.fastpath import fast_enabled, reference_mode
-from roguenerf.geometry import reproject, sampling_source
 from roguenerf.geometry.sampling import bilinear_sample
 from roguenerf.models import NeighbourBatch, build_enhancer, fastops
 from roguenerf.models.flow import FlowRefiner, flow_warp
+from roguenerf.reprojection import reproject, sampling_source
 from tests.model_helpers import make_views, randomise
 
 TOL = 2e-4

@@ -1,4 +1,4 @@
-"""Trusting the neighbours by their agreement (roguenerf.geometry.trust): known answers, and on
+"""Trusting the neighbours by their agreement (roguenerf.enhance.trust): known answers, and on
 the toy world with exact and with wrong geometry."""
 
 from __future__ import annotations
@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from roguenerf.data.toy import make_toy_scene
+from roguenerf.enhance.colour import neighbour_agreement
+from roguenerf.enhance.trust import TrustConfig, kept_change, trust_factor
 from roguenerf.errors import InputError
-from roguenerf.geometry.colour import neighbour_agreement
-from roguenerf.geometry.trust import TrustConfig, kept_change, trust_factor
 from tests.test_colour import Biased, textured
 
 
@@ -147,7 +147,7 @@ def test_the_scene_enhancer_keeps_the_change_in_proportion_to_the_agreement(tmp_
 
 
 def test_the_public_helpers_check_their_arguments_as_the_config_does():
-    from roguenerf.geometry.trust import local_keep
+    from roguenerf.enhance.trust import local_keep
 
     patch = torch.zeros(1, 12, 16, dtype=torch.bool)
     patch[..., 4:8, 6:10] = True

@@ -14,10 +14,10 @@ import math
 import operator
 from dataclasses import asdict, dataclass, field, replace
 
+from roguenerf.enhance.align import AlignConfig
+from roguenerf.enhance.colour import ColourConfig
+from roguenerf.enhance.trust import TrustConfig
 from roguenerf.errors import InputError
-from roguenerf.geometry.align import AlignConfig
-from roguenerf.geometry.colour import ColourConfig
-from roguenerf.geometry.trust import TrustConfig
 
 DEFAULT_TILE = 512
 """Images whose height or width exceed this are enhanced tile by tile (bounded memory)."""
@@ -94,11 +94,11 @@ class EnhanceOptions:
     Attributes:
         neighbours: the :class:`NeighbourRule`.
         align: refine each neighbour's pose against the render before reprojecting it
-            (:func:`~roguenerf.geometry.align.align_neighbour`); None: the dataset's poses.
+            (:func:`~roguenerf.enhance.align.align_neighbour`); None: the dataset's poses.
         colour: after the model, bring the image's low-frequency colour to the agreeing
-            neighbours' (:func:`~roguenerf.geometry.colour.colour_match`); None: off.
+            neighbours' (:func:`~roguenerf.enhance.colour.colour_match`); None: off.
         trust: keep only part of the model's change where the neighbours mostly disagree
-            (:mod:`roguenerf.geometry.trust`); None: off.
+            (:mod:`roguenerf.enhance.trust`); None: off.
         tile: images larger than this (height or width) are enhanced tile by tile.
     """
 

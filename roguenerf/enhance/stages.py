@@ -15,8 +15,8 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
-from roguenerf.geometry.colour import ColourConfig
-from roguenerf.geometry.trust import TrustConfig
+from roguenerf.enhance.colour import ColourConfig
+from roguenerf.enhance.trust import TrustConfig
 
 
 @dataclass
@@ -59,13 +59,13 @@ class Stage(Protocol):
 @dataclass(frozen=True)
 class ColourStage:
     """Match the view's low-frequency colour to the agreeing neighbours'
-    (:func:`~roguenerf.geometry.colour.colour_match`)."""
+    (:func:`~roguenerf.enhance.colour.colour_match`)."""
 
     config: ColourConfig
     name: str = "colour"
 
     def apply(self, state: ViewState) -> StageRecord:
-        from roguenerf.geometry.colour import apply_match, colour_match
+        from roguenerf.enhance.colour import apply_match, colour_match
 
         same = (self.config.sigma, self.config.max_disagreement) == state.test
         match = colour_match(state.small_image[None], state.seen, self.config,
@@ -79,13 +79,13 @@ class ColourStage:
 @dataclass(frozen=True)
 class TrustStage:
     """Keep only part of the model's change where the neighbours mostly disagree
-    (:func:`~roguenerf.geometry.trust.kept_change`)."""
+    (:func:`~roguenerf.enhance.trust.kept_change`)."""
 
     config: TrustConfig
     name: str = "trust"
 
     def apply(self, state: ViewState) -> StageRecord:
-        from roguenerf.geometry.trust import kept_change, share_kept
+        from roguenerf.enhance.trust import kept_change, share_kept
 
         keep = kept_change(state.agreement[0], state.image.shape[-2:], self.config)
         factor = share_kept(keep)
