@@ -140,4 +140,4 @@ _help_order()
 
 def main() -> None:
     """Console-script entry point (``roguenerf``; ``python -m roguecli``)."""
-    app()
+    library.run_app(app)

@@ -24,7 +24,7 @@ from roguefit.field import GridField, scene_frame, seen_by_cameras
 from roguefit.photos import PhotoSet, read_photo_set
 from roguefit.splats import SplatConfig, _SplatFitter
 from roguenerf.errors import InputError, TrainingCancelled, TrainingDivergedError
-from roguenerf.imageio import atomic_write
+from roguenerf.imageio import atomic_write, check_output_folder
 
 log = logging.getLogger("roguefit")
 
@@ -497,6 +497,11 @@ def _cross_fit(ps: PhotoSet, config: FitConfig | SplatConfig, state_dir: Path, *
     return renders, depths, accs, report
 
 
+def _is_fit(folder: Path) -> bool:
+    """An earlier make-pairs output, finished (fit.json) or interrupted (its resume state)."""
+    return (folder / FIT_FILE).is_file() or (folder / STATE_DIR).is_dir()
+
+
 def make_pairs(photos_dir: str | Path, output: str | Path, config: FitConfig | SplatConfig = FitConfig(), *,
                progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
                render_progress: Callable[[int, int], None] | None = None) -> dict:
@@ -515,6 +520,9 @@ def make_pairs(photos_dir: str | Path, output: str | Path, config: FitConfig | S
     from roguenerf.data.writers import write_scene_folder
 
     output = Path(output)
+    # A posed photo set given as its own output (or any folder of the user's) is never written into:
+    # write_scene_folder would overwrite its transforms.json and photos.
+    check_output_folder(output, _is_fit, "output")
     done = output / FIT_FILE
     if done.is_file() and (output / "transforms.json").is_file():
         try:

@@ -3,7 +3,8 @@ import-gsplat, import-3dgs, pretrain (``python -m roguenerf``). The ``roguenerf`
 (:mod:`roguecli`) builds on this app and adds ``serve`` and ``make-pairs``.
 
 Errors are one line on stderr and an exit code: 2 for bad input (missing scene, bad
-checkpoint, bad flag values), 1 for failures (divergence, cancellation, anything else).
+checkpoint, bad flag values), 130 after Ctrl-C ("interrupted"), 1 for failures (divergence,
+cancellation, anything else).
 Progress and logs go to stderr, so ``evaluate --json`` prints exactly one JSON object.
 """
 
@@ -81,6 +82,24 @@ RenderWarpOpt = Annotated[float | None, typer.Option(
                           "shift up to this size, so the training views look like novel views (default: the plan's).")]
 
 
+INTERRUPTED = 130
+"""Exit status after Ctrl-C (128 + SIGINT), as shells report it."""
+_reported = {"interrupted": False}
+"""Whether a command's error handling has said "interrupted" already (:func:`run_app`)."""
+
+
+def run_app(typer_app) -> None:
+    """Run ``typer_app``; Ctrl-C outside a command's error handling (typer exits 130 silently) gets
+    its one line too."""
+    _reported["interrupted"] = False
+    try:
+        typer_app()
+    except SystemExit as exc:
+        if exc.code == INTERRUPTED and not _reported["interrupted"]:
+            typer.echo("error: interrupted", err=True)
+        raise
+
+
 def _fail(message: str, code: int) -> None:
     typer.echo(f"error: {message}", err=True)
     raise typer.Exit(code)
@@ -101,8 +120,9 @@ def _errors():
         _fail(str(exc), 2)
     except RoGUENeRFError as exc:
         _fail(str(exc), 1)
-    except KeyboardInterrupt:
-        _fail("interrupted", 1)
+    except KeyboardInterrupt:  # Ctrl-C: the shell's status for SIGINT, one line, no traceback
+        _reported["interrupted"] = True
+        _fail("interrupted", INTERRUPTED)
     except Exception as exc:  # noqa: BLE001 - the CLI promises no stack traces
         _fail(f"{type(exc).__name__}: {exc}", 1)
 
@@ -249,6 +269,9 @@ def finetune(
                                lr_schedule=lr_schedule, evaluate=not no_eval,
                                freeze_neighbour_encoder=freeze_neighbour_encoder, render_warp=render_warp,
                                depth_noise=depth_noise)
+        from roguenerf.training.loop import check_training_output
+
+        check_training_output(output)
         scene = _load_scene(scene_dir)
         start = None if scratch else _checkpoint_path(checkpoint)
         result = run_finetune(scene, output, checkpoint=start, config=config)
@@ -318,8 +341,11 @@ def pretrain(
                 position[key] = len(dirs)
                 dirs.append(d)
             held.append(position[key])
+        from roguenerf.training.loop import TOY_FOLDER, check_training_output
+
+        check_training_output(output)  # before the toy scenes are written into it
         scenes = [_load_scene(d) for d in dirs]
-        scenes += make_toy_scenes(output / "toy", toy, seed=seed)
+        scenes += make_toy_scenes(output / TOY_FOLDER, toy, seed=seed)
         if not scenes:
             raise InputError("no scenes to pre-train on: give SCENE_DIR arguments and/or --toy N")
         if checkpoint is not None:
@@ -452,12 +478,12 @@ def enhance(
 
 def _import_command(tool: str, dataset: Path, renders: Path, output: Path, depth_type, depth_scale: float,
                     depth_units: str, dataparser_transforms, background, skip_missing: bool = False,
-                    force: bool = False, **split) -> None:
+                    force: bool = False, hold_flag: str = "--hold", **split) -> None:
     from roguenerf.data.exports import import_renders
 
     with _errors():
         if split.get("test_every") is not None and split["test_every"] < 0:
-            raise InputError(f"--test-every: expected >= 0, got {split['test_every']}")
+            raise InputError(f"{hold_flag}: expected >= 0 (0: no test views), got {split['test_every']}")
         if split.get("split_file") is not None and not split["split_file"].is_file():
             raise InputError(f"--split-file: {split['split_file']} does not exist")
         if depth_type not in (None, "z", "ray"):
@@ -473,7 +499,7 @@ def _import_command(tool: str, dataset: Path, renders: Path, output: Path, depth
                                    depth_scale=depth_scale, depth_units=depth_units,
                                    dataparser_transforms=dataparser_transforms, background=background,
                                    progress=progress, skip_missing=skip_missing, check_depth=not force,
-                                   **split)
+                                   hints={"skip_missing": "--skip-missing", "check_depth": "--force"}, **split)
         skipped = scene.meta.get("skipped_views") or []
         if skipped:
             typer.echo(f"warning: skipped {len(skipped)} views without a render or depth: {', '.join(skipped)}",
@@ -496,6 +522,8 @@ SkipMissingOpt = Annotated[bool, typer.Option("--skip-missing", help=(
 ImportForceOpt = Annotated[bool, typer.Option("--force", help=(
     "Import with the --depth-type given even when the depths of neighbouring views disagree under it "
     "and agree under the other type (checked by reprojecting a few hundred pixels)."))]
+HOLD_HELP = ("COLMAP dataset: every N-th view in name order is a test view, the split of the 3DGS and gsplat "
+             "trainers' --eval (Inria's --eval, gsplat's default --test-every 8); 0: none, every view trains.")
 DataparserOpt = Annotated[Path | None, typer.Option("--dataparser-transforms", help=(
     "The trained model's dataparser_transforms.json: kept in the scene for camera paths from nerfstudio's viewer."))]
 
@@ -535,22 +563,30 @@ def import_gsplat(
     background: BackgroundOpt = None,
     images: Annotated[str, typer.Option("--images", help=(
         "COLMAP dataset: the image folder (images_2 for gsplat's --data-factor 2)."))] = "images",
+    hold: Annotated[int | None, typer.Option("--hold", help=(
+        HOLD_HELP + " Default 8; Inria's numbered renders: their own split (test renders: 8, none: 0). A "
+        "transforms.json dataset keeps its own split unless --hold is given."))] = None,
     eval_split: Annotated[bool, typer.Option("--eval", help=(
-        "The model was trained with a held-out split: every 8th view in name order is a test view "
-        "(Inria's --eval, gsplat's default --test-every 8)."))] = False,
+        "Same as --hold 8, now the default (kept for old scripts)."))] = False,
     test_every: Annotated[int | None, typer.Option("--test-every", help=(
-        "Every N-th view in name order is a test view (0: all train). Overrides --eval."))] = None,
+        "Same as --hold N (kept for old scripts)."))] = None,
     split_file: Annotated[Path | None, typer.Option("--split-file", help=(
         'Test views by name: JSON {"train": [...], "test": [...]} or one name per line '
-        "(Inria's sparse/0/test.txt). Overrides --eval and --test-every."))] = None,
+        "(Inria's sparse/0/test.txt). Overrides --hold."))] = None,
     skip_missing: SkipMissingOpt = False,
     force: ImportForceOpt = False,
 ) -> None:
     """Turn gsplat renders + expected depth (and the dataset's poses) into a scene folder."""
+    with _errors():
+        if hold is not None and test_every is not None and hold != test_every:
+            raise InputError(f"--hold {hold} and --test-every {test_every} disagree: give one (--hold)")
+    flag = "--hold" if hold is not None else "--test-every"
+    test_every = hold if hold is not None else test_every
     if test_every is None and eval_split:
         test_every = 8
     _import_command("gsplat", dataset, renders, output, depth_type, depth_scale, "dataset", None, background,
-                    skip_missing, force, images=images, test_every=test_every, split_file=split_file)
+                    skip_missing, force, images=images, test_every=test_every, split_file=split_file,
+                    hold_flag=flag)
 
 
 @app.command("import-3dgs")
@@ -567,8 +603,8 @@ def import_3dgs_command(
         "OUTPUT/path for enhance-path. OUTPUT already holding this import: only the path is rendered."))] = None,
     backend: Annotated[str, typer.Option(
         "--backend", help="auto (gsplat with CUDA, else CPU), cpu or gsplat.")] = "auto",
-    hold: Annotated[int, typer.Option(
-        "--hold", help="COLMAP: every N-th view (name order) is a test view, as --eval; 0: none.")] = 8,
+    hold: Annotated[int, typer.Option("--hold", help=HOLD_HELP + " A transforms.json dataset keeps its own "
+                                      "split.")] = 8,
     images: Annotated[str, typer.Option(
         "--images", help="COLMAP: image folder in the dataset (images_2 for half size).")] = "images",
     dataparser_transforms: Annotated[Path | None, typer.Option("--dataparser-transforms", help=(
@@ -652,7 +688,7 @@ def enhance_path_command(
     """
     from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
     from roguenerf.inference import SceneEnhancer
-    from roguenerf.paths import FLICKER_FILE, enhance_path, read_camera_path
+    from roguenerf.paths import FLICKER_FILE, check_path_output, enhance_path, read_camera_path
 
     with _errors():
         if depth_type not in ("z", "ray"):
@@ -667,7 +703,8 @@ def enhance_path_command(
             from roguenerf.video import require_av
 
             require_av()
-        scene = _load_scene(scene_dir)
+        # The output folder and the cameras (every pose checked) first: before the scene and model load.
+        check_path_output(output)
         camera_path = read_camera_path(cameras)
         if camera_path.source == "nerfstudio":
             parser_file = dataparser_transforms or (scene_dir / DATAPARSER_FILE)
@@ -678,6 +715,7 @@ def enhance_path_command(
             else:
                 typer.echo("note: nerfstudio camera path and no dataparser_transforms.json: its poses are "
                            "taken as the scene's own", err=True)
+        scene = _load_scene(scene_dir)
         ckpt = _checkpoint_path(checkpoint)
         from roguenerf.checkpoint import load_checkpoint
 
@@ -690,7 +728,7 @@ def enhance_path_command(
                                   quality=quality, fps=fps,
                                   checkpoint_id=f"{ckpt.resolve()}:{stat.st_size}:{stat.st_mtime_ns}"
                                   + ("" if align else ":no-align") + ("" if colour else ":no-colour"),
-                                  progress=progress, force=force)
+                                  progress=progress, force=force, force_hint="--force")
         for warning in result.warnings:
             typer.echo(f"warning: {warning}", err=True)
         f, p = result.flicker["flicker"], result.flicker["psnr"]
@@ -729,7 +767,7 @@ def main() -> None:
         typer.echo(f"error: `{command}` runs {ABOVE_THE_LIBRARY[command]}, above the library: use the "
                    f"console script (`roguenerf {command}`) or `python -m roguecli {command}`", err=True)
         raise SystemExit(2)
-    app()
+    run_app(app)
 
 
 if __name__ == "__main__":

@@ -23,8 +23,8 @@ import shutil
 import stat
 import tempfile
 import zlib
-from collections.abc import Callable, Iterator
-from pathlib import Path
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
 import numpy as np
@@ -471,31 +471,51 @@ def atomic_write(path: str | os.PathLike, data: bytes, *, make_parents: bool = F
     return path
 
 
-def check_output_folder(final: Path, replaceable: Callable[[Path], bool], what: str = "output") -> None:
+def check_output_folder(final: Path, replaceable: Callable[[Path], bool], what: str = "output", *,
+                        owned: Callable[[Path], Iterable[str]] | None = None) -> None:
     """An output folder may be new, empty, or an earlier output of the same command
-    (``replaceable(final)``), which is then replaced whole; anything else is an :class:`InputError`."""
+    (``replaceable(final)``: the command's own marker), which is then replaced whole; anything else
+    is an :class:`InputError`. ``owned(final)``: the files (relative POSIX paths) that earlier output
+    wrote; a folder holding any other file is refused too, since replacing it would delete that file."""
     if not final.exists():
         return
     if not final.is_dir():
-        raise InputError(f"{what}: {final} exists and is not a folder")
-    if any(final.iterdir()) and not replaceable(final):
+        raise InputError(f"{what}: {final} exists and is not a folder; choose a new folder")
+    if not any(final.iterdir()):
+        return
+    if not replaceable(final):
         raise InputError(f"{what}: {final} exists and is not empty: it holds other files, not an earlier "
                          "output of this command (which would be replaced); choose a new folder")
+    if owned is not None:
+        foreign = foreign_files(final, owned(final))
+        if foreign:
+            more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
+            raise InputError(f"{what}: {final} is an earlier output of this command but also holds files it did "
+                             f"not write ({', '.join(foreign[:3])}{more}), which replacing it would delete; "
+                             "move them out or choose a new folder")
+
+
+def foreign_files(folder: Path, owned: Iterable[str]) -> list[str]:
+    """The files under ``folder`` (relative POSIX paths, sorted) that are not in ``owned``."""
+    owned = {str(PurePosixPath(p)) for p in owned}
+    return sorted(rel for rel in (p.relative_to(folder).as_posix() for p in folder.rglob("*")
+                                  if p.is_symlink() or not p.is_dir())
+                  if rel not in owned)
 
 
 @contextlib.contextmanager
 def atomic_folder(final: str | os.PathLike, *, replaceable: Callable[[Path], bool],
-                  what: str = "output") -> Iterator[Path]:
+                  what: str = "output", owned: Callable[[Path], Iterable[str]] | None = None) -> Iterator[Path]:
     """Build a folder in a temporary sibling (yielded) and rename it to ``final`` at the end, so a
     failure half-way leaves no half-written folder: the temporary one is removed, and an earlier
     output at ``final`` stays until the new one is complete (see :func:`check_output_folder`)."""
     final = Path(final)
-    check_output_folder(final, replaceable, what)
+    check_output_folder(final, replaceable, what, owned=owned)
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".partial", dir=final.parent))
     try:
         yield tmp
-        check_output_folder(final, replaceable, what)
+        check_output_folder(final, replaceable, what, owned=owned)
         if final.is_dir() and not any(final.iterdir()):
             final.rmdir()
         if final.exists():

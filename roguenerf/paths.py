@@ -547,6 +547,18 @@ def _depth_type_problem(scene, camera_path: CameraPath, raw_of, given: str, fram
     return depth_type_problem(check, given, "the path's depths", "its frames and the nearest training views")
 
 
+def _convention(source: str) -> tuple[str, str]:
+    """How a camera file of ``source`` format is read, and how to convert poses of the other convention."""
+    if source == "inria":
+        return ("Inria's cameras.json is read as OpenCV camera-to-world (rotation and position, as 3DGS's "
+                "train.py writes them)", "convert OpenGL poses (columns 1 and 2 negated)")
+    if source == "colmap":
+        return ("COLMAP's images.txt / images.bin is read as OpenCV world-to-camera (qvec, tvec, as COLMAP "
+                "writes them)", "convert OpenGL poses (columns 1 and 2 of camera-to-world negated)")
+    return ("camera paths and transforms-style lists are read as OpenGL (nerfstudio, Blender)",
+            "convert OpenCV poses (columns 1 and 2 negated)")
+
+
 def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: int = 4,
                       frames: int = CHECK_FRAMES, override: str = "--force (force=True)") -> PathCheck:
     """Does the path live in the scene's world? A cheap check before any enhancement.
@@ -626,6 +638,7 @@ def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: i
     enough = max(2 * MIN_SEEN, 2 * (seen.get(worst) or 0.0))
     flipped = opengl_to_opencv(camera_path.world_from_cam[worst])
     share = _seen_share(scene, train, train_depths, depths[worst], camera_path.K[worst], flipped, neighbours)
+    read_as, fix = _convention(camera_path.source)
     scaled = _rescaled_fit(scene, train, train_depths, depths[worst], camera_path.K[worst],
                            camera_path.world_from_cam[worst], neighbours, positions)
     if share is not None and share >= enough:
@@ -633,8 +646,7 @@ def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: i
         causes.insert(0, ("OpenGL vs OpenCV axes: with the y and z axes flipped this camera sees "
                           f"{100 * share:.0f}% of its pixels; " + (
                               "its pose is in the other convention (columns 1 and 2 negated)" if one else
-                              "camera paths and transforms-style lists are read as OpenGL (nerfstudio, Blender): "
-                              "convert OpenCV poses (columns 1 and 2 negated)")))
+                              f"{read_as}: {fix}")))
     elif scaled is not None and scaled[0] >= enough:
         cause = "scale"
         fit, factor, depth_too, here, typical = scaled
@@ -642,9 +654,10 @@ def check_camera_path(scene, camera_path: CameraPath, depth_of, *, neighbours: i
                           f"{factor:.3g} this camera sees {100 * fit:.0f}% of its pixels (it lies {here:.3g} from "
                           f"the world's origin, the scene's cameras about {typical:.3g}); give its pose"
                           f"{' and depth' if depth_too else ''} in the scene's units"))
+    elif camera_path.source == "inria" and not one:
+        causes.append(f"a rotation written world-to-camera (transposed) or with OpenGL axes ({read_as})")
     else:
-        causes.append("OpenGL vs OpenCV axes (" + ("the pose's convention" if one else
-                      "camera paths are read as OpenGL, as nerfstudio and Blender write them") + ")")
+        causes.append("OpenGL vs OpenCV axes (" + ("the pose's convention" if one else read_as) + ")")
         # Do the field's own renders of the scene's held-out views pass the same test? When none
         # does, the field's depth is off on every novel view (floaters), and the path may be right.
         own = _held_out_seen(scene, train, train_depths, neighbours) if not far else []
@@ -797,6 +810,20 @@ def _fingerprint(camera_path: CameraPath, pairs: list[tuple[Path, Path]], checkp
     return h.hexdigest()
 
 
+def check_path_output(output: str | Path) -> None:
+    """``enhance_path``'s output may be new, empty, or an earlier run's (its resume state): any
+    other folder is refused, since its ``frames/``, videos and flicker report would be written over
+    (and frames already there taken for enhanced ones)."""
+    output = Path(output)
+    if not output.exists():
+        return
+    if not output.is_dir():
+        raise InputError(f"output: {output} exists and is not a folder; choose a new folder")
+    if any(output.iterdir()) and not (output / STATE_FILE).is_file():
+        raise InputError(f"output: {output} exists and is not empty: it holds other files, not an earlier "
+                         "enhance-path output (which would be resumed); choose a new folder")
+
+
 def enhance_path(
     scene,
     enhancer,
@@ -814,6 +841,7 @@ def enhance_path(
     progress=None,
     should_stop=None,
     force: bool = False,
+    force_hint: str = "force=True",
 ) -> PathResult:
     """Enhance every frame of a camera path; write frames, MP4s and the flicker report.
 
@@ -839,6 +867,8 @@ def enhance_path(
         force: go on when :func:`check_camera_path` finds that the path does not fit the scene
             (its message is logged and kept in ``PathResult.warnings``); otherwise that is an
             :class:`~roguenerf.errors.CameraMismatchError`, before any frame is enhanced (:func:`check_path`).
+        force_hint: how that error tells the caller to force it (the CLI: ``--force``; the service:
+            its ``force`` field).
     """
     from roguenerf.data.exports import background_to_unknown
     from roguenerf.geometry.cameras import ray_to_z_depth
@@ -847,6 +877,7 @@ def enhance_path(
     from roguenerf.video import Mp4Writer, check_quality, require_av, side_by_side
 
     start = time.perf_counter()
+    check_path_output(output)
     if depth_type not in ("z", "ray"):
         raise InputError(f"depth_type: expected 'z' or 'ray', got {depth_type!r}")
     if not (isinstance(depth_scale, (int, float)) and math.isfinite(depth_scale) and depth_scale > 0):
@@ -875,11 +906,12 @@ def enhance_path(
         return render, depth
 
     warnings = check_path(scene, camera_path, frames, depth_type=depth_type, depth_scale=depth_scale,
-                          background=background, neighbours=max(1, enhancer.num_neighbours or 1), force=force)
+                          background=background, neighbours=max(1, enhancer.num_neighbours or 1), force=force,
+                          override=force_hint)
 
     output = Path(output)
     frame_dir = output / FRAME_FOLDER
-    frame_dir.mkdir(parents=True, exist_ok=True)
+    output.mkdir(parents=True, exist_ok=True)  # frames/ only once the state marks the folder as ours
     # The enhancer's options too (EnhanceOptions.fingerprint, with the count they resolve to for
     # this model): frames made with another neighbour rule, colour reach, trust or pose refinement
     # (a changed default after an upgrade) must not be mixed into this video.
@@ -898,6 +930,7 @@ def enhance_path(
                              "choose another output folder or delete it")
     else:
         atomic_write(state_path, json.dumps({"fingerprint": fingerprint, "frames": len(pairs)}).encode())
+    frame_dir.mkdir(exist_ok=True)
     per_pair, per_frame = [], []
     prev = None
     done_now = 0

@@ -10,7 +10,7 @@ file order (the captures are orbits and sweeps in order, so this thins them even
 renders as JPEG (``--quality``, 4:4:4), depths as float16 ``.npz``. What the compression costs
 is printed per folder: PSNR of the packed photo and render against the originals, and the
 depths' largest relative error. Runs again from scratch (the output folder of a scene is
-replaced).
+replaced when this script packed it and it holds nothing else; any other folder is refused).
 """
 
 from __future__ import annotations
@@ -36,6 +36,32 @@ def _save_jpeg(src: Path, dst: Path, quality: int) -> float:
     return _psnr(image, np.asarray(Image.open(dst).convert("RGB")))
 
 
+def check_out(out: Path) -> None:
+    """``out`` may be new, empty, or a folder this script packed holding nothing else (it is then
+    replaced); anything else (a dataset, a folder of the user's) is refused before any work."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise SystemExit(f"{out}: exists and is not a folder; choose a new --out")
+    if not any(out.iterdir()):
+        return
+    try:
+        meta = json.loads((out / "transforms.json").read_text())
+        ours = {"transforms.json", *(f[k] for f in meta["frames"] for k in ("file_path", "render_path", "depth_path"))}
+        packed = "packed_from" in meta
+    except (OSError, ValueError, KeyError, TypeError):
+        packed, ours = False, set()
+    if not packed:
+        raise SystemExit(f"{out}: exists and is not empty: it holds other files, not a folder this script packed "
+                         "(which would be replaced); choose a new --out")
+    foreign = sorted(rel for rel in (p.relative_to(out).as_posix() for p in out.rglob("*") if not p.is_dir())
+                     if rel not in ours)
+    if foreign:
+        raise SystemExit(f"{out}: a packed folder that also holds files this script did not write "
+                         f"({', '.join(foreign[:3])}), which replacing it would delete; move them out or choose "
+                         "a new --out")
+
+
 def pack(folder: Path, out: Path, every: int, quality: int) -> tuple[int, int]:
     """Pack one pair folder into ``out``; returns (views kept, bytes written)."""
     meta = json.loads((folder / "transforms.json").read_text())
@@ -46,6 +72,7 @@ def pack(folder: Path, out: Path, every: int, quality: int) -> tuple[int, int]:
         if not f.get("render_path") or not f.get("depth_path"):
             raise SystemExit(f"{folder}: view {f['file_path']} has no render or depth: not a pair folder")
     keep = sorted(train, key=lambda f: f["file_path"])[::every]
+    check_out(out)
     if out.exists():
         shutil.rmtree(out)
     for sub in ("images", "renders", "depths"):
@@ -90,11 +117,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.every < 1 or not 1 <= args.quality <= 100:
         parser.error("--every >= 1 and --quality in 1..100")
     names = [f.resolve().parent.name if (f / "fit.json").is_file() else f.resolve().name for f in args.folders]
+    outs = [args.out / (f"{name}_{folder.resolve().name}" if names.count(name) > 1 else name)
+            for folder, name in zip(args.folders, names)]
+    for out in outs:  # every output checked before any is written
+        check_out(out)
     total = 0
-    for folder, name in zip(args.folders, names):
-        if names.count(name) > 1:
-            name = f"{name}_{folder.resolve().name}"
-        total += pack(folder, args.out / name, args.every, args.quality)[1]
+    for folder, out in zip(args.folders, outs):
+        total += pack(folder, out, args.every, args.quality)[1]
     print(f"{len(args.folders)} folders, {total / 2**20:.1f} MiB in {args.out}", file=sys.stderr)
     return 0
 

@@ -54,14 +54,15 @@ def error_response(status: int, code: str, message: str, *, headers: dict | None
     return JSONResponse(error_body(code, message, **extra), status_code=status, headers=headers)
 
 
-def library_error(exc: RoGUENeRFError, *, root=None) -> ApiError:
+def library_error(exc: RoGUENeRFError, *, root=None, root_name: str = "the scene") -> ApiError:
     """Map a library error raised by user input to a 4xx (or 413 for oversized images).
 
-    ``root``: the scene folder the input came from; paths inside it are shown relative to it
-    (the message handlers below also replace anything left under the data directory)."""
+    ``root``: the uploaded folder the input came from; paths inside it are shown relative to it,
+    the folder itself as ``root_name`` (the message handlers below also replace anything left
+    under the data directory)."""
     from roguenerf.imageio import ImageTooLargeError
 
-    message = str(exc) if root is None else public_message(str(exc), root=root)
+    message = str(exc) if root is None else public_message(str(exc), root=root, root_name=root_name)
     if isinstance(exc, ImageTooLargeError):
         return ApiError(413, "image_too_large", message)
     if isinstance(exc, SceneFormatError):

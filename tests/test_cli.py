@@ -233,6 +233,34 @@ def test_finetune_bad_flags_exit_2(scene_dir, tmp_path, args, message):
     assert message in result.stderr and "Traceback" not in result.output
 
 
+def _files(folder: Path) -> dict:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+def test_training_and_make_pairs_never_write_into_a_folder_they_did_not_write(scene_dir, tmp_path):
+    """Issue 49: a dataset (or any folder of the user's) given as --output is refused before any work,
+    in one line naming it; nothing in it is written or deleted."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "transforms.json").write_text('{"frames": []}')
+    (mine / "model.safetensors").write_bytes(b"someone else's model")
+    scene_before, mine_before = _files(scene_dir), _files(mine)
+    for output in (scene_dir, mine):
+        for args in (["finetune", scene_dir, "--scratch", "--steps", "1", *FAST],
+                     ["pretrain", "--toy", "1", "--steps", "1", *FAST]):
+            result = _run(*args, "--output", output)
+            assert result.exit_code == 2, result.output
+            assert result.stderr.splitlines() == [
+                f"error: output: {output} exists and is not empty: it holds other files, not an earlier training "
+                "run (which would be resumed); choose a new folder"]
+        result = _run("make-pairs", scene_dir, "--output", output, "--steps", "1")
+        assert result.exit_code == 2, result.output
+        assert result.stderr.splitlines()[-1] == (
+            f"error: output: {output} exists and is not empty: it holds other files, not an earlier output of "
+            "this command (which would be replaced); choose a new folder")
+    assert _files(scene_dir) == scene_before and _files(mine) == mine_before
+
+
 def test_pretrain_without_scenes_exits_2(tmp_path):
     result = _run("pretrain", "--output", tmp_path / "x", "--steps", "1")
     assert result.exit_code == 2 and "no scenes" in result.stderr
@@ -243,6 +271,37 @@ def test_serve_without_the_service_is_a_clear_error(monkeypatch):
     result = _run("serve", "--port", "8123")
     assert result.exit_code == 1
     assert "roguenerf[service]" in result.stderr
+
+
+def test_serve_refuses_a_data_dir_it_did_not_make(tmp_path):
+    """Issue 49: `serve --data-dir ~` swept ~/tmp of entries older than six hours."""
+    from workers.layout import Layout
+
+    home = tmp_path / "home"
+    (home / "tmp").mkdir(parents=True)
+    (home / "tmp" / "old.txt").write_text("mine")
+    os.utime(home / "tmp" / "old.txt", (0, 0))  # 1970: "stale" to the sweep
+    (home / "notes.txt").write_text("mine")
+    from roguenerf.errors import InputError
+
+    with pytest.raises(InputError, match="not a RoGUENeRF data directory"):
+        Layout(home).ensure()  # the API's and the workers' start-up
+    result = _run("serve", "--data-dir", home, "--port", "8124")
+    assert result.exit_code == 2, result.output
+    assert result.stderr.splitlines()[-1] == (
+        f"error: data directory {home} exists and is not empty: it holds other files, not a RoGUENeRF data "
+        "directory (whose tmp/ is swept and whose scenes/ and jobs/ are removed as jobs end); choose a new "
+        "folder (--data-dir)")
+    assert sorted(p.relative_to(home).as_posix() for p in home.rglob("*")) == ["notes.txt", "tmp", "tmp/old.txt"]
+    # Ours: new, or made by an older version (scenes/ jobs/ tmp/, no marker): the marker is added.
+    Layout(tmp_path / "new").ensure()
+    old = tmp_path / "old"
+    for sub in ("scenes", "jobs", "tmp"):
+        (old / sub).mkdir(parents=True)
+    (old / "roguenerf.db").write_bytes(b"")
+    Layout(old).ensure()
+    assert (tmp_path / "new" / ".roguenerf-data").is_file() and (old / ".roguenerf-data").is_file()
+    assert Layout(old).sweep_stale_temp(1.0) == []
 
 
 def test_console_entry_point_runs_as_a_module(tmp_path):
@@ -523,3 +582,24 @@ def test_a_view_with_unusable_depth_is_loaded_with_a_warning_naming_it(scene_dir
     assert f"{frame.name} (train): depth has no usable values (all zeros" in result.stderr
     clean = _run("evaluate", scene_dir, "--checkpoint", checkpoint)
     assert "warning" not in clean.stderr
+
+
+INTERRUPT_PROBE = """
+import _thread, sys, threading
+from roguecli import main
+threading.Timer(float(sys.argv[1]), _thread.interrupt_main).start()  # what Ctrl-C does
+sys.argv = ["roguenerf", *sys.argv[2:]]
+main()
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("after", [0.3, 6.0])  # in the start-up (before the error handling), training
+def test_ctrl_c_exits_130_with_one_line(scene_dir, tmp_path, after):
+    """Issue 49: Ctrl-C gave exit status 1 (in a command) or a silent 130 (before it)."""
+    proc = subprocess.run([sys.executable, "-c", INTERRUPT_PROBE, str(after), "finetune", str(scene_dir), "--scratch",
+                           "--minutes", "5", "--output", str(tmp_path / "out"), "--no-eval", *FAST],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == "error: interrupted"
+    assert proc.stderr.count("error: interrupted") == 1 and "Traceback" not in proc.stderr

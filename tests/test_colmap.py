@@ -258,11 +258,23 @@ def test_import_gsplat_reads_a_colmap_dataset(toy, tmp_path):
         assert (f.world_from_cam - want.world_from_cam).abs().max() < 1e-9
         assert (f.K - want.K).abs().max() < 1e-9
         assert torch.equal(scene.depth(f.name), toy.depth(f.name))
-    # Without --eval every view trains; --test-every and --split-file override.
+    # Issue 49: without a flag, the same split (import-3dgs's default too); --hold 0: every view
+    # trains; --hold N / --test-every N and --split-file override.
     r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "renders", "--output",
-             tmp_path / "all")
+             tmp_path / "default")
+    assert r.exit_code == 0, r.output
+    assert [f.name for f in load_scene(tmp_path / "default").frames if f.split == "test"] == [names[0], names[8]]
+    r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "renders", "--output",
+             tmp_path / "all", "--hold", "0")
     assert r.exit_code == 0, r.output
     assert {f.split for f in load_scene(tmp_path / "all").frames} == {"train"}
+    r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "renders", "--output",
+             tmp_path / "h3", "--hold", "3")
+    assert r.exit_code == 0, r.output
+    assert [f.name for f in load_scene(tmp_path / "h3").frames if f.split == "test"] == names[::3]
+    r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "renders", "--output",
+             tmp_path / "neg", "--hold", "-1")
+    assert r.exit_code == 2 and r.output.strip() == "error: --hold: expected >= 0 (0: no test views), got -1"
     r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "renders", "--output",
              tmp_path / "t3", "--test-every", "3")
     assert r.exit_code == 0, r.output
@@ -284,8 +296,8 @@ def _inria_render(toy, model_dir, *, test_every, depth):
     """What Inria's render.py writes: MODEL/<split>/ours_30000/renders/00000.png (+ gt/), the
     i-th camera of the split in name order; ``depth``: also a depth/ folder (as forks add)."""
     names = sorted(f.name for f in toy.frames)
-    for split in ("train", "test"):
-        views = [n for i, n in enumerate(names) if (i % test_every == 0) == (split == "test")]
+    for split in ("train", "test") if test_every else ("train",):  # 0: trained without --eval
+        views = [n for i, n in enumerate(names) if (bool(test_every) and i % test_every == 0) == (split == "test")]
         base = model_dir / split / "ours_30000"
         (base / "renders").mkdir(parents=True)
         (base / "gt").mkdir()
@@ -298,7 +310,7 @@ def _inria_render(toy, model_dir, *, test_every, depth):
             if depth:
                 np.save(base / "depth" / f"{i:05d}.npy", toy.depth(name)[0].numpy())
     # An older iteration that must not be used.
-    (model_dir / "test" / "ours_7000" / "renders").mkdir(parents=True)
+    (model_dir / ("test" if test_every else "train") / "ours_7000" / "renders").mkdir(parents=True)
 
 
 def test_inria_numbered_renders_map_to_views_in_name_order(toy, tmp_path):
@@ -321,7 +333,13 @@ def test_inria_numbered_renders_map_to_views_in_name_order(toy, tmp_path):
     r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "model", "--output",
              tmp_path / "o2", "--test-every", "3")
     assert r.exit_code == 2 and "renders, but the dataset has" in r.output
-    assert "--test-every 8" in r.output
+    assert "--hold 8" in r.output
+    # Renders of a model trained without --eval (no test renders): all train, with no flag.
+    _inria_render(toy, tmp_path / "all_train", test_every=0, depth=True)
+    r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "all_train", "--output",
+             tmp_path / "o3")
+    assert r.exit_code == 0, r.output
+    assert {f.split for f in load_scene(tmp_path / "o3").frames} == {"train"}
 
 
 def test_renders_without_depth_point_to_import_3dgs(toy, tmp_path):
@@ -501,3 +519,13 @@ def test_write_colmap_refuses_what_it_cannot_represent(tmp_path, binary):
     data = read_colmap(tmp_path / "good", check_files=False)
     assert torch.equal(data.world_from_cam, torch.eye(4, dtype=torch.float64).repeat(2, 1, 1))
     assert data.widths == [32, 32] and data.heights == [24, 24]
+
+
+def test_import_3dgs_and_import_gsplat_state_one_default_split():
+    """Issue 49: import-3dgs held out every 8th view by default and import-gsplat none."""
+    same = ("COLMAP dataset: every N-th view in name order is a test view, the split of the 3DGS and gsplat "
+            "trainers' --eval (Inria's --eval, gsplat's default --test-every 8); 0: none, every view trains.")
+    gsplat = " ".join(_run("import-gsplat", "--help").output.split())
+    splats = " ".join(_run("import-3dgs", "--help").output.split())
+    assert same in gsplat and same in splats
+    assert "Default 8;" in gsplat and "[default: 8]" in splats

@@ -221,13 +221,15 @@ def test_a_missing_depth_file_is_refused_with_its_name(ours, tmp_path):
     missing = tmp_path / "renders" / gone.split / "raw-depth" / f"{gone.name}.npy.gz"
     missing.unlink()
     expected = rf"1 of 5 views .*lack a file: missing {gone.name}: {re.escape(str(missing))}"
-    with pytest.raises(InputError, match=expected):
+    with pytest.raises(InputError, match=expected + r"\. Render them, or pass skip_missing=True to import"):
         import_renders(tmp_path / "ds", tmp_path / "renders", tmp_path / "out")
     assert not (tmp_path / "out").exists()
     args = ["import-nerfstudio", str(tmp_path / "ds"), "--renders", str(tmp_path / "renders"),
             "--output", str(tmp_path / "cli")]
     refused = CliRunner().invoke(app, args)
-    assert refused.exit_code == 2 and f"{gone.name}.npy.gz" in refused.output and "--skip-missing" in refused.output
+    assert refused.exit_code == 2 and f"{gone.name}.npy.gz" in refused.output
+    assert "Render them, or pass --skip-missing to import" in refused.output  # the flag, not the keyword
+    assert "skip_missing=True" not in refused.output
     assert not (tmp_path / "cli").exists()
     # --skip-missing imports the others and says which it skipped.
     done = CliRunner().invoke(app, [*args, "--skip-missing"])
@@ -265,6 +267,38 @@ def test_a_failed_import_leaves_no_folder_and_keeps_an_earlier_import(ours, tmp_
     assert (tmp_path / "other" / "notes.txt").read_text() == "mine"
 
 
+def test_an_import_never_replaces_a_dataset_or_deletes_a_file_it_did_not_write(ours, tmp_path):
+    """Issue 49: a dataset given as --output (a transforms.json of its own) is refused; an earlier
+    import is replaced, but not when it holds a file the import did not write."""
+    from typer.testing import CliRunner
+
+    from roguenerf.cli import app
+
+    _nerfstudio_dataset(tmp_path / "ds", ours)
+    _ns_render(tmp_path / "renders", ours)
+
+    def tree(folder):
+        return {p.relative_to(folder).as_posix(): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+    args = ["import-nerfstudio", str(tmp_path / "ds"), "--renders", str(tmp_path / "renders"), "--output"]
+    before = tree(tmp_path / "ds")
+    refused = CliRunner().invoke(app, [*args, str(tmp_path / "ds")])
+    assert refused.exit_code == 2 and refused.output.strip().splitlines() == [
+        f"error: output: {tmp_path / 'ds'} exists and is not empty: it holds other files, not an earlier output "
+        "of this command (which would be replaced); choose a new folder"]
+    assert tree(tmp_path / "ds") == before
+    out = tmp_path / "out"
+    assert CliRunner().invoke(app, [*args, str(out)]).exit_code == 0
+    assert CliRunner().invoke(app, [*args, str(out)]).exit_code == 0  # an earlier import: replaced
+    (out / "depths" / "mine.npy").write_bytes(b"mine")
+    before = tree(out)
+    refused = CliRunner().invoke(app, [*args, str(out)])
+    assert refused.exit_code == 2 and refused.output.strip().splitlines() == [
+        f"error: output: {out} is an earlier output of this command but also holds files it did not write "
+        "(depths/mine.npy), which replacing it would delete; move them out or choose a new folder"]
+    assert tree(out) == before
+
+
 @pytest.mark.parametrize("stored, given", [("z", "ray"), ("ray", "z")])
 def test_a_depth_type_that_disagrees_with_the_scene_is_found_by_multi_view_consistency(ours, tmp_path, stored,
                                                                                         given):
@@ -290,6 +324,7 @@ def test_a_depth_type_that_disagrees_with_the_scene_is_found_by_multi_view_consi
             str(tmp_path / "cli"), "--depth-type"]
     refused = CliRunner().invoke(app, [*args, given])
     assert refused.exit_code == 2 and f"--depth-type {stored}" in refused.output
+    assert refused.output.strip().endswith("to import them as given anyway: --force")
     assert CliRunner().invoke(app, [*args, stored]).exit_code == 0
     scene = load_scene(tmp_path / "cli")
     torch.testing.assert_close(scene.depth(0), ours.depth(0), rtol=2e-6, atol=1e-6)

@@ -437,3 +437,20 @@ def test_real_divergence_is_called_divergence(tmp_path, monkeypatch):
     with pytest.raises(TrainingDivergedError, match="non-finite training loss"):
         make_pairs(root, tmp_path / "out", dataclasses.replace(SMALL, steps=3))
     assert not (tmp_path / "out" / "transforms.json").exists()
+
+
+def test_make_pairs_never_writes_into_a_folder_it_did_not_write(tmp_path):
+    """Issue 49: the photo set itself (or any folder of the user's) as the output is refused before any
+    work; write_scene_folder would overwrite its transforms.json and photos."""
+    root = tmp_path / "photos"
+    write_photo_set(root, views=5)
+    before = {p: p.read_bytes() for p in root.rglob("*") if p.is_file()}
+    for output in (root, tmp_path / "mine"):
+        output.mkdir(exist_ok=True)
+        (output / "notes.txt").write_text("mine")
+        before[output / "notes.txt"] = b"mine"
+        with pytest.raises(InputError, match=rf"^output: {output} exists and is not empty: it holds other files, "
+                                             r"not an earlier output of this command .*; choose a new folder$"):
+            make_pairs(root, output, dataclasses.replace(SMALL, steps=3))
+    assert {p: p.read_bytes() for p in before} == before
+    assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == ["notes.txt"]

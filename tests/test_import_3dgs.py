@@ -379,3 +379,117 @@ def test_a_model_folder_is_checked(splat_data, tmp_path):
     result = runner.invoke(app, ["import-3dgs", str(root / "data"), "--output", str(tmp_path / "o3")])
     assert result.exit_code == 2 and "--ply point_cloud.ply or --model MODEL" in result.output
     assert not [p for p in tmp_path.iterdir() if p.name.startswith((".o", "o1", "o2", "o3"))]
+
+
+def _tree(folder) -> dict:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_import_3dgs_never_replaces_a_folder_it_did_not_write(splat_data, tmp_path):
+    """Issue 49: a nerfstudio dataset (a transforms.json, photos, notes) given as --output by mistake
+    is refused whole, not taken for an earlier output and deleted."""
+    root, _, _, _ = splat_data
+    ply = str(root / "point_cloud.ply")
+    mine = tmp_path / "mydataset"
+    (mine / "images").mkdir(parents=True)
+    (mine / "images" / "photo.png").write_bytes(b"my photo")
+    (mine / "transforms.json").write_text('{"frames": []}')
+    (mine / "notes.txt").write_text("notes")
+    before = _tree(mine)
+    result = runner.invoke(app, ["import-3dgs", str(root / "data"), "--ply", ply, "--output", str(mine),
+                                 "--backend", "cpu"])
+    assert result.exit_code == 2, result.output
+    assert result.output.strip().splitlines() == [
+        f"error: output: {mine} exists and is not empty: it holds other files, not an earlier output of this "
+        "command (which would be replaced); choose a new folder"]
+    assert _tree(mine) == before and not list(tmp_path.glob(".mydataset.*"))
+    # A folder holding only a camera path file is no earlier output either (it used to be taken for one).
+    (tmp_path / "cams").mkdir()
+    (tmp_path / "cams" / "camera_path.json").write_text("{}")
+    result = runner.invoke(app, ["import-3dgs", str(root / "data"), "--ply", ply, "--output",
+                                 str(tmp_path / "cams"), "--backend", "cpu"])
+    assert result.exit_code == 2 and "choose a new folder" in result.output
+    assert (tmp_path / "cams" / "camera_path.json").read_text() == "{}"
+
+
+def test_import_3dgs_replaces_its_own_output_but_never_a_file_it_did_not_write(splat_data, tmp_path):
+    root, _, _, K = splat_data
+    path_poses, _ = cameras(3)
+    path = tmp_path / "path.json"
+    path.write_text(json.dumps({"fl_x": 40.0, "fl_y": 40.0, "cx": W / 2, "cy": H / 2, "w": W, "h": H,
+                                "frames": [{"transform_matrix": opencv_to_opengl(p).tolist()} for p in path_poses]}))
+    out = tmp_path / "scene"
+    args = ["import-3dgs", str(root / "data"), "--ply", str(root / "point_cloud.ply"), "--output", str(out),
+            "--path", str(path), "--backend", "cpu"]
+    assert runner.invoke(app, args).exit_code == 0
+    assert json.loads((out / "path" / "transforms.json").read_text())["source"]["tool"] == "3dgs"
+    (out / "renders" / "view_00.png").write_bytes(b"stale")
+    again = runner.invoke(app, args)  # an earlier output of import-3dgs: replaced whole
+    assert again.exit_code == 0, again.output
+    assert (out / "renders" / "view_00.png").read_bytes() != b"stale"
+    for extra in ("notes.txt", "images/extra.png", "path/rgb/mine.png"):
+        (out / extra).write_text("mine")
+        before = _tree(out)
+        refused = runner.invoke(app, args)
+        assert refused.exit_code == 2, refused.output
+        assert refused.output.strip().splitlines() == [
+            f"error: output: {out} is an earlier output of this command but also holds files it did not write "
+            f"({extra}), which replacing it would delete; move them out or choose a new folder"]
+        assert _tree(out) == before
+        (out / extra).unlink()
+
+
+def test_render_camera_path_never_replaces_a_folder_it_did_not_write(splat_data, tmp_path):
+    from roguenerf.errors import InputError
+    from roguenerf.splats.importer import import_3dgs, render_camera_path
+
+    root, _, _, _ = splat_data
+    path_poses, _ = cameras(3)
+    path = tmp_path / "path.json"
+    path.write_text(json.dumps({"fl_x": 40.0, "fl_y": 40.0, "cx": W / 2, "cy": H / 2, "w": W, "h": H,
+                                "frames": [{"transform_matrix": opencv_to_opengl(p).tolist()} for p in path_poses]}))
+    ply = root / "point_cloud.ply"
+    dataset = tmp_path / "dataset"  # a nerfstudio dataset: its transforms.json is not a rendered path
+    dataset.mkdir()
+    (dataset / "transforms.json").write_text((root / "data" / "transforms.json").read_text())
+    (dataset / "photo.png").write_bytes(b"photo")
+    before = _tree(dataset)
+    with pytest.raises(InputError, match=rf"^path output: {dataset} exists and is not empty: .* choose a new folder$"):
+        render_camera_path(ply, path, dataset, backend="cpu")
+    assert _tree(dataset) == before
+    out = tmp_path / "frames"
+    render_camera_path(ply, path, out, backend="cpu")
+    render_camera_path(ply, path, out, backend="cpu")  # its own earlier output: replaced
+    assert sorted(_tree(out)) == ["depth/00000.npy", "depth/00001.npy", "depth/00002.npy", "rgb/00000.png",
+                                  "rgb/00001.png", "rgb/00002.png", "transforms.json"]
+    (out / "depth" / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match=r"did not write \(depth/notes.txt\)"):
+        render_camera_path(ply, path, out, backend="cpu")
+    assert (out / "depth" / "notes.txt").read_text() == "mine"
+    # A rendered path is no scene folder, and a scene folder no rendered path: each refused as foreign.
+    (out / "depth" / "notes.txt").unlink()
+    with pytest.raises(InputError, match="not an earlier output of this command"):
+        import_3dgs(root / "data", ply, out, backend="cpu")
+    scene = tmp_path / "scene"
+    import_3dgs(root / "data", ply, scene, backend="cpu")
+    with pytest.raises(InputError, match="not an earlier output of this command"):
+        render_camera_path(ply, path, scene, backend="cpu")
+
+
+def test_a_missing_images_folder_is_named_with_the_ones_there(splat_data, tmp_path):
+    """Issue 49: --images images_4 where there is no such folder used to say "pass --images"."""
+    root, _, poses, K = splat_data
+    data = tmp_path / "colmap"
+    names = [f"view_{i:02d}.png" for i in range(VIEWS)]
+    for folder in ("images", "images_2"):
+        (data / folder).mkdir(parents=True)
+        for name in names:
+            (data / folder / name).write_bytes((root / "data" / "images" / name).read_bytes())
+    write_colmap(data / "sparse" / "0", names=names, K=K, world_from_cam=poses, widths=W, heights=H)
+    result = runner.invoke(app, ["import-3dgs", str(data), "--ply", str(root / "point_cloud.ply"), "--output",
+                                 str(tmp_path / "out"), "--backend", "cpu", "--images", "images_4"])
+    assert result.exit_code == 2
+    assert result.output.strip().splitlines() == [
+        f"error: {data / 'images_4'}: image folder not found (--images images_4); image folders in {data}: "
+        "images, images_2: pass one with --images"]
+    assert not (tmp_path / "out").exists()

@@ -42,3 +42,27 @@ def test_packed_folder_loads_with_every_second_training_view(tmp_path):
         assert torch.all((depth[valid] - original[valid]).abs() <= 1e-3 * original[valid])  # float16
     meta = json.loads((tmp_path / "packed" / "toy" / "transforms.json").read_text())
     assert meta["packed_from"]["every"] == 2 and meta["packed_from"]["jpeg_quality"] == 90
+
+
+def test_pack_never_deletes_a_folder_it_did_not_pack(tmp_path):
+    """Issue 49: the output of a scene used to be removed whatever it held (shutil.rmtree)."""
+    import pytest
+
+    make_toy_scene(tmp_path / "toy", seed=4, n_train=3, n_test=1, height=16, width=20)
+    pack = _pack_module()
+    args = [str(tmp_path / "toy"), "--out", str(tmp_path / "packed")]
+    mine = tmp_path / "packed" / "toy"  # e.g. the user's own dataset of that name
+    mine.mkdir(parents=True)
+    (mine / "transforms.json").write_text('{"frames": []}')
+    (mine / "notes.txt").write_text("mine")
+    with pytest.raises(SystemExit, match=rf"^{mine}: exists and is not empty: .* choose a new --out$"):
+        pack.main(args)
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt", "transforms.json"]
+    (mine / "transforms.json").unlink()
+    (mine / "notes.txt").unlink()
+    assert pack.main(args) == 0
+    assert pack.main(args) == 0  # a folder it packed: replaced
+    (mine / "images" / "extra.jpg").write_bytes(b"mine")
+    with pytest.raises(SystemExit, match=r"also holds files this script did not write \(images/extra.jpg\)"):
+        pack.main(args)
+    assert (mine / "images" / "extra.jpg").read_bytes() == b"mine"

@@ -244,7 +244,7 @@ def test_a_model_world_path_without_dataparser_transforms_is_refused(toy_path, e
         enhance_path(scene, enhancer, cp, root / "frames", tmp_path / "out", depth_type="ray", video=False)
     message = str(err.value)
     assert "does not fit the scene" in message and "dataparser_transforms.json" in message
-    assert "OpenGL vs OpenCV" in message and "--force" in message
+    assert "OpenGL vs OpenCV" in message and message.endswith("To enhance it anyway: force=True")
     assert re.search(r"worst: camera \d+ \(camera_path\[\d+\]\)", message)
     assert not (tmp_path / "out").exists()  # refused before anything was written
     # --force goes on, with the problem as a warning.
@@ -276,6 +276,7 @@ def test_enhance_path_cli_refuses_a_wrong_space_path_and_force_goes_on(toy_path,
     refused = CliRunner().invoke(app, args)
     assert refused.exit_code == 2 and "does not fit the scene" in refused.output
     assert "Traceback" not in refused.output
+    assert refused.output.strip().endswith("To enhance it anyway: --force") and "force=True" not in refused.output
     forced = CliRunner().invoke(app, [*args, "--force"])
     assert forced.exit_code == 0, forced.output
     assert "warning: " in forced.output and "OpenGL vs OpenCV" in forced.output
@@ -505,3 +506,51 @@ def test_check_camera_names_the_likely_cause_for_one_view(toy_path):
         assert str(err.value).startswith("the camera does not fit the scene: the camera ")
         assert str(err.value).endswith(". To enhance it anyway: --force (force=True)")
         assert check_camera(scene, d, K, wrong, force=True) == err.value.problem
+
+
+def test_enhance_path_refuses_an_output_folder_it_did_not_write_and_a_bad_pose_before_loading(toy_path, tmp_path):
+    """Issue 49: a folder of the user's as --output is refused (its frames/ would be taken for enhanced
+    frames, its files written over); a camera path with a bad rotation is refused before the scene loads."""
+    root = toy_path["root"]
+    K = toy_path["scene"].frames[0].K
+    good = tmp_path / "good.json"
+    _transforms_path(good, opencv_to_opengl(toy_path["poses"]), K)
+    mine = tmp_path / "mine"
+    (mine / "frames").mkdir(parents=True)
+    (mine / "frames" / "00000.png").write_bytes(b"my picture")
+    args = ["enhance-path", str(root / "scene"), "--frames", str(root / "frames"), "--depth-type", "ray", "--no-video"]
+    refused = CliRunner().invoke(app, [*args, "--cameras", str(good), "--output", str(mine)])
+    assert refused.exit_code == 2 and refused.output.strip().splitlines() == [
+        f"error: output: {mine} exists and is not empty: it holds other files, not an earlier enhance-path "
+        "output (which would be resumed); choose a new folder"]
+    assert sorted(p.name for p in mine.rglob("*")) == ["00000.png", "frames"]
+    assert (mine / "frames" / "00000.png").read_bytes() == b"my picture"
+    with pytest.raises(InputError, match="not an earlier enhance-path output"):
+        enhance_path(toy_path["scene"], None, read_camera_path(good), root / "frames", mine)
+    doc = json.loads(good.read_text())
+    doc["frames"][1]["transform_matrix"][0][0] *= 1.5  # not a rotation
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(doc))
+    missing = tmp_path / "no_scene"  # the scene is not even there: the path is read first
+    result = CliRunner().invoke(app, ["enhance-path", str(missing), "--frames", str(root / "frames"), "--cameras",
+                                      str(bad), "--output", str(tmp_path / "out"), "--no-video"])
+    assert result.exit_code == 2 and "frames[1]" in result.output and "does not exist" not in result.output
+
+
+def test_a_transposed_inria_cameras_json_is_refused_in_its_own_convention(toy_path, enhancer, tmp_path):
+    """Issue 49: Inria's cameras.json is OpenCV camera-to-world; the refusal used to say that camera
+    paths "are read as OpenGL"."""
+    root, scene = toy_path["root"], toy_path["scene"]
+    K = scene.frames[0].K
+    cams = [{"id": t, "img_name": f"frame_{t}", "width": W, "height": H, "position": pose[:3, 3].tolist(),
+             "rotation": pose[:3, :3].T.tolist(),  # world-to-camera: the transposed rotation
+             "fx": float(K[0, 0]), "fy": float(K[1, 1])} for t, pose in enumerate(toy_path["poses"])]
+    (tmp_path / "cameras.json").write_text(json.dumps(cams))
+    cp = read_camera_path(tmp_path / "cameras.json")
+    assert cp.source == "inria"
+    with pytest.raises(InputError) as err:
+        enhance_path(scene, enhancer, cp, root / "frames", tmp_path / "out", depth_type="ray", video=False)
+    message = str(err.value)
+    assert "a rotation written world-to-camera (transposed) or with OpenGL axes (Inria's cameras.json is read as " \
+           "OpenCV camera-to-world (rotation and position, as 3DGS's train.py writes them))" in message
+    assert "read as OpenGL" not in message

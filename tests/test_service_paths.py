@@ -150,6 +150,8 @@ def test_bad_path_upload_is_a_clear_4xx_and_stores_nothing(setup, case):
     assert {"no_camera": "camera path", "missing_frame": "without both", "not_zip": "not a zip",
             "bad_quality": "quality", "unknown_scene": "not found"}[case] in message
     assert str(data) not in message
+    if case == "missing_frame":  # issue 49: the upload is the path archive, not "the scene"
+        assert message == "the path archive: frames without both a render and a depth: 0001"
     assert stored(data) == before and jobs_of(client, scene_id) == jobs_before
 
 

@@ -9,6 +9,7 @@
       scenes/<id>/checkpoints/vN.safetensors   versioned enhancer checkpoints
       jobs/<job id>/               fine-tuning output_dir (resume state)
       tmp/                         uploads being validated; renamed into place when good
+      .roguenerf-data              marks the folder as ours: any other non-empty folder is refused
 """
 
 from __future__ import annotations
@@ -30,15 +31,16 @@ SERVER_PATH = "<server path>"
 """What a server path still left in a client message is replaced with."""
 
 
-def public_message(message: str, *, root: Path | None = None, data_dir: Path | None = None) -> str:
-    """``message`` (from a library exception) fit for a client: paths inside the scene folder
-    ``root`` become relative to it (``depths/train_r_0.npy``), the folder itself "the scene",
-    and anything else under ``data_dir`` becomes :data:`SERVER_PATH`. Clients never learn
-    the server's filesystem."""
+def public_message(message: str, *, root: Path | None = None, data_dir: Path | None = None,
+                   root_name: str = "the scene") -> str:
+    """``message`` (from a library exception) fit for a client: paths inside the uploaded folder
+    ``root`` become relative to it (``depths/train_r_0.npy``), the folder itself ``root_name``
+    ("the scene", or "the path archive" for a camera path's upload), and anything else under
+    ``data_dir`` becomes :data:`SERVER_PATH`. Clients never learn the server's filesystem."""
     if root is not None:
         for base in dict.fromkeys((str(Path(root)), str(Path(root).resolve()))):
-            message = message.replace(base + os.sep, "").replace("scene " + base, "the scene")
-            message = re.sub(re.escape(base) + r"(?![\w.-])", "the scene", message)
+            message = message.replace(base + os.sep, "").replace("scene " + base, root_name)
+            message = re.sub(re.escape(base) + r"(?![\w.-])", root_name, message)
     if data_dir is not None:
         for base in dict.fromkeys((str(Path(data_dir)), str(Path(data_dir).resolve()))):
             message = re.sub(re.escape(base) + r"[^\s'\",;)]*", SERVER_PATH, message)
@@ -56,6 +58,10 @@ def new_id() -> str:
     return uuid.uuid4().hex
 
 
+DATA_MARKER = ".roguenerf-data"
+"""An empty file that marks a folder as a data directory of ours (written by :meth:`Layout.ensure`)."""
+
+
 class Layout:
     def __init__(self, data_dir: Path):
         self.root = Path(data_dir)
@@ -63,8 +69,29 @@ class Layout:
         self.jobs = self.root / "jobs"
         self.tmp = self.root / "tmp"
 
+    def check_owned(self) -> None:
+        """The data directory must be new, empty or ours (its marker, or the scenes/ jobs/ tmp/ an
+        older version made): the service sweeps ``tmp/`` and removes folders under ``scenes/`` and
+        ``jobs/``, so a folder of the user's (``--data-dir ~``) is refused before anything is touched."""
+        from roguenerf.errors import InputError
+
+        root = self.root
+        if not root.exists():
+            return
+        if not root.is_dir():
+            raise InputError(f"data directory {root} exists and is not a folder; choose a new folder (--data-dir)")
+        if (root / DATA_MARKER).is_file() or all(p.is_dir() for p in (self.scenes, self.jobs, self.tmp)):
+            return
+        if any(root.iterdir()):
+            raise InputError(f"data directory {root} exists and is not empty: it holds other files, not a "
+                             "RoGUENeRF data directory (whose tmp/ is swept and whose scenes/ and jobs/ are "
+                             "removed as jobs end); choose a new folder (--data-dir)")
+
     def ensure(self) -> None:
-        for path in (self.root, self.scenes, self.jobs, self.tmp):
+        self.check_owned()
+        self.root.mkdir(parents=True, exist_ok=True)
+        (self.root / DATA_MARKER).touch(exist_ok=True)  # first: a second process starting meanwhile sees it
+        for path in (self.scenes, self.jobs, self.tmp):
             path.mkdir(parents=True, exist_ok=True)
 
     @staticmethod

@@ -48,7 +48,7 @@ def run_path_job(ctx, job: dict, lease: str, beat) -> str:
 
     def fail(code: str, message: str) -> str:
         log.warning("path job %s failed: %s: %s", job_id, code, message)
-        public = public_message(message, root=job_dir / "input", data_dir=layout.root)
+        public = public_message(message, root=job_dir / "input", data_dir=layout.root, root_name="the path archive")
         store.finish(job_id, lease, "failed", error_code=code, error_message=public)
         return "failed"
 
@@ -87,7 +87,8 @@ def run_path_job(ctx, job: dict, lease: str, beat) -> str:
             depth_type=request.get("depth_type", "z"), depth_scale=float(request.get("depth_scale", 1.0)),
             background=request.get("background", "zero"), quality=int(request.get("quality", 20)),
             checkpoint_id=f"{checkpoint}:{stat.st_size}:{stat.st_mtime_ns}", progress=progress,
-            should_stop=should_stop, force=bool(request.get("force", False)))
+            should_stop=should_stop, force=bool(request.get("force", False)),
+            force_hint="force=true (a form field of the path upload)")
         zip_frames(job_dir / "output" / "frames", job_dir / "output" / "frames.zip")
     except PathCancelled as exc:
         if beat.lost.is_set():

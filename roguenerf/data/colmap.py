@@ -631,6 +631,11 @@ def read_colmap(
         elif sparse_dir.name == "sparse":
             root = sparse_dir.parent
     image_dir = Path(images) if Path(images).is_absolute() else root / images
+    if check_files and not image_dir.is_dir():
+        found = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name.startswith("images"))
+        raise SceneFormatError(image_dir, "image folder not found (--images " + str(images) + "); "
+                               + (f"image folders in {root}: {', '.join(found)}: pass one with --images" if found
+                                  else f"{root} holds no images* folder: pass the folder of the photos with --images"))
     cam_file = sparse_dir / f"cameras.{model.format}"
     img_file = sparse_dir / f"images.{model.format}"
     if not model.images:

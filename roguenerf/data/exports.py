@@ -32,7 +32,7 @@ import math
 import re
 import shutil
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 import torch
@@ -316,6 +316,7 @@ def import_renders(
     progress=None,
     skip_missing: bool = False,
     check_depth: bool = True,
+    hints: dict[str, str] | None = None,
 ):
     """Write a scene folder from a dataset (poses + photos) and a tool's renders.
 
@@ -343,8 +344,9 @@ def import_renders(
         images: the COLMAP dataset's image folder (``images_2`` for a 2x downscaled copy).
         test_every: held-out views, the trainers' way (:func:`~roguenerf.data.colmap.split_views`:
             names sorted, every ``test_every``-th from the first is ``test``; 8 is Inria's
-            ``--eval`` and gsplat's default); 0: all train. None: the dataset's own split (a
-            COLMAP dataset: all train; with Inria's numbered test renders: 8).
+            ``--eval`` and gsplat's default); 0: all train. None: a COLMAP dataset's every 8th
+            view (as ``import_3dgs``'s ``hold``; with Inria's numbered renders, theirs: 8 when
+            there are test renders, else 0); a nerfstudio dataset's own split.
         split_file: test-view names (JSON ``{"train": [...], "test": [...]}`` or one name per
             line, as Inria's ``sparse/0/test.txt``); wins over ``test_every``.
         progress: ``callback(done, total)`` per view.
@@ -352,12 +354,15 @@ def import_renders(
             missing their render or depth; otherwise a missing file is an InputError naming it.
         check_depth: refuse a ``depth_type`` that disagrees with the depths themselves
             (:func:`check_depth_type`: neighbouring views' depths must agree under it).
+        hints: how the errors name the switches above to the caller: ``{"skip_missing": ...,
+            "check_depth": ...}``; default their Python keywords (the CLI: its flags).
     Returns:
         The written scene, loaded (:func:`~roguenerf.data.readers.load_scene`);
         ``scene.meta["skipped_views"]`` lists the views skipped.
     """
     from roguenerf.data.readers import load_scene
 
+    hints = {"skip_missing": "skip_missing=True", "check_depth": "check_depth=False", **(hints or {})}
     if tool not in TOOLS:
         raise InputError(f"tool: expected one of {', '.join(TOOLS)}, got {tool!r}")
     depth_type = depth_type or ("ray" if tool == "nerfstudio" else "z")
@@ -389,6 +394,10 @@ def import_renders(
     if source.meta.get("format") not in ("nerfstudio", "colmap"):
         raise InputError(f"{dataset}: expected a nerfstudio dataset (transforms.json with the photos' poses) "
                          f"or a COLMAP dataset (images/ + sparse/0/), got a {source.meta.get('format')} scene")
+    if test_every is None and split_file is None and source.meta.get("format") == "colmap":
+        # The trainers' --eval split (import-3dgs's default too); Inria's numbered renders without
+        # test renders: trained without it.
+        test_every = 0 if indexed is not None else TRAINER_TEST_EVERY
     if test_every is not None or split_file is not None:
         names = source.meta.get("colmap_names") or [f.name for f in source.frames]
         for frame, split in zip(source.frames, split_views(names, test_every=test_every or 0,
@@ -415,7 +424,7 @@ def import_renders(
         listed = "; ".join(f"{name}: {what}" for name, what in missing[:5])
         more = f" (and {len(missing) - 5} more)" if len(missing) > 5 else ""
         raise InputError(f"{len(missing)} of {len(source.frames)} views of {dataset} lack a file: missing "
-                         f"{listed}{more}. Render them, or pass --skip-missing (skip_missing=True) to "
+                         f"{listed}{more}. Render them, or pass {hints['skip_missing']} to "
                          "import the others without them")
     if missing:
         log.warning("skipped %d views without a render or depth: %s", len(missing),
@@ -425,11 +434,11 @@ def import_renders(
         check = check_depth_type(_depth_type_views(source, frames, found, depth_scale, background))
         problem = depth_type_problem(check, depth_type, "the depths", "neighbouring views")
         if problem is not None:
-            raise InputError(f"{problem}; to import them as given anyway: --force (check_depth=False)")
+            raise InputError(f"{problem}; to import them as given anyway: {hints['check_depth']}")
     final = Path(output)
     # Built in a temporary sibling folder and renamed at the end: a failed import (a bad depth
     # file half-way) leaves no half-written scene folder behind.
-    with atomic_folder(final, replaceable=_is_import) as output:
+    with atomic_folder(final, replaceable=_is_import, owned=written_files) as output:
         _write_import(source, frames, found, output, tool=tool, dataset=dataset, renders=renders,
                       depth_type=depth_type, depth_scale=depth_scale, background=background,
                       parser=parser, skipped=[name for name, _ in missing], progress=progress)
@@ -679,6 +688,24 @@ def _is_import(folder: Path) -> bool:
     return isinstance(doc, dict) and isinstance(doc.get("source"), dict) and doc["source"].get("tool") in TOOLS
 
 
+SCENE_FILE_KEYS = ("file_path", "render_path", "depth_path", "acc_path")
+
+
+def written_files(folder: Path) -> set[str]:
+    """The files of the scene folder ``folder`` that an importer wrote (relative POSIX paths): its
+    ``transforms.json``, the files its frames name, and the dataparser transforms."""
+    try:
+        doc = json.loads((Path(folder) / "transforms.json").read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return set()
+    files = {"transforms.json", DATAPARSER_FILE}
+    frames = doc.get("frames") if isinstance(doc, dict) else None
+    for frame in frames if isinstance(frames, list) else []:
+        if isinstance(frame, dict):
+            files.update(str(PurePosixPath(frame[key])) for key in SCENE_FILE_KEYS if isinstance(frame.get(key), str))
+    return files
+
+
 def _write_import(source, frames, found, output: Path, *, tool, dataset, renders, depth_type, depth_scale,
                   background, parser, skipped, progress):
     """Write the scene folder ``output`` (the temporary one) view by view, transforms.json last."""
@@ -743,8 +770,8 @@ def _match_indexed(indexed: dict[str, list[tuple[Path, Path]]], source, renders)
         if len(files) != len(views):
             raise InputError(
                 f"{renders}: {len(files)} {split} renders, but the dataset has {len(views)} {split} views "
-                f"with this split; pass the split the model was trained with (--test-every 8 for "
-                f"Inria's --eval, 0 without it, or --split-file)")
+                f"with this split; pass the split the model was trained with (--hold 8 for "
+                f"Inria's --eval, --hold 0 without it, or --split-file)")
         for name, (rgb, depth) in zip(views, files, strict=True):
             out[name] = (rgb, depth, split)
     return out

@@ -40,6 +40,8 @@ from roguenerf.splats.gaussians import Gaussians
 from roguenerf.splats.raster import DEFAULT_DEPTH_THRESHOLD, render
 
 BACKENDS = ("auto", "cpu", "gsplat")
+TOOL = "3dgs"
+"""``source.tool`` of what ``import-3dgs`` writes (the scene's and the path's transforms.json): its marker."""
 PATH_FOLDER = "path"
 PATH_CAMERAS = "transforms.json"
 """The path's cameras as rendered (transforms style, the dataset's world), beside ``rgb/`` and ``depth/``."""
@@ -130,9 +132,46 @@ def _model_camera(world_from_cam: Tensor, parser) -> Tensor:
     return world_from_cam if parser is None else parser.to_model(world_from_cam)
 
 
+def _source(doc_file: Path) -> dict:
+    try:
+        doc = json.loads(doc_file.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return {}
+    source = doc.get("source") if isinstance(doc, dict) else None
+    return source if isinstance(source, dict) else {}
+
+
 def _is_ours(folder: Path) -> bool:
-    """An earlier output of ``import-3dgs`` (a scene folder or a rendered path): replaced whole."""
-    return any((folder / name).is_file() for name in ("transforms.json", "camera_path.json"))
+    """An earlier scene folder of ``import-3dgs`` (its own marker: ``source.tool``): replaced whole."""
+    source = _source(folder / "transforms.json")
+    return source.get("tool") == TOOL and "camera_path" not in source  # not a rendered path
+
+
+def _is_our_path(folder: Path) -> bool:
+    """An earlier rendered path (``render_camera_path``, ``import-3dgs --path``): replaced whole."""
+    source = _source(folder / PATH_CAMERAS)
+    # Without "tool": written before the marker was (its only keys were these two).
+    return (source.get("tool") == TOOL and "camera_path" in source) or set(source) == {"camera_path", "format"}
+
+
+def _our_path_files(folder: Path) -> set[str]:
+    """The files a rendered path holds: the cameras, then a frame and a depth per camera."""
+    try:
+        count = len(json.loads((folder / PATH_CAMERAS).read_text(encoding="utf-8"))["frames"])
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError):
+        return {PATH_CAMERAS}
+    digits = max(5, len(str(count)))
+    return {PATH_CAMERAS, *(f"rgb/{t:0{digits}d}.png" for t in range(count)),
+            *(f"depth/{t:0{digits}d}.npy" for t in range(count))}
+
+
+def _our_files(folder: Path) -> set[str]:
+    """What an earlier ``import-3dgs`` wrote: the scene folder's files and those of its rendered path."""
+    from roguenerf.data.exports import written_files
+
+    path = folder / PATH_FOLDER
+    inner = {f"{PATH_FOLDER}/{name}" for name in _our_path_files(path)} if _is_our_path(path) else set()
+    return written_files(folder) | inner
 
 
 WORLD_VIEWS = 8
@@ -391,7 +430,7 @@ def import_3dgs(dataset: str | Path, ply: str | Path | None, output: str | Path,
         if model is None:
             raise InputError("give the splats: --ply point_cloud.ply or --model MODEL (Inria's model folder)")
         ply = find_model_ply(model)
-    check_output_folder(Path(output), _is_ours, "output")
+    check_output_folder(Path(output), _is_ours, "output", owned=_our_files)
     views, fmt = read_dataset_views(dataset, hold=hold, images=images)
     if model is not None:
         _check_model_cameras(Path(model), views)
@@ -411,7 +450,7 @@ def import_3dgs(dataset: str | Path, ply: str | Path | None, output: str | Path,
         path_label = str(camera_path)
     elif fly_through_frames is not None:
         path_cams, path_label = fly_through(views, fly_through_frames), "fly-through"
-    source = {"tool": "3dgs", "dataset": str(dataset), "dataset_format": fmt, "ply": str(ply), **_ply_stamp(ply),
+    source = {"tool": TOOL, "dataset": str(dataset), "dataset_format": fmt, "ply": str(ply), **_ply_stamp(ply),
               "gaussians": len(gaussians), "sh_degree": gaussians.sh_degree, "backend": backend,
               "depth_threshold": depth_threshold, "hold": hold, "images": images,
               "dataparser_transforms": None if dataparser_transforms is None else str(dataparser_transforms)}
@@ -426,7 +465,7 @@ def import_3dgs(dataset: str | Path, ply: str | Path | None, output: str | Path,
     if path_cams is not None and _same_import(output, source):
         # Only the path is new: the dataset views are there already.
         scene = load_scene(output)
-        with atomic_folder(output / PATH_FOLDER, replaceable=lambda f: (f / PATH_CAMERAS).is_file(),
+        with atomic_folder(output / PATH_FOLDER, replaceable=_is_our_path, owned=_our_path_files,
                            what="path output") as tmp:
             writer = _PathWriter(gaussians, path_cams, path_label, tmp, backend, parser, depth_threshold)
             path_problem(scene, writer)
@@ -434,7 +473,7 @@ def import_3dgs(dataset: str | Path, ply: str | Path | None, output: str | Path,
         say(f"{output} holds this dataset and .ply already: rendered only the path ({len(path_cams)} frames)")
         return scene
 
-    with atomic_folder(output, replaceable=_is_ours) as tmp:
+    with atomic_folder(output, replaceable=_is_ours, owned=_our_files) as tmp:
         total = len(views) + (len(path_cams) if path_cams is not None else 0)
         frames: dict[int, dict] = {}
 
@@ -547,7 +586,7 @@ class _PathWriter:
         self.done.clear()
         # The cameras as rendered (the dataset's world, whatever file they came from): what
         # ``enhance-path --cameras`` reads beside the frames.
-        doc = {"fps": cams.fps, "source": {"camera_path": self.label, "format": cams.source},
+        doc = {"fps": cams.fps, "source": {"tool": TOOL, "camera_path": self.label, "format": cams.source},
                "frames": [{"transform_matrix": opencv_to_opengl(cams.world_from_cam[t]).tolist(),
                            **camera_fields(cams.K[t], cams.width, cams.height)} for t in range(len(cams))]}
         atomic_write(self.folder / PATH_CAMERAS, json.dumps(doc, indent=1).encode())
@@ -565,11 +604,11 @@ def render_camera_path(ply: str | Path, camera_path: str | Path, output: str | P
     from roguenerf.splats.ply import read_ply
 
     backend = pick_backend(backend)
-    check_output_folder(Path(output), _is_ours, "path output")
+    check_output_folder(Path(output), _is_our_path, "path output", owned=_our_path_files)
     parser = DataparserTransform.read(dataparser_transforms) if dataparser_transforms is not None else None
     cams = read_camera_path(camera_path, dataparser=parser)
     gaussians = read_ply(ply)
     output = Path(output)
-    with atomic_folder(output, replaceable=_is_ours, what="path output") as tmp:
+    with atomic_folder(output, replaceable=_is_our_path, what="path output", owned=_our_path_files) as tmp:
         _PathWriter(gaussians, cams, str(camera_path), tmp, backend, parser, depth_threshold).finish(progress)
     return output

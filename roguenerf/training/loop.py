@@ -59,6 +59,8 @@ log = logging.getLogger("roguenerf.training")
 
 MODEL_FILE = "model.safetensors"
 STATE_FILE = "train_state.safetensors"
+TOY_FOLDER = "toy"
+"""Where ``roguenerf pretrain --toy N`` writes its generated scenes, inside the output folder."""
 PREFETCH = 2
 """Batches the background thread prepares ahead of the training step."""
 SWITCHES = {"neighbours": "use_neighbours", "alignment": "use_alignment",
@@ -583,12 +585,36 @@ def _loop(run: _Run, progress: Callable[[TrainProgress], None] | None,
     return step, elapsed_before + time.perf_counter() - start, loss_value
 
 
+def check_training_output(output_dir: str | Path) -> None:
+    """A training output folder may be new, empty, or an earlier run's (resumed): one with the resume
+    state, a checkpoint of ours (its sidecar says so) or the toy scenes. Any other folder is refused,
+    since its ``model.safetensors`` and ``model.json`` would be overwritten."""
+    import json
+
+    from roguenerf.checkpoint import FORMAT
+
+    output_dir = Path(output_dir)
+    if not output_dir.exists():
+        return
+    if not output_dir.is_dir():
+        raise InputError(f"output: {output_dir} exists and is not a folder; choose a new folder")
+    try:
+        ours = json.loads(output_dir.joinpath(MODEL_FILE).with_suffix(".json").read_text()).get("format") == FORMAT
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
+        ours = False
+    if any(output_dir.iterdir()) and not (ours or (output_dir / STATE_FILE).is_file()
+                                         or (output_dir / TOY_FOLDER).is_dir()):
+        raise InputError(f"output: {output_dir} exists and is not empty: it holds other files, not an earlier "
+                         "training run (which would be resumed); choose a new folder")
+
+
 def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: TrainConfig,
          progress: Callable[[TrainProgress], None] | None, should_stop: Callable[[], bool] | None,
          resume: bool, held_out_scenes: Sequence[int] = ()) -> TrainResult:
     """Resume or plan, set up, train, save, evaluate (fine-tuning), report."""
     config = config.validate()
     output_dir = Path(output_dir)
+    check_training_output(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     state_path = output_dir / STATE_FILE
     saved = load_state(state_path) if resume and state_path.is_file() else None

@@ -20,6 +20,8 @@ from workers.queue import QueueUnavailable
 
 log = logging.getLogger("roguenerf.service")
 router = APIRouter(prefix="/scenes", tags=["paths"])
+PATH_ARCHIVE = "the path archive"
+"""What error messages call the uploaded path folder (never "the scene", nor a server path)."""
 
 
 FORCE_ADVICE = "force=true (a form field of this upload)"
@@ -56,7 +58,7 @@ def validate_path_upload(services, row: dict, root: Path, *, max_pixels: int, de
                    background=background, neighbours=max(1, enhancer.num_neighbours or 1), force=force,
                    override=FORCE_ADVICE)
     except RoGUENeRFError as exc:
-        raise library_error(exc, root=root) from None
+        raise library_error(exc, root=root, root_name=PATH_ARCHIVE) from None
     return len(pairs)
 
 
