@@ -131,7 +131,9 @@ def _setup_logging() -> None:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s", force=True)
 
 
-def _load_scene(scene_dir: Path):
+def _load_scene(scene_dir: Path, *, check: bool = True):
+    """The scene, and (``check``) a warning naming its unusable views: every view's files are
+    read once for that; a one-view command checks just the views it reads instead."""
     from roguenerf.data.readers import load_scene
 
     if not scene_dir.exists():
@@ -139,17 +141,21 @@ def _load_scene(scene_dir: Path):
     if not scene_dir.is_dir():
         raise InputError(f"scene directory {scene_dir} is not a directory")
     scene = load_scene(scene_dir)
-    _warn_unusable(scene)
+    if check:
+        _warn_unusable(scene)
     return scene
 
 
-def _warn_unusable(scene) -> None:
-    """One warning line listing the views that cannot serve (e.g. a depth map of zeros)."""
+def _warn_unusable(scene, indices=None) -> None:
+    """One warning line listing the views that cannot serve (e.g. a depth map of zeros): all of
+    the scene's, or those of ``indices`` (the views a command reads)."""
     from roguenerf.data.scene import unusable_views
 
-    bad = unusable_views(scene)
+    bad = unusable_views(scene, indices=indices)
     if bad:
-        typer.echo(f"warning: {len(bad)} of {len(scene.frames)} views of {scene.root} are unusable and "
+        among = (f"of {len(scene.frames)} views of {scene.root}" if indices is None
+                 else f"of the {len(set(indices))} views of {scene.root} this command reads")
+        typer.echo(f"warning: {len(bad)} {among} are unusable and "
                    f"contribute nothing: {'; '.join(str(v) for v in bad)}", err=True)
 
 
@@ -457,12 +463,15 @@ def enhance(
         if not folder.is_dir():
             raise InputError(f"--output: folder {folder} does not exist" if not folder.exists()
                              else f"--output: {folder} is not a folder")
-        scene = _load_scene(scene_dir)
+        scene = _load_scene(scene_dir, check=False)  # the views read are checked below, not all
         index = scene.index(view)
         model = _load_model(checkpoint)
+        enhancer = SceneEnhancer(scene, model, options=_enhance_options(neighbours, align, colour, trust))
+        frame = scene.frames[index]
+        chosen = enhancer.select(frame.world_from_cam, exclude=index if frame.split == "train" else None)
+        _warn_unusable(scene, [index, *chosen])
         with _progress_bar(f"enhancing {view}", "tile") as progress:
-            options = _enhance_options(neighbours, align, colour, trust)
-            result = SceneEnhancer(scene, model, options=options).enhance_view(index, progress=progress)
+            result = enhancer.enhance_view(index, progress=progress)
         write_png(output, result.image)
         used = ", ".join(f"{n} (pose refined)" if done else n
                          for n, done in zip(result.neighbours, result.aligned or [False] * len(result.neighbours)))
