@@ -350,14 +350,6 @@ def find_path_frames(folder: str | Path, count: int | None = None) -> list[tuple
     return [(rgbs[n], depths[n]) for n in names]
 
 
-@dataclass
-class PairFlicker:
-    render: float
-    enhanced: float
-    photo: float | None
-    valid_fraction: float
-
-
 def pair_flicker(images_t: list[Tensor | None], images_t1: list[Tensor | None], depth_t: Tensor, depth_t1: Tensor,
                  K_t: Tensor, K_t1: Tensor, pose_t: Tensor, pose_t1: Tensor) -> tuple[list[float | None], float]:
     """Mean absolute error of each image of frame t reprojected into frame t+1, on valid pixels.
