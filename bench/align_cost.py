@@ -39,7 +39,8 @@ def measure(args) -> list[dict]:
     from roguenerf import metrics
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
-    from roguenerf.geometry.align import AlignConfig
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.enhance.align import AlignConfig
     from roguenerf.inference import SceneEnhancer
 
     checkpoint = args.checkpoint or default_checkpoint_path()
@@ -53,8 +54,8 @@ def measure(args) -> list[dict]:
         clean = load_scene(scene_dir)
         for k, (deg, share) in enumerate(args.noise):
             scene = clean if deg == 0 and share == 0 else noisy_scene(clean, deg, share, seed=1000 + k)
-            enhancers = {False: SceneEnhancer(scene, model, align=False),
-                         True: SceneEnhancer(scene, model, align=config)}
+            enhancers = {False: SceneEnhancer(scene, model, options=EnhanceOptions(align=None)),
+                         True: SceneEnhancer(scene, model, options=EnhanceOptions(align=config))}
             views = scene.indices("test")[: args.max_views] if args.max_views else scene.indices("test")
             for i in views:
                 enhancers[False].enhance_view(i)  # warm both neighbour caches: time the request, not the cache

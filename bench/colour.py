@@ -2,7 +2,7 @@
 
 Every test view of each scene folder is enhanced once without colour matching (the model's own
 output, pose refinement on as shipped); each ``--configs`` setting of
-:class:`~roguenerf.geometry.colour.ColourConfig` then matches that same output to the
+:class:`~roguenerf.enhance.colour.ColourConfig` then matches that same output to the
 neighbours (:meth:`SceneEnhancer.colour_match`), so the settings differ in nothing else. Per view
 and setting: PSNR gain over the render, FLIP change (lower is better), the share of pixels where
 the neighbours agree, whether anything was changed, and the seconds the match took. CSV + plot
@@ -31,8 +31,8 @@ def _configs(text: str) -> list[str]:
 
 def colour_config(spec: str):
     """``off``, ``default``, or ``field=value[:field=value...]`` over ColourConfig's defaults."""
+    from roguenerf.enhance.colour import ColourConfig
     from roguenerf.errors import InputError
-    from roguenerf.geometry.colour import ColourConfig
 
     if spec == "off":
         return None
@@ -66,7 +66,8 @@ def measure(args) -> list[dict]:
     from roguenerf import metrics
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
-    from roguenerf.geometry.colour import apply_match
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.enhance.colour import apply_match
     from roguenerf.inference import SceneEnhancer
 
     checkpoint = args.checkpoint or default_checkpoint_path()
@@ -75,7 +76,7 @@ def measure(args) -> list[dict]:
     rows = []
     for scene_dir in args.scenes:
         scene = load_scene(scene_dir)
-        enhancer = SceneEnhancer(scene, model, colour=False)
+        enhancer = SceneEnhancer(scene, model, options=EnhanceOptions(colour=None))
         views = scene.indices("test")[: args.max_views] if args.max_views else scene.indices("test")
         for i in views:
             frame = scene.frames[i]

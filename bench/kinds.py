@@ -70,7 +70,7 @@ def parse_args(argv=None):
                    help="colour matching to the neighbour photos at inference (default on, as shipped)")
     p.add_argument("--trust", choices=["on", "off"], default="on",
                    help="keep only part of the enhancer's change where the neighbours mostly disagree "
-                        "(roguenerf.geometry.trust; default on, as shipped)")
+                        "(roguenerf.enhance.trust; default on, as shipped)")
     p.add_argument("--finetune-depth-noise", type=float, default=0.0,
                    help="fine-tune with TrainConfig.depth_noise (log-depth error on half the target depths; "
                         "default 0, as shipped); cached apart")
@@ -234,7 +234,7 @@ FIELD_CONFIG = {"local_sigma": 8.0}
 def colour_cache_tag(config) -> str:
     """``_colourfield``, plus ``_FIELDVALUE`` for each field where ``config`` differs from the
     setting cached results without it were measured with (:data:`FIELD_CONFIG`)."""
-    from roguenerf.geometry.colour import ColourConfig
+    from roguenerf.enhance.colour import ColourConfig
 
     then = ColourConfig(**FIELD_CONFIG)
     return "_colourfield" + "".join(f"_{f}{getattr(config, f):g}" for f in ColourConfig.__dataclass_fields__
@@ -244,15 +244,15 @@ def colour_cache_tag(config) -> str:
 def near_cache_tag() -> str:
     """``_nearEXTRAxDEGREES`` while SceneEnhancer adds near neighbours beyond the model's count
     (roguenerf.inference.NEAR_EXTRA, NEAR_DEGREES): results before that are cached apart."""
-    from roguenerf.inference import NEAR_DEGREES, NEAR_EXTRA
+    from roguenerf.enhance import NEAR_DEGREES, NEAR_EXTRA
 
     return f"_near{NEAR_EXTRA}x{NEAR_DEGREES:g}" if NEAR_EXTRA else ""
 
 
 def trust_cache_tag(config) -> str:
     """``_trust`` plus each of ``config``'s fields as ``_FIELDVALUE``: results measured with trust
-    on (roguenerf.geometry.trust) are cached apart from those before it, and per setting."""
-    from roguenerf.geometry.trust import TrustConfig
+    on (roguenerf.enhance.trust) are cached apart from those before it, and per setting."""
+    from roguenerf.enhance.trust import TrustConfig
 
     return "_trust" + "".join(f"_{f}{getattr(config, f):g}" for f in TrustConfig.__dataclass_fields__)
 
@@ -261,9 +261,9 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
     """One held-out scene: fit (cached), zero-shot with each pose-noise level, fine-tunes (cached)."""
     from roguenerf.checkpoint import load_checkpoint
     from roguenerf.data.readers import load_scene
-    from roguenerf.geometry.colour import ColourConfig
-    from roguenerf.geometry.trust import TrustConfig
-    from roguenerf.inference import SceneEnhancer
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.enhance.colour import ColourConfig
+    from roguenerf.enhance.trust import TrustConfig
     from roguenerf.training import TrainConfig, evaluate, finetune
 
     photos = downscaled_photo_set(args.data / name, args.runs / "photos" / f"{name}_s{args.scale}", args.scale)
@@ -308,8 +308,8 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
 
     def zero_shot(k: int, deg: float, share: float, n: int | None = None) -> list[dict]:
         target = scene if deg == 0 and share == 0 else noisy_scene(scene, deg, share, seed=1000 + k)
-        return view_rows(evaluate(target, model, max_views=args.max_views, num_neighbours=n, align=align,
-                                  colour=colour, trust=trust), **common,
+        options = EnhanceOptions.from_flags(neighbours=n, align=align, colour=colour, trust=trust)
+        return view_rows(evaluate(target, model, max_views=args.max_views, options=options), **common,
                          stage="zero-shot", minutes=0.0, noise_deg=deg, noise_share=share,
                          neighbours=default_n if n is None else n, explicit_count=n is not None)
 
@@ -318,15 +318,15 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
                           checkpoint=checkpoint,
                           config=TrainConfig(minutes=m, evaluate=False, depth_noise=args.finetune_depth_noise))
         tuned, _ = load_checkpoint(result.checkpoint)
-        return view_rows(evaluate(scene, tuned, max_views=args.max_views, align=align, colour=colour, trust=trust),
-                         **common,
+        options = EnhanceOptions.from_flags(align=align, colour=colour, trust=trust)
+        return view_rows(evaluate(scene, tuned, max_views=args.max_views, options=options), **common,
                          stage=f"finetune {m:g} min" + (f", depth noise {args.finetune_depth_noise:g}" if plan else ""),
                          minutes=m, noise_deg=0.0, noise_share=0.0, neighbours=default_n, steps=result.steps)
 
     for k, (deg, share) in enumerate(args.noise or [(0.0, 0.0)]):
         note(cached_rows(cache / f"zero_shot_noise{deg:g}_{share:g}{suffix}.json",
                          functools.partial(zero_shot, k, deg, share)))
-    near = SceneEnhancer(scene, model).near_extra  # the default may add a near neighbour: then n = default_n differs
+    near = EnhanceOptions().neighbours.counts(default_n)[1]  # a near extra: then n = default_n differs
     for n in args.neighbours:
         if n != default_n or near:
             note(cached_rows(cache / f"zero_shot_{n}neighbours{suffix}.json",

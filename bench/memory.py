@@ -33,6 +33,7 @@ from roguenerf import runtime
 runtime.configure()
 import torch
 from roguenerf.data.readers import load_scene
+from roguenerf.enhance import EnhanceOptions
 from roguenerf.inference import SceneEnhancer
 from roguenerf.models import build_enhancer
 from roguenerf.models.tiling import tile_starts
@@ -48,7 +49,7 @@ if {variant!r} == "micro":
 else:
     torch.manual_seed(0)
     model = build_enhancer({variant!r})
-enhancer = SceneEnhancer(scene, model, num_neighbours=5)
+enhancer = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(neighbours=5))
 view = scene.indices("test")[0]
 frame = scene.frames[view]
 render, depth = scene.render(view), scene.depth(view)

@@ -53,7 +53,7 @@ def _agreement(scene, enhancer, target: _Target, position: int) -> float:
     """Mean |block mean of the reprojected neighbour photo - block mean of the render| (8x8
     blocks, valid pixels only): low where the neighbour's photo, warped by the rendered depth,
     looks like the render. Needs no photo of the target."""
-    from roguenerf.geometry import reproject
+    from roguenerf.reprojection import reproject
 
     i = enhancer.train[position]
     render = target.render
@@ -69,13 +69,14 @@ def _agreement(scene, enhancer, target: _Target, position: int) -> float:
 def measure(scene_dir: Path, checkpoint: Path | None, candidates: int) -> list[dict]:
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
+    from roguenerf.enhance import EnhanceOptions
     from roguenerf.geometry import select_neighbours
     from roguenerf.inference import SceneEnhancer
     from roguenerf.models import NeighbourBatch
 
     scene = load_scene(scene_dir)
     model, _ = load_checkpoint(checkpoint or default_checkpoint_path(must_exist=True))
-    enhancer = SceneEnhancer(scene, model, num_neighbours=2)
+    enhancer = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(neighbours=2))
     label = scene_label(scene_dir)
     rows = []
     run_stamp = stamp()  # once per scene: machine() and commit() (two git calls) per row would repeat
@@ -111,7 +112,7 @@ def measure(scene_dir: Path, checkpoint: Path | None, candidates: int) -> list[d
         print(label, frame.name, {r: round(chosen[r][0], 3) for r in RULES}, flush=True)
 
     for n in (1, 2, 3):
-        per_n = SceneEnhancer(scene, model, num_neighbours=n)
+        per_n = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(neighbours=n))
         for split, views in (("test", scene.indices("test")), ("train_leave_one_out", loo)):
             gains = [targets[i].gain(per_n.enhance_view(i).image) for i in views]
             rows.append(dict(**run_stamp, scene=label, kind="count", rule=f"n={n}", split=split, views=len(views),

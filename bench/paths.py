@@ -237,7 +237,7 @@ def main() -> None:
                              "setting FIELD=VALUE[:FIELD=VALUE] of ColourConfig (bench.colour's --configs)")
     parser.add_argument("--trust", choices=["on", "off"], default="on",
                         help="keep only part of the enhancer's change where the neighbours mostly disagree "
-                             "(roguenerf.geometry.trust; default on, as shipped)")
+                             "(roguenerf.enhance.trust; default on, as shipped)")
     parser.add_argument("--force", action="store_true", help=(
         "enhance a path that enhance_path's check refuses (a field whose novel views are floaters fails it "
         "whatever the path): the problem is kept as a warning in the JSON"))
@@ -268,6 +268,7 @@ def main() -> None:
     import roguenerf.runtime
     from roguenerf import SceneEnhancer, load_checkpoint
     from roguenerf.checkpoint import default_checkpoint_path
+    from roguenerf.enhance import EnhanceOptions
     from roguenerf.paths import CameraPath, enhance_path
 
     roguenerf.runtime.configure()
@@ -279,7 +280,8 @@ def main() -> None:
     keys = key_views(scene, args.keys, "all" if args.photo_path else "test")
     checkpoint = args.checkpoint or default_checkpoint_path()
     model, _ = load_checkpoint(checkpoint)
-    enhancer = SceneEnhancer(scene, model, align=args.align == "on", colour=colour, trust=args.trust == "on")
+    enhancer = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(
+        align=args.align == "on", colour=colour, trust=args.trust == "on"))
     camera_path = CameraPath(world_from_cam=poses, K=K.expand(len(poses), 3, 3).clone(), width=width,
                              height=height, fps=24.0)
     out = frames.parent / ("enhanced_" + frames.name + ("" if args.align == "on" else "_noalign") + colour_tag)

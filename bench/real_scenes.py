@@ -80,7 +80,7 @@ def parse_args(argv=None):
                    help="colour matching to the neighbour photos at inference (default on, as shipped)")
     p.add_argument("--trust", choices=["on", "off"], default="on",
                    help="keep only part of the enhancer's change where the neighbours mostly disagree "
-                        "(roguenerf.geometry.trust; default on, as shipped)")
+                        "(roguenerf.enhance.trust; default on, as shipped)")
     p.add_argument("--plans", type=lambda t: [x for x in t.split(",") if x], default=["default"],
                    help=f"comma-separated fine-tuning plans: {', '.join(PLANS)}")
     p.add_argument("--replot", type=Path, nargs="+", default=None, metavar="CSV",
@@ -127,6 +127,7 @@ def run(args, save=None) -> list[dict]:
     """The rows; ``save(rows)`` is called after each one (a long run loses nothing on a crash)."""
     from roguenerf.checkpoint import blend_state, default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
+    from roguenerf.enhance import EnhanceOptions
     from roguenerf.training import TrainConfig, evaluate, finetune, plan_training
 
     new = args.checkpoint or default_checkpoint_path()
@@ -136,8 +137,8 @@ def run(args, save=None) -> list[dict]:
     start = load_checkpoint(new)[0].state_dict() if args.blends else None  # what --blends mixes with
 
     def measure(scene, model) -> dict:
-        return evaluate(scene, model, max_views=args.max_views, align=args.align == "on",
-                        colour=args.colour == "on", trust=args.trust == "on")
+        return evaluate(scene, model, max_views=args.max_views, options=EnhanceOptions.from_flags(
+            align=args.align == "on", colour=args.colour == "on", trust=args.trust == "on"))
 
     for scene_dir in args.scenes:
         scene = load_scene(scene_dir)

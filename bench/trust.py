@@ -3,15 +3,15 @@
 Every test view of each scene folder is enhanced once as shipped but with trust off (pose
 refinement and colour matching on); the share of its pixels where two or more neighbours agree
 is measured on the same small copies the enhancer uses. Each ``--settings`` value of
-:attr:`~roguenerf.geometry.trust.TrustConfig.full_share` then keeps ``min(1, share / value)`` of
-that output's change over the render (:func:`~roguenerf.geometry.trust.trust_factor`), so the
+:attr:`~roguenerf.enhance.trust.TrustConfig.full_share` then keeps ``min(1, share / value)`` of
+that output's change over the render (:func:`~roguenerf.enhance.trust.trust_factor`), so the
 settings differ in nothing else; plain numbers are per view on every view. ``localS`` (e.g.
 ``local16``) instead keeps, per pixel, the share of agreeing pixels within about S pixels of it
 (Gaussian sigma, small copies) over 0.5: a per-pixel trust on every view. ``belowX`` (e.g.
 ``below0.1``) is the shipped rule with
-:attr:`~roguenerf.geometry.trust.TrustConfig.local_below` = X: per view, and per pixel
+:attr:`~roguenerf.enhance.trust.TrustConfig.local_below` = X: per view, and per pixel
 (``local_sigma``) on views whose agreement is under X
-(:func:`~roguenerf.geometry.trust.kept_change`). ``alone`` keeps the shipped rule's share but
+(:func:`~roguenerf.enhance.trust.kept_change`). ``alone`` keeps the shipped rule's share but
 takes the rest of the change from the model run without neighbours instead of the render (a
 fallback measured, not shipped). A scene folder may name the checkpoint to use
 for it (``FOLDER=CHECKPOINT``: a fine-tuned model), else ``--checkpoint``. Per view and setting: PSNR
@@ -87,8 +87,9 @@ def measure(args) -> list[dict]:
     from roguenerf import metrics
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.enhance.trust import TrustConfig, kept_change, local_keep, share_kept, trust_factor
     from roguenerf.geometry import as_world_from_cam
-    from roguenerf.geometry.trust import TrustConfig, kept_change, local_keep, share_kept, trust_factor
     from roguenerf.inference import SceneEnhancer
 
     base = stamp()
@@ -97,7 +98,7 @@ def measure(args) -> list[dict]:
         checkpoint = own or args.checkpoint or default_checkpoint_path()
         model, _ = load_checkpoint(checkpoint)
         scene = load_scene(scene_dir)
-        enhancer = SceneEnhancer(scene, model, trust=False)
+        enhancer = SceneEnhancer(scene, model, options=EnhanceOptions(trust=None))
         label = scene_label(scene_dir) + (" (fine-tuned)" if own else "")
         views = scene.indices("test")[: args.max_views] if args.max_views else scene.indices("test")
         for i in views:

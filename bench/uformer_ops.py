@@ -27,7 +27,8 @@ from einops import rearrange
 from bench.common import beside, stamp, write_csv
 from bench.stages import matmul_peak
 from roguenerf import runtime
-from roguenerf.models import build_enhancer, fastops
+from roguenerf.models import build_enhancer
+from roguenerf.ops import fused
 
 
 def best_ms(fn, repeats: int) -> float:
@@ -69,12 +70,12 @@ def main(argv=None) -> None:
     rows = []
     with torch.inference_mode():
         xw = rearrange(x, "b (nh wh) (nw ww) c -> (b nh nw) (wh ww) c", wh=win, ww=win)
-        qkv = fastops.linear(xw, blk.attn.to_qkv)
+        qkv = fused.linear(xw, blk.attn.to_qkv)
         q, k, v = rearrange(qkv, "b l (three n d) -> three b n l d", three=3, n=heads)
         bias = blk.attn.bias()[None]
         attn = F.scaled_dot_product_attention(q, k, v, attn_mask=bias, scale=blk.attn.scale)
         attn = rearrange(attn, "b n l d -> b l (n d)")
-        hid = fastops.linear(x, blk.mlp.linear1[0], "gelu")
+        hid = fused.linear(x, blk.mlp.linear1[0], "gelu")
         hid_cf = hid.permute(0, 3, 1, 2)
         L = win * win
         ops = [
@@ -82,15 +83,15 @@ def main(argv=None) -> None:
             ("window partition (copy)",
              lambda: rearrange(x, "b (nh wh) (nw ww) c -> (b nh nw) (wh ww) c", wh=win, ww=win).contiguous(), 0),
             ("shift roll", lambda: torch.roll(x, (-(win // 2), -(win // 2)), (1, 2)), 0),
-            ("qkv linear", lambda: fastops.linear(xw, blk.attn.to_qkv), 2 * tokens * c * 3 * c),
+            ("qkv linear", lambda: fused.linear(xw, blk.attn.to_qkv), 2 * tokens * c * 3 * c),
             ("window attention (fused)",
              lambda: F.scaled_dot_product_attention(q, k, v, attn_mask=bias, scale=blk.attn.scale),
              2 * 2 * tokens * L * c),
-            ("output linear", lambda: fastops.linear(attn, blk.attn.to_out), 2 * tokens * c * c),
-            ("LeFF linear + GELU", lambda: fastops.linear(x, blk.mlp.linear1[0], "gelu"), 2 * tokens * c * hidden),
-            ("LeFF depthwise 3x3 + GELU", lambda: fastops.conv2d(hid_cf, blk.mlp.dwconv[0], "gelu"),
+            ("output linear", lambda: fused.linear(attn, blk.attn.to_out), 2 * tokens * c * c),
+            ("LeFF linear + GELU", lambda: fused.linear(x, blk.mlp.linear1[0], "gelu"), 2 * tokens * c * hidden),
+            ("LeFF depthwise 3x3 + GELU", lambda: fused.conv2d(hid_cf, blk.mlp.dwconv[0], "gelu"),
              2 * tokens * hidden * 9),
-            ("LeFF output linear", lambda: fastops.linear(hid, blk.mlp.linear2), 2 * tokens * hidden * c),
+            ("LeFF output linear", lambda: fused.linear(hid, blk.mlp.linear2), 2 * tokens * hidden * c),
             ("residual add", lambda: x + x, 0),
         ]
         meta = stamp()

@@ -10,6 +10,6 @@ scene-folder format that ``roguenerf`` reads.
 
 from roguefit.fit import PRESETS, FitConfig, make_pairs
 from roguefit.photos import PhotoSet, read_photo_set
-from roguefit.splats import SplatConfig, make_splat_pairs
+from roguefit.splats import SplatConfig
 
-__all__ = ["PRESETS", "FitConfig", "PhotoSet", "SplatConfig", "make_pairs", "make_splat_pairs", "read_photo_set"]
+__all__ = ["PRESETS", "FitConfig", "PhotoSet", "SplatConfig", "make_pairs", "read_photo_set"]

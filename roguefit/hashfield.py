@@ -47,19 +47,6 @@ def level_resolutions(levels: int, base: int, finest: int) -> list[int]:
     return [int(math.floor(base * growth**level + 1e-6)) for level in range(levels)]
 
 
-def hash_index(ijk: Tensor, resolution: int, table_size: int) -> Tensor:
-    """Table rows of integer grid vertices ``ijk`` ``(..., 3)`` (each in ``0..resolution``) on a
-    level of side ``resolution``: the dense row-major index when the level's ``(resolution + 1)^3``
-    vertices fit in ``table_size``, else the spatial hash modulo ``table_size`` (a power of two)."""
-    side = resolution + 1
-    if side**3 <= table_size:
-        return ijk[..., 0] + side * (ijk[..., 1] + side * ijk[..., 2])
-    h = ijk[..., 0] * HASH_PRIMES[0]
-    h = torch.bitwise_xor(h, ijk[..., 1] * HASH_PRIMES[1])
-    h = torch.bitwise_xor(h, ijk[..., 2] * HASH_PRIMES[2])
-    return h & (table_size - 1)
-
-
 class HashEncoding(nn.Module):
     """Multi-resolution hash encoding of points in ``[0, 1]^3`` -> ``(P, L * F)`` (level-major).
 

@@ -397,12 +397,3 @@ class _SplatFitter:
         return rgb.clamp(0, 1), depth, acc.clamp(0, 1)
 
 
-def make_splat_pairs(photos_dir: str | Path, output: str | Path, config: SplatConfig = SplatConfig(), *,
-                     progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
-                     render_progress: Callable[[int, int], None] | None = None) -> dict:
-    """Fit splats to ``photos_dir``'s training views and write the scene folder ``output``:
-    :func:`roguefit.make_pairs` with a :class:`SplatConfig`."""
-    from roguefit.fit import make_pairs
-
-    return make_pairs(photos_dir, output, config, progress=progress, should_stop=should_stop,
-                      render_progress=render_progress)

@@ -51,6 +51,8 @@ _LAZY = {
     "flip": "roguenerf.metrics",
     # inference and training
     "SceneEnhancer": "roguenerf.inference",
+    "EnhanceOptions": "roguenerf.enhance",
+    "NeighbourRule": "roguenerf.enhance",
     "EnhanceResult": "roguenerf.inference",
     "TrainConfig": "roguenerf.training",
     "TrainProgress": "roguenerf.training",

@@ -50,6 +50,13 @@ LrOpt = Annotated[float | None, typer.Option("--lr", help=(
     "1e-4 on a GPU, the paper's)."))]
 LrScheduleOpt = Annotated[str | None, typer.Option(
     "--lr-schedule", help="cosine (the lr falls to 0 over the budget; the default) or constant.")]
+def _enhance_options(neighbours, align: bool, colour: bool, trust: bool):
+    """The one :class:`~roguenerf.enhance.EnhanceOptions` of evaluate, enhance and enhance-path."""
+    from roguenerf.enhance import EnhanceOptions
+
+    return EnhanceOptions.from_flags(neighbours=neighbours, align=align, colour=colour, trust=trust)
+
+
 NeighboursOpt = Annotated[int | None, typer.Option("--neighbours", help="Neighbours per view (default: model's).")]
 AlignOpt = Annotated[bool, typer.Option("--align/--no-align", help=(
     "Refine each neighbour's pose against the render before using its photo (for dataset poses that are a "
@@ -124,7 +131,9 @@ def _setup_logging() -> None:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s", force=True)
 
 
-def _load_scene(scene_dir: Path):
+def _load_scene(scene_dir: Path, *, check: bool = True):
+    """The scene, and (``check``) a warning naming its unusable views: every view's files are
+    read once for that; a one-view command checks just the views it reads instead."""
     from roguenerf.data.readers import load_scene
 
     if not scene_dir.exists():
@@ -132,17 +141,21 @@ def _load_scene(scene_dir: Path):
     if not scene_dir.is_dir():
         raise InputError(f"scene directory {scene_dir} is not a directory")
     scene = load_scene(scene_dir)
-    _warn_unusable(scene)
+    if check:
+        _warn_unusable(scene)
     return scene
 
 
-def _warn_unusable(scene) -> None:
-    """One warning line listing the views that cannot serve (e.g. a depth map of zeros)."""
+def _warn_unusable(scene, indices=None) -> None:
+    """One warning line listing the views that cannot serve (e.g. a depth map of zeros): all of
+    the scene's, or those of ``indices`` (the views a command reads)."""
     from roguenerf.data.scene import unusable_views
 
-    bad = unusable_views(scene)
+    bad = unusable_views(scene, indices=indices)
     if bad:
-        typer.echo(f"warning: {len(bad)} of {len(scene.frames)} views of {scene.root} are unusable and "
+        among = (f"of {len(scene.frames)} views of {scene.root}" if indices is None
+                 else f"of the {len(set(indices))} views of {scene.root} this command reads")
+        typer.echo(f"warning: {len(bad)} {among} are unusable and "
                    f"contribute nothing: {'; '.join(str(v) for v in bad)}", err=True)
 
 
@@ -405,8 +418,8 @@ def evaluate(
         scene = _load_scene(scene_dir)
         model = _load_model(checkpoint)
         with _progress_bar(f"evaluating {split} views", "view") as progress:
-            report = run_evaluate(scene, model, split=split, num_neighbours=neighbours, progress=progress,
-                                  align=align, colour=colour, trust=trust)
+            report = run_evaluate(scene, model, split=split, progress=progress,
+                                  options=_enhance_options(neighbours, align, colour, trust))
     if as_json:
         from roguenerf.imageio import finite_for_json
 
@@ -450,12 +463,15 @@ def enhance(
         if not folder.is_dir():
             raise InputError(f"--output: folder {folder} does not exist" if not folder.exists()
                              else f"--output: {folder} is not a folder")
-        scene = _load_scene(scene_dir)
+        scene = _load_scene(scene_dir, check=False)  # the views read are checked below, not all
         index = scene.index(view)
         model = _load_model(checkpoint)
+        enhancer = SceneEnhancer(scene, model, options=_enhance_options(neighbours, align, colour, trust))
+        frame = scene.frames[index]
+        chosen = enhancer.select(frame.world_from_cam, exclude=index if frame.split == "train" else None)
+        _warn_unusable(scene, [index, *chosen])
         with _progress_bar(f"enhancing {view}", "tile") as progress:
-            result = SceneEnhancer(scene, model, num_neighbours=neighbours,
-                                   align=align, colour=colour, trust=trust).enhance_view(index, progress=progress)
+            result = enhancer.enhance_view(index, progress=progress)
         write_png(output, result.image)
         used = ", ".join(f"{n} (pose refined)" if done else n
                          for n, done in zip(result.neighbours, result.aligned or [False] * len(result.neighbours)))
@@ -713,8 +729,7 @@ def enhance_path_command(
         from roguenerf.checkpoint import load_checkpoint
 
         model, _meta = load_checkpoint(ckpt)
-        enhancer = SceneEnhancer(scene, model, num_neighbours=neighbours, align=align, colour=colour,
-                                 trust=trust)
+        enhancer = SceneEnhancer(scene, model, options=_enhance_options(neighbours, align, colour, trust))
         stat = ckpt.stat()
         with _progress_bar(f"enhancing {len(camera_path)} frames", "frame") as progress:
             result = enhance_path(scene, enhancer, camera_path, frames, output, depth_type=depth_type,

@@ -15,42 +15,16 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
+from roguenerf.enhance.options import DEFAULT_TILE, NEAR_DEGREES, NEAR_EXTRA, EnhanceOptions  # noqa: F401 (re-exported)
 from roguenerf.errors import InputError, NonFiniteOutputError
 from roguenerf.images import check_float_image
 from roguenerf.models.layers import receptive_radius
 from roguenerf.runtime import release_freed_memory
-
-DEFAULT_TILE = 512
-"""Images whose height or width exceed this are enhanced tile by tile (bounded memory)."""
-
-DEFAULT_ALIGN = True
-"""Whether :class:`SceneEnhancer` refines neighbour poses by default (``align``)."""
-
-DEFAULT_COLOUR = True
-"""Whether :class:`SceneEnhancer` matches the enhanced view's colour to the agreeing neighbour
-photos by default (``colour``; :mod:`roguenerf.geometry.colour`)."""
-
-DEFAULT_TRUST = True
-"""Whether :class:`SceneEnhancer` scales the enhancer's change down on views where the neighbours
-mostly disagree (``trust``; :mod:`roguenerf.geometry.trust`) by default."""
-
-NEAR_EXTRA = 1
-"""How many neighbours beyond the model's count a :class:`SceneEnhancer` left at its default
-count may add, each only where it is a near view (:data:`NEAR_DEGREES`)."""
-
-NEAR_DEGREES = 4.0
-"""A neighbour beyond the model's count is added when its camera's rotation differs from the
-view's by at most this (the geodesic angle). A near photo's detail lands where the render's
-depth puts it with little error; a far one's does not. On the leave-one-kind-out figure
-(forward-facing captures, third neighbours 2-6 degrees off) a third neighbour within 3 or 4
-degrees gains most, +0.23 dB zero-shot and +0.49 after 10 minutes (5: +0.20 / +0.45; any: +0.15
-/ +0.41); on our own look, whose third neighbours are 9-31 degrees off, any third neighbour
-costs up to 0.28 dB (docs/kinds.md, *A third neighbour where it is near*)."""
 
 DEFAULT_CACHE_BYTES = 2 << 30
 """Budget of the per-scene neighbour cache (features + depth, float32), least recently used
@@ -64,7 +38,7 @@ PROBE_PIXELS = 128 * 128
 NO_NEIGHBOUR_NOTE = "no neighbour sees this view: enhanced without neighbours"
 
 ALIGN_SIDE = 512
-"""Pose refinement (:mod:`roguenerf.geometry.align`) works on copies of the neighbour photos and
+"""Pose refinement (:mod:`roguenerf.enhance.align`) works on copies of the neighbour photos and
 depths no larger than this (long side), the last :data:`ALIGN_CACHE` of them cached (about 3 MB
 a photo)."""
 
@@ -84,24 +58,27 @@ class EnhanceResult:
     """Why the result differs from the usual path, e.g. no neighbour sees the view."""
     aligned: list[bool] | None = None
     """Per neighbour (as ``neighbours``): whether its pose was refined for this view
-    (:mod:`roguenerf.geometry.align`); None when pose refinement is off."""
+    (:mod:`roguenerf.enhance.align`); None when pose refinement is off."""
     colour_offset: list[float] | None = None
-    """The view's RGB offset to the agreeing neighbours' colour (:mod:`roguenerf.geometry.colour`;
+    """The view's RGB offset to the agreeing neighbours' colour (:mod:`roguenerf.enhance.colour`;
     what was added varies smoothly around it across the image); None where nothing was added
     (colour matching off, fewer than two neighbours, or too few pixels where they agree)."""
     agreement: float | None = None
     """Share of the view's pixels where two or more neighbours agree
-    (:func:`~roguenerf.geometry.colour.neighbour_agreement`, measured on the small copies of
+    (:func:`~roguenerf.enhance.colour.neighbour_agreement`, measured on the small copies of
     colour matching); None where not measured (colour matching and trust both off, or fewer than
     two neighbours)."""
     agreement_map: Tensor | None = None
     """Where two or more neighbours agree, ``(1, h, w)`` bool on the small copy that gave
     ``agreement`` (its mean); None where ``agreement`` is."""
     trust: float | None = None
-    """Share of the enhancer's change that was kept (:mod:`roguenerf.geometry.trust`): 1 where the
+    """Share of the enhancer's change that was kept (:mod:`roguenerf.enhance.trust`): 1 where the
     neighbours agree on enough of the view, less where they mostly disagree (the mean over the
     image where it was set per pixel: agreement under ``TrustConfig.local_below``); None where
     trust is off or fewer than two neighbours were used (nothing to compare)."""
+    stages: list = field(default_factory=list)
+    """What each stage after the model did (:class:`~roguenerf.enhance.stages.StageRecord`, in
+    order); empty where none ran (stages off, or fewer than two neighbours)."""
 
 
 def _check_image(x: Tensor, name: str, channels: int) -> Tensor:
@@ -134,49 +111,50 @@ def _resolve_exclude(scene, train: list[int], exclude) -> list[int]:
 
 
 class SceneEnhancer:
-    """An enhancer bound to one scene: neighbour selection, cached conv_H features, tiling.
+    """An enhancer bound to one scene: the pipeline ``select -> align -> model -> stages``
+    (:mod:`roguenerf.enhance`), with cached conv_H features and tiling.
 
     Args:
         scene: a :class:`~roguenerf.data.scene.Scene`; its ``train`` views are the neighbours.
         model: an :class:`~roguenerf.models.enhancer.Enhancer` (put in eval mode and moved to
             ``device`` here; do not train it while this object is in use).
-        num_neighbours: neighbours per request; default ``model.config.num_neighbours``, plus up
-            to :data:`NEAR_EXTRA` more where they are near views (:data:`NEAR_DEGREES`). Given
-            explicitly, exactly that many (fewer where the scene has fewer training views).
-        tile: images larger than this (height or width) are enhanced with
-            :func:`~roguenerf.models.tiling.enhance_tiled`; default :data:`DEFAULT_TILE`.
+        options: an :class:`~roguenerf.enhance.EnhanceOptions`: the neighbour rule (default: the
+            model's count plus up to :data:`NEAR_EXTRA` more within :data:`NEAR_DEGREES`), pose
+            refinement (``align``: each neighbour photo's pose is refined against the render, so a
+            pose a little off still lands on it), the stages after the model (``colour``: the
+            low-frequency colour brought to the agreeing neighbour photos'; ``trust``: only part of
+            the change kept where the neighbours mostly disagree) and the tile size. Default:
+            ``EnhanceOptions()``, every stage on.
+        num_neighbours, tile, align, colour, trust: shortcuts for
+            :meth:`EnhanceOptions.from_flags <roguenerf.enhance.EnhanceOptions.from_flags>` when
+            ``options`` is not given (a count gives exactly that many neighbours; each stage True,
+            False or its config).
         device: where the model runs.
-        align: refine each neighbour's pose against the render before reprojecting it
-            (:func:`~roguenerf.geometry.align.align_neighbour`): a photo whose dataset pose is a
-            little off then still lands on the render. True, False, or an
-            :class:`~roguenerf.geometry.align.AlignConfig`; default :data:`DEFAULT_ALIGN`.
-        colour: after enhancing, bring the image's low-frequency colour to the neighbour photos'
-            where two or more of them agree (:func:`~roguenerf.geometry.colour.colour_match`): the
-            model's colour prior comes from its pre-training renders, the photos are the camera's own.
-            True, False, or a :class:`~roguenerf.geometry.colour.ColourConfig`; default
-            :data:`DEFAULT_COLOUR`.
-        trust: keep only part of the enhancer's change on a view where the neighbours mostly
-            disagree (the field's geometry is off there, and the detail they bring would land in
-            the wrong place; :mod:`roguenerf.geometry.trust`). True, False, or a
-            :class:`~roguenerf.geometry.trust.TrustConfig`; default :data:`DEFAULT_TRUST`.
+        cache_bytes: budget of the neighbour cache (:data:`DEFAULT_CACHE_BYTES`).
     """
 
-    def __init__(self, scene, model, *, num_neighbours: int | None = None, tile: int | None = None,
-                 device: str | torch.device = "cpu", cache_bytes: int = DEFAULT_CACHE_BYTES, align=None,
-                 colour=None, trust=None):
-        if num_neighbours is not None and int(num_neighbours) < 0:
-            raise InputError(f"num_neighbours: expected >= 0, got {num_neighbours}")
-        if tile is not None and int(tile) < 16:
-            raise InputError(f"tile: expected >= 16 pixels, got {tile}")
+    def __init__(self, scene, model, *, options: EnhanceOptions | None = None, num_neighbours: int | None = None,
+                 tile: int | None = None, device: str | torch.device = "cpu", cache_bytes: int = DEFAULT_CACHE_BYTES,
+                 align=None, colour=None, trust=None):
+        shortcuts = {"num_neighbours": num_neighbours, "tile": tile, "align": align, "colour": colour, "trust": trust}
+        given = [name for name, value in shortcuts.items() if value is not None]
+        if options is None:
+            options = EnhanceOptions.from_flags(
+                neighbours=num_neighbours, tile=tile, align=True if align is None else align,
+                colour=True if colour is None else colour, trust=True if trust is None else trust)
+        elif not isinstance(options, EnhanceOptions):
+            raise InputError(f"options: expected an EnhanceOptions, got {type(options).__name__}")
+        elif given:
+            raise InputError(f"{', '.join(given)}: give them in options (EnhanceOptions), not beside it")
+        self.options = options
         self.scene = scene
         self.device = torch.device(device)
         self.model = model.to(self.device).eval()
         config = getattr(model, "config", None)
         default_n = getattr(config, "num_neighbours", 5) if config is not None else 5
         self.use_neighbours = bool(getattr(config, "use_neighbours", True)) if config is not None else True
-        self.num_neighbours = int(default_n if num_neighbours is None else num_neighbours)
-        self.near_extra = NEAR_EXTRA if num_neighbours is None and self.num_neighbours > 0 else 0
-        self.tile = int(DEFAULT_TILE if tile is None else tile)
+        self.num_neighbours, self.near_extra = options.neighbours.counts(int(default_n))
+        self.tile = options.tile
         self.train = list(scene.indices("train"))
         self.train_names = [scene.frames[i].name for i in self.train]
         poses = scene.poses()
@@ -190,24 +168,13 @@ class SceneEnhancer:
         else:
             self.train_poses = torch.zeros(0, 4, 4, dtype=torch.float64)
             self.train_K = torch.zeros(0, 3, 3)
-        from roguenerf.geometry.align import AlignConfig
+        from roguenerf.enhance.stages import agreement_test, stages_for
 
-        align = DEFAULT_ALIGN if align is None else align
-        if not isinstance(align, (bool, AlignConfig)):
-            raise InputError(f"align: expected True, False or an AlignConfig, got {type(align).__name__}")
-        self.align = AlignConfig() if align is True else (align or None)
-        from roguenerf.geometry.colour import ColourConfig
-
-        colour = DEFAULT_COLOUR if colour is None else colour
-        if not isinstance(colour, (bool, ColourConfig)):
-            raise InputError(f"colour: expected True, False or a ColourConfig, got {type(colour).__name__}")
-        self.colour = ColourConfig() if colour is True else (colour or None)
-        from roguenerf.geometry.trust import TrustConfig
-
-        trust = DEFAULT_TRUST if trust is None else trust
-        if not isinstance(trust, (bool, TrustConfig)):
-            raise InputError(f"trust: expected True, False or a TrustConfig, got {type(trust).__name__}")
-        self.trust = TrustConfig() if trust is True else (trust or None)
+        self.align = options.align
+        self.colour = options.colour
+        self.trust = options.trust
+        self.stages = stages_for(options)
+        self._agreement_test = agreement_test(self.stages)
         self._small: OrderedDict[int, tuple[Tensor, Tensor, Tensor, dict]] = OrderedDict()
         self.cache_bytes = int(cache_bytes)
         self._sources: OrderedDict[int, Tensor] = OrderedDict()
@@ -251,7 +218,7 @@ class SceneEnhancer:
         """Photo ``(3, h, w)``, depth ``(1, h, w)`` and K of a training position, no larger than
         :data:`ALIGN_SIDE`, and the fit's cache of its levels (all cached): what the pose
         refinement reads."""
-        from roguenerf.geometry.align import shrink
+        from roguenerf.enhance.align import shrink
 
         with self._lock:
             if position not in self._small:
@@ -268,7 +235,7 @@ class SceneEnhancer:
         """``(N, 4, 4)`` float64 poses of the neighbours at training ``positions`` for this view:
         refined against the render where :attr:`align` is on and the fit is accepted, else the
         dataset's; and, per neighbour, whether it was refined."""
-        from roguenerf.geometry.align import align_neighbour, shrink
+        from roguenerf.enhance.align import align_neighbour, shrink
 
         poses = self.train_poses[positions].clone()
         if self.align is None:
@@ -287,8 +254,8 @@ class SceneEnhancer:
         """Per-tile neighbours for photos too large to cache: for each tile, each neighbour's
         features are computed on just the part of its photo the tile projects into (plus the
         bilinear and conv_H margins), which gives the same values as the whole photo's."""
-        from roguenerf.geometry import reproject, sampling_source
         from roguenerf.models import NeighbourBatch
+        from roguenerf.reprojection import reproject, sampling_source
 
         photos = [self.scene.photo(self.train[p]).to(self.device, torch.float32) for p in positions]
         depths = [self._depth(p) for p in positions]
@@ -344,7 +311,7 @@ class SceneEnhancer:
     def select(self, world_from_cam: Tensor, *, exclude=None) -> list[int]:
         """Scene indices of the neighbours of a pose (nearest first), per the paper's rule: the
         model's count, then up to :attr:`near_extra` more of the next nearest that are within
-        :data:`NEAR_DEGREES` of the pose's rotation."""
+        the rule's ``near_degrees`` of the pose's rotation."""
         from roguenerf.geometry import rotation_angle, select_neighbours
 
         if not self.use_neighbours or self.num_neighbours == 0 or not self.train:
@@ -355,7 +322,7 @@ class SceneEnhancer:
                                                     exclude=excluded or None)]
         kept = picked[: self.num_neighbours]
         for p in picked[self.num_neighbours:]:
-            if float(rotation_angle(pose[:3, :3], self.train_poses[p, :3, :3])) <= NEAR_DEGREES:
+            if float(rotation_angle(pose[:3, :3], self.train_poses[p, :3, :3])) <= self.options.neighbours.near_degrees:
                 kept.append(p)
         return [self.train[p] for p in kept]
 
@@ -443,49 +410,36 @@ class SceneEnhancer:
             raise NonFiniteOutputError("the enhancer produced non-finite values for this view; the model or "
                                  "its inputs are broken (check the checkpoint and the depth)")
         image = out[0].clamp(0, 1).to("cpu", torch.float32)
-        match = share = factor = agreement = None
-        if (self.colour is not None or self.trust is not None) and len(chosen) >= 2:
-            from roguenerf.geometry.colour import neighbour_agreement
+        state = None
+        if self.stages and len(chosen) >= 2:
+            from roguenerf.enhance.colour import neighbour_agreement
+            from roguenerf.enhance.stages import ViewState
 
             seen, small_image = self._small_seen(positions, image, depth, K, world_from_cam, n_pose)
-            test = self.trust or self.colour  # the same test by default (TrustConfig's sigma, threshold)
-            agreement = neighbour_agreement(seen, small_image.shape[-2:], test.sigma, test.max_disagreement)
-            share = float(agreement[0].float().mean())
-            if self.colour is not None:
-                from roguenerf.geometry.colour import apply_match, colour_match
-
-                same = (self.colour.sigma, self.colour.max_disagreement) == (test.sigma, test.max_disagreement)
-                match = colour_match(small_image[None], seen, self.colour, agreement=agreement if same else None)
-                if match is not None:
-                    image = apply_match(image, match)
-            if self.trust is not None:
-                from roguenerf.geometry.trust import kept_change, share_kept
-
-                keep = kept_change(agreement[0], image.shape[-2:], self.trust)
-                factor = share_kept(keep)
-                if factor < 1:
-                    base = render.to("cpu", torch.float32).clamp(0, 1)
-                    image = (base + keep * (image - base)).clamp(0, 1)
-                    if note is None:
-                        where = "" if isinstance(keep, float) else ", where they agree"
-                        note = (f"the neighbours agree on {share:.0%} of this view (its geometry is off): "
-                                f"{factor:.0%} of the enhancer's change kept{where}")
+            agreement = neighbour_agreement(seen, small_image.shape[-2:], *self._agreement_test)
+            state = ViewState(image=image, render=render, seen=seen, small_image=small_image, agreement=agreement,
+                              test=self._agreement_test, note=note)
+            records = [stage.apply(state) for stage in self.stages]
+            image, note = state.image, state.note
+        records = records if state is not None else []
+        detail = {r.name: r.detail for r in records}
+        offset = detail.get("colour", {}).get("offset")
+        kept = detail.get("trust", {}).get("kept")
         names = [self.scene.frames[i].name for i in chosen]
         return EnhanceResult(image=image, neighbours=names, seconds=time.perf_counter() - start, note=note,
                              aligned=aligned if chosen else ([] if self.align is not None else None),
-                             colour_offset=None if match is None else [round(float(x), 6) for x in match.offset],
-                             agreement=None if share is None else round(share, 4),
-                             agreement_map=None if share is None else agreement[0],
-                             trust=None if factor is None else round(factor, 4))
+                             colour_offset=offset, agreement=None if state is None else round(state.share, 4),
+                             agreement_map=None if state is None else state.agreement[0],
+                             trust=kept, stages=records)
 
     def colour_match(self, positions: list[int], image: Tensor, depth: Tensor, K: Tensor,
                      world_from_cam: Tensor, poses: Tensor):
         """How far ``image`` (an enhanced view) is from the colour of the neighbours at training
-        ``positions`` seen from ``poses`` (:func:`~roguenerf.geometry.colour.colour_match`), on
+        ``positions`` seen from ``poses`` (:func:`~roguenerf.enhance.colour.colour_match`), on
         copies no larger than :data:`ALIGN_SIDE` (the neighbours' are the pose fit's): a
-        :class:`~roguenerf.geometry.colour.ColourMatch` whose field is at the small copy's size;
+        :class:`~roguenerf.enhance.colour.ColourMatch` whose field is at the small copy's size;
         None where there is no agreement to match, or colour matching is off."""
-        from roguenerf.geometry.colour import colour_match
+        from roguenerf.enhance.colour import colour_match
 
         if self.colour is None:
             return None
@@ -497,8 +451,8 @@ class SceneEnhancer:
         """The neighbours at training ``positions`` (seen from ``poses``) reprojected into the
         view's copy no larger than :data:`ALIGN_SIDE`, as ``(colour, valid)`` pairs, and
         ``image``'s copy at that size."""
-        from roguenerf.geometry import reproject
-        from roguenerf.geometry.align import shrink
+        from roguenerf.enhance.align import shrink
+        from roguenerf.reprojection import reproject
 
         small, small_depth, small_K = shrink(image, depth, K, ALIGN_SIDE)
         leniency = getattr(self.model.config, "leniency", 0.25)
@@ -515,7 +469,7 @@ class SceneEnhancer:
     def _any_neighbour_sees(self, positions: list[int], depth_b: Tensor, K_b: Tensor, pose_b: Tensor) -> bool:
         """Whether any target pixel passes the reprojection test in any neighbour, checked on a
         regular subsample of about :data:`PROBE_PIXELS` target pixels (cheap at any size)."""
-        from roguenerf.geometry import reproject
+        from roguenerf.reprojection import reproject
 
         h, w = depth_b.shape[-2:]
         step = max(1, int((h * w / PROBE_PIXELS) ** 0.5))

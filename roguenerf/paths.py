@@ -11,7 +11,7 @@ encodes ``enhanced.mp4`` and ``side_by_side.mp4`` (render | enhanced, each half 
 frame by frame.
 
 **Flicker** (:func:`pair_flicker`): for consecutive frames t, t+1, frame t is reprojected into
-t+1 with t+1's depth, t's depth (visibility) and both poses (:func:`~roguenerf.geometry.reproject`,
+t+1 with t+1's depth, t's depth (visibility) and both poses (:func:`~roguenerf.reprojection.reproject`,
 with its validity mask); the figure is the mean absolute RGB difference over the valid pixels.
 The same mask is used for the renders, the enhanced frames and, where both frames coincide with
 views that have photos, the photos. Memory is bounded: two frames are held at a time.
@@ -25,7 +25,7 @@ import logging
 import math
 import re
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -350,14 +350,6 @@ def find_path_frames(folder: str | Path, count: int | None = None) -> list[tuple
     return [(rgbs[n], depths[n]) for n in names]
 
 
-@dataclass
-class PairFlicker:
-    render: float
-    enhanced: float
-    photo: float | None
-    valid_fraction: float
-
-
 def pair_flicker(images_t: list[Tensor | None], images_t1: list[Tensor | None], depth_t: Tensor, depth_t1: Tensor,
                  K_t: Tensor, K_t1: Tensor, pose_t: Tensor, pose_t1: Tensor) -> tuple[list[float | None], float]:
     """Mean absolute error of each image of frame t reprojected into frame t+1, on valid pixels.
@@ -370,7 +362,7 @@ def pair_flicker(images_t: list[Tensor | None], images_t1: list[Tensor | None], 
     Returns:
         ``(errors, valid_fraction)``; an error is None when its images are missing or no pixel is valid.
     """
-    from roguenerf.geometry import reproject
+    from roguenerf.reprojection import reproject
 
     present = [i for i, (a, b) in enumerate(zip(images_t, images_t1)) if a is not None and b is not None]
     out: list[float | None] = [None] * len(images_t)
@@ -912,16 +904,12 @@ def enhance_path(
     output = Path(output)
     frame_dir = output / FRAME_FOLDER
     output.mkdir(parents=True, exist_ok=True)  # frames/ only once the state marks the folder as ours
-    # The enhancer's settings too: frames matched with another colour reach, trust or pose refinement
+    # The enhancer's options too (EnhanceOptions.fingerprint, with the count they resolve to for
+    # this model): frames made with another neighbour rule, colour reach, trust or pose refinement
     # (a changed default after an upgrade) must not be mixed into this video.
-    from roguenerf.inference import NEAR_DEGREES
-
     options = {"depth_type": depth_type, "depth_scale": depth_scale, "background": background,
                "neighbours": enhancer.num_neighbours, "near_extra": enhancer.near_extra,
-               "near_degrees": NEAR_DEGREES,
-               "align": None if enhancer.align is None else asdict(enhancer.align),
-               "colour": None if enhancer.colour is None else asdict(enhancer.colour),
-               "trust": None if enhancer.trust is None else asdict(enhancer.trust)}
+               "enhance": enhancer.options.fingerprint()}
     fingerprint = _fingerprint(camera_path, pairs, checkpoint_id, options)
     state_path = output / STATE_FILE
     if state_path.is_file():

@@ -62,7 +62,7 @@ class EnhancerCache:
             return enhancer
 
     def _build(self, scene_id: str, version: int):
-        from roguenerf import SceneEnhancer, load_checkpoint, load_scene
+        from roguenerf import EnhanceOptions, SceneEnhancer, load_checkpoint, load_scene
 
         scene = load_scene(self.layout.scene_files(scene_id), confine=True)
         if version == 0 and self.default_model is not None:
@@ -78,7 +78,7 @@ class EnhancerCache:
                 )
             model, _ = load_checkpoint(path)
         log.info("SceneEnhancer built for scene %s, checkpoint v%s", scene_id, version)
-        return SceneEnhancer(scene, model)
+        return SceneEnhancer(scene, model, options=EnhanceOptions())  # the shipped defaults
 
     def evict(self, scene_id: str) -> None:
         with self._lock:

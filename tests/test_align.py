@@ -1,4 +1,4 @@
-"""Neighbour pose refinement (roguenerf.geometry.align) on the toy world's exact geometry."""
+"""Neighbour pose refinement (roguenerf.enhance.align) on the toy world's exact geometry."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import torch
 from kornia.filters import gaussian_blur2d
 
 from roguenerf.data.toy import make_toy_scene, make_toy_world, render_toy_view, toy_camera_path, toy_intrinsics
+from roguenerf.enhance.align import AlignConfig, align_neighbour, shrink
 from roguenerf.errors import InputError
-from roguenerf.geometry import reproject
-from roguenerf.geometry.align import AlignConfig, align_neighbour, shrink
 from roguenerf.geometry.noise import perturb_poses
+from roguenerf.reprojection import reproject
 
 H, W = 96, 128
 
@@ -162,12 +162,13 @@ def test_the_scene_enhancer_refines_wrong_neighbour_poses(tmp_path):
 
 
 def test_evaluate_reports_which_neighbours_were_refined(tmp_path):
+    from roguenerf.enhance import EnhanceOptions
     from roguenerf.models import Enhancer, make_config
     from roguenerf.training import evaluate
 
     scene = make_toy_scene(tmp_path / "scene", n_train=6, n_test=1, height=48, width=64)
     model = Enhancer(make_config("nano", num_neighbours=2))
-    on, off = evaluate(scene, model), evaluate(scene, model, align=False)
+    on, off = evaluate(scene, model), evaluate(scene, model, options=EnhanceOptions(align=None))
     assert on["views"][0]["aligned"] == [False, False]  # exact poses: nothing to refine
     assert off["views"][0]["aligned"] is None
     assert on["enhanced"]["psnr"] == pytest.approx(off["enhanced"]["psnr"], abs=1e-6)

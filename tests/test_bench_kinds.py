@@ -136,7 +136,7 @@ def test_every_bench_output_keeps_a_dot_in_its_name(tmp_path):
 def test_colour_cache_tag_names_what_differs_from_the_cached_setting():
     """Rows cached as ``_colourfield`` were measured with local_sigma 8: another setting must not
     read them back (it would report the old setting's figures as its own)."""
-    from roguenerf.geometry.colour import ColourConfig
+    from roguenerf.enhance.colour import ColourConfig
 
     assert kinds.colour_cache_tag(ColourConfig(local_sigma=8.0)) == "_colourfield"
     assert kinds.colour_cache_tag(ColourConfig(local_sigma=3.0)) == "_colourfield_local_sigma3"

@@ -18,6 +18,7 @@ import roguenerf.checkpoint
 from roguecli import app
 from roguenerf.checkpoint import load_checkpoint, save_checkpoint
 from roguenerf.data.toy import make_toy_scene
+from roguenerf.enhance import EnhanceOptions
 from roguenerf.models import build_enhancer
 from roguenerf.training import evaluate
 
@@ -76,12 +77,12 @@ def test_evaluate_reports_trust_and_no_trust_keeps_the_whole_change(scene_dir, c
     """Per view, the neighbours' agreement and the share of the change kept (as the library's
     SceneEnhancer gives them); with --no-trust the whole change is kept."""
     from roguenerf.data.readers import load_scene
-    from roguenerf.geometry.trust import TrustConfig, trust_factor
+    from roguenerf.enhance.trust import TrustConfig, trust_factor
 
     on = json.loads(_run("evaluate", scene_dir, "--checkpoint", checkpoint, "--json").stdout)
     off = json.loads(_run("evaluate", scene_dir, "--checkpoint", checkpoint, "--json", "--no-trust").stdout)
     model, _ = load_checkpoint(checkpoint)
-    direct = evaluate(load_scene(scene_dir), model, trust=False)
+    direct = evaluate(load_scene(scene_dir), model, options=EnhanceOptions(trust=None))
     for v_on, v_off, v_direct in zip(on["views"], off["views"], direct["views"], strict=True):
         assert 0 <= v_on["agreement"] <= 1
         if v_on["agreement"] >= TrustConfig().local_below:
@@ -581,6 +582,41 @@ def test_a_view_with_unusable_depth_is_loaded_with_a_warning_naming_it(scene_dir
     assert f"{frame.name} (train): depth has no usable values (all zeros" in result.stderr
     clean = _run("evaluate", scene_dir, "--checkpoint", checkpoint)
     assert "warning" not in clean.stderr
+
+
+def test_enhance_checks_only_the_views_it_reads(scene_dir, checkpoint, tmp_path):
+    """A one-view enhance reads the view and its neighbours, not every file of the scene (issue 51:
+    start-up time): an unusable view among them is named, one elsewhere is not read at all."""
+    import shutil
+
+    import numpy as np
+
+    from roguenerf.data.readers import load_scene
+    from roguenerf.imageio import write_png
+    from roguenerf.inference import SceneEnhancer
+
+    copy = tmp_path / "scene"
+    shutil.copytree(scene_dir, copy)
+    scene = load_scene(copy)
+    test = scene.indices("test")[0]
+    used = SceneEnhancer(scene, load_checkpoint(checkpoint)[0]).select(scene.frames[test].world_from_cam)
+    unused = [i for i in scene.indices("train") if i not in used]
+    assert used and unused
+    blank = scene.frames[unused[0]]  # a blank photo, never read by this command
+    write_png(blank.image_path, torch.full((3, blank.height, blank.width), 0.5))
+    args = ["enhance", copy, "--view", scene.frames[test].name, "--checkpoint", checkpoint,
+            "--output", tmp_path / "out.png"]
+    result = _run(*args)
+    assert result.exit_code == 0, result.output
+    assert "warning" not in result.stderr
+    neighbour = scene.frames[used[0]]
+    np.save(neighbour.depth_path, np.zeros_like(np.load(neighbour.depth_path)))
+    result = _run(*args)
+    assert result.exit_code == 0, result.output
+    assert (f"warning: 1 of the {1 + len(used)} views of {copy} this command reads are unusable and contribute "
+            f"nothing: {neighbour.name} (train): depth has no usable values (all zeros") in result.stderr
+    evaluate = _run("evaluate", copy, "--checkpoint", checkpoint)  # a whole-scene command reads them all
+    assert f"warning: 2 of {len(scene.frames)} views of {copy} are unusable" in evaluate.stderr
 
 
 INTERRUPT_PROBE = """

@@ -1,4 +1,4 @@
-"""Colour matching to the neighbour photos (roguenerf.geometry.colour) on known answers and the
+"""Colour matching to the neighbour photos (roguenerf.enhance.colour) on known answers and the
 toy world's exact geometry."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from roguenerf.data.toy import make_toy_scene
+from roguenerf.enhance.colour import ColourConfig, colour_match, colour_offset
 from roguenerf.errors import InputError
-from roguenerf.geometry.colour import ColourConfig, colour_match, colour_offset
 
 SHIFT = torch.tensor([0.02, -0.01, 0.03])
 
@@ -120,6 +120,7 @@ class Biased(torch.nn.Module):
 def test_the_scene_enhancer_takes_a_colour_bias_back_out(tmp_path):
     """On the toy world (exact geometry, the photos' own colour), a model that brightens every
     pixel by 0.04 is brought back to the render's colour; ``colour=False`` keeps the bias."""
+    from roguenerf.enhance import EnhanceOptions
     from roguenerf.inference import SceneEnhancer
     from roguenerf.models import Enhancer, make_config
     from roguenerf.training import evaluate
@@ -139,7 +140,8 @@ def test_the_scene_enhancer_takes_a_colour_bias_back_out(tmp_path):
     assert (on.image - render).mean().abs() < 0.01 < (off.image - render).mean().abs()
     report = evaluate(scene, model)
     assert report["views"][0]["colour_offset"] == on.colour_offset
-    assert report["enhanced"]["psnr"] > evaluate(scene, model, colour=False)["enhanced"]["psnr"] + 3
+    plain = evaluate(scene, model, options=EnhanceOptions(colour=None))
+    assert report["enhanced"]["psnr"] > plain["enhanced"]["psnr"] + 3
     with pytest.raises(InputError, match="colour"):
         SceneEnhancer(scene, model, colour="yes")
 

@@ -17,8 +17,9 @@ from roguenerf.data.exports import DataparserTransform, import_renders, write_de
 from roguenerf.data.readers import load_scene
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.errors import InputError, SceneFormatError
-from roguenerf.geometry import opencv_to_opengl, reproject
+from roguenerf.geometry import opencv_to_opengl
 from roguenerf.imageio import ImageTooLargeError, read_depth
+from roguenerf.reprojection import reproject
 
 H, W = 24, 32
 SCALE = 0.37

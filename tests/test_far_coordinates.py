@@ -14,9 +14,10 @@ import torch
 from roguenerf.data.readers import load_scene
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.data.writers import write_scene_folder
-from roguenerf.geometry import relative_pose, reproject, select_neighbours
+from roguenerf.geometry import relative_pose, select_neighbours
 from roguenerf.inference import SceneEnhancer
 from roguenerf.models import build_enhancer
+from roguenerf.reprojection import reproject
 from roguenerf.training import TrainConfig
 from roguenerf.training.loop import SceneData, training_step_inputs
 

@@ -14,10 +14,11 @@ import torch
 import torch.nn.functional as F
 
 from roguenerf.fastpath import fast_enabled, reference_mode
-from roguenerf.geometry import reproject, sampling_source
 from roguenerf.geometry.sampling import bilinear_sample
-from roguenerf.models import NeighbourBatch, build_enhancer, fastops
+from roguenerf.models import NeighbourBatch, build_enhancer
 from roguenerf.models.flow import FlowRefiner, flow_warp
+from roguenerf.ops import fused
+from roguenerf.reprojection import reproject, sampling_source
 from tests.model_helpers import make_views, randomise
 
 TOL = 2e-4
@@ -68,10 +69,10 @@ def test_fused_linear_and_conv_equal_plain_layers():
     xc = torch.randn(2, 8, 9, 7).contiguous(memory_format=torch.channels_last)
     for act, ref_fn in [("none", lambda t: t), ("gelu", F.gelu), ("leaky_relu", lambda t: F.leaky_relu(t, 0.01))]:
         if act != "leaky_relu":
-            fast, ref = both(lambda act=act: fastops.linear(x, lin, act))
+            fast, ref = both(lambda act=act: fused.linear(x, lin, act))
             torch.testing.assert_close(fast, ref, atol=1e-5, rtol=1e-5)
             torch.testing.assert_close(ref, ref_fn(lin(x)))
-        fast, ref = both(lambda act=act: fastops.conv2d(xc, conv, act))
+        fast, ref = both(lambda act=act: fused.conv2d(xc, conv, act))
         torch.testing.assert_close(fast, ref, atol=1e-5, rtol=1e-5)
 
 

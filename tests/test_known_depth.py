@@ -20,18 +20,11 @@ from roguenerf.data.readers import load_scene
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.data.writers import write_scene_folder
 from roguenerf.errors import InputError
-from roguenerf.geometry import (
-    DEPTH_EPS,
-    MAX_DEPTH,
-    known_depth,
-    known_depth_mask,
-    median_known_depth,
-    ray_to_z_depth,
-    reproject,
-)
+from roguenerf.geometry import DEPTH_EPS, MAX_DEPTH, known_depth, known_depth_mask, median_known_depth, ray_to_z_depth
 from roguenerf.inference import SceneEnhancer
 from roguenerf.models import build_enhancer
 from roguenerf.models.enhancer import median_depth
+from roguenerf.reprojection import reproject
 
 DENORMAL = 1e-40  # a float32 subnormal: 1 / DENORMAL overflows float32 to inf
 VALUES = [1.0, 0.0, -1.0, math.nan, math.inf, -math.inf, DENORMAL, 1e-30, 1e-7, DEPTH_EPS, 2e-6,

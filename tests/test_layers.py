@@ -127,3 +127,72 @@ def test_routers_take_shared_dependencies_from_deps_not_from_each_other():
     offenders = [f"{path.name}:{line}: {module}" for path in _files("service/routers")
                  for line, module in _imports(path) if module.startswith("service.routers.")]
     assert offenders == []
+
+
+LIBRARY_LAYERS = (
+    ("errors", "fastpath", "profiling", "runtime"),
+    ("images", "native"),
+    ("geometry", "imageio", "metrics", "video"),  # camera maths and files
+    ("ops",),  # the kernels: native, fast or reference per op
+    ("reprojection",),  # checked reprojection on the ops
+    ("data", "models", "enhance"),
+    ("checkpoint", "inference", "paths"),
+    ("splats", "training"),
+    ("cli", "__main__"),
+)
+"""Inside the library, bottom up: a module imports only its own unit and units of lower layers
+(docs/architecture.md, Layers). A unit is a top-level module or sub-package of ``roguenerf``."""
+
+
+def _library_arrows() -> list[tuple[str, str, str]]:
+    """(importer unit, imported unit, where) for every import between units of the library."""
+    arrows = []
+    for path in _files("roguenerf"):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        if len(parts) < 2 or parts[1] == "__init__":
+            continue  # the package's own lazy re-exports
+        for line, module in _imports(path):
+            target = module.split(".")
+            if target[0] == "roguenerf" and len(target) > 1 and target[1] != parts[1]:
+                arrows.append((parts[1], target[1], f"{path.relative_to(ROOT)}:{line}"))
+    return arrows
+
+
+def _library_problems(arrows: list[tuple[str, str, str]]) -> list[str]:
+    """Arrows that run up a layer, and import circles between units (same layer included)."""
+    layer = {unit: k for k, units in enumerate(LIBRARY_LAYERS) for unit in units}
+    problems = [f"{where}: {a} -> {b} runs up" for a, b, where in arrows if layer[b] > layer[a]]
+    graph: dict[str, set[str]] = {}
+    for a, b, _ in arrows:
+        graph.setdefault(a, set()).add(b)
+    state: dict[str, str] = {}
+
+    def visit(node: str, trail: list[str]) -> None:
+        state[node] = "open"
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == "open":
+                problems.append(f"import circle: {' -> '.join(trail + [node, nxt])}")
+            elif nxt not in state:
+                visit(nxt, trail + [node])
+        state[node] = "done"
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node, [])
+    return problems
+
+
+def test_no_arrow_inside_the_library_runs_back_up():
+    units = {p.relative_to(ROOT / "roguenerf").with_suffix("").parts[0] for p in _files("roguenerf")} - {"__init__"}
+    assert units == {u for layer in LIBRARY_LAYERS for u in layer}, "every unit of the library has a layer"
+    assert _library_problems(_library_arrows()) == []
+
+
+def test_the_library_layer_check_catches_an_arrow_up_and_a_circle():
+    arrows = _library_arrows()
+    assert ("reprojection", "ops", "roguenerf/reprojection.py") in {(a, b, w.split(":")[0]) for a, b, w in arrows}
+    up = _library_problems(arrows + [("geometry", "ops", "x.py:1")])
+    assert up[0] == "x.py:1: geometry -> ops runs up"  # and it closes the circle ops -> geometry -> ops
+    assert len(up) == 2 and up[1].startswith("import circle") and up[1].endswith("geometry -> ops -> geometry")
+    circle = _library_problems(arrows + [("data", "enhance", "x.py:1"), ("enhance", "data", "y.py:1")])
+    assert circle and all("import circle" in c for c in circle) and "data -> enhance -> data" in circle[0]

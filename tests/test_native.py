@@ -23,11 +23,11 @@ import torch
 
 from roguenerf import native
 from roguenerf.fastpath import reference_mode
-from roguenerf.geometry import reproject
 from roguenerf.models import build_enhancer
 from roguenerf.models.flow import FlowRefiner, flow_warp, upsample_flow
 from roguenerf.models.layers import PixelAttention
 from roguenerf.models.uformer import LeWinBlock
+from roguenerf.reprojection import reproject
 from tests.model_helpers import make_views, randomise
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -10,8 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from roguenerf.errors import InputError
-from roguenerf.geometry import check_pose, euler_angles, reproject, select_neighbours, wrap_angle
+from roguenerf.geometry import check_pose, euler_angles, select_neighbours, wrap_angle
 from roguenerf.geometry.euler import angular_distance
+from roguenerf.reprojection import reproject
 
 from .test_geometry import zyx
 

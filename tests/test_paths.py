@@ -155,7 +155,7 @@ def test_enhance_path_writes_video_flicker_and_resumes(toy_path, enhancer, tmp_p
     with pytest.raises(InputError, match="another path"):
         enhance_path(scene, enhancer, cp, root / "frames", out, depth_type="ray", background="max", video=False)
     # So is another colour matching (a changed default after an upgrade, say) or pose refinement.
-    from roguenerf.geometry.colour import ColourConfig
+    from roguenerf.enhance.colour import ColourConfig
 
     for other in (SceneEnhancer(scene, enhancer.model, colour=ColourConfig(local_sigma=8.0)),
                   SceneEnhancer(scene, enhancer.model, align=False)):

@@ -13,7 +13,8 @@ import torch.nn.functional as F
 
 from roguenerf.data.toy import cast_rays, make_toy_world, render_toy_view, toy_camera_path, toy_intrinsics
 from roguenerf.errors import InputError
-from roguenerf.geometry import intrinsics_matrix, opengl_to_opencv, reproject, scale_intrinsics
+from roguenerf.geometry import intrinsics_matrix, opengl_to_opencv, scale_intrinsics
+from roguenerf.reprojection import reproject
 
 from .test_geometry import zyx
 

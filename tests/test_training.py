@@ -66,9 +66,12 @@ def test_finetune_smoke_two_steps(scene, tmp_path):
 
 
 def test_finetune_reports_before_and_after(scene, tmp_path, monkeypatch):
-    from roguenerf import inference
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.training import loop
 
-    monkeypatch.setattr(inference, "DEFAULT_COLOUR", False)  # the model's own output, not colour-matched
+    plain = loop.evaluate  # the model's own output, not colour-matched
+    no_colour = EnhanceOptions(colour=None)
+    monkeypatch.setattr(loop, "evaluate", lambda scene, model, **kw: plain(scene, model, options=no_colour, **kw))
     result = finetune(scene, tmp_path, config=TrainConfig(steps=1, **{**FAST, "evaluate": True}))
     assert set(result.before) == {"render", "enhanced"} and set(result.after) == {"render", "enhanced"}
     assert result.before["render"] == result.after["render"]  # the renders do not change

@@ -1,4 +1,4 @@
-"""Trusting the neighbours by their agreement (roguenerf.geometry.trust): known answers, and on
+"""Trusting the neighbours by their agreement (roguenerf.enhance.trust): known answers, and on
 the toy world with exact and with wrong geometry."""
 
 from __future__ import annotations
@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from roguenerf.data.toy import make_toy_scene
+from roguenerf.enhance.colour import neighbour_agreement
+from roguenerf.enhance.trust import TrustConfig, kept_change, trust_factor
 from roguenerf.errors import InputError
-from roguenerf.geometry.colour import neighbour_agreement
-from roguenerf.geometry.trust import TrustConfig, kept_change, trust_factor
 from tests.test_colour import Biased, textured
 
 
@@ -97,6 +97,7 @@ def test_the_scene_enhancer_keeps_the_change_in_proportion_to_the_agreement(tmp_
     toy world's exact depth its two neighbours agree on most of the view and all of the change is
     kept; with the depth halved (a field whose geometry is off) they agree on less, and the change
     kept is share / full_share of it, everywhere."""
+    from roguenerf.enhance import EnhanceOptions
     from roguenerf.inference import SceneEnhancer
     from roguenerf.models import Enhancer, make_config
     from roguenerf.training import evaluate
@@ -139,14 +140,14 @@ def test_the_scene_enhancer_keeps_the_change_in_proportion_to_the_agreement(tmp_
         render, wrong, frame.K, frame.world_from_cam)
     assert one.trust is None and one.agreement is None and torch.equal(one.image, full)
 
-    report = evaluate(scene, model, colour=False, align=False)
+    report = evaluate(scene, model, options=EnhanceOptions(colour=None, align=None))
     assert report["views"][0]["trust"] == exact.trust and report["views"][0]["agreement"] == exact.agreement
     with pytest.raises(InputError, match="trust"):
         SceneEnhancer(scene, model, trust="yes")
 
 
 def test_the_public_helpers_check_their_arguments_as_the_config_does():
-    from roguenerf.geometry.trust import local_keep
+    from roguenerf.enhance.trust import local_keep
 
     patch = torch.zeros(1, 12, 16, dtype=torch.bool)
     patch[..., 4:8, 6:10] = True

@@ -30,7 +30,15 @@ def zip_frames(frame_dir: Path, destination: Path) -> None:
 
 
 def run_path_job(ctx, job: dict, lease: str, beat) -> str:
-    from roguenerf import CameraMismatchError, PathCancelled, RoGUENeRFError, SceneEnhancer, load_checkpoint, load_scene
+    from roguenerf import (
+        CameraMismatchError,
+        EnhanceOptions,
+        PathCancelled,
+        RoGUENeRFError,
+        SceneEnhancer,
+        load_checkpoint,
+        load_scene,
+    )
     from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
     from roguenerf.paths import enhance_path, find_camera_file, read_camera_path
 
@@ -72,7 +80,7 @@ def run_path_job(ctx, job: dict, lease: str, beat) -> str:
         parser = DataparserTransform.read(parser_file) if parser_file.is_file() else None
         inputs = job_dir / "input"
         camera_path = read_camera_path(find_camera_file(inputs), dataparser=parser)
-        enhancer = SceneEnhancer(scene, model)
+        enhancer = SceneEnhancer(scene, model, options=EnhanceOptions())  # the shipped defaults
         stat = Path(checkpoint).stat()
         result = enhance_path(
             scene, enhancer, camera_path, inputs, job_dir / "output",

@@ -292,18 +292,22 @@ class UnusableView:
         return f"{self.name} ({self.split}): {self.reason}"
 
 
-def unusable_views(scene: Scene, *, min_known_depth: float = MIN_KNOWN_DEPTH, progress=None) -> list[UnusableView]:
+def unusable_views(scene: Scene, *, min_known_depth: float = MIN_KNOWN_DEPTH, indices=None,
+                   progress=None) -> list[UnusableView]:
     """The views of ``scene`` that cannot serve: a depth map with (almost) no known pixel (all
     zeros, NaN, negative ...), a blank photo or render (one value everywhere), a file that cannot
     be read. Training views among them are useless as neighbours and as training targets; test
-    views cannot be enhanced or measured. Reads every view's files once (not cached).
+    views cannot be enhanced or measured. Reads every view's files once (not cached); with
+    ``indices``, only those views' (what a one-view command reads).
 
     Returns them in view order (empty when every view is usable); ``progress(done, total)``.
     """
     from roguenerf.geometry.depth import known_depth_mask
 
     out = []
-    for i, frame in enumerate(scene.frames):
+    which = range(len(scene.frames)) if indices is None else sorted({int(i) for i in indices})
+    for n, i in enumerate(which):
+        frame = scene.frames[i]
         reasons = []
         for kind, path in (("depth", frame.depth_path), ("photo", frame.image_path), ("render", frame.render_path)):
             if path is None:
@@ -325,5 +329,5 @@ def unusable_views(scene: Scene, *, min_known_depth: float = MIN_KNOWN_DEPTH, pr
         if reasons:
             out.append(UnusableView(index=i, name=frame.name, split=frame.split, reason="; ".join(reasons)))
         if progress is not None:
-            progress(i + 1, len(scene.frames))
+            progress(n + 1, len(which))
     return out

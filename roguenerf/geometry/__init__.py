@@ -1,4 +1,8 @@
-"""Camera geometry: conventions, Euler angles, neighbour selection and reprojection.
+"""Camera geometry: conventions, Euler angles, neighbour selection, depth rules and sampling.
+
+Camera maths only: it imports nothing of the library but :mod:`roguenerf.errors`. Reprojection
+(which runs the kernels of :mod:`roguenerf.ops`) is :mod:`roguenerf.reprojection`, one layer up;
+pose refinement, colour matching and trust are stages of :mod:`roguenerf.enhance`.
 
 Conventions used everywhere in the library:
 
@@ -29,12 +33,10 @@ from roguenerf.geometry.cameras import (
 from roguenerf.geometry.depth import DEPTH_EPS, MAX_DEPTH, known_depth, known_depth_mask, median_known_depth
 from roguenerf.geometry.euler import angular_distance, euler_angles, euler_distance, rotation_angle, wrap_angle
 from roguenerf.geometry.neighbours import select_neighbours
-from roguenerf.geometry.reproject import Reprojection, reproject, sampling_source
 
 __all__ = [
     "DEPTH_EPS",
     "MAX_DEPTH",
-    "Reprojection",
     "angular_distance",
     "as_world_from_cam",
     "check_intrinsics",
@@ -50,9 +52,7 @@ __all__ = [
     "opengl_to_opencv",
     "ray_to_z_depth",
     "relative_pose",
-    "reproject",
     "rotation_angle",
-    "sampling_source",
     "scale_intrinsics",
     "select_neighbours",
     "wrap_angle",

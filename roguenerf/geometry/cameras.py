@@ -238,8 +238,9 @@ def relative_pose(world_from_a: Tensor, world_from_b: Tensor) -> Tensor:
     R_a_T = A[..., :3, :3].transpose(-1, -2)
     rot = R_a_T @ B[..., :3, :3]
     trans = R_a_T @ (B[..., :3, 3:] - A[..., :3, 3:])
-    shape = torch.broadcast_shapes(A.shape, B.shape)
-    out = torch.zeros(shape, dtype=torch.float64, device=A.device)
+    # rot carries the broadcast batch shape (torch.broadcast_shapes would import torch._refs and
+    # sympy on its first call: 0.65 s of every command's start-up).
+    out = torch.zeros((*rot.shape[:-2], 4, 4), dtype=torch.float64, device=A.device)
     out[..., :3, :3] = rot
     out[..., :3, 3:] = trans
     out[..., 3, 3] = 1.0

@@ -27,7 +27,7 @@ def known_depth_mask(depth, *, eps: float = DEPTH_EPS):
     """Boolean mask of known depth (finite and ``eps < z < MAX_DEPTH``), same shape.
 
     Accepts a torch tensor (returns a bool tensor) or a NumPy array (returns a bool array).
-    ``eps`` defaults to :data:`DEPTH_EPS`; only :func:`~roguenerf.geometry.reproject.reproject`
+    ``eps`` defaults to :data:`DEPTH_EPS`; only :func:`~roguenerf.reprojection.reproject`
     exposes it, for callers who know better.
     """
     if isinstance(depth, Tensor):

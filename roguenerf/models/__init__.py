@@ -1,6 +1,5 @@
 """The RoGUENeRF enhancer and its building blocks."""
 
-from roguenerf.models import fastops
 from roguenerf.models.config import VARIANTS, EnhancerConfig, UformerConfig, make_config
 from roguenerf.models.enhancer import Enhancer, NeighbourBatch, build_enhancer
 from roguenerf.models.tiling import enhance_tiled
@@ -15,6 +14,5 @@ __all__ = [
     "UformerConfig",
     "build_enhancer",
     "enhance_tiled",
-    "fastops",
     "make_config",
 ]

@@ -48,7 +48,7 @@ from torch import Tensor, nn
 
 from roguenerf import ops
 from roguenerf.errors import InputError
-from roguenerf.geometry import euler_angles, reproject, sampling_source
+from roguenerf.geometry import euler_angles
 from roguenerf.geometry.cameras import check_intrinsics, check_pose
 from roguenerf.geometry.depth import DEPTH_EPS, MAX_DEPTH, known_depth, known_depth_mask, median_known_depth
 from roguenerf.images import check_float_image
@@ -66,6 +66,7 @@ from roguenerf.models.layers import (
 )
 from roguenerf.models.uformer import Uformer
 from roguenerf.profiling import stage
+from roguenerf.reprojection import reproject, sampling_source
 
 MAX_RELATIVE_DEPTH = 10.0
 """Normalised depths and relative camera positions are clamped to this magnitude."""
@@ -80,7 +81,7 @@ class NeighbourBatch:
     depth: ``(B, N, 1, Hs, Ws)`` the neighbours' rendered z-depth; None when ``sources`` is given.
     K: ``(B, N, 3, 3)``; world_from_cam: ``(B, N, 4, 4)`` OpenCV.
     sources: optional list of N tensors ``(B, F + 2, Hs_j, Ws_j)``, neighbour j's
-        :func:`~roguenerf.geometry.reproject.sampling_source` (features, known depth, known mask),
+        :func:`~roguenerf.reprojection.sampling_source` (features, known depth, known mask),
         which already hold features and depth. Per-scene work that
         :class:`~roguenerf.inference.SceneEnhancer` caches, so that no request re-stacks the
         neighbour features; neighbours may then differ in size (crops of large photos, with
@@ -173,7 +174,7 @@ class Enhancer(nn.Module):
 
     def neighbour_source(self, features: Tensor, depth: Tensor) -> Tensor:
         """``(N, F, Hs, Ws)``, ``(N, 1, Hs, Ws)`` -> ``(N, F + 2, Hs, Ws)`` sampling sources for
-        :attr:`NeighbourBatch.sources` (see :func:`~roguenerf.geometry.reproject.sampling_source`)."""
+        :attr:`NeighbourBatch.sources` (see :func:`~roguenerf.reprojection.sampling_source`)."""
         return sampling_source(features, depth)
 
     def encode_neighbours(self, photos: Tensor) -> Tensor:

@@ -4,7 +4,7 @@ Much of the fast path's time went to chains of cheap steps, each a pass over mem
 (``bench/stages.py``). ``kernels.c`` does each chain in one pass:
 
 * the reprojection: projection, 4-tap sampling, visibility test and masking
-  (:mod:`roguenerf.geometry.reproject`);
+  (:mod:`roguenerf.reprojection`);
 * the flow's 1/8 average pool, and its upsampling + warp + depth normalisation
   (:mod:`roguenerf.models.flow`, the enhancer);
 * the pixel attention's first convolution (17 -> 8 channels, reading the packed buffer in

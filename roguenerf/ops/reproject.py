@@ -1,7 +1,7 @@
 """Reprojection and sampling, each with its bodies: the fused C kernel (one pass), the torch fast
 path (composed projection, gather sampling, masking in place) and the plain reference.
 
-:func:`roguenerf.geometry.reproject` checks its inputs and calls :func:`reproject`.
+:func:`roguenerf.reprojection.reproject` checks its inputs and calls :func:`reproject`.
 Legend: B batch, C feature channels, Cs channels of the sampling source, (H, W) target size,
 (Hs, Ws) neighbour size.
 """

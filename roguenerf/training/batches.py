@@ -10,7 +10,7 @@ every gradient (tests/test_training_windows.py):
     conv_H encodes every distinct neighbour photo the batch uses, whole, at full resolution.
 ``"window"``
     For each target crop and neighbour, the crop's known-depth pixels are projected into the
-    neighbour (float64 relative pose, as :func:`~roguenerf.geometry.reproject.reproject`);
+    neighbour (float64 relative pose, as :func:`~roguenerf.reprojection.reproject`);
     conv_H encodes only the bounding window of the bilinear taps they can read, widened by
     conv_H's receptive radius (:func:`~roguenerf.models.layers.receptive_radius`) and clamped
     to the photo, with K's principal point shifted by the window offset.
@@ -61,7 +61,7 @@ import torch
 from torch import Tensor
 
 from roguenerf.errors import InputError
-from roguenerf.geometry.reproject import DEPTH_EPS, MAX_DEPTH
+from roguenerf.reprojection import DEPTH_EPS, MAX_DEPTH
 from roguenerf.training.config import NEIGHBOUR_ENCODINGS
 
 WINDOW_SLACK = 1

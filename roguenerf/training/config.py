@@ -327,10 +327,6 @@ class TrainPlan:
             return True
         return self.minutes is not None and elapsed_s >= self.minutes * 60.0
 
-    def describe(self) -> str:
-        """One line for the log: see :func:`describe_plan`."""
-        return describe_plan(self)
-
 
 def _as_plan(plan: TrainPlan | Mapping) -> TrainPlan:
     return plan if isinstance(plan, TrainPlan) else TrainPlan.from_dict(plan)

@@ -29,10 +29,8 @@ def _mean(views: list[dict], key: str) -> dict:
     return {m: sum(v[key][m] for v in views) / len(views) for m in names}
 
 
-def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = None,
-             max_views: int | None = None, device: str | torch.device = "cpu",
-             progress: Callable[[int, int], None] | None = None, align=None,
-             colour=None, trust=None) -> dict:
+def evaluate(scene, model, *, split: str = "test", options=None, max_views: int | None = None,
+             device: str | torch.device = "cpu", progress: Callable[[int, int], None] | None = None) -> dict:
     """Compare renders and enhanced renders of ``split`` views with their photos.
 
     Neighbours always come from the scene's TRAIN views (a train view never uses itself).
@@ -41,14 +39,10 @@ def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = 
         scene: a Scene with photos, renders and depths for ``split``.
         model: an Enhancer, or a :class:`~roguenerf.inference.SceneEnhancer` of this scene.
         split: "test", "train" or "all".
-        num_neighbours: override of the model's default.
+        options: the :class:`~roguenerf.enhance.EnhanceOptions` (neighbour rule and stages;
+            default ``EnhanceOptions()``). Refused when ``model`` is a SceneEnhancer already
+            (it has its own).
         max_views: evaluate only the first views of the split (quick benchmarks).
-        align: neighbour pose refinement (``SceneEnhancer``'s ``align``; default on). Ignored
-            when ``model`` is a SceneEnhancer already.
-        colour: colour matching to the neighbours (``SceneEnhancer``'s ``colour``; default on).
-            Ignored when ``model`` is a SceneEnhancer already.
-        trust: scale the enhancer's change down where the neighbours mostly disagree
-            (``SceneEnhancer``'s ``trust``; default on). Ignored when ``model`` is a SceneEnhancer.
         progress: called as ``progress(done, total)`` before the first view and after each.
     Returns:
         ``{"split", "views": [{"name", "render": {"psnr", "ssim", "flip"}, "enhanced": {...},
@@ -64,11 +58,13 @@ def evaluate(scene, model, *, split: str = "test", num_neighbours: int | None = 
     if max_views is not None:
         indices = indices[: max(1, int(max_views))]
     if isinstance(model, SceneEnhancer):
+        if options is not None:
+            raise InputError("options: a SceneEnhancer has its own; pass the model, or give the options to the "
+                             "SceneEnhancer")
         enhancer = model
     else:
         was_training = model.training
-        enhancer = SceneEnhancer(scene, model, num_neighbours=num_neighbours, device=device, align=align,
-                                 colour=colour, trust=trust)
+        enhancer = SceneEnhancer(scene, model, options=options, device=device)
     views = []
     if progress is not None:
         progress(0, len(indices))

@@ -164,13 +164,13 @@ async def create_enhancement(
         "X-Enhance-Seconds": f"{result.seconds:.4f}",
         "X-Total-Seconds": f"{time.perf_counter() - start:.4f}",
         "X-Neighbours": ",".join(result.neighbours),
-        # the neighbours whose pose was refined against this render (roguenerf.geometry.align)
+        # the neighbours whose pose was refined against this render (roguenerf.enhance.align)
         "X-Pose-Refined": ",".join(n for n, done in zip(result.neighbours, result.aligned or []) if done),
         "X-Checkpoint-Version": str(version),
     }
-    if result.colour_offset is not None:  # the RGB offset matching the neighbours' colour (roguenerf.geometry.colour)
+    if result.colour_offset is not None:  # the RGB offset matching the neighbours' colour (roguenerf.enhance.colour)
         headers["X-Colour-Offset"] = ",".join(f"{x:.6f}" for x in result.colour_offset)
-    if result.trust is not None:  # share of the enhancer's change kept (roguenerf.geometry.trust)
+    if result.trust is not None:  # share of the enhancer's change kept (roguenerf.enhance.trust)
         headers["X-Trust"] = f"{result.trust:.4f}"
         headers["X-Neighbour-Agreement"] = f"{result.agreement:.4f}"
     note = "; ".join(n for n in (f"forced: {warning}" if warning and force else warning, result.note) if n)

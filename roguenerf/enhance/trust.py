@@ -8,7 +8,7 @@ render's, and a fine-tune on the field's own training views (whose geometry look
 makes that worse, not better.
 
 The share of the view's pixels where two or more neighbours agree
-(:func:`~roguenerf.geometry.colour.neighbour_agreement`, the test colour matching uses) is
+(:func:`~roguenerf.enhance.colour.neighbour_agreement`, the test colour matching uses) is
 measured on the small copies pose refinement already made. Below :attr:`TrustConfig.full_share`
 the enhancer's change is scaled down in proportion::
 
@@ -92,7 +92,7 @@ def kept_change(agree: Tensor, size, config: TrustConfig | None = None) -> float
 
     Args:
         agree: ``(1, h, w)`` bool, where two or more neighbours agree (the small copy;
-            :func:`~roguenerf.geometry.colour.neighbour_agreement`).
+            :func:`~roguenerf.enhance.colour.neighbour_agreement`).
         size: ``(H, W)`` of the image the change is kept on (two integers >= 1).
         config: default :class:`TrustConfig`.
     Returns:
@@ -118,7 +118,7 @@ def local_keep(agree: Tensor, size, sigma: float, full_share: float) -> Tensor:
 
     ``sigma`` must be a positive number and ``full_share`` a share in (0, 1], as
     :class:`TrustConfig`'s ``local_sigma`` and ``full_share`` (else :class:`InputError`)."""
-    from roguenerf.geometry.colour import blur
+    from roguenerf.enhance.colour import blur
 
     _check_size(size)
     if not _positive(sigma):

@@ -7,7 +7,7 @@ content, and its detail is put in the wrong place. Before a request reprojects a
 best maps its photo onto the render through the render's depth (the target pose, render and
 depth are the user's and are not touched): a photometric least-squares fit of 6 numbers,
 coarse to fine on small copies of the images (long side 64, 128, 256 pixels), sampled with
-:func:`~roguenerf.geometry.reproject` (so the visibility test is the enhancer's).
+:func:`~roguenerf.reprojection.reproject` (so the visibility test is the enhancer's).
 
 The motion is a rotation ``w`` (radians) and a move ``v`` of the neighbour camera in its own
 frame, ``v`` measured in units of the target's median depth so that the fit does not depend
@@ -39,7 +39,7 @@ from roguenerf.geometry.cameras import check_intrinsics, check_pose, relative_po
 from roguenerf.geometry.depth import known_depth_mask, median_known_depth
 from roguenerf.geometry.euler import rotation_angle
 from roguenerf.geometry.noise import axis_angle_to_matrix
-from roguenerf.geometry.reproject import reproject
+from roguenerf.reprojection import reproject
 
 
 @dataclass(frozen=True)

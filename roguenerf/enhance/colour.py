@@ -138,7 +138,7 @@ def colour_match(image: Tensor, neighbours: list[tuple[Tensor, Tensor]],
     Args:
         image: ``(1, 3, h, w)`` the enhanced view (any size; the caller passes a small copy).
         neighbours: per neighbour, its photo reprojected into the view ``(1, 3, h, w)`` and
-            where that is valid ``(1, 1, h, w)`` (0/1), as :func:`~roguenerf.geometry.reproject`
+            where that is valid ``(1, 1, h, w)`` (0/1), as :func:`~roguenerf.reprojection.reproject`
             gives them.
         config: thresholds; default :class:`ColourConfig`.
         agreement: :func:`neighbour_agreement` of ``neighbours`` with ``config``'s ``sigma`` and

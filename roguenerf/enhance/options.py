@@ -1,0 +1,161 @@
+"""What an enhancement does, in one object: :class:`EnhanceOptions`.
+
+The enhancer is a pipeline (:mod:`roguenerf.enhance`): choose the neighbours
+(:class:`NeighbourRule`), refine their poses against the render (``align``), run the model, then
+the stages after it in order (``colour``, then ``trust``). Each part is a frozen config, or None
+where it is off. The CLI, the service, camera-path videos, ``evaluate`` and the benches build one
+:class:`EnhanceOptions` and pass it on; :meth:`EnhanceOptions.fingerprint` (its ``asdict``) is
+what a resumable run compares to refuse mixing frames made with other settings.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+from dataclasses import asdict, dataclass, field, replace
+
+from roguenerf.enhance.align import AlignConfig
+from roguenerf.enhance.colour import ColourConfig
+from roguenerf.enhance.trust import TrustConfig
+from roguenerf.errors import InputError
+
+DEFAULT_TILE = 512
+"""Images whose height or width exceed this are enhanced tile by tile (bounded memory)."""
+
+NEAR_EXTRA = 1
+"""How many neighbours beyond the model's count the default rule may add, each only where it is
+a near view (:data:`NEAR_DEGREES`)."""
+
+NEAR_DEGREES = 4.0
+"""A neighbour beyond the model's count is added when its camera's rotation differs from the
+view's by at most this (the geodesic angle). A near photo's detail lands where the render's
+depth puts it with little error; a far one's does not. On the leave-one-kind-out figure
+(forward-facing captures, third neighbours 2-6 degrees off) a third neighbour within 3 or 4
+degrees gains most, +0.23 dB zero-shot and +0.49 after 10 minutes (5: +0.20 / +0.45; any: +0.15
+/ +0.41); on our own look, whose third neighbours are 9-31 degrees off, any third neighbour
+costs up to 0.28 dB (docs/kinds.md, *A third neighbour where it is near*)."""
+
+
+@dataclass(frozen=True)
+class NeighbourRule:
+    """Which training photos a view takes as neighbours (nearest first, by the paper's rule).
+
+    ``count=None`` (the default): the model's own count (``model.config.num_neighbours``), plus
+    up to ``near_extra`` more of the next nearest whose rotation is within ``near_degrees`` of
+    the view's. An explicit ``count``: exactly that many (fewer where the scene has fewer
+    training views), no near extras.
+    """
+
+    count: int | None = None
+    near_extra: int = NEAR_EXTRA
+    near_degrees: float = NEAR_DEGREES
+
+    def __post_init__(self):
+        if self.count is not None and (isinstance(self.count, bool) or not isinstance(self.count, int)
+                                       or self.count < 0):
+            raise InputError(f"neighbours: expected a count >= 0 or None (the model's), got {self.count!r}")
+        if isinstance(self.near_extra, bool) or not isinstance(self.near_extra, int) or self.near_extra < 0:
+            raise InputError(f"NeighbourRule.near_extra: expected an integer >= 0, got {self.near_extra!r}")
+        if not (isinstance(self.near_degrees, (int, float)) and 0 <= self.near_degrees <= 180):
+            raise InputError(f"NeighbourRule.near_degrees: expected degrees in [0, 180], got {self.near_degrees!r}")
+
+    def counts(self, model_count: int) -> tuple[int, int]:
+        """``(count, near extras)`` for a model whose own count is ``model_count``."""
+        if self.count is not None:
+            return self.count, 0
+        return model_count, self.near_extra if model_count > 0 else 0
+
+
+def _integer(value) -> int | None:
+    """``value`` as an int where it is a whole number (numpy integers and 3.0 included), else None."""
+    if isinstance(value, bool):
+        return None
+    try:
+        return operator.index(value)
+    except TypeError:
+        return int(value) if isinstance(value, float) and value.is_integer() else None
+
+
+def _stage(value, config_type, name: str):
+    """A stage's setting: True (its defaults), False/None (off) or its config."""
+    if value is True:
+        return config_type()
+    if value is False or value is None:
+        return None
+    if isinstance(value, config_type):
+        return value
+    raise InputError(f"{name}: expected True, False or a {config_type.__name__}, got {type(value).__name__}")
+
+
+@dataclass(frozen=True)
+class EnhanceOptions:
+    """Everything that decides what an enhanced view looks like, besides the model's weights.
+
+    Attributes:
+        neighbours: the :class:`NeighbourRule`.
+        align: refine each neighbour's pose against the render before reprojecting it
+            (:func:`~roguenerf.enhance.align.align_neighbour`); None: the dataset's poses.
+        colour: after the model, bring the image's low-frequency colour to the agreeing
+            neighbours' (:func:`~roguenerf.enhance.colour.colour_match`); None: off.
+        trust: keep only part of the model's change where the neighbours mostly disagree
+            (:mod:`roguenerf.enhance.trust`); None: off.
+        tile: images larger than this (height or width) are enhanced tile by tile.
+    """
+
+    neighbours: NeighbourRule = field(default_factory=NeighbourRule)
+    align: AlignConfig | None = field(default_factory=AlignConfig)
+    colour: ColourConfig | None = field(default_factory=ColourConfig)
+    trust: TrustConfig | None = field(default_factory=TrustConfig)
+    tile: int = DEFAULT_TILE
+
+    def __post_init__(self):
+        if not isinstance(self.neighbours, NeighbourRule):
+            raise InputError(f"neighbours: expected a NeighbourRule, got {type(self.neighbours).__name__}")
+        object.__setattr__(self, "align", _stage(self.align, AlignConfig, "align"))
+        object.__setattr__(self, "colour", _stage(self.colour, ColourConfig, "colour"))
+        object.__setattr__(self, "trust", _stage(self.trust, TrustConfig, "trust"))
+        if isinstance(self.tile, bool) or not isinstance(self.tile, int) or self.tile < 16:
+            raise InputError(f"tile: expected an integer >= 16 pixels, got {self.tile!r}")
+
+    @classmethod
+    def from_flags(cls, *, neighbours: int | None = None, align=True, colour=True, trust=True,
+                   tile: int | None = None) -> EnhanceOptions:
+        """The options of a command line or a request: a neighbour count (None: the model's
+        rule), and each stage True, False or its config."""
+        if neighbours is not None:
+            count = _integer(neighbours)
+            if count is None or count < 0:
+                raise InputError(f"num_neighbours: expected >= 0, got {neighbours}")
+            neighbours = count
+        if tile is not None:
+            size = _integer(tile)
+            if size is None or size < 16:
+                raise InputError(f"tile: expected >= 16 pixels, got {tile}")
+            tile = size
+        return cls(neighbours=NeighbourRule(count=neighbours), align=align, colour=colour, trust=trust,
+                   tile=DEFAULT_TILE if tile is None else tile)
+
+    def with_(self, **changes) -> EnhanceOptions:
+        """A copy with some fields changed (``dataclasses.replace``)."""
+        return replace(self, **changes)
+
+    def fingerprint(self) -> dict:
+        """Every setting as plain JSON values (``asdict``): what resumable runs compare."""
+        def plain(x):
+            if isinstance(x, dict):
+                return {k: plain(v) for k, v in x.items()}
+            if isinstance(x, (list, tuple)):
+                return [plain(v) for v in x]
+            if isinstance(x, float) and not math.isfinite(x):
+                return str(x)
+            return x
+
+        return plain(asdict(self))
+
+    def describe(self) -> str:
+        """One line for logs and notes: the neighbour rule and which stages are on."""
+        n = self.neighbours
+        rule = (f"{n.count} neighbours" if n.count is not None
+                else f"model's count + {n.near_extra} within {n.near_degrees:g} deg")
+        on = [name for name in ("align", "colour", "trust") if getattr(self, name) is not None]
+        return f"{rule}; stages: {', '.join(on) or 'none'}"
