@@ -40,11 +40,11 @@ def _opencv_camera(s, index: int = 6, pose=None) -> dict:
             "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]), "depth_type": "z"}
 
 
-def _send(s, *, depth=None, camera=None, render=None):
+def _send(s, *, depth=None, camera=None, render=None, **extra):
     view = s.view()
     return post_enhance(s.client, s.scene_id, render=view["render"] if render is None else render,
                         depth=view["depth"] if depth is None else depth,
-                        camera=_opencv_camera(s) if camera is None else camera)
+                        camera=_opencv_camera(s) if camera is None else camera, **extra)
 
 
 @pytest.fixture(scope="module")
@@ -193,9 +193,15 @@ def test_view_no_neighbour_sees_is_the_render_enhanced_alone(s, tmp_path):
     # Turned 180 degrees about its y axis: every reprojected point lies behind the neighbours.
     turned = frame.world_from_cam.to(torch.float64) @ torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0],
                                                                                dtype=torch.float64))
-    r = _send(s, camera=_opencv_camera(s, pose=turned))
+    # A camera no training photo sees is taken for a wrong pose first (issue 49: refused, with
+    # the way to go on); forced, it is enhanced without neighbours, and the note says both.
+    refused = _send(s, camera=_opencv_camera(s, pose=turned))
+    assert refused.status_code == 422 and refused.json()["error"]["code"] == "wrong_world", refused.text
+    assert "to enhance it anyway: force=true" in refused.json()["error"]["message"]
+    r = _send(s, camera=_opencv_camera(s, pose=turned), force="true")
     assert r.status_code == 200, r.text
-    assert r.headers["X-Enhance-Note"] == "no neighbour sees this view: enhanced without neighbours"
+    assert r.headers["X-Enhance-Note"].startswith("forced: the camera does not fit the scene")
+    assert r.headers["X-Enhance-Note"].endswith("; no neighbour sees this view: enhanced without neighbours")
     assert r.headers["X-Neighbours"] == ""
     # Known answer: the library with the same checkpoint and no neighbours at all.
     (tmp_path / "c.safetensors").write_bytes(s.checkpoint)
