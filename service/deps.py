@@ -1,11 +1,16 @@
-"""Route dependencies that several routers share: a scene row or 404, a scene's public view."""
+"""Route dependencies that several routers share: a scene row or 404, a scene's public view, a
+job queued with its input folder."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 from service.errors import ApiError
 from service.schemas import ScenePublic, iso
 from service.state import Services
+from service.storage import place
 from workers.layout import ID_RE
+from workers.queue import QueueUnavailable
 
 
 def scene_or_404(services: Services, scene_id: str) -> dict:
@@ -29,3 +34,20 @@ def scene_public(services: Services, row: dict, *, active_job: str | None | bool
         active_version=row["active_version"], checkpoint_versions=services.layout.versions(row["id"]),
         active_job=active_job, warnings=warnings or [],
     )
+
+
+def queue_with_input(services: Services, job: dict, source: Path) -> None:
+    """Move a validated input folder into the new ``job``'s folder and queue the job; on any
+    failure the job row and its folder go again (a 503 when the queue is down)."""
+    layout = services.layout
+    try:
+        job_dir = layout.job_dir(job["id"])
+        job_dir.mkdir(parents=True, exist_ok=True)
+        place(source, job_dir / "input")
+        services.queue.enqueue(job["id"])
+    except BaseException as exc:
+        services.store.delete_job(job["id"])
+        layout.remove_tree(layout.job_dir(job["id"]))
+        if isinstance(exc, QueueUnavailable):
+            raise ApiError(503, "queue_unavailable", str(exc), headers={"Retry-After": "5"}) from None
+        raise

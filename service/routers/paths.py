@@ -9,14 +9,13 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, File, Form, Response, UploadFile
 
 from roguenerf.errors import RoGUENeRFError
-from service.deps import scene_or_404
+from service.deps import queue_with_input, scene_or_404
 from service.errors import ApiError, error_responses, library_error
 from service.limits import queue_full
 from service.schemas import JobPublic
 from service.state import ServicesDep
-from service.storage import ZipLimits, discard, extract_scene_zip, place
+from service.storage import ZipLimits, discard, extract_scene_zip
 from workers.jobs import ActiveJobExists, QueueFull
-from workers.queue import QueueUnavailable
 
 log = logging.getLogger("roguenerf.service")
 router = APIRouter(prefix="/scenes", tags=["paths"])
@@ -99,17 +98,7 @@ def create_path_job(
         except ActiveJobExists as exc:
             raise ApiError(409, "job_active", f"scene {scene_id} already has an active job ({exc.job_id}); "
                                               "wait for it or cancel it") from None
-        try:
-            job_dir = layout.job_dir(job["id"])
-            job_dir.mkdir(parents=True, exist_ok=True)
-            place(root, job_dir / "input")
-            services.queue.enqueue(job["id"])
-        except BaseException as exc:
-            services.store.delete_job(job["id"])
-            layout.remove_tree(layout.job_dir(job["id"]))
-            if isinstance(exc, QueueUnavailable):
-                raise ApiError(503, "queue_unavailable", str(exc), headers={"Retry-After": "5"}) from None
-            raise
+        queue_with_input(services, job, root)
     finally:
         discard(tmp)
     log.info("path job %s queued for scene %s: %d frames", job["id"], scene_id, frames)

@@ -10,7 +10,7 @@ from typing import Annotated
 from fastapi import APIRouter, File, Form, Header, Response, UploadFile
 
 from roguenerf.errors import RoGUENeRFError
-from service.deps import scene_or_404, scene_public
+from service.deps import queue_with_input, scene_or_404, scene_public
 from service.errors import ApiError, error_responses, library_error
 from service.limits import checkpoint_error, queue_full
 from service.pagination import CursorQuery, LimitQuery, decode_cursor, page
@@ -220,17 +220,7 @@ def import_scene(
             job, _ = services.store.create_job(scene_id, request, max_queued=settings.max_queued_jobs)
         except QueueFull as exc:
             raise queue_full(exc) from None
-        try:
-            job_dir = layout.job_dir(job["id"])
-            job_dir.mkdir(parents=True, exist_ok=True)
-            place(tmp / "input", job_dir / "input")
-            services.queue.enqueue(job["id"])
-        except BaseException as exc:
-            services.store.delete_job(job["id"])
-            layout.remove_tree(layout.job_dir(job["id"]))
-            if isinstance(exc, QueueUnavailable):
-                raise ApiError(503, "queue_unavailable", str(exc), headers={"Retry-After": "5"}) from None
-            raise
+        queue_with_input(services, job, tmp / "input")
     finally:
         discard(tmp)
     log.info("import job %s queued: scene %s (%r), %d views", job["id"], scene_id, name, views)
