@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from roguenerf.imageio import foreign_files
+
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)) / 255.0**2
@@ -54,8 +56,7 @@ def check_out(out: Path) -> None:
     if not packed:
         raise SystemExit(f"{out}: exists and is not empty: it holds other files, not a folder this script packed "
                          "(which would be replaced); choose a new --out")
-    foreign = sorted(rel for rel in (p.relative_to(out).as_posix() for p in out.rglob("*") if not p.is_dir())
-                     if rel not in ours)
+    foreign = foreign_files(out, ours)
     if foreign:
         raise SystemExit(f"{out}: a packed folder that also holds files this script did not write "
                          f"({', '.join(foreign[:3])}), which replacing it would delete; move them out or choose "
