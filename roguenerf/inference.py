@@ -76,6 +76,9 @@ class EnhanceResult:
     neighbours agree on enough of the view, less where they mostly disagree (the mean over the
     image where it was set per pixel: agreement under ``TrustConfig.local_below``); None where
     trust is off or fewer than two neighbours were used (nothing to compare)."""
+    candidates: list[dict] | None = None
+    """A measured neighbour rule's candidates (:mod:`roguenerf.enhance.select`): per candidate
+    its name, measurements and whether it was chosen; None under the other rules."""
     stages: list = field(default_factory=list)
     """What each stage after the model did (:class:`~roguenerf.enhance.stages.StageRecord`, in
     order); empty where none ran (stages off, or fewer than two neighbours)."""
@@ -176,6 +179,7 @@ class SceneEnhancer:
         self.stages = stages_for(options)
         self._agreement_test = agreement_test(self.stages)
         self._small: OrderedDict[int, tuple[Tensor, Tensor, Tensor, dict]] = OrderedDict()
+        self._tiny: dict[int, tuple[Tensor, Tensor, Tensor]] = {}
         self.cache_bytes = int(cache_bytes)
         self._sources: OrderedDict[int, Tensor] = OrderedDict()
         self._depths: dict[int, Tensor] = {}
@@ -308,26 +312,74 @@ class SceneEnhancer:
         with self._lock:
             return len(self._sources)
 
-    def select(self, world_from_cam: Tensor, *, exclude=None) -> list[int]:
-        """Scene indices of the neighbours of a pose (nearest first), per the paper's rule: the
-        model's count, then up to :attr:`near_extra` more of the next nearest that are within
-        the rule's ``near_degrees`` of the pose's rotation."""
-        from roguenerf.geometry import rotation_angle, select_neighbours
+    def select(self, world_from_cam: Tensor, *, exclude=None, view=None) -> list[int]:
+        """Scene indices of the neighbours of a pose (nearest first), per the rule
+        (:class:`~roguenerf.enhance.NeighbourRule`): the paper's ranking, the model's count, then
+        up to :attr:`near_extra` more of the next nearest that are within the rule's
+        ``near_degrees`` of the pose's rotation. A measured rule needs ``view = (render, depth,
+        K)`` to measure its candidates; without it, every candidate it may choose from."""
+        return self._choose(world_from_cam, exclude, view)[0]
+
+    def _choose(self, world_from_cam: Tensor, exclude, view) -> tuple[list[int], list[dict] | None]:
+        """``select``, and a measured rule's candidates (name, measurements, chosen) or None."""
+        from roguenerf.geometry import rotation_angle
 
         if not self.use_neighbours or self.num_neighbours == 0 or not self.train:
+            return [], None
+        rule = self.options.neighbours
+        pose = torch.as_tensor(world_from_cam).to(torch.float64)
+        if rule.measured:
+            from roguenerf.enhance.select import choose
+
+            positions = self.candidates(pose, rule.candidates, exclude=exclude)
+            if view is None:
+                return [self.train[p] for p in positions], None
+            measured = self.measure(*view, pose, positions)
+            kept = choose(measured, least=rule.least, most=rule.most, min_coverage=rule.min_coverage,
+                          error_ratio=rule.error_ratio)
+            report = [{"name": self.train_names[c.position], **c.as_dict(), "chosen": c in kept} for c in measured]
+            return [self.train[c.position] for c in kept], report
+        picked = self.candidates(pose, self.num_neighbours + self.near_extra, exclude=exclude)
+        kept = picked[: self.num_neighbours]
+        for p in picked[self.num_neighbours:]:
+            if float(rotation_angle(pose[:3, :3], self.train_poses[p, :3, :3])) <= rule.near_degrees:
+                kept.append(p)
+        return [self.train[p] for p in kept], None
+
+    def candidates(self, world_from_cam: Tensor, count: int, *, exclude=None) -> list[int]:
+        """Training positions of the ``count`` nearest training views of a pose, by the paper's
+        rule (nearest first)."""
+        from roguenerf.geometry import select_neighbours
+
+        if not self.train or count <= 0:
             return []
         excluded = _resolve_exclude(self.scene, self.train, exclude)
         pose = torch.as_tensor(world_from_cam).to(torch.float64)
-        picked = [int(p) for p in select_neighbours(pose, self.train_poses, self.num_neighbours + self.near_extra,
-                                                    exclude=excluded or None)]
-        kept = picked[: self.num_neighbours]
-        for p in picked[self.num_neighbours:]:
-            if float(rotation_angle(pose[:3, :3], self.train_poses[p, :3, :3])) <= self.options.neighbours.near_degrees:
-                kept.append(p)
-        return [self.train[p] for p in kept]
+        return [int(p) for p in select_neighbours(pose, self.train_poses, count, exclude=excluded or None)]
+
+    def measure(self, render: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,
+                positions: list[int]) -> list:
+        """:func:`~roguenerf.enhance.select.measure_candidates` for the training ``positions``
+        (their small copies cached)."""
+        from roguenerf.enhance.align import shrink
+        from roguenerf.enhance.select import SELECT_SIDE, measure_candidates
+
+        tiny = []
+        for p in positions:
+            with self._lock:
+                entry = self._tiny.get(p)
+            if entry is None:
+                photo, photo_depth, photo_K, _ = self._small_neighbour(p)
+                entry = shrink(photo, photo_depth, photo_K, SELECT_SIDE)
+                with self._lock:
+                    self._tiny[p] = entry
+            tiny.append((*entry, self.train_poses[p]))
+        return measure_candidates(render, depth, K, world_from_cam, tiny, positions=positions,
+                                  leniency=getattr(self.model.config, "leniency", 0.25))
 
     def enhance(self, render: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
-                exclude: int | str | Sequence[int | str] | None = None, progress=None) -> EnhanceResult:
+                exclude: int | str | Sequence[int | str] | None = None, progress=None,
+                neighbours: Sequence[int | str] | None = None) -> EnhanceResult:
         """Enhance one render.
 
         Args:
@@ -344,6 +396,8 @@ class SceneEnhancer:
             exclude: scene indices or view names never used as neighbours (the target itself
                 when it is a training view).
             progress: optional ``callback(done, total)`` called after each tile of a tiled image.
+            neighbours: training views (scene indices or names) to use instead of the rule's
+                choice, in this order (an empty list: none).
         Returns:
             :class:`EnhanceResult`; raises :class:`~roguenerf.errors.RoGUENeRFError` instead of
             returning a non-finite image.
@@ -374,7 +428,14 @@ class SceneEnhancer:
         K_b = K.to(dev)[None]
         pose_b = world_from_cam.to(dev)[None]
 
-        chosen = self.select(world_from_cam, exclude=exclude)
+        measured = None
+        if neighbours is None:
+            chosen, measured = self._choose(world_from_cam, exclude, (render, depth, K))
+        else:
+            chosen = [self.scene.index(n) if isinstance(n, str) else int(n) for n in neighbours]
+            strangers = [n for n, i in zip(neighbours, chosen, strict=True) if i not in self.train]
+            if strangers:
+                raise InputError(f"neighbours: {strangers} are not training views of this scene")
         note = None
         batch = None
         aligned = None
@@ -430,7 +491,7 @@ class SceneEnhancer:
                              aligned=aligned if chosen else ([] if self.align is not None else None),
                              colour_offset=offset, agreement=None if state is None else round(state.share, 4),
                              agreement_map=None if state is None else state.agreement[0],
-                             trust=kept, stages=records)
+                             trust=kept, stages=records, candidates=measured)
 
     def colour_match(self, positions: list[int], image: Tensor, depth: Tensor, K: Tensor,
                      world_from_cam: Tensor, poses: Tensor):

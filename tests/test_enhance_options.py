@@ -51,11 +51,14 @@ def test_bad_options_are_refused_with_the_argument_named(make, message):
 def test_the_fingerprint_is_plain_json_and_changes_with_every_setting():
     base = EnhanceOptions().fingerprint()
     assert json.loads(json.dumps(base)) == base
-    assert base["colour"]["local_sigma"] == 3.0 and base["neighbours"] == {"count": None, "near_extra": 1,
-                                                                           "near_degrees": 4.0}
+    assert base["colour"]["local_sigma"] == 3.0 and base["neighbours"]["count"] is None
+    assert set(base["neighbours"]) == {"count", "near_extra", "near_degrees", "measured", "candidates", "least",
+                                       "most", "min_coverage", "error_ratio"}
     changed = [EnhanceOptions.from_flags(neighbours=3), EnhanceOptions(colour=ColourConfig(local_sigma=2.0)),
                EnhanceOptions(trust=None), EnhanceOptions(align=None), EnhanceOptions(tile=256),
-               EnhanceOptions(neighbours=NeighbourRule(near_degrees=5.0))]
+               EnhanceOptions(neighbours=NeighbourRule(near_degrees=5.0)),
+               EnhanceOptions(neighbours=NeighbourRule(measured=not NeighbourRule().measured)),
+               EnhanceOptions(neighbours=NeighbourRule(error_ratio=1.5))]
     prints = [json.dumps(o.fingerprint(), sort_keys=True) for o in changed]
     assert len(set(prints)) == len(prints) and json.dumps(base, sort_keys=True) not in prints
     assert EnhanceOptions().fingerprint() == base  # equal options, equal fingerprints

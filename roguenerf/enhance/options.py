@@ -49,6 +49,16 @@ class NeighbourRule:
     count: int | None = None
     near_extra: int = NEAR_EXTRA
     near_degrees: float = NEAR_DEGREES
+    measured: bool = False
+    """Choose per view by measurement (:func:`roguenerf.enhance.select.choose`): of the
+    ``candidates`` nearest, those that see at least ``min_coverage`` of the view; at least
+    ``least``, then more while their reprojected photo's error against the render is within
+    ``error_ratio`` of the best taken, up to ``most``. ``count`` and the near extras are then unused."""
+    candidates: int = 6
+    least: int = 2
+    most: int = 4
+    min_coverage: float = 0.2
+    error_ratio: float = 1.25
 
     def __post_init__(self):
         if self.count is not None and (isinstance(self.count, bool) or not isinstance(self.count, int)
@@ -58,9 +68,28 @@ class NeighbourRule:
             raise InputError(f"NeighbourRule.near_extra: expected an integer >= 0, got {self.near_extra!r}")
         if not (isinstance(self.near_degrees, (int, float)) and 0 <= self.near_degrees <= 180):
             raise InputError(f"NeighbourRule.near_degrees: expected degrees in [0, 180], got {self.near_degrees!r}")
+        if not isinstance(self.measured, bool):
+            raise InputError(f"NeighbourRule.measured: expected True or False, got {self.measured!r}")
+        for name in ("candidates", "least", "most"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise InputError(f"NeighbourRule.{name}: expected an integer >= 1, got {value!r}")
+        if not self.least <= self.most <= self.candidates:
+            raise InputError(f"NeighbourRule: expected least <= most <= candidates, got {self.least}, {self.most}, "
+                             f"{self.candidates}")
+        if not (isinstance(self.min_coverage, (int, float)) and 0 <= self.min_coverage <= 1):
+            raise InputError(f"NeighbourRule.min_coverage: expected a share in [0, 1], got {self.min_coverage!r}")
+        if not (isinstance(self.error_ratio, (int, float)) and math.isfinite(self.error_ratio)
+                and self.error_ratio >= 1):
+            raise InputError(f"NeighbourRule.error_ratio: expected a finite number >= 1, got {self.error_ratio!r}")
+        if self.measured and self.count is not None:
+            raise InputError("NeighbourRule: a measured rule chooses the count itself; give count=None")
 
     def counts(self, model_count: int) -> tuple[int, int]:
-        """``(count, near extras)`` for a model whose own count is ``model_count``."""
+        """``(count, near extras)`` for a model whose own count is ``model_count`` (a measured
+        rule: ``(least, most - least)``, the fewest and the extras it may add)."""
+        if self.measured:
+            return self.least, self.most - self.least
         if self.count is not None:
             return self.count, 0
         return model_count, self.near_extra if model_count > 0 else 0
@@ -155,7 +184,8 @@ class EnhanceOptions:
     def describe(self) -> str:
         """One line for logs and notes: the neighbour rule and which stages are on."""
         n = self.neighbours
-        rule = (f"{n.count} neighbours" if n.count is not None
+        rule = (f"{n.least}-{n.most} of {n.candidates} neighbours, measured" if n.measured
+                else f"{n.count} neighbours" if n.count is not None
                 else f"model's count + {n.near_extra} within {n.near_degrees:g} deg")
         on = [name for name in ("align", "colour", "trust") if getattr(self, name) is not None]
         return f"{rule}; stages: {', '.join(on) or 'none'}"

@@ -1,0 +1,212 @@
+"""Which neighbours, and how many, per view (issue 48, item 2): the data a measured rule is
+chosen on, and the rules compared.
+
+For every pair folder (a fitted scene: ``make-pairs`` output with renders of the held-out
+views) and every held-out view, with one checkpoint, zero-shot, every stage at its default:
+
+1. the ``--candidates`` nearest training views (the paper's ranking), each measured as the
+   enhancer measures it at request time (:func:`roguenerf.enhance.select.measure_candidates`:
+   coverage, error of its reprojected photo against the render, consensus with the other
+   candidates, angle, baseline);
+2. the view enhanced with the first ``n`` candidates for each ``n`` of ``--counts`` (PSNR and
+   FLIP gain over the render), with the enhancer's default rule, and with each rule of
+   ``--rules`` (:class:`roguenerf.enhance.NeighbourRule` settings by name, :data:`RULES`).
+
+Per view results are cached in ``--cache`` (rerun the same command after a stop). Writes
+``OUTPUT.csv`` (one row per view and choice, the candidates' measurements as JSON in
+``candidates``), ``OUTPUT.json`` (rows and per pair and choice means) and ``OUTPUT.png`` (mean
+gain of each choice per pair), stamped with date, machine and commit.
+
+    .venv/bin/python -m bench.neighbour_rule runs/kinds/pairs/can_clip/hash_s1 ... \\
+        --output bench/results/neighbour_rule_choice
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from bench.common import REPO, RESULTS, save_figure, stamp, write_json, write_outputs
+
+RULES = {
+    "measured": {"measured": True},
+}
+"""Named rules (``NeighbourRule`` keyword arguments) compared beside the fixed counts."""
+
+
+def rules_tag(names: list[str]) -> str:
+    """The rules' names and a short hash of their settings and NeighbourRule's defaults (a
+    changed default or setting is measured again, not read from the cache)."""
+    import dataclasses
+    import hashlib
+
+    from roguenerf.enhance import NeighbourRule
+
+    if not names:
+        return "none"
+    text = json.dumps([[n, dataclasses.asdict(NeighbourRule(**RULES[n]))] for n in names], sort_keys=True)
+    return "-".join(names) + "_" + hashlib.sha1(text.encode()).hexdigest()[:8]
+
+
+def pair_label(folder: Path) -> tuple[str, str]:
+    """``(scene, kind)`` of a bench.kinds pair folder ``.../pairs/SCENE/KIND_s1...``."""
+    return folder.parent.name, folder.name.split("_s")[0]
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("pairs", type=Path, nargs="+", help="pair folders (make-pairs output with held-out renders)")
+    p.add_argument("--checkpoint", type=Path, default=None, help="default: the shipped checkpoint")
+    p.add_argument("--candidates", type=int, default=6)
+    p.add_argument("--counts", type=lambda t: [int(x) for x in t.split(",") if x], default=[1, 2, 3, 4, 5])
+    p.add_argument("--rules", type=lambda t: [x for x in t.split(",") if x], default=[],
+                   help=f"named rules to compare ({', '.join(RULES)})")
+    p.add_argument("--without", type=lambda t: [x for x in t.split(",") if x], default=[],
+                   help="also each rule with this stage off (comma-separated of colour, trust, align)")
+    p.add_argument("--max-views", type=int, default=None)
+    p.add_argument("--cache", type=Path, default=REPO / "runs" / "neighbour_rule")
+    p.add_argument("--output", type=Path, default=RESULTS / "neighbour_rule")
+    args = p.parse_args(argv)
+    for folder in args.pairs:
+        if not (folder / "transforms.json").is_file():
+            p.error(f"{folder}: not a pair folder (no transforms.json)")
+    if any(x not in ("colour", "trust", "align") for x in args.without):
+        p.error(f"--without: expected some of colour, trust, align, got {args.without}")
+    unknown = [r for r in args.rules if r not in RULES]
+    if unknown:
+        p.error(f"--rules: unknown {unknown} (expected some of {', '.join(RULES)})")
+    return args
+
+
+def measure_view(enhancer, scene, i: int, args, checkpoint_name: str) -> list[dict]:
+    """Rows of one held-out view: every choice's gain, the candidates' measurements."""
+    from roguenerf.enhance import EnhanceOptions, NeighbourRule
+    from roguenerf.inference import SceneEnhancer
+    from roguenerf.metrics import flip, psnr
+
+    frame = scene.frames[i]
+    render, depth, photo = scene.render(i), scene.depth(i), scene.photo(i)
+    K, pose = frame.K, frame.world_from_cam
+    base_psnr, base_flip = float(psnr(render, photo)), float(flip(render, photo))
+    positions = enhancer.candidates(pose, args.candidates)
+    start = time.perf_counter()
+    measured = enhancer.measure(render, depth, K, pose, positions)
+    measure_seconds = time.perf_counter() - start
+    names = [enhancer.train_names[p] for p in positions]
+    rows = []
+
+    def row(choice: str, result) -> None:
+        rows.append({"view": frame.name, "choice": choice, "neighbours": json.dumps(result.neighbours),
+                     "count": len(result.neighbours), "render_psnr": round(base_psnr, 4),
+                     "gain_db": round(float(psnr(result.image, photo)) - base_psnr, 4),
+                     "render_flip": round(base_flip, 5),
+                     "flip_change": round(float(flip(result.image, photo)) - base_flip, 5),
+                     "seconds": round(result.seconds, 3), "measure_seconds": round(measure_seconds, 3),
+                     "candidates": json.dumps([{"name": n, **c.as_dict()} for n, c in zip(names, measured)])})
+
+    for n in args.counts:
+        row(f"first {n}", enhancer.enhance(render, depth, K, pose, neighbours=[enhancer.train[p] for p in positions[:n]]))
+    row("default", enhancer.enhance(render, depth, K, pose))
+
+    def sibling(options):  # another rule or stage setting, sharing the caches
+        other = SceneEnhancer(scene, enhancer.model, options=options)
+        other._small, other._tiny, other._sources, other._depths = (enhancer._small, enhancer._tiny,
+                                                                    enhancer._sources, enhancer._depths)
+        return other
+
+    for stage in args.without:
+        row(f"default, no {stage}", sibling(EnhanceOptions().with_(**{stage: None})).enhance(render, depth, K, pose))
+    for name in args.rules:
+        rule = NeighbourRule(**RULES[name])
+        row(name, sibling(EnhanceOptions(neighbours=rule)).enhance(render, depth, K, pose))
+        for stage in args.without:
+            row(f"{name}, no {stage}", sibling(EnhanceOptions(neighbours=rule).with_(**{stage: None}))
+                .enhance(render, depth, K, pose))
+    return [{"checkpoint": checkpoint_name, **r} for r in rows]
+
+
+def summary(rows: list[dict]) -> list[dict]:
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["scene"], r["kind"], r["choice"]), []).append(r)
+    out = []
+    for (scene, kind, choice), rs in groups.items():
+        n = len(rs)
+        out.append({"scene": scene, "kind": kind, "choice": choice, "views": n,
+                    "gain_db": round(sum(r["gain_db"] for r in rs) / n, 4),
+                    "worst_view_gain_db": min(r["gain_db"] for r in rs),
+                    "flip_change": round(sum(r["flip_change"] for r in rs) / n, 5),
+                    "views_flip_better": sum(r["flip_change"] < 0 for r in rs),
+                    "mean_count": round(sum(r["count"] for r in rs) / n, 2),
+                    "seconds": round(sum(r["seconds"] for r in rs) / n, 3)})
+    return out
+
+
+def plot(rows: list[dict], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    means = summary(rows)
+    choices = list(dict.fromkeys(m["choice"] for m in means))
+    pairs = list(dict.fromkeys((m["scene"], m["kind"]) for m in means))
+    fig, ax = plt.subplots(figsize=(max(6, 1.2 * len(pairs)), 4))
+    width = 0.8 / max(1, len(choices))
+    for c, choice in enumerate(choices):
+        gains = [next((m["gain_db"] for m in means if (m["scene"], m["kind"]) == pair and m["choice"] == choice),
+                      float("nan")) for pair in pairs]
+        ax.bar([k + c * width for k in range(len(pairs))], gains, width, label=choice)
+    ax.set_xticks([k + 0.4 - width / 2 for k in range(len(pairs))], [f"{s}\n{k}" for s, k in pairs], fontsize=7)
+    ax.axhline(0, color="grey", lw=0.8)
+    ax.set_ylabel("mean PSNR gain over the renders (dB), zero-shot", fontsize=8)
+    ax.legend(fontsize=7, ncol=2)
+    if rows:
+        r = rows[0]
+        fig.suptitle(f"neighbour choice per view | {r['checkpoint']} | {r['machine'][:60]} | {r['commit']} | "
+                     f"{r['date'][:10]}", fontsize=7)
+    return save_figure(fig, path)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    from tqdm import tqdm
+
+    from roguenerf import runtime
+    from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
+    from roguenerf.data.readers import load_scene
+    from roguenerf.imageio import atomic_write
+    from roguenerf.inference import SceneEnhancer
+
+    print(f"runtime: {runtime.configure()}", flush=True)
+    checkpoint = args.checkpoint or default_checkpoint_path()
+    model, _ = load_checkpoint(checkpoint)
+    base = stamp()
+    rows: list[dict] = []
+    for folder in args.pairs:
+        scene_name, kind = pair_label(folder)
+        scene = load_scene(folder)
+        enhancer = SceneEnhancer(scene, model)
+        views = scene.indices("test")[: args.max_views]
+        tag = (f"{checkpoint.stem}_c{args.candidates}_n{'-'.join(map(str, args.counts))}"
+               f"_{rules_tag(args.rules)}_without{'-'.join(args.without) or 'none'}")
+        for i in tqdm(views, desc=f"{scene_name} ({kind})", unit="view"):
+            path = args.cache / scene_name / kind / tag / f"{scene.frames[i].name}.json"
+            if path.is_file():
+                view_rows = json.loads(path.read_text())
+            else:
+                view_rows = measure_view(enhancer, scene, i, args, checkpoint.name)
+                atomic_write(path, json.dumps(view_rows).encode(), make_parents=True)
+            rows += [{**base, "scene": scene_name, "kind": kind, **r} for r in view_rows]
+    write_outputs(args.output, rows, plot)
+    write_json(args.output.with_suffix(".json"), {"rows": rows, "summary": summary(rows)})
+    for m in summary(rows):
+        print(f"{m['scene']:>12} {m['kind']:>6} {m['choice']:>10}: {m['gain_db']:+.3f} dB "
+              f"(worst {m['worst_view_gain_db']:+.3f}), FLIP {m['flip_change']:+.4f}, {m['mean_count']} neighbours")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
