@@ -107,7 +107,8 @@ def measure_view(enhancer, scene, i: int, args, checkpoint_name: str) -> list[di
                      "candidates": json.dumps([{"name": n, **c.as_dict()} for n, c in zip(names, measured)])})
 
     for n in args.counts:
-        row(f"first {n}", enhancer.enhance(render, depth, K, pose, neighbours=[enhancer.train[p] for p in positions[:n]]))
+        first = [enhancer.train[p] for p in positions[:n]]
+        row(f"first {n}", enhancer.enhance(render, depth, K, pose, neighbours=first))
     row("default", enhancer.enhance(render, depth, K, pose))
 
     def sibling(options):  # another rule or stage setting, sharing the caches
