@@ -65,12 +65,18 @@ def parse_args(argv=None):
                    help=f"named rules to compare ({', '.join(RULES)})")
     p.add_argument("--without", type=lambda t: [x for x in t.split(",") if x], default=[],
                    help="also each rule with this stage off (comma-separated of colour, trust, align)")
+    p.add_argument("--search", action="store_true",
+                   help="instead: PAIRS are OUTPUT.json files of earlier runs; replay every setting of the "
+                        "measured rule on them (the choice half) and write the ranking to OUTPUT.json")
     p.add_argument("--max-views", type=int, default=None)
     p.add_argument("--cache", type=Path, default=REPO / "runs" / "neighbour_rule")
     p.add_argument("--output", type=Path, default=RESULTS / "neighbour_rule")
     args = p.parse_args(argv)
     for folder in args.pairs:
-        if not (folder / "transforms.json").is_file():
+        if args.search:
+            if not folder.is_file():
+                p.error(f"{folder}: not a file (--search reads OUTPUT.json files)")
+        elif not (folder / "transforms.json").is_file():
             p.error(f"{folder}: not a pair folder (no transforms.json)")
     if any(x not in ("colour", "trust", "align") for x in args.without):
         p.error(f"--without: expected some of colour, trust, align, got {args.without}")
@@ -128,6 +134,72 @@ def measure_view(enhancer, scene, i: int, args, checkpoint_name: str) -> list[di
     return [{"checkpoint": checkpoint_name, **r} for r in rows]
 
 
+def prefix_gains(rows: list[dict]) -> dict[tuple, dict[int, float]]:
+    """Per (scene, kind, view): the gain with the first n candidates, for each measured n."""
+    out: dict[tuple, dict[int, float]] = {}
+    for r in rows:
+        if r["choice"].startswith("first "):
+            out.setdefault((r["scene"], r["kind"], r["view"]), {})[int(r["choice"].split()[1])] = r["gain_db"]
+    return out
+
+
+def search(rows: list[dict], grid: dict[str, list]) -> list[dict]:
+    """Every setting of the measured rule in ``grid`` (NeighbourRule fields) replayed on the
+    rows' views from their cached measurements and prefix gains: per setting, the mean gain
+    over the (scene, kind) pairs, the worst pair, and on how many pairs it is at least as good
+    as the best fixed count (a setting that picks a non-prefix set on some view is skipped)."""
+    import itertools
+
+    from roguenerf.enhance.select import Candidate, choose
+
+    gains = prefix_gains(rows)
+    cands: dict[tuple, list[Candidate]] = {}
+    for r in rows:
+        key = (r["scene"], r["kind"], r["view"])
+        if key not in cands:
+            cands[key] = [Candidate(position=c["rank"], rank=c["rank"], angle=c["angle"], baseline=c["baseline"],
+                                    coverage=c["coverage"], error=c["error"], consensus=c["consensus"])
+                          for c in json.loads(r["candidates"])]
+    pairs = sorted({k[:2] for k in gains})
+    counts = sorted(set.intersection(*(set(g) for g in gains.values())))
+
+    def pair_means(pick) -> dict[tuple, float] | None:
+        per: dict[tuple, list[float]] = {}
+        for key, g in gains.items():
+            n = pick(key)
+            if n is None or n not in g:
+                return None
+            per.setdefault(key[:2], []).append(g[n])
+        return {p: sum(v) / len(v) for p, v in per.items()}
+
+    fixed = {n: pair_means(lambda key, n=n: n) for n in counts}
+    best_n = max(counts, key=lambda n: sum(fixed[n].values()))
+    out = [{"rule": f"fixed {n}", **_score(fixed[n], fixed[best_n], pairs)} for n in counts]
+    oracle = pair_means(lambda key: max(gains[key], key=gains[key].get))  # needs the photo: a bound
+    out.append({"rule": "oracle: best count per view (needs the photo)", **_score(oracle, fixed[best_n], pairs)})
+    names = list(grid)
+    for values in itertools.product(*(grid[k] for k in names)):
+        setting = dict(zip(names, values, strict=True))
+        if not setting["least"] <= setting["most"]:
+            continue
+
+        def pick(key, setting=setting):
+            chosen = choose(cands[key], **setting)
+            ranks = [c.rank for c in chosen]
+            return len(ranks) if ranks == list(range(len(ranks))) else None
+
+        means = pair_means(pick)
+        if means is not None:
+            out.append({"rule": json.dumps(setting), **_score(means, fixed[best_n], pairs)})
+    return sorted(out, key=lambda r: -r["mean_gain_db"])
+
+
+def _score(means: dict, best: dict, pairs: list) -> dict:
+    return {"mean_gain_db": round(sum(means.values()) / len(means), 4),
+            "worst_pair_db": round(min(means.values()), 4),
+            "pairs_at_least_best_fixed": sum(means[p] >= best[p] - 1e-9 for p in pairs), "pairs": len(pairs)}
+
+
 def summary(rows: list[dict]) -> list[dict]:
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
@@ -173,6 +245,16 @@ def plot(rows: list[dict], path: Path) -> Path:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    if args.search:
+        rows = [r for path in args.pairs for r in json.loads(path.read_text())["rows"]]
+        grid = {"least": [1, 2, 3], "most": [2, 3, 4, 5], "min_coverage": [0.0, 0.2, 0.4],
+                "error_ratio": [1.0, 1.1, 1.25, 1.5, 2.0, 100.0]}
+        table = search(rows, grid)
+        write_json(args.output.with_suffix(".json"), {**stamp(), "grid": grid, "table": table})
+        for r in table[:25]:
+            print(f"{r['mean_gain_db']:+.3f} dB (worst pair {r['worst_pair_db']:+.3f}), "
+                  f"{r['pairs_at_least_best_fixed']}/{r['pairs']} pairs >= best fixed: {r['rule']}")
+        return 0
     from tqdm import tqdm
 
     from roguenerf import runtime
