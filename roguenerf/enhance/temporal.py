@@ -1,0 +1,83 @@
+"""Videos: the enhancer's change carried from frame to frame along a camera path.
+
+A radiance field's render of a path is consistent from frame to frame by construction: every
+frame comes from the same 3D field. The enhancer adds to it detail and colour taken from
+neighbour photos, and that addition (the *residual*, enhanced minus render) is decided per frame:
+where the neighbour set changes, a pose fit lands a little differently, or the colour field and
+the trust share move, the residual jumps, and the video flickers more than the render.
+
+:class:`TemporalFilter` keeps the residual of the previous frame, reprojects it into the current
+frame through the render's depth (the same warp :func:`~roguenerf.reprojection.reproject` gives
+the neighbours, with its visibility test), and blends::
+
+    residual_t = (1 - w) * (enhanced_t - render_t) + w * warp(residual_{t-1})
+
+wherever the previous frame sees the pixel (elsewhere the frame's own residual is kept). The
+result is ``render_t + residual_t``. Because the carried residual is the blended one, the filter
+is an exponential moving average along the path: with ``w = 0.5`` a frame weighs the residual of
+the frame before by 1/2, the one before that by 1/4, and so on. A cut (a pose far from the last)
+needs no special case: the warp then sees nothing of it, and the frame keeps its own residual.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from roguenerf.errors import InputError
+
+
+@dataclass(frozen=True)
+class TemporalConfig:
+    weight: float = 0.5
+    """Share of the previous frame's (reprojected) residual in each frame's residual, in [0, 1)."""
+
+    def __post_init__(self):
+        if not (isinstance(self.weight, (int, float)) and 0 <= self.weight < 1):
+            raise InputError(f"TemporalConfig.weight: expected a share in [0, 1), got {self.weight!r}")
+
+
+class TemporalFilter:
+    """The residual carried along one camera path (see the module docstring); one per path,
+    frames given in order."""
+
+    def __init__(self, config: TemporalConfig | None = None):
+        self.config = config or TemporalConfig()
+        self._previous: tuple[Tensor, Tensor, Tensor, Tensor] | None = None
+        self.last_share: float = 0.0
+        """Share of the last frame's pixels that took the previous frame's residual."""
+
+    def reset(self) -> None:
+        """Forget the previous frame (a new path, or a frame not enhanced here)."""
+        self._previous = None
+        self.last_share = 0.0
+
+    def __call__(self, render: Tensor, enhanced: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor) -> Tensor:
+        """The frame ``enhanced`` (of ``render``, ``(3, H, W)``, its z-depth ``(1, H, W)``, ``K``,
+        camera-to-world ``(4, 4)``) with the previous frame's residual blended in; the frame's
+        blended residual is kept for the next."""
+        from roguenerf.reprojection import reproject
+
+        if render.shape != enhanced.shape or render.ndim != 3 or render.shape[0] != 3:
+            raise InputError(f"render, enhanced: expected the same (3, H, W) shape, got {tuple(render.shape)} "
+                             f"and {tuple(enhanced.shape)}")
+        if depth.shape != (1, *render.shape[1:]):
+            raise InputError(f"depth: expected (1, {render.shape[1]}, {render.shape[2]}), got {tuple(depth.shape)}")
+        render, enhanced, depth = render.float(), enhanced.float(), depth.float()
+        pose = torch.as_tensor(world_from_cam).to(torch.float64)
+        K = torch.as_tensor(K).to(torch.float32)
+        residual = enhanced - render
+        self.last_share = 0.0
+        w = float(self.config.weight)
+        if self._previous is not None and w > 0:
+            prev_residual, prev_depth, prev_K, prev_pose = self._previous
+            with torch.inference_mode():
+                warped = reproject(prev_residual[None], prev_depth[None], depth[None], prev_K, K, prev_pose, pose)
+            valid = warped.valid[0] > 0.5
+            self.last_share = float(valid.float().mean())
+            residual = torch.where(valid, (1 - w) * residual + w * warped.features[0], residual)
+        out = (render + residual).clamp(0, 1)
+        self._previous = (out - render, depth, K, pose)
+        return out
