@@ -155,7 +155,7 @@ def field_frames(args):
     """Scene (downscaled make-pairs output) and the path frames rendered by its fitted field."""
     from roguenerf import load_scene
     from roguenerf.imageio import atomic_write, encode_npy, write_png
-    from roguenerf.paths import smooth_path
+    from roguenerf.trajectory import smooth_path
 
     # Per scene and fit (the coarse fit's cache keeps its first name).
     work = args.work / args.fit.parent.name / (f"x{args.factor}" if args.fit.name == "coarse"
@@ -191,7 +191,7 @@ def toy_frames(args):
     from roguenerf.data.readers import load_scene
     from roguenerf.data.toy import make_toy_scene, make_toy_world, render_toy_view
     from roguenerf.imageio import atomic_write, encode_npy, write_png
-    from roguenerf.paths import smooth_path
+    from roguenerf.trajectory import smooth_path
 
     work = args.work / "toy"
     height, width = 96, 128
@@ -269,7 +269,7 @@ def main() -> None:
     from roguenerf import SceneEnhancer, load_checkpoint
     from roguenerf.checkpoint import default_checkpoint_path
     from roguenerf.enhance import EnhanceOptions
-    from roguenerf.paths import CameraPath, enhance_path
+    from roguenerf.trajectory import CameraPath, enhance_path
 
     roguenerf.runtime.configure()
     tag = ("toy_" if args.toy else "") + ("quick" if args.quick else "full")

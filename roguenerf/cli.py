@@ -697,7 +697,7 @@ def enhance_path_command(
     """
     from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
     from roguenerf.inference import SceneEnhancer
-    from roguenerf.paths import FLICKER_FILE, check_path_output, enhance_path, read_camera_path
+    from roguenerf.trajectory import FLICKER_FILE, check_path_output, enhance_path, read_camera_path
 
     with _errors():
         if depth_type not in ("z", "ray"):

@@ -55,8 +55,8 @@ class TrainingCancelled(RoGUENeRFError):
 
 class CameraMismatchError(InputError):
     """A camera (one view's, or a camera path's) does not fit the scene's world: its pixels land
-    nowhere near the training photos' surfaces at their depth (:func:`roguenerf.paths.check_camera`,
-    :func:`roguenerf.paths.check_path`). ``problem`` says what was found and the likely causes,
+    nowhere near the training photos' surfaces at their depth (:func:`roguenerf.trajectory.check_camera`,
+    :func:`roguenerf.trajectory.check_path`). ``problem`` says what was found and the likely causes,
     ``cause`` names the likeliest: ``"convention"`` (OpenGL vs OpenCV axes), ``"scale"`` (another
     unit), ``"world"`` (another coordinate space), ``"geometry"`` (the field's own depth is off on
     novel views) or ``"depth_type"`` (z vs ray depth); ``override`` is how the caller goes on anyway."""

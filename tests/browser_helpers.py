@@ -94,7 +94,7 @@ def path_zip(scene, *, seed: int, frames_per_segment: int = 2) -> tuple[bytes, i
     from roguenerf.data.toy import make_toy_world, render_toy_view
     from roguenerf.geometry import opencv_to_opengl
     from roguenerf.imageio import encode_npy, encode_png
-    from roguenerf.paths import smooth_path
+    from roguenerf.trajectory import smooth_path
 
     world = make_toy_world(seed)
     height, width = scene.frames[0].height, scene.frames[0].width

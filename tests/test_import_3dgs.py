@@ -17,8 +17,8 @@ from roguenerf.data.readers import load_scene
 from roguenerf.data.toy import look_at
 from roguenerf.geometry.cameras import opencv_to_opengl
 from roguenerf.imageio import read_image, write_png
-from roguenerf.paths import find_path_frames
 from roguenerf.splats import Gaussians, logit, render, write_ply
+from roguenerf.trajectory import find_path_frames
 
 runner = CliRunner()
 H, W, VIEWS = 36, 48, 9

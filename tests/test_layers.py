@@ -145,7 +145,7 @@ LIBRARY_LAYERS = (
     ("ops",),  # the kernels: native, fast or reference per op
     ("reprojection",),  # checked reprojection on the ops
     ("data", "models", "enhance"),
-    ("checkpoint", "inference", "paths"),
+    ("checkpoint", "inference", "trajectory"),
     ("splats", "training"),
     ("cli", "__main__"),
 )

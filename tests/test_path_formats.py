@@ -18,7 +18,7 @@ from roguenerf.data.colmap import (
 )
 from roguenerf.data.toy import make_toy_world, toy_camera_path
 from roguenerf.errors import InputError
-from roguenerf.paths import find_camera_file, read_camera_path
+from roguenerf.trajectory import find_camera_file, read_camera_path
 
 W, H = 40, 30
 
@@ -129,7 +129,7 @@ def test_enhance_path_cli_same_frames_from_every_camera_format(tmp_path):
     from roguenerf.data.toy import make_toy_scene, render_toy_view
     from roguenerf.geometry import opencv_to_opengl
     from roguenerf.imageio import write_png
-    from roguenerf.paths import smooth_path
+    from roguenerf.trajectory import smooth_path
 
     h, w = 24, 32
     scene = make_toy_scene(tmp_path / "scene", seed=4, n_train=6, n_test=1, height=h, width=w, kind="orbit")

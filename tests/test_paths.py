@@ -29,7 +29,7 @@ from roguenerf.errors import InputError, PathCancelled
 from roguenerf.geometry import opencv_to_opengl
 from roguenerf.imageio import write_png
 from roguenerf.inference import SceneEnhancer
-from roguenerf.paths import (
+from roguenerf.trajectory import (
     FLICKER_FILE,
     enhance_path,
     pair_flicker,
@@ -200,7 +200,7 @@ def test_paths_and_exports_import_no_service_stack_no_fitter_no_av():
     import subprocess
     import sys
 
-    code = ("import sys, roguenerf.paths, roguenerf.data.exports, roguenerf.video; "
+    code = ("import sys, roguenerf.trajectory, roguenerf.data.exports, roguenerf.video; "
             "print(sorted(m for m in ('fastapi', 'huey', 'uvicorn', 'roguefit', 'av', 'service', 'workers') "
             "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120)
@@ -221,7 +221,7 @@ def _transforms_path(file, poses_gl, K, names=None):
 def test_the_right_path_fits_the_scene(toy_path, enhancer):
     from roguenerf.geometry import ray_to_z_depth
     from roguenerf.imageio import read_depth
-    from roguenerf.paths import check_camera_path, find_path_frames
+    from roguenerf.trajectory import check_camera_path, find_path_frames
 
     root, scene = toy_path["root"], toy_path["scene"]
     cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
@@ -437,7 +437,7 @@ def test_a_scaled_and_shifted_path_is_refused(toy_path, enhancer, tmp_path, scal
 
 
 def test_a_far_path_without_depth_to_tell_is_refused_naming_the_camera(toy_path):
-    from roguenerf.paths import FAR_FACTOR, check_camera_path
+    from roguenerf.trajectory import FAR_FACTOR, check_camera_path
 
     scene = toy_path["scene"]
     poses = toy_path["poses"].clone()
@@ -459,7 +459,7 @@ def test_a_field_whose_own_novel_views_fail_the_check_is_named_as_the_likely_cau
     right, that cause is not named."""
     from roguenerf.data.readers import load_scene
     from roguenerf.imageio import atomic_write, encode_npy
-    from roguenerf.paths import CameraPath, check_camera_path
+    from roguenerf.trajectory import CameraPath, check_camera_path
 
     root = tmp_path / "scene"
     scene = make_toy_scene(root, seed=SEED, n_train=6, n_test=3, height=H, width=W, kind="orbit")
@@ -483,7 +483,7 @@ def test_check_camera_names_the_likely_cause_for_one_view(toy_path):
     with the likeliest cause first; force returns the problem instead."""
     from roguenerf.errors import CameraMismatchError
     from roguenerf.geometry import opengl_to_opencv
-    from roguenerf.paths import check_camera
+    from roguenerf.trajectory import check_camera
 
     scene = toy_path["scene"]
     i = scene.indices("test")[0]

@@ -18,7 +18,7 @@ import pytest
 from roguenerf.data.toy import make_toy_world, render_toy_view
 from roguenerf.geometry import opencv_to_opengl
 from roguenerf.imageio import encode_npy, encode_png
-from roguenerf.paths import smooth_path
+from roguenerf.trajectory import smooth_path
 from roguenerf.video import read_video_info
 from service.settings import Settings
 from tests.service_helpers import FAST, LiveServer, make_checkpoint, register, tree_digest, wait_until, zip_folder

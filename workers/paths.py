@@ -40,7 +40,7 @@ def run_path_job(ctx, job: dict, lease: str, beat) -> str:
         load_scene,
     )
     from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
-    from roguenerf.paths import enhance_path, find_camera_file, read_camera_path
+    from roguenerf.trajectory import enhance_path, find_camera_file, read_camera_path
 
     settings, store, layout = ctx.settings, ctx.store, ctx.layout
     job_id, scene_id, request = job["id"], job["scene_id"], job["request"]

@@ -11,7 +11,7 @@ Two tools, one function (:func:`import_renders`):
   ``dataparser_transforms.json`` (``{"transform": 3x4, "scale": s}``) maps those poses to the
   model's world (``R' = T_R R``, ``t' = s (T_R t + T_t)``): needed for depth still in the
   model's units (``depth_units="model"``) and for camera paths drawn in nerfstudio's viewer
-  (:mod:`roguenerf.paths`), so it is kept in the scene folder.
+  (:mod:`roguenerf.trajectory`), so it is kept in the scene folder.
 * **gsplat**: a folder ``DIR/rgb/NAME.png`` + ``DIR/depth/NAME.<ext>`` (or nerfstudio's
   split layout) written from ``rasterization(..., render_mode="RGB+ED")`` (z) or ``"ED"``
   (ray distance in newer gsplat). Pixels that no splat covers come out as 0 or as the map's
@@ -126,8 +126,10 @@ def _file_key(path: Path) -> tuple[str, str]:
     return path.stem, path.suffix.lower()
 
 
-def _index(folder: Path, suffixes: tuple[str, ...]) -> dict[str, Path]:
-    """Files of ``folder`` (recursively) by stem; a stem found twice is ambiguous and dropped."""
+def files_by_stem(folder: Path, suffixes: tuple[str, ...]) -> dict[str, Path]:
+    """Files of ``folder`` (recursively) by stem; a stem found twice is ambiguous and dropped.
+    What the render readers here and a camera path's frames (:func:`~roguenerf.trajectory.find_path_frames`)
+    index their files with."""
     found: dict[str, Path] = {}
     twice: set[str] = set()
     for path in sorted(folder.rglob("*")):
@@ -144,7 +146,8 @@ def _index(folder: Path, suffixes: tuple[str, ...]) -> dict[str, Path]:
     return found
 
 
-def _pick(folder: Path, names: tuple[str, ...]) -> Path | None:
+def first_folder(folder: Path, names: tuple[str, ...]) -> Path | None:
+    """The first of ``names`` that is a subfolder of ``folder`` (e.g. :data:`RGB_FOLDERS`), or None."""
     for name in names:
         if (folder / name).is_dir():
             return folder / name
@@ -177,14 +180,14 @@ def _render_inventory(renders: str | Path) -> tuple[dict[str, tuple[Path, Path, 
     half: dict[str, tuple[Path, Path]] = {}
     depth_dirs = []
     for folder, split in groups:
-        rgb_dir, depth_dir = _pick(folder, RGB_FOLDERS), _pick(folder, DEPTH_FOLDERS)
+        rgb_dir, depth_dir = first_folder(folder, RGB_FOLDERS), first_folder(folder, DEPTH_FOLDERS)
         if rgb_dir is None or depth_dir is None:
             raise InputError(
                 f"{folder}: expected a render folder ({' / '.join(RGB_FOLDERS)}) and a depth folder "
                 f"({' / '.join(DEPTH_FOLDERS)}), e.g. from `ns-render dataset --rendered-output-names "
                 "rgb raw-depth`")
         depth_dirs.append(depth_dir)
-        rgbs, depths = _index(rgb_dir, IMAGE_SUFFIXES), _index(depth_dir, DEPTH_SUFFIXES)
+        rgbs, depths = files_by_stem(rgb_dir, IMAGE_SUFFIXES), files_by_stem(depth_dir, DEPTH_SUFFIXES)
         depth_suffix = next((_file_key(p)[1] for p in depths.values()), ".npy.gz")
         for stem, rgb in rgbs.items():
             if stem in depths:
@@ -241,12 +244,12 @@ def find_indexed_renders(renders: str | Path) -> dict[str, list[tuple[Path, Path
         return None
     out: dict[str, list[tuple[Path, Path]]] = {}
     for split, folder in found:
-        depth_dir = _pick(folder, DEPTH_FOLDERS)
+        depth_dir = first_folder(folder, DEPTH_FOLDERS)
         if depth_dir is None:
             raise InputError(f"{folder}: Inria gaussian-splatting render.py output (renders/, gt/) has no "
                              f"depth; {NO_DEPTH_HINT}")
-        rgbs = _index(folder / "renders", IMAGE_SUFFIXES)
-        depths = _index(depth_dir, DEPTH_SUFFIXES)
+        rgbs = files_by_stem(folder / "renders", IMAGE_SUFFIXES)
+        depths = files_by_stem(depth_dir, DEPTH_SUFFIXES)
         if not all(stem.isdigit() for stem in rgbs):
             return None
         missing = sorted(set(rgbs) - set(depths))

@@ -10,7 +10,7 @@ trainers write it; nerfstudio's splatfacto exports live in its model's world: gi
 
 Before rendering, cheap checks: the splats lie in the dataset's world (:func:`check_world`: a
 ``.ply`` in gsplat's normalised world or a splatfacto export without its transform renders blank
-views) and a camera path sees them (:func:`~roguenerf.paths.check_camera_path`); ``force`` goes on.
+views) and a camera path sees them (:func:`~roguenerf.trajectory.check_camera_path`); ``force`` goes on.
 An Inria model folder gives the ``.ply`` (latest iteration) and, without a path, a smooth
 :func:`fly_through` of the dataset's views.
 
@@ -283,7 +283,7 @@ def find_model_ply(model: str | Path) -> Path:
 
 def _check_model_cameras(model: Path, views: list[DatasetView]) -> None:
     """The model's ``cameras.json`` (when there) must name views of the dataset."""
-    from roguenerf.paths import read_camera_path
+    from roguenerf.trajectory import read_camera_path
 
     cameras = model / "cameras.json"
     if not cameras.is_file():
@@ -325,15 +325,15 @@ def _fit_path_to_views(cams, views: list[DatasetView]):
 
 
 def fly_through(views: list[DatasetView], frames: int = FLY_FRAMES):
-    """A smooth camera path (:func:`~roguenerf.paths.smooth_path`) through up to :data:`FLY_KEYS`
+    """A smooth camera path (:func:`~roguenerf.trajectory.smooth_path`) through up to :data:`FLY_KEYS`
     dataset views evenly spread in name order (the capture order), about ``frames`` frames; the
     frames at the key views are those views exactly (pose, intrinsics, size: ``enhance-path``
     measures their PSNR), the others use their segment's first key's intrinsics."""
-    from roguenerf.paths import CameraPath, _natural_key, smooth_path
+    from roguenerf.trajectory import CameraPath, natural_key, smooth_path
 
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 2:
         raise InputError(f"frames: expected an integer >= 2, got {frames!r}")
-    ordered = sorted(views, key=lambda v: _natural_key(v.name))
+    ordered = sorted(views, key=lambda v: natural_key(v.name))
     same = [v for v in ordered if (v.width, v.height) == (ordered[0].width, ordered[0].height)]
     m = min(len(same), FLY_KEYS, frames)
     if m < 2:
@@ -349,7 +349,7 @@ def fly_through(views: list[DatasetView], frames: int = FLY_FRAMES):
 @dataclass(eq=False)
 class _RenderingScene(Scene):
     """The dataset views as a :class:`Scene` whose depth is rendered (and written) on demand: what
-    :func:`~roguenerf.paths.check_camera_path` reads before everything is rendered."""
+    :func:`~roguenerf.trajectory.check_camera_path` reads before everything is rendered."""
 
     depth_of: Callable[[int], Tensor] | None = None
 
@@ -358,9 +358,9 @@ class _RenderingScene(Scene):
 
 
 def _path_problem(scene, cams, depth_of, depth_threshold: float) -> str | None:
-    """:func:`~roguenerf.paths.check_camera_path`, plus: a path none of whose checked cameras sees
+    """:func:`~roguenerf.trajectory.check_camera_path`, plus: a path none of whose checked cameras sees
     a splat (no pixel reaches the depth threshold) does not fit either."""
-    from roguenerf.paths import check_camera_path
+    from roguenerf.trajectory import check_camera_path
 
     if not scene.indices("train"):
         return None
@@ -391,7 +391,7 @@ def import_3dgs(dataset: str | Path, ply: str | Path | None, output: str | Path,
     """Render every view of ``dataset`` from the 3DGS ``ply`` and write the scene folder ``output``.
 
     Before rendering, :func:`check_world` checks that the splats lie in the dataset's world and,
-    with a camera path, :func:`~roguenerf.paths.check_camera_path` that the path sees them (from a
+    with a camera path, :func:`~roguenerf.trajectory.check_camera_path` that the path sees them (from a
     few rendered frames, kept): an :class:`InputError` naming the causes and fixes, or with
     ``force`` a warning. When ``output`` is an earlier import of the same dataset, ``.ply`` and
     options (its ``transforms.json`` ``source``) and a path is asked for, only the path is rendered.
@@ -444,7 +444,7 @@ def import_3dgs(dataset: str | Path, ply: str | Path | None, output: str | Path,
     output = Path(output)
     path_cams, path_label = None, None
     if camera_path is not None:
-        from roguenerf.paths import read_camera_path
+        from roguenerf.trajectory import read_camera_path
 
         path_cams = _fit_path_to_views(read_camera_path(camera_path, dataparser=parser), views)
         path_label = str(camera_path)
@@ -600,8 +600,8 @@ def render_camera_path(ply: str | Path, camera_path: str | Path, output: str | P
     the dataset's world) from ``ply`` into ``output/rgb/NNNNN.png`` + ``output/depth/NNNNN.npy``,
     with the camera file copied beside them: what ``enhance-path --frames`` reads."""
     from roguenerf.data.exports import DataparserTransform
-    from roguenerf.paths import read_camera_path
     from roguenerf.splats.ply import read_ply
+    from roguenerf.trajectory import read_camera_path
 
     backend = pick_backend(backend)
     check_output_folder(Path(output), _is_our_path, "path output", owned=_our_path_files)

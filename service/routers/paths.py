@@ -35,7 +35,7 @@ def validate_path_upload(services, row: dict, root: Path, *, max_pixels: int, de
     from roguenerf import check_path
     from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
     from roguenerf.imageio import read_image_size
-    from roguenerf.paths import find_camera_file, find_path_frames, read_camera_path
+    from roguenerf.trajectory import find_camera_file, find_path_frames, read_camera_path
 
     scene_id = row["id"]
     try:

@@ -1,0 +1,263 @@
+"""Enhance every frame of a camera path, write the MP4s, measure flicker.
+
+Legend: T frames, (H, W) render size.
+
+:func:`enhance_path` takes a path's cameras (:class:`~roguenerf.trajectory.CameraPath`) and the
+folder of each frame's render and depth, enhances the frames one by one with one
+:class:`~roguenerf.inference.SceneEnhancer` (each training photo's features are computed once for
+the whole path), writes each enhanced frame atomically as it is done (an interrupted run resumes
+after the last written frame), then encodes ``enhanced.mp4`` and ``side_by_side.mp4`` (render |
+enhanced, each half labelled) frame by frame. The flicker report is
+:mod:`roguenerf.trajectory.flicker`'s, on two frames held at a time.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from torch import Tensor
+
+from roguenerf.errors import InputError, PathCancelled
+from roguenerf.trajectory.checks import check_path
+from roguenerf.trajectory.flicker import pair_flicker, summarise_flicker
+from roguenerf.trajectory.readers import CameraPath, find_path_frames
+
+FRAME_FOLDER = "frames"
+STATE_FILE = "path_state.json"
+FLICKER_FILE = "flicker.json"
+VIDEO_FILE = "enhanced.mp4"
+SIDE_BY_SIDE_FILE = "side_by_side.mp4"
+POSE_MATCH_TOL = 1e-5
+"""A path camera "is" a scene view (and has its photo) when rotation and position agree to this
+(position relative to the scene's extent)."""
+
+
+@dataclass
+class PathResult:
+    output: Path
+    frames: int
+    enhanced_now: int
+    """Frames enhanced by this call (the rest were already there: resumed)."""
+    seconds: float
+    video: Path | None
+    side_by_side: Path | None
+    flicker: dict = field(default_factory=dict)
+    """What :data:`FLICKER_FILE` holds: per-pair and mean flicker, per-frame PSNR where photos exist."""
+    cached_views: int = 0
+    warnings: list[str] = field(default_factory=list)
+    """What went on with ``force=True`` (:func:`~roguenerf.trajectory.check_camera_path`'s message)."""
+
+
+def _fingerprint(camera_path: CameraPath, pairs: list[tuple[Path, Path]], checkpoint_id: str, options: dict) -> str:
+    h = hashlib.sha256()
+    h.update(camera_path.world_from_cam.numpy().tobytes())
+    h.update(camera_path.K.numpy().tobytes())
+    for rgb, depth in pairs:
+        for p in (rgb, depth):
+            st = p.stat()
+            h.update(f"{p.name}:{st.st_size}".encode())
+    h.update(checkpoint_id.encode())
+    h.update(json.dumps(options, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def check_path_output(output: str | Path) -> None:
+    """``enhance_path``'s output may be new, empty, or an earlier run's (its resume state): any
+    other folder is refused, since its ``frames/``, videos and flicker report would be written over
+    (and frames already there taken for enhanced ones)."""
+    output = Path(output)
+    if not output.exists():
+        return
+    if not output.is_dir():
+        raise InputError(f"output: {output} exists and is not a folder; choose a new folder")
+    if any(output.iterdir()) and not (output / STATE_FILE).is_file():
+        raise InputError(f"output: {output} exists and is not empty: it holds other files, not an earlier "
+                         "enhance-path output (which would be resumed); choose a new folder")
+
+
+def enhance_path(
+    scene,
+    enhancer,
+    camera_path: CameraPath,
+    frames: str | Path,
+    output: str | Path,
+    *,
+    depth_type: str = "z",
+    depth_scale: float = 1.0,
+    background: str = "zero",
+    video: bool = True,
+    quality: int = 20,
+    fps: float | None = None,
+    checkpoint_id: str = "",
+    progress=None,
+    should_stop=None,
+    force: bool = False,
+    force_hint: str = "force=True",
+) -> PathResult:
+    """Enhance every frame of a camera path; write frames, MP4s and the flicker report.
+
+    Args:
+        scene: the registered :class:`~roguenerf.data.scene.Scene` (its training photos are the
+            neighbours; a path camera that coincides with one of its views gets that view's photo
+            for the PSNR gain and photo flicker, and never uses it as a neighbour).
+        enhancer: a :class:`~roguenerf.inference.SceneEnhancer` of ``scene`` (its feature cache
+            serves the whole path).
+        camera_path: the cameras, in the scene's pose units (:func:`~roguenerf.trajectory.read_camera_path`).
+        frames: folder of the frames' renders and depths (:func:`~roguenerf.trajectory.find_path_frames`).
+        output: folder for ``frames/NNNNN.png``, the MP4s, :data:`FLICKER_FILE` and the resume
+            state. A folder holding another path's frames is refused.
+        depth_type, depth_scale, background: how the frames' depth files are stored (see
+            :func:`roguenerf.data.exports.import_renders`).
+        video: write ``enhanced.mp4`` and ``side_by_side.mp4`` (needs PyAV).
+        quality: x264 CRF, 0..51 (lower is better).
+        fps: frame rate; default the camera path's.
+        checkpoint_id: anything naming the model's weights (part of the resume fingerprint).
+        progress: ``callback(done, total)`` per frame.
+        should_stop: ``() -> bool`` polled between frames; True raises
+            :class:`~roguenerf.errors.PathCancelled` (frames written so far are kept).
+        force: go on when :func:`~roguenerf.trajectory.check_camera_path` finds that the path does
+            not fit the scene (its message is logged and kept in ``PathResult.warnings``); otherwise
+            that is an :class:`~roguenerf.errors.CameraMismatchError`, before any frame is enhanced
+            (:func:`~roguenerf.trajectory.check_path`).
+        force_hint: how that error tells the caller to force it (the CLI: ``--force``; the service:
+            its ``force`` field).
+    """
+    from roguenerf.data.exports import background_to_unknown
+    from roguenerf.geometry.cameras import ray_to_z_depth
+    from roguenerf.imageio import atomic_write, finite_for_json, read_depth, read_image, write_png
+    from roguenerf.metrics import psnr
+    from roguenerf.video import Mp4Writer, check_quality, require_av, side_by_side
+
+    start = time.perf_counter()
+    check_path_output(output)
+    if depth_type not in ("z", "ray"):
+        raise InputError(f"depth_type: expected 'z' or 'ray', got {depth_type!r}")
+    if not (isinstance(depth_scale, (int, float)) and math.isfinite(depth_scale) and depth_scale > 0):
+        raise InputError(f"depth_scale: expected a finite number > 0, got {depth_scale!r}")
+    check_quality(quality)
+    if video:
+        require_av()
+    fps = camera_path.fps if fps is None else fps
+    pairs = find_path_frames(frames, len(camera_path))
+    matches = _match_views(scene, camera_path)
+    total = len(pairs)
+
+    def load_frame(t: int) -> tuple[Tensor, Tensor]:
+        rgb_path, depth_path = pairs[t]
+        render = read_image(rgb_path)
+        if render.shape[1:] != (camera_path.height, camera_path.width):
+            raise InputError(f"{rgb_path}: render is {render.shape[2]}x{render.shape[1]}, the camera path says "
+                             f"{camera_path.width}x{camera_path.height}")
+        depth = read_depth(depth_path, scale=float(depth_scale))
+        if depth.shape[1:] != render.shape[1:]:
+            raise InputError(f"{depth_path}: depth is {depth.shape[2]}x{depth.shape[1]}, its render "
+                             f"{render.shape[2]}x{render.shape[1]}")
+        depth = background_to_unknown(depth, background)
+        if depth_type == "ray":
+            depth = ray_to_z_depth(depth.double(), camera_path.K[t]).float()
+        return render, depth
+
+    warnings = check_path(scene, camera_path, frames, depth_type=depth_type, depth_scale=depth_scale,
+                          background=background, neighbours=max(1, enhancer.num_neighbours or 1), force=force,
+                          override=force_hint)
+
+    output = Path(output)
+    frame_dir = output / FRAME_FOLDER
+    output.mkdir(parents=True, exist_ok=True)  # frames/ only once the state marks the folder as ours
+    # The enhancer's options too (EnhanceOptions.fingerprint, with the count they resolve to for
+    # this model): frames made with another neighbour rule, colour reach, trust or pose refinement
+    # (a changed default after an upgrade) must not be mixed into this video.
+    options = {"depth_type": depth_type, "depth_scale": depth_scale, "background": background,
+               "neighbours": enhancer.num_neighbours, "near_extra": enhancer.near_extra,
+               "enhance": enhancer.options.fingerprint()}
+    fingerprint = _fingerprint(camera_path, pairs, checkpoint_id, options)
+    state_path = output / STATE_FILE
+    if state_path.is_file():
+        try:
+            previous = json.loads(state_path.read_text()).get("fingerprint")
+        except (OSError, json.JSONDecodeError):
+            previous = None
+        if previous != fingerprint:
+            raise InputError(f"{output} holds the frames of another path, model or setting; "
+                             "choose another output folder or delete it")
+    else:
+        atomic_write(state_path, json.dumps({"fingerprint": fingerprint, "frames": len(pairs)}).encode())
+    frame_dir.mkdir(exist_ok=True)
+    per_pair, per_frame = [], []
+    prev = None
+    done_now = 0
+    for t in range(total):
+        if should_stop is not None and should_stop():
+            raise PathCancelled(t)
+        render, depth = load_frame(t)
+        out_png = frame_dir / f"{t:05d}.png"
+        if out_png.is_file():
+            enhanced = read_image(out_png)
+        else:
+            match = matches[t]
+            exclude = match if match is not None and scene.frames[match].split == "train" else None
+            result = enhancer.enhance(render, depth, camera_path.K[t], camera_path.world_from_cam[t], exclude=exclude)
+            write_png(out_png, result.image)
+            enhanced = _quantise(result.image)
+            done_now += 1
+        photo = scene.photo(matches[t]) if matches[t] is not None else None
+        row = {"frame": t, "view": scene.frames[matches[t]].name if matches[t] is not None else None}
+        if photo is not None:
+            row["render_psnr"] = float(psnr(render[None], photo[None])[0])
+            row["enhanced_psnr"] = float(psnr(enhanced[None], photo[None])[0])
+            row["gain_db"] = row["enhanced_psnr"] - row["render_psnr"]
+        per_frame.append(row)
+        current = (render, enhanced, photo, depth, camera_path.K[t], camera_path.world_from_cam[t])
+        if prev is not None:
+            errors, fraction = pair_flicker(list(prev[:3]), list(current[:3]), prev[3], depth, prev[4], current[4],
+                                            prev[5], current[5])
+            per_pair.append({"from": t - 1, "to": t, "render": errors[0], "enhanced": errors[1],
+                             "photo": errors[2], "valid_fraction": fraction})
+        prev = current
+        if progress is not None:
+            progress(t + 1, total)
+    report = summarise_flicker(per_pair, per_frame)
+    report["frames"] = total
+    atomic_write(output / FLICKER_FILE, json.dumps(finite_for_json(report), indent=1).encode())
+
+    video_path = sbs_path = None
+    if video:
+        video_path, sbs_path = output / VIDEO_FILE, output / SIDE_BY_SIDE_FILE
+        with Mp4Writer(video_path, fps=fps, crf=quality) as enhanced_video, \
+                Mp4Writer(sbs_path, fps=fps, crf=quality) as side_video:
+            for t in range(total):
+                enhanced = read_image(frame_dir / f"{t:05d}.png")
+                render = read_image(pairs[t][0])
+                enhanced_video.write(enhanced)
+                side_video.write(side_by_side(render, enhanced))
+    return PathResult(output=output, frames=total, enhanced_now=done_now, seconds=time.perf_counter() - start,
+                      video=video_path, side_by_side=sbs_path, flicker=report, cached_views=enhancer.cached_views(),
+                      warnings=warnings)
+
+
+def _quantise(image: Tensor) -> Tensor:
+    """What an 8-bit PNG of ``image`` reads back as (flicker is measured on what was written)."""
+    return (image.clamp(0, 1) * 255).round() / 255
+
+
+def _match_views(scene, camera_path: CameraPath) -> list[int | None]:
+    """Scene index of the view each path camera coincides with (same pose and intrinsics), or None."""
+    poses = scene.poses()
+    Ks = scene.intrinsics()
+    extent = float((poses[:, :3, 3] - poses[:, :3, 3].mean(0)).norm(dim=-1).max()) or 1.0
+    out: list[int | None] = []
+    for pose, K in zip(camera_path.world_from_cam, camera_path.K):
+        dt = (poses[:, :3, 3] - pose[:3, 3]).norm(dim=-1) / extent
+        dr = (poses[:, :3, :3] - pose[:3, :3]).abs().amax(dim=(-2, -1))
+        dk = (Ks - K).abs().amax(dim=(-2, -1))
+        ok = (dt < POSE_MATCH_TOL) & (dr < POSE_MATCH_TOL) & (dk < 1e-3)
+        hits = [i for i in ok.nonzero().flatten().tolist()
+                if (scene.frames[i].width, scene.frames[i].height) == (camera_path.width, camera_path.height)
+                and scene.frames[i].image_path is not None]
+        out.append(hits[0] if hits else None)
+    return out

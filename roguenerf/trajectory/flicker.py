@@ -1,0 +1,69 @@
+"""Flicker along a camera path: how much consecutive frames disagree where they see the same surface.
+
+**Flicker** (:func:`pair_flicker`): for consecutive frames t, t+1, frame t is reprojected into
+t+1 with t+1's depth, t's depth (visibility) and both poses (:func:`~roguenerf.reprojection.reproject`,
+with its validity mask); the figure is the mean absolute RGB difference over the valid pixels.
+The same mask is used for the renders, the enhanced frames and, where both frames coincide with
+views that have photos, the photos. Memory is bounded: two frames are held at a time.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+
+def pair_flicker(images_t: list[Tensor | None], images_t1: list[Tensor | None], depth_t: Tensor, depth_t1: Tensor,
+                 K_t: Tensor, K_t1: Tensor, pose_t: Tensor, pose_t1: Tensor) -> tuple[list[float | None], float]:
+    """Mean absolute error of each image of frame t reprojected into frame t+1, on valid pixels.
+
+    Args:
+        images_t, images_t1: lists of ``(3, H, W)`` images (or None, skipped) of the two frames,
+            paired by position (e.g. [render, enhanced, photo]).
+        depth_t, depth_t1: ``(1, H, W)`` z-depth of the two frames.
+        K_t, K_t1: ``(3, 3)``; pose_t, pose_t1: ``(4, 4)`` OpenCV camera-to-world.
+    Returns:
+        ``(errors, valid_fraction)``; an error is None when its images are missing or no pixel is valid.
+    """
+    from roguenerf.reprojection import reproject
+
+    present = [i for i, (a, b) in enumerate(zip(images_t, images_t1)) if a is not None and b is not None]
+    out: list[float | None] = [None] * len(images_t)
+    if not present:
+        return out, 0.0
+    src = torch.cat([images_t[i] for i in present])[None].float()
+    with torch.inference_mode():
+        rp = reproject(src, depth_t[None].float(), depth_t1[None].float(), K_t.float(), K_t1.float(),
+                       pose_t.double(), pose_t1.double())
+    valid = rp.valid[0, 0] > 0
+    fraction = float(valid.float().mean())
+    if not bool(valid.any()):
+        return out, fraction
+    for k, i in enumerate(present):
+        diff = (rp.features[0, 3 * k:3 * k + 3] - images_t1[i].float()).abs().mean(0)
+        out[i] = float(diff[valid].mean())
+    return out, fraction
+
+
+def summarise_flicker(per_pair: list[dict], per_frame: list[dict]) -> dict:
+    """Means over the pairs (and the frames with photos) of :func:`~roguenerf.trajectory.enhance_path`'s rows."""
+    def mean(values):
+        values = [v for v in values if v is not None and math.isfinite(v)]
+        return sum(values) / len(values) if values else None
+
+    render = mean(p["render"] for p in per_pair)
+    enhanced = mean(p["enhanced"] for p in per_pair)
+    with_photo = [f for f in per_frame if "gain_db" in f]
+    return {
+        "flicker": {"render": render, "enhanced": enhanced, "photo": mean(p["photo"] for p in per_pair),
+                    "ratio": (enhanced / render) if render and enhanced is not None else None,
+                    "pairs": len(per_pair), "pairs_with_photos": sum(p["photo"] is not None for p in per_pair)},
+        "psnr": {"frames_with_photos": len(with_photo),
+                 "render": mean(f["render_psnr"] for f in with_photo),
+                 "enhanced": mean(f["enhanced_psnr"] for f in with_photo),
+                 "mean_gain_db": mean(f["gain_db"] for f in with_photo)},
+        "per_pair": per_pair,
+        "per_frame": per_frame,
+    }
