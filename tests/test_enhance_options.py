@@ -26,8 +26,8 @@ def test_the_defaults_are_every_stage_on_and_the_models_count_plus_a_near_one():
     assert EnhanceOptions.from_flags(neighbours=3).neighbours.counts(2) == (3, 0)  # exactly 3
     assert EnhanceOptions.from_flags(neighbours=np.int64(4)).neighbours.count == 4
     assert EnhanceOptions.from_flags(neighbours=3.0, tile=64.0).tile == 64
-    off = EnhanceOptions.from_flags(align=False, colour=False, trust=False)
-    assert (off.align, off.colour, off.trust) == (None, None, None)
+    off = EnhanceOptions.from_flags(align=False, colour=False, trust=False, temporal=False)
+    assert (off.align, off.colour, off.trust, off.temporal) == (None, None, None, None)
     assert off.describe() == "model's count + 1 within 4 deg; stages: none"
     assert EnhanceOptions(trust=False).trust is None and EnhanceOptions(colour=True).colour == ColourConfig()
 

@@ -163,6 +163,26 @@ def test_enhance_path_writes_video_flicker_and_resumes(toy_path, enhancer, tmp_p
             enhance_path(scene, other, cp, root / "frames", out, depth_type="ray", video=False)
 
 
+def test_the_temporal_filter_lowers_flicker_and_leaves_the_first_frame(toy_path, enhancer, tmp_path):
+    """Along the path each frame's change is blended with the last frame's, reprojected
+    (roguenerf.enhance.temporal): the enhanced video flickers less than with every frame on its
+    own, the first frame is the same, and the setting is part of the resume fingerprint."""
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.enhance.temporal import TemporalConfig
+
+    root, scene = toy_path["root"], toy_path["scene"]
+    cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
+    alone = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=None))
+    assert enhancer.options.temporal == TemporalConfig()
+    on = enhance_path(scene, enhancer, cp, root / "frames", tmp_path / "on", depth_type="ray", video=False)
+    off = enhance_path(scene, alone, cp, root / "frames", tmp_path / "off", depth_type="ray", video=False)
+    frame = lambda folder, t: (tmp_path / folder / "frames" / f"{t:05d}.png").read_bytes()  # noqa: E731
+    assert frame("on", 0) == frame("off", 0) and frame("on", 1) != frame("off", 1)
+    assert on.flicker["flicker"]["enhanced"] < off.flicker["flicker"]["enhanced"]
+    with pytest.raises(InputError, match="another path"):
+        enhance_path(scene, alone, cp, root / "frames", tmp_path / "on", depth_type="ray", video=False)
+
+
 def test_enhance_path_cli(toy_path, tmp_path):
     root = toy_path["root"]
     runner = CliRunner()

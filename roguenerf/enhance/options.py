@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 from roguenerf.enhance.align import AlignConfig
 from roguenerf.enhance.colour import ColourConfig
+from roguenerf.enhance.temporal import TemporalConfig
 from roguenerf.enhance.trust import TrustConfig
 from roguenerf.errors import InputError
 
@@ -129,6 +130,9 @@ class EnhanceOptions:
         trust: keep only part of the model's change where the neighbours mostly disagree
             (:mod:`roguenerf.enhance.trust`); None: off.
         tile: images larger than this (height or width) are enhanced tile by tile.
+        temporal: along a camera path (:func:`~roguenerf.trajectory.enhance_path`), blend each
+            frame's change with the previous frame's, reprojected (:mod:`roguenerf.enhance.temporal`);
+            None: every frame on its own. Single views ignore it.
     """
 
     neighbours: NeighbourRule = field(default_factory=NeighbourRule)
@@ -136,6 +140,7 @@ class EnhanceOptions:
     colour: ColourConfig | None = field(default_factory=ColourConfig)
     trust: TrustConfig | None = field(default_factory=TrustConfig)
     tile: int = DEFAULT_TILE
+    temporal: TemporalConfig | None = field(default_factory=TemporalConfig)
 
     def __post_init__(self):
         if not isinstance(self.neighbours, NeighbourRule):
@@ -143,12 +148,13 @@ class EnhanceOptions:
         object.__setattr__(self, "align", _stage(self.align, AlignConfig, "align"))
         object.__setattr__(self, "colour", _stage(self.colour, ColourConfig, "colour"))
         object.__setattr__(self, "trust", _stage(self.trust, TrustConfig, "trust"))
+        object.__setattr__(self, "temporal", _stage(self.temporal, TemporalConfig, "temporal"))
         if isinstance(self.tile, bool) or not isinstance(self.tile, int) or self.tile < 16:
             raise InputError(f"tile: expected an integer >= 16 pixels, got {self.tile!r}")
 
     @classmethod
     def from_flags(cls, *, neighbours: int | None = None, align=True, colour=True, trust=True,
-                   tile: int | None = None) -> EnhanceOptions:
+                   tile: int | None = None, temporal=True) -> EnhanceOptions:
         """The options of a command line or a request: a neighbour count (None: the model's
         rule), and each stage True, False or its config."""
         if neighbours is not None:
@@ -162,7 +168,7 @@ class EnhanceOptions:
                 raise InputError(f"tile: expected >= 16 pixels, got {tile}")
             tile = size
         return cls(neighbours=NeighbourRule(count=neighbours), align=align, colour=colour, trust=trust,
-                   tile=DEFAULT_TILE if tile is None else tile)
+                   tile=DEFAULT_TILE if tile is None else tile, temporal=temporal)
 
     def with_(self, **changes) -> EnhanceOptions:
         """A copy with some fields changed (``dataclasses.replace``)."""
@@ -187,5 +193,5 @@ class EnhanceOptions:
         rule = (f"{n.least}-{n.most} of {n.candidates} neighbours, measured" if n.measured
                 else f"{n.count} neighbours" if n.count is not None
                 else f"model's count + {n.near_extra} within {n.near_degrees:g} deg")
-        on = [name for name in ("align", "colour", "trust") if getattr(self, name) is not None]
+        on = [name for name in ("align", "colour", "trust", "temporal") if getattr(self, name) is not None]
         return f"{rule}; stages: {', '.join(on) or 'none'}"

@@ -54,6 +54,13 @@ class TemporalFilter:
         self._previous = None
         self.last_share = 0.0
 
+    def remember(self, render: Tensor, enhanced: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor) -> None:
+        """Take ``enhanced`` (of ``render``) as the last frame's result without blending: the frame
+        as written (a resumed path reads its finished frames back, so the frames after them
+        come out the same as without the stop)."""
+        self._previous = (enhanced.float() - render.float(), depth.float(), torch.as_tensor(K).to(torch.float32),
+                          torch.as_tensor(world_from_cam).to(torch.float64))
+
     def __call__(self, render: Tensor, enhanced: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor) -> Tensor:
         """The frame ``enhanced`` (of ``render``, ``(3, H, W)``, its z-depth ``(1, H, W)``, ``K``,
         camera-to-world ``(4, 4)``) with the previous frame's residual blended in; the frame's

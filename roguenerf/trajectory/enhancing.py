@@ -22,6 +22,7 @@ from pathlib import Path
 
 from torch import Tensor
 
+from roguenerf.enhance.temporal import TemporalFilter
 from roguenerf.errors import InputError, PathCancelled
 from roguenerf.trajectory.checks import check_path
 from roguenerf.trajectory.flicker import pair_flicker, summarise_flicker
@@ -191,20 +192,26 @@ def enhance_path(
     per_pair, per_frame = [], []
     prev = None
     done_now = 0
+    temporal = None if enhancer.options.temporal is None else TemporalFilter(enhancer.options.temporal)
     for t in range(total):
         if should_stop is not None and should_stop():
             raise PathCancelled(t)
         render, depth = load_frame(t)
         out_png = frame_dir / f"{t:05d}.png"
+        camera = (camera_path.K[t], camera_path.world_from_cam[t])
         if out_png.is_file():
             enhanced = read_image(out_png)
         else:
             match = matches[t]
             exclude = match if match is not None and scene.frames[match].split == "train" else None
-            result = enhancer.enhance(render, depth, camera_path.K[t], camera_path.world_from_cam[t], exclude=exclude)
-            write_png(out_png, result.image)
-            enhanced = _quantise(result.image)
+            image = enhancer.enhance(render, depth, *camera, exclude=exclude).image
+            if temporal is not None:
+                image = temporal(render, image, depth, *camera)
+            write_png(out_png, image)
+            enhanced = _quantise(image)
             done_now += 1
+        if temporal is not None:  # the frame as written, whether made now or read back
+            temporal.remember(render, enhanced, depth, *camera)
         photo = scene.photo(matches[t]) if matches[t] is not None else None
         row = {"frame": t, "view": scene.frames[matches[t]].name if matches[t] is not None else None}
         if photo is not None:
