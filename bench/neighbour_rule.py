@@ -247,8 +247,8 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     if args.search:
         rows = [r for path in args.pairs for r in json.loads(path.read_text())["rows"]]
-        grid = {"least": [1, 2, 3], "most": [2, 3, 4, 5], "min_coverage": [0.0, 0.2, 0.4],
-                "error_ratio": [1.0, 1.1, 1.25, 1.5, 2.0, 100.0]}
+        grid = {"least": [1, 2, 3], "most": [2, 3, 4], "min_coverage": [0.0, 0.2, 0.4],
+                "error_ratio": [1.0, 1.1, 1.25, 1.5, 2.0, 100.0], "near_degrees": [0.0, 2.0, 4.0, 6.0]}
         table = search(rows, grid)
         write_json(args.output.with_suffix(".json"), {**stamp(), "grid": grid, "table": table})
         for r in table[:25]:

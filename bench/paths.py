@@ -238,6 +238,9 @@ def main() -> None:
     parser.add_argument("--trust", choices=["on", "off"], default="on",
                         help="keep only part of the enhancer's change where the neighbours mostly disagree "
                              "(roguenerf.enhance.trust; default on, as shipped)")
+    parser.add_argument("--temporal", choices=["on", "off"], default="on",
+                        help="blend each frame's change with the last frame's (roguenerf.enhance.temporal; "
+                             "default on, as shipped)")
     parser.add_argument("--force", action="store_true", help=(
         "enhance a path that enhance_path's check refuses (a field whose novel views are floaters fails it "
         "whatever the path): the problem is kept as a warning in the JSON"))
@@ -259,7 +262,7 @@ def main() -> None:
             parser.error(f"--colour: expected on, off or FIELD=VALUE[:FIELD=VALUE], got {args.colour!r} ({exc})")
     colour_tag = {"on": "", "off": "_nocolour"}.get(
         args.colour, "_colour_" + args.colour.replace("=", "").replace(":", "_")) + (
-        "_notrust" if args.trust == "off" else "")
+        "_notrust" if args.trust == "off" else "") + ("_notemporal" if args.temporal == "off" else "")
     if args.quick:
         args.keys, args.steps = 3, 4
     if args.photo_path:
@@ -281,12 +284,13 @@ def main() -> None:
     checkpoint = args.checkpoint or default_checkpoint_path()
     model, _ = load_checkpoint(checkpoint)
     enhancer = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(
-        align=args.align == "on", colour=colour, trust=args.trust == "on"))
+        align=args.align == "on", colour=colour, trust=args.trust == "on", temporal=args.temporal == "on"))
     camera_path = CameraPath(world_from_cam=poses, K=K.expand(len(poses), 3, 3).clone(), width=width,
                              height=height, fps=24.0)
     out = frames.parent / ("enhanced_" + frames.name + ("" if args.align == "on" else "_noalign") + colour_tag)
     result = enhance_path(scene, enhancer, camera_path, frames, out, quality=args.quality,
-                          checkpoint_id=f"{checkpoint}:align={args.align}:colour={args.colour}:trust={args.trust}",
+                          checkpoint_id=f"{checkpoint}:align={args.align}:colour={args.colour}:trust={args.trust}"
+                                        f":temporal={args.temporal}",
                           progress=lambda d, n: print(f"enhanced {d}/{n}", flush=True), force=args.force)
     from roguenerf.video import read_video_info
 
@@ -309,7 +313,7 @@ def main() -> None:
                "scene": "toy (exact geometry, Degradation per frame)" if args.toy else str(args.fit),
                "size": f"{width}x{height}", "frames": len(poses), "key_views": [scene.frames[i].name for i in keys],
                "checkpoint": str(checkpoint), "align": args.align, "colour": args.colour,
-               "trust": args.trust, "flicker": fl, "psnr": ps_,
+               "trust": args.trust, "temporal": args.temporal, "flicker": fl, "psnr": ps_,
                "flicker_ratio_ok": fl["ratio"] is not None and fl["ratio"] <= 1.05,
                "render_s": round(render_s, 1), "frames_rendered_now": rendered,
                "enhance_s": round(result.seconds, 1), "frames_enhanced_now": result.enhanced_now,

@@ -336,7 +336,7 @@ class SceneEnhancer:
                 return [self.train[p] for p in positions], None
             measured = self.measure(*view, pose, positions)
             kept = choose(measured, least=rule.least, most=rule.most, min_coverage=rule.min_coverage,
-                          error_ratio=rule.error_ratio)
+                          error_ratio=rule.error_ratio, near_degrees=rule.near_degrees)
             report = [{"name": self.train_names[c.position], **c.as_dict(), "chosen": c in kept} for c in measured]
             return [self.train[c.position] for c in kept], report
         picked = self.candidates(pose, self.num_neighbours + self.near_extra, exclude=exclude)

@@ -67,6 +67,9 @@ def test_choose_keeps_order_drops_low_coverage_and_stops_at_a_worse_error():
     assert [c.rank for c in choose(cands, least=2, most=3, min_coverage=0.2, error_ratio=1.25)] == [0, 2, 3]
     # a tighter ratio stops at rank 3 (0.12 > 1.1 x 0.10), and nothing after it is looked at
     assert [c.rank for c in choose(cands, least=2, most=4, min_coverage=0.2, error_ratio=1.1)] == [0, 2]
+    # a near candidate is taken whatever its error: rank 3 is 3 degrees off (angle = rank here), rank 4 is 4
+    assert [c.rank for c in choose(cands, least=2, most=4, min_coverage=0.2, error_ratio=1.0,
+                                   near_degrees=3.5)] == [0, 2, 3]
     # where fewer than `least` see enough, the best-covering others fill in, in rank order
     few = [_candidate(0, 0.1, 0.1), _candidate(1, 0.3, 0.1), _candidate(2, 0.15, 0.1)]
     assert [c.rank for c in choose(few, least=2, most=3, min_coverage=0.2, error_ratio=2.0)] == [1, 2]

@@ -54,7 +54,8 @@ class NeighbourRule:
     """Choose per view by measurement (:func:`roguenerf.enhance.select.choose`): of the
     ``candidates`` nearest, those that see at least ``min_coverage`` of the view; at least
     ``least``, then more while their reprojected photo's error against the render is within
-    ``error_ratio`` of the best taken, up to ``most``. ``count`` and the near extras are then unused."""
+    ``error_ratio`` of the best taken or their rotation within ``near_degrees`` of the view's, up
+    to ``most``. ``count`` and ``near_extra`` are then unused."""
     candidates: int = 6
     least: int = 2
     most: int = 4

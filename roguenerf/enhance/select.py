@@ -113,12 +113,13 @@ def measure_candidates(render: Tensor, depth: Tensor, K: Tensor, world_from_cam:
 
 
 def choose(candidates: list[Candidate], *, least: int, most: int, min_coverage: float,
-           error_ratio: float) -> list[Candidate]:
+           error_ratio: float, near_degrees: float = 0.0) -> list[Candidate]:
     """The measured rule (:class:`~roguenerf.enhance.options.NeighbourRule` with
     ``measured=True``): of ``candidates`` (in the paper's ranking), those that see at least
     ``min_coverage`` of the view keep their order; the first ``least`` of them are taken, then
-    each next one while its error is at most ``error_ratio`` times the best error taken so far,
-    up to ``most``. Where fewer than ``least`` see enough, the best-covering ones fill in."""
+    each next one while its error is at most ``error_ratio`` times the best error taken so far
+    or its rotation is within ``near_degrees`` of the view's, up to ``most``. Where fewer than
+    ``least`` see enough, the best-covering ones fill in."""
     usable = [c for c in candidates if c.coverage >= min_coverage]
     if len(usable) < least:
         rest = sorted((c for c in candidates if c not in usable), key=lambda c: -c.coverage)
@@ -128,7 +129,7 @@ def choose(candidates: list[Candidate], *, least: int, most: int, min_coverage: 
         return []
     best = min(c.error for c in chosen)
     for c in usable[least:most]:
-        if c.error > best * error_ratio:
+        if c.error > best * error_ratio and c.angle > near_degrees:
             break
         chosen.append(c)
         best = min(best, c.error)
