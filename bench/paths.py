@@ -238,9 +238,10 @@ def main() -> None:
     parser.add_argument("--trust", choices=["on", "off"], default="on",
                         help="keep only part of the enhancer's change where the neighbours mostly disagree "
                              "(roguenerf.enhance.trust; default on, as shipped)")
-    parser.add_argument("--temporal", choices=["on", "off"], default="on",
-                        help="blend each frame's change with the last frame's (roguenerf.enhance.temporal; "
-                             "default on, as shipped)")
+    parser.add_argument("--temporal", default="on",
+                        help="keep neighbours from frame to frame and blend each frame's change with the last "
+                             "frame's (roguenerf.enhance.temporal): on (default, as shipped), off, or a setting "
+                             "FIELD=VALUE[:FIELD=VALUE] of TemporalConfig (e.g. weight=0:keep_within=4)")
     parser.add_argument("--force", action="store_true", help=(
         "enhance a path that enhance_path's check refuses (a field whose novel views are floaters fails it "
         "whatever the path): the problem is kept as a warning in the JSON"))
@@ -260,9 +261,19 @@ def main() -> None:
             colour = colour_config(args.colour)
         except (InputError, ValueError) as exc:  # a field ColourConfig has not, a value that is no number
             parser.error(f"--colour: expected on, off or FIELD=VALUE[:FIELD=VALUE], got {args.colour!r} ({exc})")
+    temporal = {"on": True, "off": False}.get(args.temporal)
+    if temporal is None:
+        from roguenerf.enhance.temporal import TemporalConfig
+
+        try:
+            fields = dict(part.split("=", 1) for part in args.temporal.split(":"))
+            temporal = TemporalConfig(**{k: (int(v) if k == "keep_within" else float(v)) for k, v in fields.items()})
+        except (InputError, ValueError, TypeError) as exc:
+            parser.error(f"--temporal: expected on, off or FIELD=VALUE[:FIELD=VALUE], got {args.temporal!r} ({exc})")
     colour_tag = {"on": "", "off": "_nocolour"}.get(
         args.colour, "_colour_" + args.colour.replace("=", "").replace(":", "_")) + (
-        "_notrust" if args.trust == "off" else "") + ("_notemporal" if args.temporal == "off" else "")
+        "_notrust" if args.trust == "off" else "") + {"on": "", "off": "_notemporal"}.get(
+        args.temporal, "_temporal_" + args.temporal.replace("=", "").replace(":", "_"))
     if args.quick:
         args.keys, args.steps = 3, 4
     if args.photo_path:
@@ -284,7 +295,7 @@ def main() -> None:
     checkpoint = args.checkpoint or default_checkpoint_path()
     model, _ = load_checkpoint(checkpoint)
     enhancer = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(
-        align=args.align == "on", colour=colour, trust=args.trust == "on", temporal=args.temporal == "on"))
+        align=args.align == "on", colour=colour, trust=args.trust == "on", temporal=temporal))
     camera_path = CameraPath(world_from_cam=poses, K=K.expand(len(poses), 3, 3).clone(), width=width,
                              height=height, fps=24.0)
     out = frames.parent / ("enhanced_" + frames.name + ("" if args.align == "on" else "_noalign") + colour_tag)

@@ -82,3 +82,22 @@ def test_shapes_are_checked():
         f(r, e[:, :-1], DEPTH, K, POSE)
     with pytest.raises(InputError, match="depth"):
         f(r, e, DEPTH[:, :-1], K, POSE)
+
+
+def test_sticky_neighbours_keep_what_is_still_near():
+    from roguenerf.enhance.temporal import sticky_neighbours
+
+    assert sticky_neighbours(None, [3, 4], [3, 4, 5, 6]) == [3, 4]  # the first frame: the rule's choice
+    # 7 is still among the nearest: kept; 8 is not: the rule's first choice not kept takes its place
+    assert sticky_neighbours([7, 8], [3, 4], [3, 7, 4, 5]) == [7, 3]
+    assert sticky_neighbours([3, 4], [4, 5], [3, 4, 5, 6]) == [3, 4]  # both still near: no change
+    # the rule now takes 3: two kept, one added; then 1: only the first kept one
+    assert sticky_neighbours([3, 4], [5, 6, 7], [3, 4, 5, 6]) == [3, 4, 5]
+    assert sticky_neighbours([3, 4], [5], [3, 4, 5, 6]) == [3]
+    assert sticky_neighbours([3, 4], [], [3, 4]) == []
+
+
+@pytest.mark.parametrize("keep", [-1, 2.5, True])
+def test_bad_keep_within_is_refused(keep):
+    with pytest.raises(InputError, match="keep_within"):
+        TemporalConfig(keep_within=keep)

@@ -33,10 +33,28 @@ from roguenerf.errors import InputError
 class TemporalConfig:
     weight: float = 0.5
     """Share of the previous frame's (reprojected) residual in each frame's residual, in [0, 1)."""
+    keep_within: int = 4
+    """A frame keeps the previous frame's neighbours that are still among its ``keep_within``
+    nearest training views (the paper's ranking), and takes the rule's choice only for the
+    rest; 0: every frame takes the rule's choice. Along a path the rule's choice changes every
+    few frames, and each change makes the enhanced frame jump (:func:`sticky_neighbours`)."""
 
     def __post_init__(self):
         if not (isinstance(self.weight, (int, float)) and 0 <= self.weight < 1):
             raise InputError(f"TemporalConfig.weight: expected a share in [0, 1), got {self.weight!r}")
+        if isinstance(self.keep_within, bool) or not isinstance(self.keep_within, int) or self.keep_within < 0:
+            raise InputError(f"TemporalConfig.keep_within: expected an integer >= 0, got {self.keep_within!r}")
+
+
+def sticky_neighbours(previous: list[int] | None, chosen: list[int], nearest: list[int]) -> list[int]:
+    """A frame's neighbours along a path: of the ``previous`` frame's, those still in
+    ``nearest`` (this frame's nearest training views), in their order; then the rule's
+    ``chosen`` ones not kept, up to as many as the rule chose."""
+    if not previous:
+        return list(chosen)
+    pool = set(nearest)
+    kept = [i for i in previous if i in pool][: len(chosen)]
+    return kept + [i for i in chosen if i not in kept][: len(chosen) - len(kept)]
 
 
 class TemporalFilter:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from torch import Tensor
 
-from roguenerf.enhance.temporal import TemporalFilter
+from roguenerf.enhance.temporal import TemporalFilter, sticky_neighbours
 from roguenerf.errors import InputError, PathCancelled
 from roguenerf.trajectory.checks import check_path
 from roguenerf.trajectory.flicker import pair_flicker, summarise_flicker
@@ -193,18 +193,27 @@ def enhance_path(
     prev = None
     done_now = 0
     temporal = None if enhancer.options.temporal is None else TemporalFilter(enhancer.options.temporal)
+    last_neighbours = None
     for t in range(total):
         if should_stop is not None and should_stop():
             raise PathCancelled(t)
         render, depth = load_frame(t)
         out_png = frame_dir / f"{t:05d}.png"
         camera = (camera_path.K[t], camera_path.world_from_cam[t])
+        match = matches[t]
+        exclude = match if match is not None and scene.frames[match].split == "train" else None
+        neighbours = None
+        if temporal is not None and temporal.config.keep_within > 0:
+            # Chosen for every frame, read back or not: a resumed path keeps the same chain.
+            chosen = enhancer.select(camera[1], exclude=exclude, view=(render, depth, camera[0]))
+            nearest = [enhancer.train[p] for p in enhancer.candidates(camera[1], temporal.config.keep_within,
+                                                                      exclude=exclude)]
+            neighbours = sticky_neighbours(last_neighbours, chosen, nearest)
+            last_neighbours = neighbours
         if out_png.is_file():
             enhanced = read_image(out_png)
         else:
-            match = matches[t]
-            exclude = match if match is not None and scene.frames[match].split == "train" else None
-            image = enhancer.enhance(render, depth, *camera, exclude=exclude).image
+            image = enhancer.enhance(render, depth, *camera, exclude=exclude, neighbours=neighbours).image
             if temporal is not None:
                 image = temporal(render, image, depth, *camera)
             write_png(out_png, image)
@@ -214,6 +223,8 @@ def enhance_path(
             temporal.remember(render, enhanced, depth, *camera)
         photo = scene.photo(matches[t]) if matches[t] is not None else None
         row = {"frame": t, "view": scene.frames[matches[t]].name if matches[t] is not None else None}
+        if neighbours is not None:
+            row["neighbours"] = [scene.frames[i].name for i in neighbours]
         if photo is not None:
             row["render_psnr"] = float(psnr(render[None], photo[None])[0])
             row["enhanced_psnr"] = float(psnr(enhanced[None], photo[None])[0])
