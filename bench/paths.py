@@ -267,8 +267,9 @@ def main() -> None:
 
         try:
             fields = dict(part.split("=", 1) for part in args.temporal.split(":"))
-            temporal = TemporalConfig(**{k: (int(v) if k == "keep_within" else float(v)) for k, v in fields.items()})
-        except (InputError, ValueError, TypeError) as exc:
+            kinds = {"keep_within": int, "reuse_poses": lambda v: {"1": True, "0": False}[v]}
+            temporal = TemporalConfig(**{k: kinds.get(k, float)(v) for k, v in fields.items()})
+        except (InputError, ValueError, TypeError, KeyError) as exc:
             parser.error(f"--temporal: expected on, off or FIELD=VALUE[:FIELD=VALUE], got {args.temporal!r} ({exc})")
     colour_tag = {"on": "", "off": "_nocolour"}.get(
         args.colour, "_colour_" + args.colour.replace("=", "").replace(":", "_")) + (

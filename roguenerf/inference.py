@@ -235,23 +235,33 @@ class SceneEnhancer:
             return self._small[position]
 
     def neighbour_poses(self, positions: list[int], render: Tensor, depth: Tensor, K: Tensor,
-                        world_from_cam: Tensor) -> tuple[Tensor, list[bool]]:
+                        world_from_cam: Tensor, *, memory: dict | None = None) -> tuple[Tensor, list[bool]]:
         """``(N, 4, 4)`` float64 poses of the neighbours at training ``positions`` for this view:
         refined against the render where :attr:`align` is on and the fit is accepted, else the
-        dataset's; and, per neighbour, whether it was refined."""
+        dataset's; and, per neighbour, whether it was refined. With ``memory`` (a dict kept by
+        the caller: a camera path) a neighbour's pose is fitted the first time it is used and
+        reused after: a photo's pose error does not depend on the view it is fitted against."""
         from roguenerf.enhance.align import align_neighbour, shrink
 
         poses = self.train_poses[positions].clone()
         if self.align is None:
             return poses, [False] * len(positions)
-        r, d, k = shrink(render, depth, K, ALIGN_SIDE)
+        small = None
         done = []
         for j, p in enumerate(positions):
+            if memory is not None and p in memory:
+                poses[j], accepted = memory[p]
+                done.append(accepted)
+                continue
+            if small is None:
+                small = shrink(render, depth, K, ALIGN_SIDE)
             photo, photo_depth, photo_K, levels = self._small_neighbour(p)
-            fit = align_neighbour(photo, photo_depth, photo_K, poses[j], r, d, k, world_from_cam, config=self.align,
+            fit = align_neighbour(photo, photo_depth, photo_K, poses[j], *small, world_from_cam, config=self.align,
                                   cache=levels)
             poses[j] = fit.world_from_cam
             done.append(fit.accepted)
+            if memory is not None:
+                memory[p] = (fit.world_from_cam.clone(), fit.accepted)
         return poses, done
 
     def _crop_provider(self, positions: list[int], world_from_cam: Tensor, poses: Tensor):
@@ -379,7 +389,7 @@ class SceneEnhancer:
 
     def enhance(self, render: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
                 exclude: int | str | Sequence[int | str] | None = None, progress=None,
-                neighbours: Sequence[int | str] | None = None) -> EnhanceResult:
+                neighbours: Sequence[int | str] | None = None, pose_memory: dict | None = None) -> EnhanceResult:
         """Enhance one render.
 
         Args:
@@ -398,6 +408,8 @@ class SceneEnhancer:
             progress: optional ``callback(done, total)`` called after each tile of a tiled image.
             neighbours: training views (scene indices or names) to use instead of the rule's
                 choice, in this order (an empty list: none).
+            pose_memory: a dict the caller keeps across calls (the frames of one camera path):
+                each neighbour's refined pose is fitted once and reused (:meth:`neighbour_poses`).
         Returns:
             :class:`EnhanceResult`; raises :class:`~roguenerf.errors.RoGUENeRFError` instead of
             returning a non-finite image.
@@ -446,7 +458,7 @@ class SceneEnhancer:
                 chosen = []
             else:
                 n_K = self.train_K[positions].to(dev)
-                n_pose, done = self.neighbour_poses(positions, render, depth, K, world_from_cam)
+                n_pose, done = self.neighbour_poses(positions, render, depth, K, world_from_cam, memory=pose_memory)
                 aligned = done if self.align is not None else None
                 n_pose = n_pose.to(dev)
                 if all(self.cacheable(p) for p in positions):

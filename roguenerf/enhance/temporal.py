@@ -33,6 +33,13 @@ from roguenerf.errors import InputError
 class TemporalConfig:
     weight: float = 0.5
     """Share of the previous frame's (reprojected) residual in each frame's residual, in [0, 1)."""
+    change_weight: float = 0.8
+    """``weight`` at a frame whose neighbours differ from the previous frame's: the jump a new
+    neighbour brings is spread over more frames."""
+    reuse_poses: bool = True
+    """Fit each neighbour's pose (pose refinement) the first time a frame uses it, and reuse it
+    for the frames after: the same photo lands the same way on every frame, and the fits are
+    paid once per neighbour rather than once per frame."""
     keep_within: int = 4
     """A frame keeps the previous frame's neighbours that are still among its ``keep_within``
     nearest training views (the paper's ranking), and takes the rule's choice only for the
@@ -40,8 +47,12 @@ class TemporalConfig:
     few frames, and each change makes the enhanced frame jump (:func:`sticky_neighbours`)."""
 
     def __post_init__(self):
-        if not (isinstance(self.weight, (int, float)) and 0 <= self.weight < 1):
-            raise InputError(f"TemporalConfig.weight: expected a share in [0, 1), got {self.weight!r}")
+        for name in ("weight", "change_weight"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and 0 <= value < 1):
+                raise InputError(f"TemporalConfig.{name}: expected a share in [0, 1), got {value!r}")
+        if not isinstance(self.reuse_poses, bool):
+            raise InputError(f"TemporalConfig.reuse_poses: expected True or False, got {self.reuse_poses!r}")
         if isinstance(self.keep_within, bool) or not isinstance(self.keep_within, int) or self.keep_within < 0:
             raise InputError(f"TemporalConfig.keep_within: expected an integer >= 0, got {self.keep_within!r}")
 
@@ -79,10 +90,12 @@ class TemporalFilter:
         self._previous = (enhanced.float() - render.float(), depth.float(), torch.as_tensor(K).to(torch.float32),
                           torch.as_tensor(world_from_cam).to(torch.float64))
 
-    def __call__(self, render: Tensor, enhanced: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor) -> Tensor:
+    def __call__(self, render: Tensor, enhanced: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
+                 changed: bool = False) -> Tensor:
         """The frame ``enhanced`` (of ``render``, ``(3, H, W)``, its z-depth ``(1, H, W)``, ``K``,
-        camera-to-world ``(4, 4)``) with the previous frame's residual blended in; the frame's
-        blended residual is kept for the next."""
+        camera-to-world ``(4, 4)``) with the previous frame's residual blended in (with
+        ``change_weight`` where ``changed``: its neighbours differ from the last frame's); the
+        frame's blended residual is kept for the next."""
         from roguenerf.reprojection import reproject
 
         if render.shape != enhanced.shape or render.ndim != 3 or render.shape[0] != 3:
@@ -95,7 +108,7 @@ class TemporalFilter:
         K = torch.as_tensor(K).to(torch.float32)
         residual = enhanced - render
         self.last_share = 0.0
-        w = float(self.config.weight)
+        w = float(self.config.change_weight if changed else self.config.weight)
         if self._previous is not None and w > 0:
             prev_residual, prev_depth, prev_K, prev_pose = self._previous
             with torch.inference_mode():

@@ -194,6 +194,7 @@ def enhance_path(
     done_now = 0
     temporal = None if enhancer.options.temporal is None else TemporalFilter(enhancer.options.temporal)
     last_neighbours = None
+    poses = {} if temporal is not None and temporal.config.reuse_poses and enhancer.align is not None else None
     for t in range(total):
         if should_stop is not None and should_stop():
             raise PathCancelled(t)
@@ -202,20 +203,27 @@ def enhance_path(
         camera = (camera_path.K[t], camera_path.world_from_cam[t])
         match = matches[t]
         exclude = match if match is not None and scene.frames[match].split == "train" else None
-        neighbours = None
+        neighbours, changed = None, False
         if temporal is not None and temporal.config.keep_within > 0:
             # Chosen for every frame, read back or not: a resumed path keeps the same chain.
             chosen = enhancer.select(camera[1], exclude=exclude, view=(render, depth, camera[0]))
             nearest = [enhancer.train[p] for p in enhancer.candidates(camera[1], temporal.config.keep_within,
                                                                       exclude=exclude)]
             neighbours = sticky_neighbours(last_neighbours, chosen, nearest)
+            changed = last_neighbours is not None and set(neighbours) != set(last_neighbours)
             last_neighbours = neighbours
         if out_png.is_file():
             enhanced = read_image(out_png)
+            if poses is not None:  # a resumed path fits its neighbours' poses where it first did
+                chosen = neighbours if neighbours is not None else enhancer.select(
+                    camera[1], exclude=exclude, view=(render, depth, camera[0]))
+                enhancer.neighbour_poses([enhancer.train.index(i) for i in chosen], render, depth, *camera,
+                                         memory=poses)
         else:
-            image = enhancer.enhance(render, depth, *camera, exclude=exclude, neighbours=neighbours).image
+            image = enhancer.enhance(render, depth, *camera, exclude=exclude, neighbours=neighbours,
+                                     pose_memory=poses).image
             if temporal is not None:
-                image = temporal(render, image, depth, *camera)
+                image = temporal(render, image, depth, *camera, changed=changed)
             write_png(out_png, image)
             enhanced = _quantise(image)
             done_now += 1
