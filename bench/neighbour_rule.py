@@ -68,14 +68,20 @@ def parse_args(argv=None):
     p.add_argument("--search", action="store_true",
                    help="instead: PAIRS are OUTPUT.json files of earlier runs; replay every setting of the "
                         "measured rule on them (the choice half) and write the ranking to OUTPUT.json")
+    p.add_argument("--figure", action="store_true",
+                   help="instead: PAIRS are OUTPUT.json files of earlier runs; write the broad figure (per pair "
+                        "and half: fixed counts, the default, the measured rule --rule replayed)")
+    p.add_argument("--rule", default="{}", help="--figure: the measured rule's setting as JSON (choose's keywords)")
+    p.add_argument("--choice", type=lambda t: [x for x in t.split(",") if x], default=[],
+                   help="--figure: the scenes the rule was chosen on (the rest are the report half)")
     p.add_argument("--max-views", type=int, default=None)
     p.add_argument("--cache", type=Path, default=REPO / "runs" / "neighbour_rule")
     p.add_argument("--output", type=Path, default=RESULTS / "neighbour_rule")
     args = p.parse_args(argv)
     for folder in args.pairs:
-        if args.search:
+        if args.search or args.figure:
             if not folder.is_file():
-                p.error(f"{folder}: not a file (--search reads OUTPUT.json files)")
+                p.error(f"{folder}: not a file (--search and --figure read OUTPUT.json files)")
         elif not (folder / "transforms.json").is_file():
             p.error(f"{folder}: not a pair folder (no transforms.json)")
     if any(x not in ("colour", "trust", "align") for x in args.without):
@@ -194,6 +200,98 @@ def search(rows: list[dict], grid: dict[str, list]) -> list[dict]:
     return sorted(out, key=lambda r: -r["mean_gain_db"])
 
 
+def replay_rule(rows: list[dict], setting: dict) -> list[dict]:
+    """The measured rule with ``setting`` (NeighbourRule fields of :func:`choose`) replayed on
+    each view from its cached measurements: a row per view as the bench would have measured it
+    (choice ``"measured"``: the "first n" row of the count it picks; the rule keeps the paper's
+    order, so its choice is always such a prefix unless a candidate sees too little)."""
+    from roguenerf.enhance.select import Candidate, choose
+
+    by_view: dict[tuple, dict[str, dict]] = {}
+    for r in rows:
+        by_view.setdefault((r["scene"], r["kind"], r["view"]), {})[r["choice"]] = r
+    out = []
+    for choices in by_view.values():
+        any_row = next(iter(choices.values()))
+        cands = [Candidate(position=c["rank"], rank=c["rank"], angle=c["angle"], baseline=c["baseline"],
+                           coverage=c["coverage"], error=c["error"], consensus=c["consensus"])
+                 for c in json.loads(any_row["candidates"])]
+        ranks = [c.rank for c in choose(cands, **setting)]
+        if ranks != list(range(len(ranks))) or f"first {len(ranks)}" not in choices:
+            raise SystemExit(f"{any_row['scene']} {any_row['kind']} {any_row['view']}: the rule picks {ranks}, "
+                             "not a measured prefix; run the bench with --rules measured instead")
+        out.append({**choices[f"first {len(ranks)}"], "choice": "measured"})
+    return out
+
+
+def figure(rows: list[dict], setting: dict, choice_scenes: list[str]) -> tuple[list[dict], list[dict]]:
+    """Per (scene, kind) pair and choice: mean gain, worst view, FLIP, the neighbours' measured
+    reprojection (the nearest candidate's error and coverage, mean over the views), and which
+    half the pair is in (``choice``: the rule was chosen on it; ``report``: it was not); and
+    per half and choice: the mean over pairs, the worst pair, and how many pairs the rule
+    matches or beats the best fixed count on."""
+    rows = rows + replay_rule(rows, setting)
+    everywhere = set.intersection(*({r["choice"] for r in rows if (r["scene"], r["kind"]) == key}
+                                    for key in {(r["scene"], r["kind"]) for r in rows}))
+    rows = [r for r in rows if r["choice"] in everywhere]  # choices some pairs lack (counts 1, 5) left out
+    pairs = []
+    for m in summary(rows):
+        views = [r for r in rows if (r["scene"], r["kind"], r["choice"]) == (m["scene"], m["kind"], m["choice"])]
+        nearest = [json.loads(r["candidates"])[0] for r in views]
+        pairs.append({**{k: v for k, v in views[0].items() if k in ("date", "machine", "commit", "checkpoint")},
+                      "half": "choice" if m["scene"] in choice_scenes else "report", **m,
+                      "render_psnr": round(sum(r["render_psnr"] for r in views) / len(views), 3),
+                      "nearest_error": round(sum(c["error"] for c in nearest) / len(nearest), 5),
+                      "nearest_coverage": round(sum(c["coverage"] for c in nearest) / len(nearest), 4)})
+    halves = []
+    for half in ("choice", "report"):
+        mine = [p for p in pairs if p["half"] == half]
+        if not mine:
+            continue
+        fixed = [c for c in dict.fromkeys(p["choice"] for p in mine) if c.startswith("first ")]
+        mean = {c: sum(p["gain_db"] for p in mine if p["choice"] == c) / sum(p["choice"] == c for p in mine)
+                for c in dict.fromkeys(p["choice"] for p in mine)}
+        best = max(fixed, key=mean.get)
+        gain = {(p["scene"], p["kind"], p["choice"]): p["gain_db"] for p in mine}
+        for c in mean:
+            own = [p for p in mine if p["choice"] == c]
+            halves.append({"half": half, "choice": c, "pairs": len(own), "mean_gain_db": round(mean[c], 4),
+                           "worst_pair_db": min(p["gain_db"] for p in own),
+                           "worst_view_db": min(p["worst_view_gain_db"] for p in own),
+                           "pairs_below_zero": sum(p["gain_db"] < 0 for p in own),
+                           "views_flip_better": sum(p["views_flip_better"] for p in own),
+                           "views": sum(p["views"] for p in own), "best_fixed": best,
+                           "pairs_at_least_best_fixed": sum(p["gain_db"] >= gain[(p["scene"], p["kind"], best)] - 1e-9
+                                                            for p in own)})
+    return pairs, halves
+
+
+def plot_figure(pairs: list[dict], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    choices = [c for c in ("first 2", "first 3", "first 4", "default", "measured")
+               if any(p["choice"] == c for p in pairs)]
+    keys = list(dict.fromkeys((p["half"], p["scene"], p["kind"]) for p in sorted(pairs, key=lambda p: p["half"])))
+    fig, ax = plt.subplots(figsize=(max(7, 1.1 * len(keys)), 4.2))
+    width = 0.8 / len(choices)
+    for c, choice in enumerate(choices):
+        gains = [next((p["gain_db"] for p in pairs
+                       if (p["half"], p["scene"], p["kind"]) == k and p["choice"] == choice), float("nan"))
+                 for k in keys]
+        ax.bar([k + c * width for k in range(len(keys))], gains, width, label=choice)
+    ax.set_xticks([k + 0.4 - width / 2 for k in range(len(keys))], [f"{h}\n{s}\n{k}" for h, s, k in keys], fontsize=7)
+    ax.axhline(0, color="grey", lw=0.8)
+    ax.set_ylabel("mean PSNR gain of the held-out views (dB), zero-shot", fontsize=8)
+    ax.legend(fontsize=7, ncol=len(choices))
+    r = pairs[0]
+    fig.suptitle(f"neighbours per view: fixed counts, the default, the measured rule | {r['checkpoint']} | "
+                 f"{r['machine'][:50]} | {r['commit']} | {r['date'][:10]}", fontsize=7)
+    return save_figure(fig, path)
+
+
 def _score(means: dict, best: dict, pairs: list) -> dict:
     return {"mean_gain_db": round(sum(means.values()) / len(means), 4),
             "worst_pair_db": round(min(means.values()), 4),
@@ -245,6 +343,19 @@ def plot(rows: list[dict], path: Path) -> Path:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    if args.figure:
+        rows = [r for path in args.pairs for r in json.loads(path.read_text())["rows"]]
+        setting = json.loads(args.rule)
+        pairs, halves = figure(rows, setting, args.choice)
+        write_outputs(args.output, pairs, plot_figure)
+        write_json(args.output.with_suffix(".json"), {**stamp(), "rule": setting, "choice_scenes": args.choice,
+                                                      "halves": halves, "pairs": pairs})
+        for h in halves:
+            print(f"{h['half']:>6} {h['choice']:>22}: mean {h['mean_gain_db']:+.3f} dB, worst pair "
+                  f"{h['worst_pair_db']:+.3f}, worst view {h['worst_view_db']:+.3f}, FLIP better on "
+                  f"{h['views_flip_better']}/{h['views']} views, >= {h['best_fixed']} on "
+                  f"{h['pairs_at_least_best_fixed']}/{h['pairs']} pairs")
+        return 0
     if args.search:
         rows = [r for path in args.pairs for r in json.loads(path.read_text())["rows"]]
         grid = {"least": [1, 2, 3], "most": [2, 3, 4], "min_coverage": [0.0, 0.2, 0.4],
