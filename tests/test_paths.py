@@ -179,16 +179,18 @@ def test_the_temporal_filter_lowers_flicker_and_leaves_the_first_frame(toy_path,
     frame = lambda folder, t: (tmp_path / folder / "frames" / f"{t:05d}.png").read_bytes()  # noqa: E731
     assert frame("on", 0) == frame("off", 0) and frame("on", 1) != frame("off", 1)
     assert on.flicker["flicker"]["enhanced"] < off.flicker["flicker"]["enhanced"]
-    # each frame names its neighbours; a neighbour still among the nearest stays to the next frame
-    used = [f["neighbours"] for f in on.flicker["per_frame"]]
-    assert all(len(u) >= 2 for u in used) and "neighbours" not in off.flicker["per_frame"][0]
-    keep = TemporalConfig().keep_within
-    views = [f["view"] for f in on.flicker["per_frame"]]  # a frame on a training view never takes it
+    # keep_within: each frame names its neighbours; one still among the nearest stays to the next frame
+    keep = 4
+    sticky = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=TemporalConfig(keep_within=keep)))
+    kept = enhance_path(scene, sticky, cp, root / "frames", tmp_path / "sticky", depth_type="ray", video=False)
+    used = [f["neighbours"] for f in kept.flicker["per_frame"]]
+    assert all(len(u) >= 2 for u in used) and "neighbours" not in on.flicker["per_frame"][0]
+    views = [f["view"] for f in kept.flicker["per_frame"]]  # a frame on a training view never takes it
     nearest = [[enhancer.train_names[p] for p in enhancer.candidates(pose, keep, exclude=view)]
                for pose, view in zip(cp.world_from_cam, views, strict=True)]
     for t in range(1, len(used)):
-        kept = [n for n in used[t - 1] if n in nearest[t]][:len(used[t])]
-        assert used[t][:len(kept)] == kept
+        stay = [n for n in used[t - 1] if n in nearest[t]][:len(used[t])]
+        assert used[t][:len(stay)] == stay
     with pytest.raises(InputError, match="another path"):
         enhance_path(scene, alone, cp, root / "frames", tmp_path / "on", depth_type="ray", video=False)
 

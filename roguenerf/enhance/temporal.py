@@ -33,14 +33,14 @@ from roguenerf.errors import InputError
 class TemporalConfig:
     weight: float = 0.5
     """Share of the previous frame's (reprojected) residual in each frame's residual, in [0, 1)."""
-    change_weight: float = 0.8
+    change_weight: float = 0.5
     """``weight`` at a frame whose neighbours differ from the previous frame's: the jump a new
     neighbour brings is spread over more frames."""
     reuse_poses: bool = True
     """Fit each neighbour's pose (pose refinement) the first time a frame uses it, and reuse it
     for the frames after: the same photo lands the same way on every frame, and the fits are
     paid once per neighbour rather than once per frame."""
-    keep_within: int = 4
+    keep_within: int = 0
     """A frame keeps the previous frame's neighbours that are still among its ``keep_within``
     nearest training views (the paper's ranking), and takes the rule's choice only for the
     rest; 0: every frame takes the rule's choice. Along a path the rule's choice changes every
