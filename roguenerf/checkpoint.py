@@ -32,6 +32,10 @@ DEFAULT_MAX_BYTES = 2 * 1024**3
 """Largest checkpoint read when ``max_bytes`` is None (the B variant is ~0.2 GB)."""
 MAX_HEADER_BYTES = 100 * 1024 * 1024
 """safetensors' own limit on the JSON header."""
+MODEL_FILE = "model.safetensors"
+"""The finished checkpoint in the folder a training run writes (``finetune`` / ``pretrain --output``)."""
+TRAIN_STATE_FILE = "train_state.safetensors"
+"""Beside it, the resume state of a training run (``roguenerf.training.STATE_FILE``)."""
 
 
 def default_checkpoint_path(*, must_exist: bool = True) -> Path:
@@ -47,6 +51,38 @@ def default_checkpoint_path(*, must_exist: bool = True) -> Path:
             f"model.safetensors to that path, or pass a checkpoint explicitly"
         )
     return path
+
+
+def resolve_checkpoint(path: str | os.PathLike) -> Path:
+    """The checkpoint file ``path`` means: the file itself, or in a folder a training run wrote
+    (``roguenerf finetune`` / ``pretrain --output``) its finished :data:`MODEL_FILE` (else the
+    folder's one ``.safetensors``).
+
+    Raises InputError naming the path when it does not exist, and for a folder that holds no
+    finished checkpoint (only an unfinished run's resume state, or none or several files).
+    """
+    path = Path(path)
+    if path.is_dir():
+        return _checkpoint_in(path)
+    if not path.is_file():
+        raise InputError(f"checkpoint {path} does not exist")
+    return path
+
+
+def _checkpoint_in(folder: Path) -> Path:
+    model = folder / MODEL_FILE
+    if model.is_file():
+        return model
+    if (folder / TRAIN_STATE_FILE).is_file():
+        raise InputError(f"checkpoint folder {folder} holds no finished checkpoint ({MODEL_FILE}), only the "
+                         f"resume state of an unfinished run ({TRAIN_STATE_FILE}): run the same fine-tune again "
+                         "to finish it")
+    found = sorted(p.name for p in folder.glob("*.safetensors"))
+    if len(found) == 1:
+        return folder / found[0]
+    raise InputError(f"checkpoint folder {folder} holds no checkpoint: expected {MODEL_FILE} (what "
+                     "`roguenerf finetune --output` writes)"
+                     + (f"; it holds {', '.join(found)}: pass one of them" if found else ""))
 
 
 def save_checkpoint(path: str | os.PathLike, model: nn.Module, *, meta: dict | None = None) -> Path:

@@ -41,7 +41,7 @@ common=(--checkpoint "$START" --variant micro --neighbours 2 --lr 2.5e-4 --lr-sc
         --neighbour-pose-noise 0.5,0.05 --minutes "$MINUTES")
 run() {  # NAME ARGS...: train into /tmp/NAME, keep the weights and the log
   local name=$1; shift
-  "$PY" -m roguenerf.cli pretrain "$PACK"/* --output "/tmp/$name" "${common[@]}" "$@" > "$OUT_DIR/$name.log" 2>&1 \
+  "$PY" -m roguecli pretrain "$PACK"/* --output "/tmp/$name" "${common[@]}" "$@" > "$OUT_DIR/$name.log" 2>&1 \
     && cp "/tmp/$name/model.safetensors" "$OUT_DIR/$name.safetensors"
 }
 run A --crop 64 --batch 4 &     # the CPU recipe, many more steps

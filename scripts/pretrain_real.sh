@@ -176,7 +176,7 @@ if [ "$STAGE" = all ] || [ "$STAGE" = pretrain ]; then
   if [ -n "${NEIGHBOURS:-}" ]; then extra+=(--neighbours "$NEIGHBOURS"); fi
   if [ -n "${DEPTH_NOISE:-}" ]; then extra+=(--depth-noise "$DEPTH_NOISE"); fi
   if [ -n "${STEPS:-}" ]; then budget=(--steps "$STEPS"); else budget=(--minutes "$MINUTES"); fi
-  "$PY" -m roguenerf.cli pretrain "${scenes[@]}" "${start[@]}" "${budget[@]}" --variant "$VARIANT" \
+  "$PY" -m roguecli pretrain "${scenes[@]}" "${start[@]}" "${budget[@]}" --variant "$VARIANT" \
     --crop "$CROP" --lr "$LR" --lr-schedule "$LR_SCHEDULE" --seed "$SEED" --output "$OUT" "${extra[@]}"
   mkdir -p "$(dirname "$DEST")"
   # Saved again by the library, not copied: the weights with a sidecar that names DEST's file.

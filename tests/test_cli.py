@@ -1,5 +1,5 @@
-"""The `roguenerf` command (roguecli: the library's commands plus serve and make-pairs): exact
-flags, JSON output, exit codes and one-line errors."""
+"""The `roguenerf` command (package roguecli, the one command line: every command, serve and
+make-pairs included): exact flags, JSON output, exit codes and one-line errors."""
 
 from __future__ import annotations
 
@@ -305,7 +305,7 @@ def test_serve_refuses_a_data_dir_it_did_not_make(tmp_path):
 
 
 def test_console_entry_point_runs_as_a_module(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "roguenerf", "evaluate", str(tmp_path / "nope"), "--json"],
+    proc = subprocess.run([sys.executable, "-m", "roguecli", "evaluate", str(tmp_path / "nope"), "--json"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert proc.stdout == "" and str(tmp_path / "nope") in proc.stderr and "Traceback" not in proc.stderr
@@ -359,12 +359,12 @@ def test_finetune_refuses_an_empty_budget(scene_dir, tmp_path, budget, message):
 
 
 def test_help_states_the_default_budget_and_shows_flags_as_flags():
-    from roguenerf.cli import DEFAULT_MINUTES_CPU, DEFAULT_MINUTES_GPU
-    from roguenerf.training.config import CPU_MINUTES, GPU_MINUTES
+    from roguenerf.training.config import CPU_LR, CPU_MINUTES, GPU_LR, GPU_MINUTES
 
-    assert (DEFAULT_MINUTES_CPU, DEFAULT_MINUTES_GPU) == (CPU_MINUTES, GPU_MINUTES)
+    assert (CPU_MINUTES, GPU_MINUTES, CPU_LR, GPU_LR) == (10, 60, 5e-4, 1e-4)  # as the help and docs/cli.md say
     text = " ".join(_run("finetune", "--help").stdout.split())
     assert "Default without --steps: 10 minutes on a CPU, 60 on a GPU." in text
+    assert "(default: 5e-4 on a CPU, chosen by measured gain per minute; 1e-4 on a GPU, the paper's)" in text
     for command in ("finetune", "evaluate", "enhance", "pretrain", "serve"):
         help_text = _run(command, "--help").stdout
         assert "<bool>" not in help_text and "BOOLEAN" not in help_text, help_text
@@ -406,7 +406,7 @@ def test_time_budget_bar_counts_seconds_not_a_moving_step_total(scene_dir, tmp_p
 UMASK_PROBE = r"""
 import os, sys
 os.umask(int(sys.argv[1], 8))
-from roguenerf.cli import main
+from roguecli import main
 sys.argv = ["roguenerf"] + sys.argv[2:]
 main()
 """
@@ -473,22 +473,19 @@ def test_library_and_cli_choose_passive_wait_before_torch_loads(first, env, expe
     assert proc.stdout.strip() == expected, proc.stdout + proc.stderr
 
 
-@pytest.mark.parametrize("entry", ["roguecli", "roguenerf.cli"])
-def test_cli_process_runs_with_passive_wait(entry):
+def test_cli_process_runs_with_passive_wait():
     # The console command: importing its module alone (what the entry point does) decides it.
     base = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
-    code = f"import os, sys, {entry}; print(os.environ.get('OMP_WAIT_POLICY'), 'torch' in sys.modules)"
+    code = "import os, sys, roguecli; print(os.environ.get('OMP_WAIT_POLICY'), 'torch' in sys.modules)"
     proc = subprocess.run([sys.executable, "-c", code], env=base, capture_output=True, text=True, timeout=120)
     assert proc.stdout.strip() == "PASSIVE False", proc.stdout + proc.stderr
 
 
-# ------------------------------------------------------------------ issue 36: the layers' CLIs
+# ------------------------------------------------------------------ issue 36, issue 50: one CLI
 
 
 def test_console_script_is_the_top_level_cli_with_every_command():
     import tomllib
-
-    from roguenerf.cli import app as library_app
 
     project = tomllib.loads((Path(__file__).resolve().parent.parent / "pyproject.toml").read_text())
     assert project["project"]["scripts"]["roguenerf"] == "roguecli:main"
@@ -496,8 +493,8 @@ def test_console_script_is_the_top_level_cli_with_every_command():
     names = [c.name or c.callback.__name__.replace("_", "-") for c in app.registered_commands]
     assert names == ["finetune", "pretrain", "make-pairs", "evaluate", "enhance", "import-nerfstudio",
                      "import-gsplat", "import-3dgs", "enhance-path", "serve"]
-    library = {c.name or c.callback.__name__.replace("_", "-") for c in library_app.registered_commands}
-    assert library == set(names) - {"serve", "make-pairs"}
+    library = Path(__file__).resolve().parent.parent / "roguenerf"
+    assert not (library / "cli.py").exists() and not (library / "cli").exists()  # one command line: roguecli
     # --help names no module above the library and loads none of them.
     code = ("import sys; from roguecli import app\ntry:\n    app(['--help'])\nexcept SystemExit:\n    pass\n"
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('service', 'workers', 'roguefit')))")
@@ -505,8 +502,8 @@ def test_console_script_is_the_top_level_cli_with_every_command():
     assert proc.stdout.strip().splitlines()[-1] == "[]", proc.stdout + proc.stderr
 
 
-@pytest.mark.parametrize("command", ["serve", "make-pairs"])
-def test_library_module_says_where_the_commands_above_it_are(command):
+@pytest.mark.parametrize("command", ["serve", "make-pairs", "evaluate"])
+def test_the_library_module_says_where_the_command_line_is(command):
     proc = subprocess.run([sys.executable, "-m", "roguenerf", command, "--help"], capture_output=True, text=True,
                           timeout=120)
     assert proc.returncode == 2 and proc.stdout == ""
@@ -543,6 +540,39 @@ def test_evaluate_takes_the_folder_a_finetune_wrote(scene_dir, checkpoint, tmp_p
     empty = _run("evaluate", scene_dir, "--checkpoint", tmp_path / "empty")
     assert empty.exit_code == 2 and "holds no checkpoint: expected model.safetensors" in empty.stderr
     assert "Traceback" not in empty.output
+
+
+def test_the_cli_takes_the_training_defaults_from_the_library_without_loading_torch():
+    import inspect
+
+    from roguecli import training
+    from roguenerf.training import TrainConfig
+
+    pretrain = inspect.signature(training.pretrain).parameters
+    assert (pretrain["batch"].default, pretrain["seed"].default, pretrain["held_out_share"].default) == (
+        TrainConfig().batch, TrainConfig().seed, TrainConfig().held_out_share)
+    text = " ".join(_run("pretrain", "--help").stdout.split())
+    assert f"Crops per optimiser step. [default: {TrainConfig().batch}]" in text
+    code = "import sys, roguenerf.training; print('torch' in sys.modules)"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.stdout.strip() == "False", proc.stdout + proc.stderr
+
+
+def test_checkpoint_folder_resolution_is_the_library_s(checkpoint, tmp_path):
+    from roguenerf.checkpoint import MODEL_FILE, resolve_checkpoint
+    from roguenerf.errors import InputError
+    from roguenerf.training import STATE_FILE
+
+    assert resolve_checkpoint(checkpoint) == checkpoint
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (folder / STATE_FILE).write_bytes(b"")
+    with pytest.raises(InputError, match="no finished checkpoint"):
+        resolve_checkpoint(folder)
+    (folder / MODEL_FILE).write_bytes(checkpoint.read_bytes())
+    assert resolve_checkpoint(folder) == folder / MODEL_FILE
+    with pytest.raises(InputError, match="does not exist"):
+        resolve_checkpoint(tmp_path / "absent.safetensors")
 
 
 def test_a_nan_budget_is_refused_by_the_library_with_a_clear_message():

@@ -226,7 +226,7 @@ def test_agrees_with_pycolmap(toy, tmp_path, binary):
 def _run(*args):
     from typer.testing import CliRunner
 
-    from roguenerf.cli import app
+    from roguecli import app
 
     return CliRunner().invoke(app, [str(a) for a in args])
 

@@ -189,7 +189,7 @@ def test_read_depth_formats_and_refusals(tmp_path):
 def test_import_cli(ours, tmp_path):
     from typer.testing import CliRunner
 
-    from roguenerf.cli import app
+    from roguecli import app
 
     _nerfstudio_dataset(tmp_path / "ds", ours)
     _ns_render(tmp_path / "renders", ours)
@@ -213,7 +213,7 @@ def test_import_cli(ours, tmp_path):
 def test_a_missing_depth_file_is_refused_with_its_name(ours, tmp_path):
     from typer.testing import CliRunner
 
-    from roguenerf.cli import app
+    from roguecli import app
 
     _nerfstudio_dataset(tmp_path / "ds", ours)
     _ns_render(tmp_path / "renders", ours)
@@ -272,7 +272,7 @@ def test_an_import_never_replaces_a_dataset_or_deletes_a_file_it_did_not_write(o
     import is replaced, but not when it holds a file the import did not write."""
     from typer.testing import CliRunner
 
-    from roguenerf.cli import app
+    from roguecli import app
 
     _nerfstudio_dataset(tmp_path / "ds", ours)
     _ns_render(tmp_path / "renders", ours)
@@ -304,7 +304,7 @@ def test_a_depth_type_that_disagrees_with_the_scene_is_found_by_multi_view_consi
                                                                                         given):
     from typer.testing import CliRunner
 
-    from roguenerf.cli import app
+    from roguecli import app
     from roguenerf.data.exports import _depth_type_views, _render_inventory, check_depth_type
 
     _nerfstudio_dataset(tmp_path / "ds", ours)

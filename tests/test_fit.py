@@ -152,7 +152,7 @@ def test_make_pairs_cli_runs_and_the_library_never_imports_the_fitter(tmp_path):
     assert proc.stdout.strip() == str(tmp_path / "out")
     assert "fitted 3 steps" in proc.stderr
     assert len(load_scene(tmp_path / "out").frames) == 9
-    code = ("import sys, roguenerf, roguenerf.inference, roguenerf.training, roguenerf.cli; "
+    code = ("import sys, roguenerf, roguenerf.inference, roguenerf.training; "
             "print(sorted(m for m in sys.modules if m.startswith('roguefit')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "[]"

@@ -11,7 +11,7 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from roguenerf.cli import app
+from roguecli import app
 from roguenerf.data.colmap import write_colmap
 from roguenerf.data.readers import load_scene
 from roguenerf.data.toy import look_at

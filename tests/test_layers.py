@@ -147,7 +147,7 @@ LIBRARY_LAYERS = (
     ("data", "models", "enhance"),
     ("checkpoint", "inference", "trajectory"),
     ("splats", "training"),
-    ("cli", "__main__"),
+    ("__main__",),  # says where the command line is (package roguecli, above the library)
 )
 """Inside the library, bottom up: a module imports only its own unit and units of lower layers
 (docs/architecture.md, Layers). A unit is a top-level module or sub-package of ``roguenerf``."""

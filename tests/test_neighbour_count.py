@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+from roguecli import app
 from roguenerf import SceneEnhancer, default_checkpoint_path, load_checkpoint, make_toy_scene
-from roguenerf.cli import app
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -125,7 +125,7 @@ def test_enhance_path_cli_same_frames_from_every_camera_format(tmp_path):
     from kornia.filters import gaussian_blur2d
     from typer.testing import CliRunner
 
-    from roguenerf.cli import app
+    from roguecli import app
     from roguenerf.data.toy import make_toy_scene, render_toy_view
     from roguenerf.geometry import opencv_to_opengl
     from roguenerf.imageio import write_png

@@ -12,8 +12,8 @@ import torch
 from kornia.filters import gaussian_blur2d
 from typer.testing import CliRunner
 
+from roguecli import app
 from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
-from roguenerf.cli import app
 from roguenerf.data.exports import (
     DATAPARSER_FILE,
     DataparserTransform,

@@ -298,7 +298,7 @@ def test_ply_count_beyond_the_file_is_refused_before_reading(tmp_path):
     # The CLI: one line, exit status 2.
     from typer.testing import CliRunner
 
-    from roguenerf.cli import app
+    from roguecli import app
     from roguenerf.data.colmap import write_colmap
     from roguenerf.imageio import write_png
 

@@ -142,7 +142,7 @@ def test_finetune_with_noise_off_draws_todays_batches_and_on_moves_only_neighbou
 def test_pretrain_cli_takes_the_noise_and_refuses_bad_values(tmp_path):
     from typer.testing import CliRunner
 
-    from roguenerf.cli import app
+    from roguecli import app
 
     runner = CliRunner()
     bad = runner.invoke(app, ["pretrain", "--toy", "1", "--steps", "1", "--output", str(tmp_path / "a"),

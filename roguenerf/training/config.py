@@ -8,10 +8,12 @@ import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-
-import torch
+from typing import TYPE_CHECKING
 
 from roguenerf.errors import InputError
+
+if TYPE_CHECKING:  # torch loads when a plan is made, not on import: the CLI's --help reads these defaults
+    import torch
 
 NEIGHBOUR_ENCODINGS = ("window", "whole")
 """How conv_H sees the neighbour photos during training (TrainConfig.neighbour_encoding)."""
@@ -333,6 +335,8 @@ def _as_plan(plan: TrainPlan | Mapping) -> TrainPlan:
 
 
 def default_device() -> str:
+    import torch
+
     return "cuda" if torch.cuda.is_available() else "cpu"
 
 
@@ -355,6 +359,8 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
     Returns:
         A :class:`TrainPlan` (``to_dict()``: JSON-able).
     """
+    import torch
+
     from roguenerf.models import VARIANTS
 
     config.validate()

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-
-import torch
+from typing import TYPE_CHECKING
 
 from roguenerf.errors import InputError
+
+if TYPE_CHECKING:
+    import torch
 
 
 def _metrics_of(image, photo) -> dict:

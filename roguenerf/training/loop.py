@@ -27,6 +27,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from roguenerf.checkpoint import MODEL_FILE, TRAIN_STATE_FILE
 from roguenerf.errors import InputError, TrainingCancelled, TrainingDivergedError
 from roguenerf.geometry.noise import camera_spread, perturb_poses
 from roguenerf.models.layers import receptive_radius
@@ -57,8 +58,7 @@ from roguenerf.training.state import load_state, save_state
 
 log = logging.getLogger("roguenerf.training")
 
-MODEL_FILE = "model.safetensors"
-STATE_FILE = "train_state.safetensors"
+STATE_FILE = TRAIN_STATE_FILE
 TOY_FOLDER = "toy"
 """Where ``roguenerf pretrain --toy N`` writes its generated scenes, inside the output folder."""
 PREFETCH = 2

@@ -1,0 +1,179 @@
+"""What every command shares: one error format and exit codes, logging, progress bars, the
+scene and checkpoint a command reads, and the options several commands take.
+
+Errors are one line on stderr and an exit code: 2 for bad input (missing scene, bad
+checkpoint, bad flag values), 130 after Ctrl-C ("interrupted"), 1 for failures (divergence,
+cancellation, anything else). Progress and logs go to stderr, so ``evaluate --json`` prints
+exactly one JSON object.
+
+Importing this module loads neither torch nor anything above the library: ``--help`` stays
+quick, and the library's defaults read here come from torch-free modules.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from roguenerf.errors import InputError, RoGUENeRFError
+
+CheckpointOpt = Annotated[Path | None, typer.Option(
+    "--checkpoint", help="Enhancer .safetensors, or the folder a fine-tune wrote (its model.safetensors); "
+                         "default: the shipped default checkpoint.")]
+SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed.")]
+NeighboursOpt = Annotated[int | None, typer.Option("--neighbours", help="Neighbours per view (default: model's).")]
+AlignOpt = Annotated[bool, typer.Option("--align/--no-align", help=(
+    "Refine each neighbour's pose against the render before using its photo (for dataset poses that are a "
+    "little off; refused where it does not clearly help). Default on."))]
+ColourOpt = Annotated[bool, typer.Option("--colour/--no-colour", help=(
+    "Match the enhanced view's overall colour to the neighbour photos where two or more agree (the model's "
+    "colour prior comes from its pre-training renders). Default on."))]
+TrustOpt = Annotated[bool, typer.Option("--trust/--no-trust", help=(
+    "Keep only part of the enhancer's change on a view where the neighbour photos mostly disagree (the "
+    "field's geometry is off there: floaters), in proportion to the share where they agree; where they agree on "
+    "under a tenth of it, only where they agree nearby. Default on."))]
+DepthScaleOpt = Annotated[float, typer.Option(
+    "--depth-scale", help="Multiply stored depth by this (0.001 for millimetre PNGs).")]
+
+
+def enhance_options(neighbours, align: bool, colour: bool, trust: bool):
+    """The one :class:`~roguenerf.enhance.EnhanceOptions` of evaluate, enhance and enhance-path."""
+    from roguenerf.enhance import EnhanceOptions
+
+    return EnhanceOptions.from_flags(neighbours=neighbours, align=align, colour=colour, trust=trust)
+
+
+INTERRUPTED = 130
+"""Exit status after Ctrl-C (128 + SIGINT), as shells report it."""
+_reported = {"interrupted": False}
+"""Whether a command's error handling has said "interrupted" already (:func:`run_app`)."""
+
+
+def run_app(typer_app) -> None:
+    """Run ``typer_app``; Ctrl-C outside a command's error handling (typer exits 130 silently) gets
+    its one line too."""
+    _reported["interrupted"] = False
+    try:
+        typer_app()
+    except SystemExit as exc:
+        if exc.code == INTERRUPTED and not _reported["interrupted"]:
+            typer.echo("error: interrupted", err=True)
+        raise
+
+
+def fail(message: str, code: int) -> None:
+    """One ``error: ...`` line on stderr, then exit with ``code``."""
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(code)
+
+
+@contextlib.contextmanager
+def handle_errors():
+    """Apply the process settings (:mod:`roguenerf.runtime`), then turn library exceptions into
+    one stderr line and an exit code (no stack trace)."""
+    try:
+        from roguenerf import runtime
+
+        runtime.configure()
+        yield
+    except typer.Exit:
+        raise
+    except InputError as exc:
+        fail(str(exc), 2)
+    except RoGUENeRFError as exc:
+        fail(str(exc), 1)
+    except KeyboardInterrupt:  # Ctrl-C: the shell's status for SIGINT, one line, no traceback
+        _reported["interrupted"] = True
+        fail("interrupted", INTERRUPTED)
+    except Exception as exc:  # noqa: BLE001 - the CLI promises no stack traces
+        fail(f"{type(exc).__name__}: {exc}", 1)
+
+
+def setup_logging() -> None:
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s", force=True)
+
+
+@contextlib.contextmanager
+def progress_bar(desc: str, unit: str):
+    """A ``progress(done, total)`` callback drawing a tqdm bar on stderr (created on first call)."""
+    bar = None
+
+    def progress(done: int, total: int) -> None:
+        nonlocal bar
+        if bar is None:
+            from tqdm import tqdm
+
+            bar = tqdm(total=total, unit=unit, desc=desc, file=sys.stderr, dynamic_ncols=True)
+        bar.update(done - bar.n)
+
+    try:
+        yield progress
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def open_scene(scene_dir: Path, *, check: bool = True):
+    """The scene, and (``check``) a warning naming its unusable views: every view's files are
+    read once for that; a one-view command checks just the views it reads instead."""
+    from roguenerf.data.readers import load_scene
+
+    if not scene_dir.exists():
+        raise InputError(f"scene directory {scene_dir} does not exist")
+    if not scene_dir.is_dir():
+        raise InputError(f"scene directory {scene_dir} is not a directory")
+    scene = load_scene(scene_dir)
+    if check:
+        warn_unusable(scene)
+    return scene
+
+
+def warn_unusable(scene, indices=None) -> None:
+    """One warning line listing the views that cannot serve (e.g. a depth map of zeros): all of
+    the scene's, or those of ``indices`` (the views a command reads)."""
+    from roguenerf.data.scene import unusable_views
+
+    bad = unusable_views(scene, indices=indices)
+    if bad:
+        among = (f"of {len(scene.frames)} views of {scene.root}" if indices is None
+                 else f"of the {len(set(indices))} views of {scene.root} this command reads")
+        typer.echo(f"warning: {len(bad)} {among} are unusable and "
+                   f"contribute nothing: {'; '.join(str(v) for v in bad)}", err=True)
+
+
+def checkpoint_file(checkpoint: Path | None) -> Path:
+    """The file ``--checkpoint`` names (a folder: :func:`roguenerf.checkpoint.resolve_checkpoint`),
+    or without it the shipped default checkpoint."""
+    from roguenerf.checkpoint import default_checkpoint_path, resolve_checkpoint
+
+    if checkpoint is not None:
+        return resolve_checkpoint(checkpoint)
+    path = default_checkpoint_path(must_exist=False)
+    if not path.is_file():
+        raise InputError(f"no --checkpoint given and the default checkpoint {path} does not exist yet "
+                         "(train one with `roguenerf pretrain`, or pass --scratch to fine-tune from scratch)")
+    return path
+
+
+def load_model(checkpoint: Path | None):
+    from roguenerf.checkpoint import load_checkpoint
+
+    model, _meta = load_checkpoint(checkpoint_file(checkpoint))
+    return model
+
+
+def check_budget(steps, minutes, *, evaluate_hint: bool = False) -> None:
+    """The budget flags, by the library's rules (:meth:`TrainConfig.validate_budget`)."""
+    from roguenerf.training import TrainConfig
+
+    try:
+        TrainConfig.validate_budget(steps, minutes, names=("--steps", "--minutes"))
+    except InputError as exc:
+        if not evaluate_hint or (steps is not None and minutes is not None):
+            raise  # the hint is for a budget too small to train
+        raise InputError(f"{exc} (to measure a checkpoint without training, use `roguenerf evaluate`)") from None
