@@ -37,15 +37,20 @@ TrustOpt = Annotated[bool, typer.Option("--trust/--no-trust", help=(
     "Keep only part of the enhancer's change on a view where the neighbour photos mostly disagree (the "
     "field's geometry is off there: floaters), in proportion to the share where they agree; where they agree on "
     "under a tenth of it, only where they agree nearby. Default on."))]
+TemporalOpt = Annotated[bool, typer.Option("--temporal/--no-temporal", help=(
+    "Along the path, blend each frame's change with the last frame's (reprojected through the depth) and fit "
+    "each neighbour's pose once: less flicker, faster; --no-temporal enhances every frame on its own. "
+    "Default on."))]
 DepthScaleOpt = Annotated[float, typer.Option(
     "--depth-scale", help="Multiply stored depth by this (0.001 for millimetre PNGs).")]
 
 
-def enhance_options(neighbours, align: bool, colour: bool, trust: bool):
+def enhance_options(neighbours, align: bool, colour: bool, trust: bool, temporal: bool = True):
     """The one :class:`~roguenerf.enhance.EnhanceOptions` of evaluate, enhance and enhance-path."""
     from roguenerf.enhance import EnhanceOptions
 
-    return EnhanceOptions.from_flags(neighbours=neighbours, align=align, colour=colour, trust=trust)
+    return EnhanceOptions.from_flags(neighbours=neighbours, align=align, colour=colour, trust=trust,
+                                     temporal=temporal)
 
 
 INTERRUPTED = 130

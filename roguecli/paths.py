@@ -14,6 +14,7 @@ from roguecli.common import (
     ColourOpt,
     DepthScaleOpt,
     NeighboursOpt,
+    TemporalOpt,
     TrustOpt,
     checkpoint_file,
     enhance_options,
@@ -38,6 +39,7 @@ def enhance_path_command(
     align: AlignOpt = True,
     colour: ColourOpt = True,
     trust: TrustOpt = True,
+    temporal: TemporalOpt = True,
     quality: Annotated[int, typer.Option("--quality", help="x264 CRF, 0 (lossless) .. 51; 18-23 look good.")] = 20,
     fps: Annotated[float | None, typer.Option(
         "--fps", help="Frame rate (default: the camera path's, else 24).")] = None,
@@ -92,14 +94,15 @@ def enhance_path_command(
         from roguenerf.checkpoint import load_checkpoint
 
         model, _meta = load_checkpoint(ckpt)
-        enhancer = SceneEnhancer(scene, model, options=enhance_options(neighbours, align, colour, trust))
+        enhancer = SceneEnhancer(scene, model, options=enhance_options(neighbours, align, colour, trust, temporal))
         stat = ckpt.stat()
         with progress_bar(f"enhancing {len(camera_path)} frames", "frame") as progress:
             result = enhance_path(scene, enhancer, camera_path, frames, output, depth_type=depth_type,
                                   depth_scale=depth_scale, background=background, video=not no_video,
                                   quality=quality, fps=fps,
                                   checkpoint_id=f"{ckpt.resolve()}:{stat.st_size}:{stat.st_mtime_ns}"
-                                  + ("" if align else ":no-align") + ("" if colour else ":no-colour"),
+                                  + ("" if align else ":no-align") + ("" if colour else ":no-colour")
+                                  + ("" if temporal else ":no-temporal"),
                                   progress=progress, force=force, force_hint="--force")
         for warning in result.warnings:
             typer.echo(f"warning: {warning}", err=True)
