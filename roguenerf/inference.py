@@ -42,6 +42,10 @@ ALIGN_SIDE = 512
 depths no larger than this (long side), the last :data:`ALIGN_CACHE` of them cached (about 3 MB
 a photo)."""
 
+SELECT_CACHE = 256
+"""How many neighbours' copies the measured neighbour rule keeps (no larger than
+:data:`~roguenerf.enhance.select.SELECT_SIDE`, about 0.2 MB each; least recently used first out)."""
+
 ALIGN_CACHE = 32
 """How many neighbours' small copies pose refinement keeps (least recently used first out)."""
 
@@ -179,7 +183,7 @@ class SceneEnhancer:
         self.stages = stages_for(options)
         self._agreement_test = agreement_test(self.stages)
         self._small: OrderedDict[int, tuple[Tensor, Tensor, Tensor, dict]] = OrderedDict()
-        self._tiny: dict[int, tuple[Tensor, Tensor, Tensor]] = {}
+        self._tiny: OrderedDict[int, tuple[Tensor, Tensor, Tensor]] = OrderedDict()
         self.cache_bytes = int(cache_bytes)
         self._sources: OrderedDict[int, Tensor] = OrderedDict()
         self._depths: dict[int, Tensor] = {}
@@ -383,6 +387,8 @@ class SceneEnhancer:
                 entry = shrink(photo, photo_depth, photo_K, SELECT_SIDE)
                 with self._lock:
                     self._tiny[p] = entry
+                    while len(self._tiny) > SELECT_CACHE:
+                        self._tiny.popitem(last=False)
             tiny.append((*entry, self.train_poses[p]))
         return measure_candidates(render, depth, K, world_from_cam, tiny, positions=positions,
                                   leniency=getattr(self.model.config, "leniency", 0.25))
