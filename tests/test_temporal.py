@@ -101,3 +101,14 @@ def test_sticky_neighbours_keep_what_is_still_near():
 def test_bad_keep_within_is_refused(keep):
     with pytest.raises(InputError, match="keep_within"):
         TemporalConfig(keep_within=keep)
+
+
+def test_blending_the_image_averages_the_frames_themselves():
+    """blend="image": the enhanced frames are averaged (a render's own flicker too), not the change."""
+    f = TemporalFilter(TemporalConfig(weight=0.5, blend="image"))
+    r1, e1 = _frame(1)
+    assert torch.equal(f(r1, e1, DEPTH, K, POSE), e1)
+    r2, e2 = _frame(2)
+    assert torch.allclose(f(r2, e2, DEPTH, K, POSE), 0.5 * e2 + 0.5 * e1, atol=1e-5)
+    with pytest.raises(InputError, match="blend"):
+        TemporalConfig(blend="pixels")

@@ -36,6 +36,10 @@ class TemporalConfig:
     change_weight: float = 0.5
     """``weight`` at a frame whose neighbours differ from the previous frame's: the jump a new
     neighbour brings is spread over more frames."""
+    blend: str = "residual"
+    """What is carried and blended: ``"residual"`` (the enhancer's change over the render, the
+    module docstring) or ``"image"`` (the enhanced frame itself: the render's own flicker, a
+    field's floaters that come and go, is smoothed too)."""
     reuse_poses: bool = True
     """Fit each neighbour's pose (pose refinement) the first time a frame uses it, and reuse it
     for the frames after: the same photo lands the same way on every frame, and the fits are
@@ -51,6 +55,8 @@ class TemporalConfig:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and 0 <= value < 1):
                 raise InputError(f"TemporalConfig.{name}: expected a share in [0, 1), got {value!r}")
+        if self.blend not in ("residual", "image"):
+            raise InputError(f"TemporalConfig.blend: expected 'residual' or 'image', got {self.blend!r}")
         if not isinstance(self.reuse_poses, bool):
             raise InputError(f"TemporalConfig.reuse_poses: expected True or False, got {self.reuse_poses!r}")
         if isinstance(self.keep_within, bool) or not isinstance(self.keep_within, int) or self.keep_within < 0:
@@ -87,7 +93,8 @@ class TemporalFilter:
         """Take ``enhanced`` (of ``render``) as the last frame's result without blending: the frame
         as written (a resumed path reads its finished frames back, so the frames after them
         come out the same as without the stop)."""
-        self._previous = (enhanced.float() - render.float(), depth.float(), torch.as_tensor(K).to(torch.float32),
+        carried = enhanced.float() - render.float() if self.config.blend == "residual" else enhanced.float()
+        self._previous = (carried, depth.float(), torch.as_tensor(K).to(torch.float32),
                           torch.as_tensor(world_from_cam).to(torch.float64))
 
     def __call__(self, render: Tensor, enhanced: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
@@ -106,7 +113,8 @@ class TemporalFilter:
         render, enhanced, depth = render.float(), enhanced.float(), depth.float()
         pose = torch.as_tensor(world_from_cam).to(torch.float64)
         K = torch.as_tensor(K).to(torch.float32)
-        residual = enhanced - render
+        image = self.config.blend == "image"
+        residual = enhanced if image else enhanced - render
         self.last_share = 0.0
         w = float(self.config.change_weight if changed else self.config.weight)
         if self._previous is not None and w > 0:
@@ -116,6 +124,6 @@ class TemporalFilter:
             valid = warped.valid[0] > 0.5
             self.last_share = float(valid.float().mean())
             residual = torch.where(valid, (1 - w) * residual + w * warped.features[0], residual)
-        out = (render + residual).clamp(0, 1)
-        self._previous = (out - render, depth, K, pose)
+        out = (residual if image else render + residual).clamp(0, 1)
+        self._previous = (out if image else out - render, depth, K, pose)
         return out
