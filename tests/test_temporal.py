@@ -23,7 +23,7 @@ def _frame(seed: int):
 
 
 def test_first_frame_is_its_own_and_a_still_camera_averages_the_residuals():
-    f = TemporalFilter(TemporalConfig(weight=0.5))
+    f = TemporalFilter(TemporalConfig(weight=0.5, blend="residual"))
     r1, e1 = _frame(1)
     assert torch.equal(f(r1, e1, DEPTH, K, POSE), e1)
     assert f.last_share == 0.0
@@ -57,7 +57,7 @@ def test_a_cut_keeps_the_frame_and_weight_zero_changes_nothing():
 def test_a_moving_camera_carries_the_residual_to_where_the_point_went():
     """A camera moved sideways by one pixel's worth: a residual spike at pixel (10, 8) lands at
     (10, 7) in the next frame (z = 3, f = 30: 0.1 units to the right is one pixel to the left)."""
-    f = TemporalFilter(TemporalConfig(weight=0.5))
+    f = TemporalFilter(TemporalConfig(weight=0.5, blend="residual"))
     render = torch.full((3, H, W), 0.5)
     spike = render.clone()
     spike[:, 10, 8] = 0.9

@@ -1,22 +1,26 @@
-"""Videos: the enhancer's change carried from frame to frame along a camera path.
+"""Videos: each enhanced frame blended with the one before it, along a camera path.
 
-A radiance field's render of a path is consistent from frame to frame by construction: every
-frame comes from the same 3D field. The enhancer adds to it detail and colour taken from
+A radiance field's render of a path is mostly consistent from frame to frame: every frame comes
+from the same 3D field (floaters aside, which come and go). The enhancer adds to it detail and colour taken from
 neighbour photos, and that addition (the *residual*, enhanced minus render) is decided per frame:
 where the neighbour set changes, a pose fit lands a little differently, or the colour field and
 the trust share move, the residual jumps, and the video flickers more than the render.
 
-:class:`TemporalFilter` keeps the residual of the previous frame, reprojects it into the current
-frame through the render's depth (the same warp :func:`~roguenerf.reprojection.reproject` gives
-the neighbours, with its visibility test), and blends::
+:class:`TemporalFilter` keeps the previous frame's result, reprojects it into the current frame
+through the render's depth (the same warp :func:`~roguenerf.reprojection.reproject` gives the
+neighbours, with its visibility test), and blends, wherever the previous frame sees the pixel
+(elsewhere the frame is its own)::
 
-    residual_t = (1 - w) * (enhanced_t - render_t) + w * warp(residual_{t-1})
+    out_t = (1 - w) * enhanced_t + w * warp(out_{t-1})              blend="image" (the default)
+    out_t = render_t + (1 - w) * (enhanced_t - render_t) + w * warp(out_{t-1} - render_{t-1})
+                                                                     blend="residual"
 
-wherever the previous frame sees the pixel (elsewhere the frame's own residual is kept). The
-result is ``render_t + residual_t``. Because the carried residual is the blended one, the filter
-is an exponential moving average along the path: with ``w = 0.5`` a frame weighs the residual of
-the frame before by 1/2, the one before that by 1/4, and so on. A cut (a pose far from the last)
-needs no special case: the warp then sees nothing of it, and the frame keeps its own residual.
+Because the carried frame is the blended one, the filter is an exponential moving average along
+the path: with ``w = 0.5`` a frame weighs the one before by 1/2, the one before that by 1/4, and
+so on. Blending the image smooths the render's own flicker too (a field's floaters that come and
+go); blending only the residual carries those back in, and flickered more on a hash field's path
+than no blending at all (docs/broad.md, *Videos that do not flicker*). A cut (a pose far from the
+last) needs no special case: the warp then sees nothing of it, and the frame keeps its own.
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ class TemporalConfig:
     change_weight: float = 0.5
     """``weight`` at a frame whose neighbours differ from the previous frame's: the jump a new
     neighbour brings is spread over more frames."""
-    blend: str = "residual"
+    blend: str = "image"
     """What is carried and blended: ``"residual"`` (the enhancer's change over the render, the
     module docstring) or ``"image"`` (the enhanced frame itself: the render's own flicker, a
     field's floaters that come and go, is smoothed too)."""
