@@ -48,8 +48,11 @@ def _noise(text: str) -> list[tuple[float, float]]:
 
 
 def parse_args(argv=None):
+    from roguefit.registry import PRESETS
+
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--kind", required=True, help="roguefit preset of the field that renders the scenes (e.g. hash)")
+    p.add_argument("--kind", required=True,
+                   help=f"roguefit preset of the field that renders the scenes: {', '.join(PRESETS)}")
     p.add_argument("--scenes", type=lambda t: [x for x in t.split(",") if x], required=True,
                    help="comma-separated held-out scene names under --data")
     p.add_argument("--data", type=Path, default=SHARED_DATA / "real")
@@ -79,8 +82,6 @@ def parse_args(argv=None):
     p.add_argument("--output", type=Path, default=None, help="default: bench/results/kinds_KIND")
     p.add_argument("--quick", action="store_true", help="tiny budgets, 2 views")
     args = p.parse_args(argv)
-    from roguefit.fit import PRESETS
-
     if args.kind not in PRESETS:
         p.error(f"--kind: expected one of {', '.join(PRESETS)}, got {args.kind!r}")
     if args.scale < 1:

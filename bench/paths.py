@@ -71,7 +71,8 @@ def load_field(fit_dir: Path):
     GridField (``coarse``, ``fine``) or a HashField (``--preset hash``)."""
     from safetensors.torch import load_file
 
-    from roguefit.fit import FitConfig, new_field
+    from roguefit.fit import FitConfig
+    from roguefit.registry import FITTERS
 
     meta = json.loads((fit_dir / ".fit" / "state.json").read_text())
     report = json.loads((fit_dir / "fit.json").read_text())
@@ -81,7 +82,8 @@ def load_field(fit_dir: Path):
     if kind not in ("grid", "hash"):
         raise SystemExit(f"--fit {fit_dir}: a {kind!r} fit has no field to render a path with here")
     config = FitConfig(**meta["config"])
-    field = new_field(config, torch.tensor(report["centre"]), float(report["radius"]), int(meta["resolution"]))
+    field = FITTERS[config.kind].new_field(config, torch.tensor(report["centre"]), float(report["radius"]),
+                                           int(meta["resolution"]))
     if config.kind == "grid":
         field.use_mlp = int(meta["level"]) > 0
     field.occupancy = model["occupancy"].to(torch.bool)

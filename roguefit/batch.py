@@ -23,7 +23,8 @@ import sys
 import time
 from pathlib import Path
 
-from roguefit.fit import FIT_FILE, PRESETS, make_pairs
+from roguefit.pairs import FIT_FILE, make_pairs
+from roguefit.registry import PRESETS, describe_presets
 
 log = logging.getLogger("roguefit.batch")
 
@@ -102,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m roguefit.batch", description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, required=True, help="folder of posed photo sets")
     parser.add_argument("--cache", type=Path, required=True, help="output root (outside the repository)")
-    parser.add_argument("--presets", default="blur,coarse", help=f"comma-separated, of {', '.join(PRESETS)}")
+    parser.add_argument("--presets", default="blur,coarse", help=f"comma-separated, of {describe_presets()}")
     parser.add_argument("--scenes", default="",
                         help="comma-separated scene names, fitted in this order (default: all, sorted)")
     parser.add_argument("--budget-scale", type=float, default=1.0,

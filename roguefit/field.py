@@ -270,6 +270,13 @@ class GridField(nn.Module):
         return {"rgb": rgb, "depth": depth, "acc": acc}
 
     # -- schedule helpers ------------------------------------------------------------------
+    def param_groups(self, lr_grid: float, lr_mlp: float) -> list[dict]:
+        """The optimizer's parameter groups: the grids at ``lr_grid``, the MLP (if any) at ``lr_mlp``."""
+        groups = [{"params": [self.density, self.colour], "lr": lr_grid}]
+        if self.mlp is not None:
+            groups.append({"params": list(self.mlp.parameters()), "lr": lr_mlp})
+        return groups
+
     @torch.no_grad()
     def upsample(self, resolution: int) -> None:
         """Resample both grids to side ``resolution`` (trilinear, corners aligned)."""

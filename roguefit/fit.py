@@ -1,8 +1,11 @@
-"""Fit a :class:`GridField` to a photo set's training views, render every view, write a scene folder.
+"""The dense-grid and hash-grid fields' fitter: :class:`FitConfig` (kinds "grid" and "hash") and
+:class:`GridFitter` (a :class:`~roguefit.fitter.Fitter`).
 
-``make_pairs(photos_dir, output, config)`` is the whole tool: it resumes an interrupted fit from
-``output/.fit/`` (state saved every ``checkpoint_every_s`` seconds and on Ctrl-C), and a finished
-output folder (``fit.json`` with the same configuration) is left as it is.
+It fits a :class:`GridField` (or, through :class:`~roguefit.hashfield.HashFitter`, a
+:class:`~roguefit.hashfield.HashField`) to a photo set's training views with random rays, grows
+the grid coarse to fine, prunes the occupancy grid, and resumes from ``state_dir``
+(``state.safetensors`` + ``state.json``, saved every ``checkpoint_every_s`` seconds and on Ctrl-C).
+:func:`roguefit.pairs.make_pairs` drives it.
 """
 
 from __future__ import annotations
@@ -21,18 +24,17 @@ from safetensors.torch import load_file, save_file
 from torch import Tensor
 
 from roguefit.field import GridField, scene_frame, seen_by_cameras
-from roguefit.photos import PhotoSet, read_photo_set
-from roguefit.splats import SplatConfig, _SplatFitter
+from roguefit.photos import PhotoSet
 from roguenerf.errors import InputError, TrainingCancelled, TrainingDivergedError
-from roguenerf.imageio import atomic_write, check_output_folder
+from roguenerf.imageio import atomic_write
 
 log = logging.getLogger("roguefit")
 
 FIELD_KINDS = ("grid", "hash")
+"""The kinds of field a :class:`FitConfig` describes (both registered in :data:`roguefit.registry.FITTERS`)."""
 HASH_KEYS = ("hash_levels", "hash_log2_table", "hash_features", "hash_base", "sh_degree")
-STATE_DIR = ".fit"
-FIT_FILE = "fit.json"
 FORMAT_VERSION = 1
+"""Of the resume state (``state.json``)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,37 +155,6 @@ class FitConfig:
         return d
 
 
-# Looks per scene for pre-training, from blurriest to sharpest: a short fit on a 64³ RGB grid
-# (rendered at half size: its voxels span several pixels, so that costs a quarter of the rays and
-# changes little), a 96³ RGB grid, and a view-dependent 160³ field with a longer budget. Budgets
-# are in steps, so the pairs do not depend on how busy the machine was (--minutes overrides).
-PRESETS: dict[str, FitConfig | SplatConfig] = {
-    "blur": FitConfig(resolution=64, features=0, minutes=None, steps=250, samples=64, render_scale=2),
-    "coarse": FitConfig(resolution=96, features=0, minutes=None, steps=500, samples=64),
-    "fine": FitConfig(resolution=160, features=6, minutes=None, steps=1500, samples=80),
-    # 3D Gaussian splats (roguefit.splats), fitted at half the photo size: another kind of field.
-    "splat": SplatConfig(),
-    # Another kind of field (issue 35): Instant-NGP's hash encoding, finest level 512 over the
-    # contracted cube, SH-degree-3 view dependence; its own learning rates (Instant-NGP: 1e-2).
-    "hash": FitConfig(kind="hash", resolution=512, features=0, minutes=None, steps=1500, samples=64,
-                      lr_grid=1e-2, lr_mlp=1e-2, tv_weight=0.0, grow_at=(), prune_every=100),
-}
-
-
-def new_field(config: FitConfig, centre: Tensor, radius: float, resolution: int | None = None) -> GridField:
-    """The untrained field a fit with ``config`` trains over the contraction ``centre``, ``radius``:
-    a :class:`~roguefit.hashfield.HashField` (finest level ``config.resolution``) for kind "hash",
-    else a :class:`GridField` at ``resolution`` (default ``config.resolution``)."""
-    if config.kind == "hash":
-        from roguefit.hashfield import HashField
-
-        return HashField(centre, radius, levels=config.hash_levels, log2_table=config.hash_log2_table,
-                         features=config.hash_features, base=config.hash_base, finest=config.resolution,
-                         sh_degree=config.sh_degree)
-    return GridField(centre, radius, config.resolution if resolution is None else resolution,
-                     features=config.features)
-
-
 def camera_rays(K: Tensor, world_from_cam: Tensor, v: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
     """Rays through pixel centres ``(v, u)`` (row, col) of cameras ``K (B,3,3)``, ``world_from_cam (B,4,4)``.
 
@@ -203,7 +174,21 @@ def _grow_plan(config: FitConfig) -> list[int]:
     return [max(16, round(final * (0.5 + 0.5 * i / (levels - 1)))) for i in range(levels)] if levels > 1 else [final]
 
 
-class _Fitter:
+class GridFitter:
+    """Fits a :class:`GridField` (kind "grid"): the :class:`~roguefit.fitter.Fitter` of a
+    :class:`FitConfig`; :class:`~roguefit.hashfield.HashFitter` changes only the field it makes."""
+
+    @staticmethod
+    def new_field(config: FitConfig, centre: Tensor, radius: float, resolution: int | None = None) -> GridField:
+        """The untrained field a fit with ``config`` trains over the contraction ``centre``,
+        ``radius``: a :class:`GridField` at ``resolution`` (default ``config.resolution``)."""
+        return GridField(centre, radius, config.resolution if resolution is None else resolution,
+                         features=config.features)
+
+    def _first_field(self, centre: Tensor, radius: float) -> GridField:
+        """The field the fit starts from: at the grow plan's first resolution."""
+        return self.new_field(self.config, centre, radius, self.levels[0])
+
     def __init__(self, ps: PhotoSet, config: FitConfig, state_dir: Path):
         self.ps, self.config, self.state_dir = ps, config, state_dir
         self.train = ps.indices("train")
@@ -215,12 +200,7 @@ class _Fitter:
         self.far = (ps.far * 1.2).to(torch.float32)
         centre, radius = scene_frame(pose, ps.near[self.train])
         self.levels = _grow_plan(config)
-        if config.kind == "hash":
-            with torch.random.fork_rng(devices=[]):  # random initial weights from the config's seed alone
-                torch.manual_seed(config.seed)
-                self.field = new_field(config, centre, radius)
-        else:
-            self.field = new_field(config, centre, radius, self.levels[0])
+        self.field = self._first_field(centre, radius)
         self.seen = seen_by_cameras(self.field, pose, ps.K[self.train], self.near[self.train],
                                     self.far[self.train], ps.height, ps.width)
         self.field.occupancy = self.seen.clone()
@@ -232,12 +212,7 @@ class _Fitter:
         self._make_optimizer()
 
     def _make_optimizer(self) -> None:
-        if hasattr(self.field, "param_groups"):
-            groups = self.field.param_groups(self.config.lr_grid, self.config.lr_mlp)
-        else:
-            groups = [{"params": [self.field.density, self.field.colour], "lr": self.config.lr_grid}]
-            if self.field.mlp is not None:
-                groups.append({"params": list(self.field.mlp.parameters()), "lr": self.config.lr_mlp})
+        groups = self.field.param_groups(self.config.lr_grid, self.config.lr_mlp)
         self.optimizer = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
 
     # -- resume ------------------------------------------------------------------------------
@@ -395,173 +370,3 @@ class _Fitter:
                                                  mode="bilinear", align_corners=False)[0]
             rgb, depth, acc = up[:3].clamp(0, 1), up[3:4], up[4:5].clamp(0, 1)
         return rgb, depth, acc
-
-
-def _metrics(renders: Tensor, photos: Tensor) -> dict:
-    from roguenerf.metrics import psnr, ssim
-
-    return {"psnr": float(psnr(renders, photos).mean()), "ssim": float(ssim(renders, photos).mean()),
-            "views": int(renders.shape[0])}
-
-
-def fold_of_views(ps: PhotoSet, folds: int) -> list[int | None]:
-    """Cross-fitting's folds: the k-th training view (in view order) is in fold ``k % folds``; a
-    held-out view is in none (``None``): no fold's field sees it, fold 0's renders it."""
-    out: list[int | None] = [None] * len(ps.names)
-    for k, i in enumerate(ps.indices("train")):
-        out[i] = k % folds
-    return out
-
-
-def _fit_and_render(ps: PhotoSet, config: FitConfig | SplatConfig, state_dir: Path, views: list[int], *,
-                    progress, should_stop, render_progress, rendered: int, total: int):
-    """One field fitted to ``ps``'s training views (resumed from ``state_dir``), rendering ``views``."""
-    fitter_type = _SplatFitter if isinstance(config, SplatConfig) else _Fitter
-    fitter = fitter_type(ps, config, state_dir)
-    if fitter.load():
-        log.info("resuming the fit at step %d (%.0f s done)", fitter.step, fitter.elapsed)
-    fitter.run(progress, should_stop)
-    t0 = time.perf_counter()
-    renders, depths, accs = [], [], []
-    for k in views:
-        rgb, depth, acc = fitter.render_view(k)
-        renders.append(rgb), depths.append(depth), accs.append(acc)
-        rendered += 1
-        if render_progress is not None:
-            render_progress(rendered, total)
-        if should_stop is not None and should_stop():
-            raise TrainingCancelled("stopped while rendering; run again to resume (the fit is saved)")
-    return fitter, (torch.stack(renders), torch.stack(depths), torch.stack(accs)), time.perf_counter() - t0
-
-
-def _cross_fit(ps: PhotoSet, config: FitConfig | SplatConfig, state_dir: Path, *, progress, should_stop,
-               render_progress) -> tuple[Tensor, Tensor, Tensor, dict]:
-    """Every view rendered by a field that never saw it: ``config.folds`` fields, fold ``f``'s
-    fitted to the training views outside fold ``f`` and rendering fold ``f`` (fold 0 also the
-    held-out views). A finished fold's renders are kept in ``state_dir/foldF/renders.safetensors``,
-    so a stopped run resumes at the fold it was in."""
-    folds = fold_of_views(ps, config.folds)
-    n = len(ps.names)
-    renders = torch.zeros(n, 3, ps.height, ps.width)
-    depths = torch.zeros(n, 1, ps.height, ps.width)
-    accs = torch.zeros(n, 1, ps.height, ps.width)
-    report = {"folds": config.folds, "fit_seconds": 0.0, "render_seconds": 0.0, "steps": 0, "fold_train_psnr": []}
-    rendered = 0
-    budget = config.steps
-    for f in range(config.folds):
-        views = [i for i in range(n) if folds[i] == f or (f == 0 and folds[i] is None)]
-        last = f == config.folds - 1
-
-        def fold_progress(p: dict, f=f) -> None:  # one bar over all folds: steps and fraction go on
-            if progress is not None:
-                progress({**p, "fold": f, "fraction": (f + p["fraction"]) / config.folds,
-                          "step": p["step"] + (f * budget if budget is not None else 0)})
-
-        def fold_render_progress(done: int, total: int, last=last) -> None:  # the views bar: last fold's
-            if render_progress is not None and last:
-                render_progress(done, total)
-
-        fold_dir = state_dir / f"fold{f}"
-        done = fold_dir / "renders.safetensors"
-        sub = dataclasses.replace(ps, splits=["train" if folds[i] is not None and folds[i] != f else "test"
-                                              for i in range(n)])
-        saved, fold_report = None, None
-        if done.is_file() and (fold_dir / "fold.json").is_file():  # a finished fold of this configuration
-            fold_report = json.loads((fold_dir / "fold.json").read_text())
-            saved = load_file(str(done)) if fold_report.get("config") == config.identity() else None
-        if saved is not None and saved["views"].tolist() == views:
-            rendered += len(views)
-            fold_render_progress(rendered, n)
-            rgb, depth, acc = saved["rgb"], saved["depth"], saved["acc"]
-        else:
-            fitter, (rgb, depth, acc), seconds = _fit_and_render(
-                sub, config, fold_dir, views, progress=fold_progress, should_stop=should_stop,
-                render_progress=fold_render_progress, rendered=rendered, total=n)
-            rendered += len(views)
-            own = sub.indices("train")[:3]  # how well this fold's field fits views it saw
-            seen = torch.stack([fitter.render_view(i)[0] for i in own])
-            fold_report = {"config": config.identity(), "steps": fitter.step, "fit_seconds": round(fitter.elapsed, 1),
-                           "render_seconds": round(seconds, 1), "train_psnr": _metrics(seen, ps.photos[own])["psnr"]}
-            save_file({"views": torch.as_tensor(views), "rgb": rgb.contiguous(), "depth": depth.contiguous(),
-                       "acc": acc.contiguous()}, str(done.with_suffix(".tmp")))
-            done.with_suffix(".tmp").replace(done)
-            atomic_write(fold_dir / "fold.json", json.dumps(fold_report).encode())
-        index = torch.as_tensor(views)
-        renders[index], depths[index], accs[index] = rgb, depth, acc
-        report["fit_seconds"] += fold_report["fit_seconds"]
-        report["render_seconds"] += fold_report["render_seconds"]
-        report["steps"] += fold_report["steps"]
-        report["fold_train_psnr"].append(round(fold_report["train_psnr"], 3))
-    report["fit_seconds"] = round(report["fit_seconds"], 1)
-    report["render_seconds"] = round(report["render_seconds"], 1)
-    return renders, depths, accs, report
-
-
-def _is_fit(folder: Path) -> bool:
-    """An earlier make-pairs output, finished (fit.json) or interrupted (its resume state)."""
-    return (folder / FIT_FILE).is_file() or (folder / STATE_DIR).is_dir()
-
-
-def make_pairs(photos_dir: str | Path, output: str | Path, config: FitConfig | SplatConfig = FitConfig(), *,
-               progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
-               render_progress: Callable[[int, int], None] | None = None) -> dict:
-    """Fit a field to ``photos_dir``'s training views and write the scene folder ``output``.
-
-    Returns the fit report (also written as ``output/fit.json``): configuration, steps, seconds,
-    and the renders' PSNR/SSIM on the training and held-out views. A :class:`SplatConfig` fits
-    Gaussian splats instead (``roguefit.splats``), and writes their ``point_cloud.ply`` too.
-
-    With ``config.folds = K > 1`` the renders are **cross-fitted**: K fields, each fitted to all
-    training views but one fold's, render that fold, so every view's render is a novel view of
-    a field that never saw its photo, with the field's real geometry error (K times the fitting
-    time; the renders' cost is unchanged). The report's ``train`` metrics are then those of
-    novel views, and ``fold_train_psnr`` says how well each fold's field fits views it saw.
-    """
-    from roguenerf.data.writers import write_scene_folder
-
-    output = Path(output)
-    # A posed photo set given as its own output (or any folder of the user's) is never written into:
-    # write_scene_folder would overwrite its transforms.json and photos.
-    check_output_folder(output, _is_fit, "output")
-    done = output / FIT_FILE
-    if done.is_file() and (output / "transforms.json").is_file():
-        try:
-            report = json.loads(done.read_text())
-            if report.get("config") == config.identity():
-                log.info("%s is complete (fit.json has this configuration): nothing to do", output)
-                return report
-        except (OSError, json.JSONDecodeError):
-            pass
-    ps = read_photo_set(photos_dir, hold=config.hold)
-    if config.folds > 1:
-        if len(ps.indices("train")) < 2 * config.folds:
-            raise InputError(f"folds: {config.folds} folds need at least {2 * config.folds} training views, "
-                             f"the photo set has {len(ps.indices('train'))}")
-        renders, depths, accs, cross = _cross_fit(ps, config, output / STATE_DIR, progress=progress,
-                                                  should_stop=should_stop, render_progress=render_progress)
-        extras = {"folds": cross["folds"], "fold_train_psnr": cross["fold_train_psnr"]}
-        steps, fit_seconds, render_seconds = cross["steps"], cross["fit_seconds"], cross["render_seconds"]
-    else:
-        fitter, (renders, depths, accs), render_seconds = _fit_and_render(
-            ps, config, output / STATE_DIR, list(range(len(ps.names))), progress=progress,
-            should_stop=should_stop, render_progress=render_progress, rendered=0, total=len(ps.names))
-        fitter.write_extras(output)
-        extras = fitter.summary()
-        steps, fit_seconds = fitter.step, round(fitter.elapsed, 1)
-    write_scene_folder(output, names=ps.names, photos=ps.photos, renders=renders, depths=depths,
-                       world_from_cam=ps.world_from_cam, K=ps.K, splits=ps.splits, acc=accs)
-    train, test = ps.indices("train"), ps.indices("test")
-    report = {
-        "format_version": FORMAT_VERSION,
-        "photos": str(Path(photos_dir)),
-        "config": config.identity(),
-        "steps": steps,
-        "fit_seconds": fit_seconds,
-        "render_seconds": round(render_seconds, 1),
-        **extras,
-        "bounds": ps.bounds_note,
-        "train": _metrics(renders[train], ps.photos[train]),
-        "test": _metrics(renders[test], ps.photos[test]) if test else None,
-    }
-    atomic_write(done, json.dumps(report, indent=1).encode())
-    return report

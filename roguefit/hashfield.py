@@ -15,6 +15,9 @@ than ``T`` (a dense grid), and through the spatial hash ``(x * 1 ^ y * 265443576
 mod T`` otherwise; a point's feature is the trilinear interpolation of its cell's 8 vertices.
 Pure PyTorch (gathers; their backward is a scatter-add).
 
+Its fitter, :class:`HashFitter` (kind "hash", a :class:`~roguefit.fit.FitConfig` with
+``kind="hash"``), is :class:`~roguefit.fit.GridFitter` making a :class:`HashField` instead.
+
 Dimension legend: P points, L levels, F features per level, G geometry features, K SH coefficients.
 """
 
@@ -27,6 +30,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from roguefit.field import DENSITY_SHIFT, GridField
+from roguefit.fit import FitConfig, GridFitter
 
 HASH_PRIMES = (1, 2654435761, 805459861)
 """Instant-NGP's primes of the spatial hash (x, y, z)."""
@@ -225,3 +229,21 @@ class HashField(GridField):
     def total_variation(self, block: int, generator: torch.Generator) -> Tensor:
         """No grid to smooth: 0 (the hash preset sets ``tv_weight`` 0)."""
         return self.encoding.tables.new_zeros(())
+
+
+class HashFitter(GridFitter):
+    """Fits a :class:`HashField` (kind "hash"): :class:`~roguefit.fit.GridFitter`'s fit, resume
+    and renders; only the field differs (its levels are fixed: the grow plan has one)."""
+
+    @staticmethod
+    def new_field(config: FitConfig, centre: Tensor, radius: float, resolution: int | None = None) -> HashField:
+        """The untrained :class:`HashField` of ``config`` (finest level ``config.resolution``;
+        ``resolution`` is ignored)."""
+        return HashField(centre, radius, levels=config.hash_levels, log2_table=config.hash_log2_table,
+                         features=config.hash_features, base=config.hash_base, finest=config.resolution,
+                         sh_degree=config.sh_degree)
+
+    def _first_field(self, centre: Tensor, radius: float) -> HashField:
+        with torch.random.fork_rng(devices=[]):  # random initial weights from the config's seed alone
+            torch.manual_seed(self.config.seed)
+            return self.new_field(self.config, centre, radius)

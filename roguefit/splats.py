@@ -36,6 +36,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -61,6 +62,8 @@ class SplatConfig:
     """How to fit one splat scene (see the module's docstring). Budgets: ``steps`` wins over
     ``minutes`` when both are given."""
 
+    kind: ClassVar[str] = "splat"
+    """Its key in :data:`roguefit.registry.FITTERS` (not a field: ``identity`` names it ``field``)."""
     steps: int | None = 1000
     minutes: float | None = None
     scale: int = 2
@@ -155,7 +158,9 @@ def one_thread() -> Iterator[None]:
         torch.set_num_threads(threads)
 
 
-class _SplatFitter:
+class SplatFitter:
+    """Fits Gaussian splats (kind "splat"): the :class:`~roguefit.fitter.Fitter` of a :class:`SplatConfig`."""
+
     def __init__(self, ps: PhotoSet, config: SplatConfig, state_dir: Path):
         self.ps, self.config, self.state_dir = ps, config, state_dir
         self.train = ps.indices("train")

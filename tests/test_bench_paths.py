@@ -9,8 +9,7 @@ import pytest
 import torch
 
 from bench.paths import load_field, ray_bounds, render_frame
-from roguefit import make_pairs
-from roguefit.fit import PRESETS, FitConfig
+from roguefit import PRESETS, FitConfig, make_pairs
 from roguenerf.data.readers import load_scene
 from roguenerf.metrics import psnr
 from tests.fit_helpers import write_photo_set

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from roguefit import FitConfig, make_pairs, read_photo_set
-from roguefit.fit import fold_of_views
+from roguefit.pairs import fold_of_views
 from roguenerf.data.readers import load_scene
 from roguenerf.errors import InputError, TrainingCancelled
 from tests.fit_helpers import VIEWS, write_photo_set

@@ -162,7 +162,7 @@ def test_manifest_keeps_the_rows_of_fits_made_in_another_cache(tmp_path):
     """``--manifest`` rewrites the rows of the fits in the cache and keeps the others: a session
     whose cache holds one new fit must not drop the project's other rows."""
     from roguefit.batch import write_manifest
-    from roguefit.fit import FIT_FILE
+    from roguefit.pairs import FIT_FILE
 
     def fit(scene: str, preset: str, psnr: float) -> None:
         folder = tmp_path / "cache" / scene / preset
@@ -319,10 +319,11 @@ def test_distortion_loss_prefers_a_surface_to_fog():
 def test_half_size_render_upsamples_to_the_photo_size_and_stays_close(fitted):
     """The blur preset renders at half size: same shape, nearly the same image and depth on a
     field whose voxels span pixels, and its identity differs from the full-size fit's."""
-    from roguefit.fit import STATE_DIR, _Fitter
+    from roguefit.fit import GridFitter
+    from roguefit.pairs import STATE_DIR
 
     root, out, _, _ = fitted
-    fitter = _Fitter(read_photo_set(root), SMALL, out / STATE_DIR)
+    fitter = GridFitter(read_photo_set(root), SMALL, out / STATE_DIR)
     assert fitter.load()
     full = fitter.render_view(3)
     fitter.config = dataclasses.replace(SMALL, render_scale=2)
@@ -428,12 +429,12 @@ def test_a_fit_config_needs_a_budget_and_a_good_one_passes():
 
 
 def test_real_divergence_is_called_divergence(tmp_path, monkeypatch):
-    from roguefit import fit as fit_module
+    from roguefit.fit import GridFitter
     from roguenerf.errors import TrainingDivergedError
 
     root = tmp_path / "photos"
     write_photo_set(root, views=5)
-    monkeypatch.setattr(fit_module._Fitter, "train_step", lambda self: float("nan"))
+    monkeypatch.setattr(GridFitter, "train_step", lambda self: float("nan"))
     with pytest.raises(TrainingDivergedError, match="non-finite training loss"):
         make_pairs(root, tmp_path / "out", dataclasses.replace(SMALL, steps=3))
     assert not (tmp_path / "out" / "transforms.json").exists()
@@ -454,3 +455,34 @@ def test_make_pairs_never_writes_into_a_folder_it_did_not_write(tmp_path):
             make_pairs(root, output, dataclasses.replace(SMALL, steps=3))
     assert {p: p.read_bytes() for p in before} == before
     assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == ["notes.txt"]
+
+
+def test_every_kind_and_preset_is_registered_and_an_unknown_kind_is_refused(tmp_path):
+    """roguefit.registry: each kind a config can name has a fitter with the Fitter protocol's
+    methods, each preset a registered kind and a note for the help strings; make_pairs refuses a
+    configuration of an unregistered kind before it reads anything."""
+    from roguefit.fit import FIELD_KINDS, GridFitter
+    from roguefit.fitter import Fitter
+    from roguefit.hashfield import HashFitter
+    from roguefit.registry import FITTERS, PRESET_NOTES, PRESETS, describe_presets, fitter_type, presets_of
+    from roguefit.splats import SplatConfig, SplatFitter
+
+    assert set(FIELD_KINDS) | {SplatConfig.kind} == set(FITTERS)
+    methods = {name for name in vars(Fitter) if not name.startswith("_")}
+    assert methods == {"load", "run", "render_view", "summary", "write_extras"}
+    for fitter in FITTERS.values():
+        assert all(callable(getattr(fitter, name)) for name in methods)
+    assert list(PRESETS) == ["blur", "coarse", "fine", "splat", "hash"] and set(PRESET_NOTES) == set(PRESETS)
+    assert [fitter_type(PRESETS[p]) for p in PRESETS] == [GridFitter] * 3 + [SplatFitter, HashFitter]
+    assert presets_of("grid") == ["blur", "coarse", "fine"] and presets_of("splat") == ["splat"]
+    assert describe_presets().startswith("blur (64³ RGB grid, half-size render), coarse (96³ RGB grid)")
+    assert "kind" not in SplatConfig().to_dict()  # a class constant: the splat identity is unchanged
+
+    @dataclasses.dataclass(frozen=True)
+    class Unknown:
+        kind: str = "nerf"
+        hold: int = 8
+
+    with pytest.raises(InputError, match=r"kinds grid, hash, splat .* got Unknown of kind 'nerf'"):
+        make_pairs(tmp_path / "nowhere", tmp_path / "out", Unknown())
+    assert not (tmp_path / "out").exists()

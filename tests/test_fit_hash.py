@@ -14,8 +14,7 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from roguefit import make_pairs, read_photo_set
-from roguefit.fit import PRESETS, FitConfig
+from roguefit import PRESETS, FitConfig, make_pairs, read_photo_set
 from roguefit.hashfield import HASH_PRIMES, HashEncoding, HashField, level_resolutions, spherical_harmonics
 from roguenerf.data.readers import load_scene
 from roguenerf.errors import InputError, TrainingCancelled

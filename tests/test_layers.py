@@ -72,13 +72,18 @@ def test_the_issue_grep_finds_nothing_in_the_library():
     assert proc.returncode == 1 and proc.stdout == ""  # 1: no line matched
 
 
-def _workers_graph() -> dict[str, set[str]]:
+def _module_graph(package: str) -> dict[str, set[str]]:
+    """The imports between a package's modules (its ``__init__`` as the package's own name)."""
     graph = {}
-    for path in _files("workers"):
-        name = f"workers.{path.stem}" if path.stem != "__init__" else "workers"
-        graph[name] = {m for _, m in _imports(path) if m.startswith("workers.") and m != name
-                       and (ROOT / (m.replace(".", "/") + ".py")).is_file()}
+    for path in _files(package):
+        name = f"{package}.{path.stem}" if path.stem != "__init__" else package
+        graph[name] = {m for _, m in _imports(path) if m != name and (
+            m == package or m.startswith(f"{package}.") and (ROOT / (m.replace(".", "/") + ".py")).is_file())}
     return graph
+
+
+def _workers_graph() -> dict[str, set[str]]:
+    return _module_graph("workers")
 
 
 def _circles(graph: dict[str, set[str]]) -> list[str]:
@@ -119,6 +124,22 @@ def test_the_cycle_check_catches_a_cycle(monkeypatch):
     monkeypatch.setattr(sys.modules[__name__], "_workers_graph", lambda: graph)
     with pytest.raises(AssertionError, match="import cycle: .*workers.jobs -> workers.dispatch"):
         test_workers_modules_import_each_other_without_cycles()
+
+
+def test_roguefit_modules_import_each_other_without_cycles():
+    """A kind of field's module (its config and fitter) imports neither the orchestration
+    (``pairs``), nor the registry that lists it, nor the package: ``registry`` imports the kinds,
+    ``pairs`` the registry (CONTRIBUTING.md, Adding a kind of field)."""
+    graph = _module_graph("roguefit")
+    above = {"roguefit", "roguefit.pairs", "roguefit.registry", "roguefit.batch"}
+    for kind in ("roguefit.fit", "roguefit.field", "roguefit.hashfield", "roguefit.splats"):
+        assert not graph[kind] & above, kind
+    assert graph["roguefit.fitter"] <= {"roguefit.photos"}
+    assert "roguefit.registry" in graph["roguefit.pairs"]
+    assert {"roguefit.fit", "roguefit.hashfield", "roguefit.splats"} <= graph["roguefit.registry"]
+    assert "roguefit.splats" not in graph["roguefit.fit"]  # the import circle of issue 50
+    circles = _circles(graph)
+    assert not circles, f"import cycle: {circles[0]}"
 
 
 def test_the_api_settings_live_in_the_service_and_extend_the_workers():

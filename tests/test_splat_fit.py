@@ -141,12 +141,12 @@ def test_the_fit_runs_on_one_thread_and_gives_the_threads_back():
 
 def test_diverged_splats_are_called_divergence_not_bad_input(tmp_path):
     """render refuses non-finite splats as input; a fit whose parameters diverged says so instead."""
-    from roguefit.splats import _SplatFitter
+    from roguefit.splats import SplatFitter
     from roguenerf.errors import TrainingDivergedError
 
     root = tmp_path / "photos"
     write_photo_set(root, views=3)
-    fitter = _SplatFitter(read_photo_set(root), dataclasses.replace(SMALL, steps=3, init_points=50), tmp_path / "s")
+    fitter = SplatFitter(read_photo_set(root), dataclasses.replace(SMALL, steps=3, init_points=50), tmp_path / "s")
     with torch.no_grad():
         fitter.params["sh"][7, 0, 1] = float("nan")  # as a diverged Adam step leaves it
     with pytest.raises(TrainingDivergedError, match=r"non-finite training loss \(nan\) at step 1"):

@@ -1,0 +1,88 @@
+"""What a kind of field provides to make pairs: its configuration and its :class:`Fitter`.
+
+:func:`roguefit.pairs.make_pairs` knows nothing of grids, hash tables or splats: it looks the
+configuration's ``kind`` up in :data:`roguefit.registry.FITTERS` and drives the fitter through
+this protocol (fit, resume, render every view, report). A new kind of field is one module with
+a frozen config dataclass (a :class:`FieldConfig`) and a :class:`Fitter` class, plus one line in
+:data:`roguefit.registry.FITTERS` (CONTRIBUTING.md, "Adding a kind of field").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Protocol
+
+from torch import Tensor
+
+from roguefit.photos import PhotoSet
+
+Progress = Callable[[dict], None]
+"""Called after every step with ``step``, ``fraction`` (of the budget, 0..1), ``psnr`` (a running
+mean of the training loss's), and the kind's own size (``resolution`` or ``gaussians``)."""
+ShouldStop = Callable[[], bool]
+
+
+class FieldConfig(Protocol):
+    """How to fit one field of some kind (a frozen dataclass; validated when made)."""
+
+    @property
+    def kind(self) -> str:
+        """The key of :data:`roguefit.registry.FITTERS` that fits it."""
+
+    @property
+    def steps(self) -> int | None:
+        """The budget in steps (wins over ``minutes``; progress bars count it)."""
+
+    @property
+    def minutes(self) -> float | None: ...
+
+    @property
+    def seed(self) -> int: ...
+
+    @property
+    def hold(self) -> int:
+        """Every ``hold``-th view of the photo set is held out (:func:`~roguefit.photos.read_photo_set`)."""
+
+    @property
+    def folds(self) -> int:
+        """Cross-fitting (:func:`roguefit.pairs.make_pairs`): 1 is one field."""
+
+    def identity(self) -> dict:
+        """The keys that define the result (not the checkpoint cadence): ``fit.json``'s
+        ``config``; a finished output or saved state made with another identity is redone."""
+
+
+class Fitter(Protocol):
+    """One field being fitted to a photo set's training views, resumably.
+
+    Made as ``FitterClass(photo_set, config, state_dir)``: it fits ``photo_set.indices("train")``
+    and keeps its resume state in ``state_dir`` (a folder of its own).
+    """
+
+    step: int
+    """Steps done (the report's ``steps``)."""
+    elapsed: float
+    """Seconds spent fitting, resumed runs included (the report's ``fit_seconds``)."""
+
+    def load(self) -> bool:
+        """Resume from ``state_dir``; False (and a fresh start) when there is no state of this config."""
+
+    def run(self, progress: Progress | None, should_stop: ShouldStop | None) -> None:
+        """Fit until the budget is spent, saving the state now and then, on a stop (then raising
+        :class:`~roguenerf.errors.TrainingCancelled`) and at the end. A non-finite loss raises
+        :class:`~roguenerf.errors.TrainingDivergedError`."""
+
+    def render_view(self, i: int) -> tuple[Tensor, Tensor, Tensor]:
+        """View ``i`` of the photo set at the photo size: RGB ``(3, H, W)`` in [0, 1], z-depth
+        ``(1, H, W)`` float32 (0 where unknown) and accumulated opacity ``(1, H, W)`` in [0, 1]."""
+
+    def summary(self) -> dict:
+        """This kind's own entries of the fit report (``fit.json``) of a one-field fit."""
+
+    def write_extras(self, output: Path) -> None:
+        """Files beside the scene folder that only this kind writes (a one-field fit)."""
+
+
+FitterType = Callable[[PhotoSet, FieldConfig, Path], Fitter]
+"""A :class:`Fitter` class: what :data:`roguefit.registry.FITTERS` maps a kind to."""
