@@ -6,10 +6,11 @@ Legend: T frames, (H, W) render size.
 folder of each frame's render and depth, enhances the frames one by one with one
 :class:`~roguenerf.inference.SceneEnhancer` (each training photo's features are computed once for
 the whole path; with ``EnhanceOptions.temporal`` each neighbour's pose is fitted once too, and
-each frame is blended with the previous one: :mod:`roguenerf.enhance.temporal`), writes each enhanced frame atomically as it is done (an interrupted run resumes
-after the last written frame), then encodes ``enhanced.mp4`` and ``side_by_side.mp4`` (render |
-enhanced, each half labelled) frame by frame. The flicker report is
-:mod:`roguenerf.trajectory.flicker`'s, on two frames held at a time.
+each frame is blended with the previous one: :mod:`roguenerf.enhance.temporal`), writes each
+enhanced frame atomically as it is done (an interrupted run resumes after the last written
+frame), then encodes ``enhanced.mp4`` and ``side_by_side.mp4`` (render | enhanced, each half
+labelled) frame by frame. The flicker report is :mod:`roguenerf.trajectory.flicker`'s, on two
+frames held at a time.
 """
 
 from __future__ import annotations
