@@ -650,8 +650,11 @@ def test_enhance_checks_only_the_views_it_reads(scene_dir, checkpoint, tmp_path)
 
 
 INTERRUPT_PROBE = """
-import _thread, sys, threading
+import _thread, signal, sys, threading
 from roguecli import main
+# A terminal's Ctrl-C reaches a Python that handles SIGINT; a shell's background job (``cmd &``)
+# starts with SIGINT ignored, which interrupt_main then does nothing about: handle it here.
+signal.signal(signal.SIGINT, signal.default_int_handler)
 threading.Timer(float(sys.argv[1]), _thread.interrupt_main).start()  # what Ctrl-C does
 sys.argv = ["roguenerf", *sys.argv[2:]]
 main()
