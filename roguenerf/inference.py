@@ -86,6 +86,12 @@ class EnhanceResult:
     stages: list = field(default_factory=list)
     """What each stage after the model did (:class:`~roguenerf.enhance.stages.StageRecord`, in
     order); empty where none ran (stages off, or fewer than two neighbours)."""
+    timings: dict = field(default_factory=dict)
+    """Wall-clock seconds of each step of this call, in order: ``checks`` (the inputs), ``select``
+    (the neighbour rule), ``align`` (the neighbours' pose fits and the visibility probe), ``model``
+    (reprojection, flow, attention and the restorer, tiles included), ``agreement`` (the
+    neighbours reprojected into the small copy the stages read) and one entry per stage that ran
+    (``colour``, ``trust``). Their sum is ``seconds`` within the bookkeeping between them."""
 
 
 def _check_image(x: Tensor, name: str, channels: int) -> Tensor:
@@ -424,6 +430,14 @@ class SceneEnhancer:
         from roguenerf.models import NeighbourBatch
 
         start = time.perf_counter()
+        timings: dict[str, float] = {}
+        clock = [start]
+
+        def lap(name: str) -> None:
+            now = time.perf_counter()
+            timings[name] = timings.get(name, 0.0) + now - clock[0]
+            clock[0] = now
+
         _check_image(render, "render", 3)
         _check_image(depth, "depth", 1)
         if depth.shape[1:] != render.shape[1:]:
@@ -446,6 +460,7 @@ class SceneEnhancer:
         K_b = K.to(dev)[None]
         pose_b = world_from_cam.to(dev)[None]
 
+        lap("checks")
         measured = None
         if neighbours is None:
             chosen, measured = self._choose(world_from_cam, exclude, (render, depth, K))
@@ -454,6 +469,7 @@ class SceneEnhancer:
             strangers = [n for n, i in zip(neighbours, chosen, strict=True) if i not in self.train]
             if strangers:
                 raise InputError(f"neighbours: {strangers} are not training views of this scene")
+        lap("select")
         note = None
         batch = None
         aligned = None
@@ -473,6 +489,7 @@ class SceneEnhancer:
                 else:
                     batch = self._crop_provider(positions, pose_b[0], n_pose)
 
+        lap("align")
         with torch.inference_mode():
             height, width = render.shape[1:]
             if max(height, width) > self.tile or callable(batch):
@@ -489,6 +506,7 @@ class SceneEnhancer:
             raise NonFiniteOutputError("the enhancer produced non-finite values for this view; the model or "
                                  "its inputs are broken (check the checkpoint and the depth)")
         image = out[0].clamp(0, 1).to("cpu", torch.float32)
+        lap("model")
         state = None
         if self.stages and len(chosen) >= 2:
             from roguenerf.enhance.colour import neighbour_agreement
@@ -498,7 +516,11 @@ class SceneEnhancer:
             agreement = neighbour_agreement(seen, small_image.shape[-2:], *self._agreement_test)
             state = ViewState(image=image, render=render, seen=seen, small_image=small_image, agreement=agreement,
                               test=self._agreement_test, note=note)
-            records = [stage.apply(state) for stage in self.stages]
+            lap("agreement")
+            records = []
+            for stage in self.stages:
+                records.append(stage.apply(state))
+                lap(stage.name)
             image, note = state.image, state.note
         records = records if state is not None else []
         detail = {r.name: r.detail for r in records}
@@ -509,7 +531,7 @@ class SceneEnhancer:
                              aligned=aligned if chosen else ([] if self.align is not None else None),
                              colour_offset=offset, agreement=None if state is None else round(state.share, 4),
                              agreement_map=None if state is None else state.agreement[0],
-                             trust=kept, stages=records, candidates=measured)
+                             trust=kept, stages=records, candidates=measured, timings=timings)
 
     def colour_match(self, positions: list[int], image: Tensor, depth: Tensor, K: Tensor,
                      world_from_cam: Tensor, poses: Tensor):

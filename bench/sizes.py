@@ -1,0 +1,270 @@
+"""Seconds and peak memory per view at the sizes users have, per step, next to the gain.
+
+    python -m bench.sizes --scene runs/speed/dtu_scan37_fine \\
+        [--sizes 504x378,1008x756,1920x1080,2016x1512] [--settings defaults,no-align,no-colour,no-trust]
+        [--views 3] [--cli/--no-cli] [--output bench/results/sizes/sizes]
+
+The scene (a scene folder with renders and depths, e.g. a ``make-pairs`` output) is brought to
+each size once (``runs/sizes/``): centre-cropped to the size's aspect ratio, photos and renders
+resampled with antialiased bicubic, depths with nearest (no depth between a surface and its
+background), intrinsics cropped and scaled. Then, per size and setting, a fresh child process
+loads the scene and the shipped checkpoint as the CLI does and enhances the first ``--views``
+test views one after another. Per view it records the wall-clock seconds of each step the
+enhancer reports (``EnhanceResult.timings``: checks, select, align, model, agreement, colour,
+trust) and the gain (PSNR of the enhanced view minus the render's, against the photo). Per child:
+the peak RSS (``VmHWM``, imports and model included) and the seconds spent loading (imports,
+scene, checkpoint). With ``--cli`` the one-view command as a user runs it (``roguenerf enhance``,
+defaults) is timed too: its wall-clock beside the view time it prints.
+
+Settings: ``defaults``, ``no-align``, ``no-colour``, ``no-trust``, ``neighbours=N``; several
+switches joined by ``+`` (``no-align+no-trust``).
+
+Writes ``OUTPUT.csv`` (one row per view; date, machine, commit), ``OUTPUT.json`` (per size and
+setting: median seconds per view without the first, the first view, peak memory, mean gain) and
+``OUTPUT.png``. Run it on a quiet machine: every figure is a wall-clock time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from bench.common import RESULTS, beside, save_figure, stamp, write_csv, write_json
+
+ROOT = Path(__file__).resolve().parent.parent
+SIZES = "504x378,1008x756,1920x1080,2016x1512"
+SETTINGS = "defaults,no-align,no-colour,no-trust"
+STEPS = ("checks", "select", "align", "model", "agreement", "colour", "trust")
+
+CHILD = r"""
+import json, sys, time
+t0 = time.perf_counter()
+sys.path.insert(0, {repo!r})
+from roguenerf import runtime
+runtime.configure()
+import torch
+from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
+from roguenerf.data.readers import load_scene
+from roguenerf.enhance import EnhanceOptions
+from roguenerf.inference import SceneEnhancer
+from roguenerf.metrics import psnr
+
+scene = load_scene({scene!r})
+model, _ = load_checkpoint(default_checkpoint_path())
+enhancer = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(**{flags!r}))
+loaded = time.perf_counter() - t0
+rows = []
+for view in scene.indices("test")[:{views}]:
+    frame = scene.frames[view]
+    t = time.perf_counter()
+    render, depth, photo = scene.render(view), scene.depth(view), scene.photo(view)
+    io = time.perf_counter() - t
+    result = enhancer.enhance(render, depth, frame.K, frame.world_from_cam)
+    rows.append({{"view": frame.name, "seconds": result.seconds, "io": io, **result.timings,
+                  "neighbours": len(result.neighbours), "render_psnr": float(psnr(render, photo)),
+                  "enhanced_psnr": float(psnr(result.image, photo))}})
+peak = [int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("VmHWM:")][0]
+print(json.dumps({{"rows": rows, "peak_mb": peak / 1024, "load_s": loaded, "wall_s": time.perf_counter() - t0}}))
+"""
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise SystemExit(f"--sizes: expected WIDTHxHEIGHT, got {text!r}") from None
+    if w < 32 or h < 32:
+        raise SystemExit(f"--sizes: {text} is too small (32 px at least)")
+    return w, h
+
+
+def parse_setting(text: str) -> dict:
+    """A setting's ``EnhanceOptions.from_flags`` arguments."""
+    flags: dict = {}
+    for part in text.split("+"):
+        if part == "defaults":
+            continue
+        if part in ("no-align", "no-colour", "no-trust"):
+            flags[part[3:]] = False
+        elif part.startswith("neighbours="):
+            flags["neighbours"] = int(part.split("=", 1)[1])
+        else:
+            raise SystemExit(f"--settings: unknown switch {part!r} (defaults, no-align, no-colour, no-trust, "
+                             "neighbours=N, joined by +)")
+    return flags
+
+
+def sized_scene(scene_dir: Path, size: tuple[int, int], out: Path) -> Path:
+    """``scene_dir`` centre-cropped to ``size``'s aspect ratio and resampled to it, written once."""
+    import torch
+    import torch.nn.functional as F
+
+    from roguenerf.data.readers import load_scene
+    from roguenerf.data.writers import write_scene_folder
+    from roguenerf.geometry import scale_intrinsics
+
+    if (out / "transforms.json").is_file():
+        return out
+    scene = load_scene(scene_dir)
+    w, h = size
+    f0 = scene.frames[0]
+    src_w, src_h = f0.width, f0.height
+    if src_w * h > w * src_h:  # wider than wanted: crop the width
+        cw, ch = round(src_h * w / h), src_h
+    else:
+        cw, ch = src_w, round(src_w * h / w)
+    x0, y0 = (src_w - cw) // 2, (src_h - ch) // 2
+
+    def resample(x, mode):
+        x = x[None, :, y0:y0 + ch, x0:x0 + cw]
+        if mode == "nearest":
+            return F.interpolate(x, size=(h, w), mode="nearest")[0]
+        return F.interpolate(x, size=(h, w), mode="bicubic", antialias=True, align_corners=False)[0].clamp(0, 1)
+
+    Ks = []
+    for f in scene.frames:
+        K = f.K.clone().to(torch.float64)
+        K[0, 2] -= x0  # the crop moves the principal point; edges stay at 0 and W
+        K[1, 2] -= y0
+        Ks.append(scale_intrinsics(K, w / cw, h / ch).float())
+    write_scene_folder(out, names=[f.name for f in scene.frames],
+                       photos=torch.stack([resample(scene.photo(i), "bicubic") for i in range(len(scene))]),
+                       renders=torch.stack([resample(scene.render(i), "bicubic") for i in range(len(scene))]),
+                       depths=torch.stack([resample(scene.depth(i), "nearest") for i in range(len(scene))]),
+                       world_from_cam=scene.poses(), K=torch.stack(Ks), splits=[f.split for f in scene.frames])
+    return out
+
+
+def run_child(scene: Path, flags: dict, views: int) -> dict:
+    code = CHILD.format(repo=str(ROOT), scene=str(scene), flags=flags, views=views)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"the child failed on {scene}:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def run_cli(scene: Path, view: str, tmp: Path) -> dict:
+    """The one-view command as a user runs it: its wall-clock and the view time it prints."""
+    out = tmp / "cli.png"
+    t = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "roguecli", "enhance", str(scene), "--view", view,
+                           "--output", str(out)], capture_output=True, text=True, cwd=ROOT)
+    wall = time.perf_counter() - t
+    if proc.returncode != 0:
+        raise SystemExit(f"roguenerf enhance failed on {scene}:\n{proc.stderr[-3000:]}")
+    said = [line for line in proc.stderr.splitlines() if line.startswith("enhanced ")]
+    view_s = float(said[-1].split(" in ")[1].split(" s")[0]) if said else float("nan")
+    return {"cli_wall_s": round(wall, 3), "cli_view_s": round(view_s, 3)}
+
+
+def summarise(rows: list[dict]) -> list[dict]:
+    out = []
+    for key in dict.fromkeys((r["size"], r["setting"]) for r in rows):
+        mine = [r for r in rows if (r["size"], r["setting"]) == key]
+        later = mine[1:] or mine
+        item = {"size": key[0], "setting": key[1], "views": len(mine),
+                "seconds_per_view": round(statistics.median(r["seconds"] for r in later), 3),
+                "first_view_s": round(mine[0]["seconds"], 3), "peak_mb": round(mine[0]["peak_mb"], 1),
+                "load_s": round(mine[0]["load_s"], 3),
+                "gain_db": round(statistics.fmean(r["enhanced_psnr"] - r["render_psnr"] for r in mine), 3),
+                "worst_view_gain_db": round(min(r["enhanced_psnr"] - r["render_psnr"] for r in mine), 3)}
+        for step in STEPS:
+            item[f"{step}_s"] = round(statistics.median(r.get(step, 0.0) for r in later), 3)
+        for k in ("cli_wall_s", "cli_view_s"):
+            if k in mine[0]:
+                item[k] = mine[0][k]
+        out.append(item)
+    return out
+
+
+def plot(summary: list[dict], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sizes = list(dict.fromkeys(s["size"] for s in summary))
+    settings = list(dict.fromkeys(s["setting"] for s in summary))
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 4.5))
+    for setting in settings:
+        mine = {s["size"]: s for s in summary if s["setting"] == setting}
+        xs = [i for i, size in enumerate(sizes) if size in mine]
+        ax.plot(xs, [mine[sizes[i]]["seconds_per_view"] for i in xs], "o-",
+                label=f"{setting} (gain {statistics.fmean(mine[sizes[i]]['gain_db'] for i in xs):+.2f} dB)")
+    ax.set_xticks(range(len(sizes)), sizes)
+    ax.set_ylabel("seconds per view (median, after the first)")
+    ax.set_title("per view, by setting")
+    ax.legend(fontsize=8)
+    defaults = [next((s for s in summary if s["size"] == size and s["setting"] == settings[0]), None) for size in sizes]
+    bottom = [0.0] * len(sizes)
+    for step in STEPS:
+        heights = [d[f"{step}_s"] if d else 0.0 for d in defaults]
+        bx.bar(range(len(sizes)), heights, bottom=bottom, label=step)
+        bottom = [b + h for b, h in zip(bottom, heights, strict=True)]
+    for i, d in enumerate(defaults):
+        if d:
+            bx.text(i, bottom[i], f"{d['peak_mb'] / 1024:.2f} GB", ha="center", va="bottom", fontsize=8)
+    bx.set_xticks(range(len(sizes)), sizes)
+    bx.set_ylabel("seconds (median per view); peak memory on top")
+    bx.set_title(f"{settings[0]}: per step")
+    bx.legend(fontsize=8)
+    first = summary[0]
+    fig.suptitle(f"bench.sizes  {first.get('date', '')}  {first.get('machine', '')}  {first.get('commit', '')}",
+                 fontsize=8)
+    return save_figure(fig, path)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scene", type=Path, required=True, help="Scene folder with renders and depths.")
+    ap.add_argument("--sizes", default=SIZES, help=f"WIDTHxHEIGHT, comma-separated (default {SIZES}).")
+    ap.add_argument("--settings", default=SETTINGS, help=f"Comma-separated (default {SETTINGS}).")
+    ap.add_argument("--views", type=int, default=3, help="Test views per size and setting (default 3).")
+    ap.add_argument("--cli", action=argparse.BooleanOptionalAction, default=True,
+                    help="Also time the one-view command (roguenerf enhance) per size.")
+    ap.add_argument("--work", type=Path, default=ROOT / "runs" / "sizes", help="Where the resized scenes go.")
+    ap.add_argument("--output", type=Path, default=RESULTS / "sizes" / "sizes")
+    args = ap.parse_args(argv)
+    if not (args.scene / "transforms.json").is_file():
+        raise SystemExit(f"--scene: {args.scene} is not a scene folder (no transforms.json)")
+    if args.views < 1:
+        raise SystemExit(f"--views: expected 1 or more, got {args.views}")
+    sizes = [parse_size(s) for s in args.sizes.split(",")]
+    settings = {s: parse_setting(s) for s in args.settings.split(",")}
+    rows = []
+    for w, h in sizes:
+        folder = sized_scene(args.scene, (w, h), args.work / f"{args.scene.resolve().name}_{w}x{h}")
+        cli = {}
+        if args.cli:
+            from roguenerf.data.readers import load_scene
+
+            view = load_scene(folder).frames[load_scene(folder).indices("test")[0]].name
+            cli = run_cli(folder, view, args.work)
+        for setting, flags in settings.items():
+            child = run_child(folder, flags, args.views)
+            for k, r in enumerate(child["rows"]):
+                row = {**stamp(), "scene": args.scene.resolve().name, "size": f"{w}x{h}", "setting": setting,
+                       **r, "peak_mb": child["peak_mb"], "load_s": child["load_s"], "child_wall_s": child["wall_s"]}
+                if k == 0 and setting == next(iter(settings)):
+                    row.update(cli)
+                rows.append(row)
+            last = summarise([r for r in rows if r["size"] == f"{w}x{h}" and r["setting"] == setting])[0]
+            print(f"{w}x{h} {setting}: {last['seconds_per_view']:.2f} s/view (first {last['first_view_s']:.2f}), "
+                  f"peak {last['peak_mb']:.0f} MB, gain {last['gain_db']:+.2f} dB", flush=True)
+    summary = summarise(rows)
+    for s in summary:
+        s.update({k: rows[0][k] for k in ("date", "machine", "commit")})
+    csv_path = write_csv(beside(args.output, ".csv"), rows)
+    json_path = write_json(beside(args.output, ".json"), {"scene": str(args.scene), "summary": summary})
+    png_path = plot(summary, beside(args.output, ".png"))
+    print(f"wrote {csv_path}, {json_path} and {png_path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
