@@ -109,6 +109,7 @@ def enhance_path_command(
         f, p = result.flicker["flicker"], result.flicker["psnr"]
         resumed = result.frames - result.enhanced_now
         typer.echo(f"enhanced {result.enhanced_now} frames in {result.seconds:.1f} s"
+                   + (f" ({result.frames_per_second:.2f} frames/s)" if result.frames_per_second else "")
                    + (f" ({resumed} already done)" if resumed else "")
                    + f"; neighbour features cached for {result.cached_views} training photos", err=True)
         if f["render"] is not None:

@@ -128,6 +128,9 @@ def test_enhance_path_writes_video_flicker_and_resumes(toy_path, enhancer, tmp_p
     assert (side["frames"], side["width"], side["height"]) == (T, 2 * W, H)
     report = json.loads((out / FLICKER_FILE).read_text())
     assert report["frames"] == T and report["flicker"]["pairs"] == T - 1
+    # Frames per second of the frames made now: not the checks before, nor the videos after.
+    assert report["enhanced_now"] == T and report["frames_per_second"] == pytest.approx(result.frames_per_second)
+    assert result.frames_per_second > T / result.seconds and result.enhance_seconds < result.seconds
     for pair in report["per_pair"]:
         assert pair["valid_fraction"] > 0.3 and pair["render"] > 0 and pair["enhanced"] > 0
     # Frames 0, STEPS, 2 * STEPS sit on scene views 1..3: they have photos and a PSNR gain figure.
@@ -150,6 +153,7 @@ def test_enhance_path_writes_video_flicker_and_resumes(toy_path, enhancer, tmp_p
     assert (out / "frames" / "00002.png").is_file() and not (out / "frames" / "00005.png").exists()
     again = enhance_path(scene, enhancer, cp, root / "frames", out, depth_type="ray", quality=23, video=False)
     assert again.enhanced_now == 1 and (out / "frames" / "00002.png").read_bytes() == first
+    assert again.flicker["enhanced_now"] == 1 and again.frames_per_second == pytest.approx(1 / again.enhance_seconds)
     assert again.flicker["flicker"] == pytest.approx(report["flicker"])
     # Another setting into the same folder is refused instead of mixing frames.
     with pytest.raises(InputError, match="another path"):

@@ -54,6 +54,14 @@ class PathResult:
     cached_views: int = 0
     warnings: list[str] = field(default_factory=list)
     """What went on with ``force=True`` (:func:`~roguenerf.trajectory.check_camera_path`'s message)."""
+    enhance_seconds: float = 0.0
+    """Seconds spent making the frames enhanced by this call (reading, enhancing, smoothing and
+    writing each frame; not the checks before nor the videos after)."""
+
+    @property
+    def frames_per_second(self) -> float | None:
+        """Frames enhanced per second by this call (None where it enhanced none)."""
+        return self.enhanced_now / self.enhance_seconds if self.enhanced_now and self.enhance_seconds > 0 else None
 
 
 def _fingerprint(camera_path: CameraPath, pairs: list[tuple[Path, Path]], checkpoint_id: str, options: dict) -> str:
@@ -194,12 +202,14 @@ def enhance_path(
     per_pair, per_frame = [], []
     prev = None
     done_now = 0
+    making = 0.0
     temporal = None if enhancer.options.temporal is None else TemporalFilter(enhancer.options.temporal)
     last_neighbours = None
     poses = {} if temporal is not None and temporal.config.reuse_poses and enhancer.align is not None else None
     for t in range(total):
         if should_stop is not None and should_stop():
             raise PathCancelled(t)
+        began = time.perf_counter()
         render, depth = load_frame(t)
         out_png = frame_dir / f"{t:05d}.png"
         camera = (camera_path.K[t], camera_path.world_from_cam[t])
@@ -229,6 +239,7 @@ def enhance_path(
             write_png(out_png, image)
             enhanced = _quantise(image)
             done_now += 1
+            making += time.perf_counter() - began
         if temporal is not None:  # the frame as written, whether made now or read back
             temporal.remember(render, enhanced, depth, *camera)
         photo = scene.photo(matches[t]) if matches[t] is not None else None
@@ -251,6 +262,8 @@ def enhance_path(
             progress(t + 1, total)
     report = summarise_flicker(per_pair, per_frame)
     report["frames"] = total
+    report["enhanced_now"] = done_now
+    report["frames_per_second"] = done_now / making if done_now and making > 0 else None
     atomic_write(output / FLICKER_FILE, json.dumps(finite_for_json(report), indent=1).encode())
 
     video_path = sbs_path = None
@@ -265,7 +278,7 @@ def enhance_path(
                 side_video.write(side_by_side(render, enhanced))
     return PathResult(output=output, frames=total, enhanced_now=done_now, seconds=time.perf_counter() - start,
                       video=video_path, side_by_side=sbs_path, flicker=report, cached_views=enhancer.cached_views(),
-                      warnings=warnings)
+                      warnings=warnings, enhance_seconds=making)
 
 
 def _quantise(image: Tensor) -> Tensor:
