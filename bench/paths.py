@@ -13,10 +13,11 @@ downscaled size. Everything is cached in ``--work``: a second run resumes.
     nice -n 15 .venv/bin/python -m bench.paths            # 5 keys x 15 steps = 61 frames
     nice -n 15 .venv/bin/python -m bench.paths --quick    # 3 keys x 4 steps = 9 frames
 
-``--fit`` takes any grid (``coarse``, ``fine``) or hash (``--preset hash``) make-pairs output;
-each frame is rendered within the fitter's own ray bounds (those of the photo set's view nearest
-the camera). A field whose novel views are floaters fails enhance_path's path check whatever the
-path; ``--force`` goes on and keeps the warning in the JSON:
+``--fit`` takes any grid (``coarse``, ``fine``), hash (``--preset hash``) or splat (``--preset
+splat``) make-pairs output; a field's frames are rendered within the fitter's own ray bounds (those
+of the photo set's view nearest the camera), splats as the fitter renders its views. A field
+whose novel views are floaters fails enhance_path's path check whatever the path; ``--force``
+goes on and keeps the warning in the JSON:
 
     python -m bench.paths --fit runs/kinds/pairs/ollie/hash_s2_400steps_1024rays_48samples --factor 1 --force
 
@@ -136,6 +137,30 @@ def render_frame(field, samples, K, pose, width, height, near, far, chunk=16384)
     return rgb, torch.cat(depth).reshape(1, height, width).float()
 
 
+def frame_renderer(fit_dir: Path, scene):
+    """``render(K, pose, width, height) -> (rgb (3, H, W), z-depth (1, H, W))`` of a make-pairs
+    output's fitted field, whatever its kind: a grid or hash field within the fitter's own ray
+    bounds (:func:`ray_bounds`), splats (``--preset splat``: the ``point_cloud.ply`` the fit
+    wrote) as the fitter renders its views (black background; depth unknown, 0, where the
+    splats are not opaque enough)."""
+    from roguefit.splats import PLY_FILE
+
+    if (fit_dir / PLY_FILE).is_file():  # what a splat fit writes (SplatFitter.write_extras)
+        from roguenerf.splats import read_ply
+        from roguenerf.splats import render as render_splats
+
+        gaussians = read_ply(fit_dir / PLY_FILE)
+
+        def splats(K, pose, width, height):
+            rgb, depth, _ = render_splats(gaussians, pose, K, height, width)
+            return rgb.clamp(0, 1), depth.float()
+
+        return splats
+    field, samples = load_field(fit_dir)
+    bounds = ray_bounds(fit_dir, scene)
+    return lambda K, pose, width, height: render_frame(field, samples, K, pose, width, height, *bounds(pose))
+
+
 def key_views(scene, count: int, split: str = "test") -> list[int]:
     """``count`` views of ``split`` ("test" or "all"), in order of azimuth around the cameras'
     centre: the contiguous run with the smallest largest gap."""
@@ -170,15 +195,14 @@ def field_frames(args):
     frames = work / (f"photo_frames_{args.keys}" if args.photo_path else f"frames_{args.keys}x{args.steps}")
     (frames / "rgb").mkdir(parents=True, exist_ok=True)
     (frames / "depth").mkdir(parents=True, exist_ok=True)
-    bounds = ray_bounds(args.fit, scene)
-    field, samples = load_field(args.fit)
+    render = frame_renderer(args.fit, scene)
     started = time.perf_counter()
     rendered = 0
     for t, pose in enumerate(poses):
         rgb_path, depth_path = frames / "rgb" / f"{t:05d}.png", frames / "depth" / f"{t:05d}.npy"
         if rgb_path.is_file() and depth_path.is_file():
             continue
-        rgb, depth = render_frame(field, samples, K, pose, width, height, *bounds(pose))
+        rgb, depth = render(K, pose, width, height)
         atomic_write(depth_path, encode_npy(depth[0].numpy()))
         write_png(rgb_path, rgb)
         rendered += 1

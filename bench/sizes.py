@@ -10,8 +10,8 @@ resampled with antialiased bicubic, depths with nearest (no depth between a surf
 background), intrinsics cropped and scaled. Then, per size and setting, a fresh child process
 loads the scene and the shipped checkpoint as the CLI does and enhances the first ``--views``
 test views one after another. Per view it records the wall-clock seconds of each step the
-enhancer reports (``EnhanceResult.timings``: checks, select, align, model, agreement, colour,
-trust) and the gain (PSNR of the enhanced view minus the render's, against the photo). Per child:
+enhancer reports (``EnhanceResult.timings``: checks, select, probe, align, encode, model,
+agreement, colour, trust) and the gain (PSNR of the enhanced view minus the render's, against the photo). Per child:
 the peak RSS (``VmHWM``, imports and model included) and the seconds spent loading (imports,
 scene, checkpoint). With ``--cli`` the one-view command as a user runs it (``roguenerf enhance``,
 defaults) is timed too: its wall-clock beside the view time it prints.
@@ -39,7 +39,7 @@ from bench.common import RESULTS, beside, save_figure, stamp, write_csv, write_j
 ROOT = Path(__file__).resolve().parent.parent
 SIZES = "504x378,1008x756,1920x1080,2016x1512"
 SETTINGS = "defaults,no-align,no-colour,no-trust"
-STEPS = ("checks", "select", "align", "model", "agreement", "colour", "trust")
+STEPS = ("checks", "select", "probe", "align", "encode", "model", "agreement", "colour", "trust")
 
 CHILD = r"""
 import json, sys, time

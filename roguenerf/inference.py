@@ -88,8 +88,10 @@ class EnhanceResult:
     order); empty where none ran (stages off, or fewer than two neighbours)."""
     timings: dict = field(default_factory=dict)
     """Wall-clock seconds of each step of this call, in order: ``checks`` (the inputs), ``select``
-    (the neighbour rule), ``align`` (the neighbours' pose fits and the visibility probe), ``model``
-    (reprojection, flow, attention and the restorer, tiles included), ``agreement`` (the
+    (the neighbour rule), ``probe`` (whether any neighbour sees the view), ``align`` (the
+    neighbours' pose fits), ``encode`` (the neighbour photos' features, where not cached yet, or
+    the photos read for a per-tile encoding), ``model`` (reprojection, flow, attention and the
+    restorer, tiles included, and a per-tile encoding), ``agreement`` (the
     neighbours reprojected into the small copy the stages read) and one entry per stage that ran
     (``colour``, ``trust``). Their sum is ``seconds`` within the bookkeeping between them."""
 
@@ -475,7 +477,9 @@ class SceneEnhancer:
         aligned = None
         if chosen:
             positions = [self.train.index(i) for i in chosen]
-            if not self._any_neighbour_sees(positions, depth_b, K_b, pose_b):
+            seen_at_all = self._any_neighbour_sees(positions, depth_b, K_b, pose_b)
+            lap("probe")
+            if not seen_at_all:
                 note = NO_NEIGHBOUR_NOTE
                 chosen = []
             else:
@@ -483,13 +487,14 @@ class SceneEnhancer:
                 n_pose, done = self.neighbour_poses(positions, render, depth, K, world_from_cam, memory=pose_memory)
                 aligned = done if self.align is not None else None
                 n_pose = n_pose.to(dev)
+                lap("align")
                 if all(self.cacheable(p) for p in positions):
                     batch = NeighbourBatch(None, None, n_K[None], n_pose[None],
                                            sources=self._cached_sources(positions))
                 else:
                     batch = self._crop_provider(positions, pose_b[0], n_pose)
 
-        lap("align")
+        lap("encode")
         with torch.inference_mode():
             height, width = render.shape[1:]
             if max(height, width) > self.tile or callable(batch):

@@ -1,5 +1,6 @@
 """bench/paths.py's field loading: a path camera placed at a scene view renders, with the fitted
-field and the fitter's own ray bounds, exactly what the fit wrote for that view (grid and hash)."""
+field and the fitter's own ray bounds, exactly what the fit wrote for that view (grid, hash and
+splats)."""
 
 from __future__ import annotations
 
@@ -8,8 +9,9 @@ import dataclasses
 import pytest
 import torch
 
-from bench.paths import load_field, ray_bounds, render_frame
+from bench.paths import frame_renderer, load_field, ray_bounds, render_frame
 from roguefit import PRESETS, FitConfig, make_pairs
+from roguefit.splats import SplatConfig
 from roguenerf.data.readers import load_scene
 from roguenerf.metrics import psnr
 from tests.fit_helpers import write_photo_set
@@ -37,5 +39,23 @@ def test_a_path_camera_at_a_view_renders_what_the_fit_wrote(tmp_path, kind):
         assert 0 < near < far
         rgb, depth = render_frame(field, samples, frame.K.to(torch.float64), frame.world_from_cam.to(torch.float64),
                                   frame.width, frame.height, near, far)
+        assert float(psnr(rgb[None], scene.render(i)[None])[0]) > 45  # 8-bit PNG rounding only
+        assert torch.allclose(depth, scene.depth(i), rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("kind", ["grid", "splat"])
+def test_every_kind_renders_a_path_camera_at_a_view_as_the_fit_did(tmp_path, kind):
+    root = tmp_path / "photos"
+    write_photo_set(root, views=9)
+    out = tmp_path / "pairs"
+    config = CONFIGS["grid"] if kind == "grid" else SplatConfig(steps=40, scale=1, init_points=500,
+                                                                checkpoint_every=20)
+    make_pairs(root, out, config)
+    scene = load_scene(out)
+    render = frame_renderer(out, scene)
+    for i in (scene.indices("test")[0], scene.indices("train")[1]):
+        frame = scene.frames[i]
+        rgb, depth = render(frame.K, frame.world_from_cam, frame.width, frame.height)
+        assert rgb.shape == (3, frame.height, frame.width) and depth.shape == (1, frame.height, frame.width)
         assert float(psnr(rgb[None], scene.render(i)[None])[0]) > 45  # 8-bit PNG rounding only
         assert torch.allclose(depth, scene.depth(i), rtol=1e-4, atol=1e-4)
