@@ -218,19 +218,23 @@ def _align_rows(args, clean, model, checkpoint: Path, head: dict) -> list[dict]:
     return rows
 
 
-def _colour_rows(args, scene, model, checkpoint: Path, head: dict) -> list[dict]:
+def _each_view(args, scene, model, stage: str, per_view) -> list[dict]:
+    """``per_view(enhancer, i, view)`` rows of each test view, enhanced with ``stage`` off."""
     from roguenerf.enhance import EnhanceOptions
-    from roguenerf.enhance.colour import apply_match
     from roguenerf.inference import SceneEnhancer
 
-    enhancer = SceneEnhancer(scene, model, options=EnhanceOptions(colour=None))
-    rows = []
-    for i in _views(scene, args.max_views):
-        view = _View(scene, i)
+    enhancer = SceneEnhancer(scene, model, options=EnhanceOptions(**{stage: None}))
+    return [row for i in _views(scene, args.max_views) for row in per_view(enhancer, i, _View(scene, i))]
+
+
+def _colour_rows(args, scene, model, checkpoint: Path, head: dict) -> list[dict]:
+    from roguenerf.enhance.colour import apply_match
+
+    def per_view(enhancer, i: int, view: _View) -> list[dict]:
         frame, depth = view.frame, scene.depth(i)
         result = enhancer.enhance_view(i)
         positions = [enhancer.train.index(scene.index(n)) for n in result.neighbours]
-        poses = None
+        poses, rows = None, []
         for spec, config in args.settings:
             image, share, changed, seconds = result.image, None, False, 0.0
             if config is not None and len(positions) >= 2:
@@ -249,26 +253,24 @@ def _colour_rows(args, scene, model, checkpoint: Path, head: dict) -> list[dict]
                          "match_seconds": round(seconds, 3), "checkpoint": checkpoint.name})
             print(f"{head['scene']} {frame.name} {spec}: gain {rows[-1]['gain_db']:+.3f} dB, "
                   f"FLIP {rows[-1]['flip_change']:+.4f}", flush=True)
-    return rows
+        return rows
+
+    return _each_view(args, scene, model, "colour", per_view)
 
 
 def _trust_rows(args, scene, model, checkpoint: Path, head: dict) -> list[dict]:
     import torch
 
-    from roguenerf.enhance import EnhanceOptions
     from roguenerf.enhance.trust import TrustConfig, kept_change, local_keep, share_kept, trust_factor
     from roguenerf.geometry import as_world_from_cam
-    from roguenerf.inference import SceneEnhancer
 
-    enhancer = SceneEnhancer(scene, model, options=EnhanceOptions(trust=None))
-    rows = []
-    for i in _views(scene, args.max_views):
-        view = _View(scene, i)
+    def per_view(enhancer, i: int, view: _View) -> list[dict]:
         frame, render, depth = view.frame, view.render, scene.depth(i)
         t0 = time.perf_counter()
         result = enhancer.enhance_view(i)
         seconds = time.perf_counter() - t0
         share, agree = result.agreement, result.agreement_map  # the enhancer's (colour matching's test)
+        rows = []
         for spec in args.settings:
             fallback = render  # what the change not kept leaves
             if spec.startswith("local") and agree is not None:
@@ -292,8 +294,10 @@ def _trust_rows(args, scene, model, checkpoint: Path, head: dict) -> list[dict]:
                          "agreement": None if share is None else round(share, 4), "kept": round(kept, 4),
                          "enhance_seconds": round(seconds, 2), "checkpoint": str(checkpoint)})
         print(f"{head['scene']} {frame.name}: agreement {share if share is None else round(share, 3)}, gains "
-              + " ".join(f"{r['setting']}:{r['gain_db']:+.3f}" for r in rows[-len(args.settings):]), flush=True)
-    return rows
+              + " ".join(f"{r['setting']}:{r['gain_db']:+.3f}" for r in rows), flush=True)
+        return rows
+
+    return _each_view(args, scene, model, "trust", per_view)
 
 
 def measure(args) -> list[dict]:
