@@ -115,6 +115,34 @@ def beside(output: Path, suffix: str) -> Path:
     return base.with_name(base.name + suffix)
 
 
+def caption_line(fig, rows: list[dict], what: str, *, fontsize: int = 7) -> None:
+    """The figure's title: ``what`` (formatted with the first row's columns), then that row's
+    machine, commit and date on one line; none without rows."""
+    if rows:
+        r = rows[0]
+        fig.suptitle(f"{what.format(**r)} | {r['machine'][:60]} | {r['commit']} | {r['date'][:10]}",
+                     fontsize=fontsize)
+
+
+def add_stage_switches(p) -> None:
+    """``--align``, ``--colour`` and ``--trust`` (on / off) on an argparse parser: the inference
+    stages around the model, each on by default as shipped."""
+    p.add_argument("--align", choices=["on", "off"], default="on",
+                   help="neighbour pose refinement at inference (default on, as shipped)")
+    p.add_argument("--colour", choices=["on", "off"], default="on",
+                   help="colour matching to the neighbour photos at inference (default on, as shipped)")
+    p.add_argument("--trust", choices=["on", "off"], default="on",
+                   help="keep only part of the enhancer's change where the neighbours mostly disagree "
+                        "(roguenerf.enhance.trust; default on, as shipped)")
+
+
+def configure_runtime() -> None:
+    """:func:`roguenerf.runtime.configure`, and say what it set."""
+    from roguenerf import runtime
+
+    print(f"runtime: {runtime.configure()}", flush=True)
+
+
 def write_outputs(output: Path, rows: list[dict], plot, *, quick: bool = False) -> tuple[Path, Path]:
     """``OUTPUT[_quick].csv`` and ``OUTPUT[_quick].png`` (``plot(rows, path)``); prints both paths."""
     stem = beside(output, "_quick" if quick else "")

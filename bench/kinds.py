@@ -32,7 +32,19 @@ import json
 import sys
 from pathlib import Path
 
-from bench.common import REPO, RESULTS, SHARED_DATA, beside, save_figure, stamp, write_json, write_outputs
+from bench.common import (
+    REPO,
+    RESULTS,
+    SHARED_DATA,
+    add_stage_switches,
+    beside,
+    caption_line,
+    configure_runtime,
+    save_figure,
+    stamp,
+    write_json,
+    write_outputs,
+)
 
 NOISE_LEVELS = "0/0,0.1/0.01,0.25/0.02,0.5/0.05,1/0.1"
 """The issue's sweep: none, 0.1 deg / 1 %, 0.25 deg / 2 %, 0.5 deg / 5 %, 1 deg / 10 %."""
@@ -67,13 +79,7 @@ def parse_args(argv=None):
                    help=f"pose-noise levels deg/share, comma-separated (default {NOISE_LEVELS}; '' for none)")
     p.add_argument("--neighbours", type=lambda t: [int(x) for x in t.split(",") if x], default=[],
                    help="zero-shot neighbour sweep: comma-separated counts (e.g. 2,3,4,5; default: the model's only)")
-    p.add_argument("--align", choices=["on", "off"], default="on",
-                   help="neighbour pose refinement at inference (default on, as shipped)")
-    p.add_argument("--colour", choices=["on", "off"], default="on",
-                   help="colour matching to the neighbour photos at inference (default on, as shipped)")
-    p.add_argument("--trust", choices=["on", "off"], default="on",
-                   help="keep only part of the enhancer's change where the neighbours mostly disagree "
-                        "(roguenerf.enhance.trust; default on, as shipped)")
+    add_stage_switches(p)
     p.add_argument("--finetune-depth-noise", type=float, default=0.0,
                    help="fine-tune with TrainConfig.depth_noise (log-depth error on half the target depths; "
                         "default 0, as shipped); cached apart")
@@ -401,18 +407,13 @@ def plot(rows: list[dict], path: Path) -> Path:
                       "(rotation RMS / translation RMS, share of the spread)", fontsize=8)
     right.set_xlabel("zero-shot, neighbours per view (star: the default, at its mean count);\n"
                      "dashes: worst view", fontsize=8)
-    if rows:
-        r = rows[0]
-        fig.suptitle(f"{r['kind']} fields, checkpoint {r['checkpoint']} | {r['machine'][:60]} | {r['commit']} | "
-                     f"{r['date'][:10]}", fontsize=7)
+    caption_line(fig, rows, "{kind} fields, checkpoint {checkpoint}")
     return save_figure(fig, path)
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    from roguenerf import runtime
-
-    print(f"runtime: {runtime.configure()}", flush=True)
+    configure_runtime()
     rows, fits = run(args)
     # --output is a stem: a dot in it (hash_ft0.6) is part of the name, not a suffix to replace.
     name = args.output.name

@@ -14,7 +14,7 @@ import argparse
 import json
 from pathlib import Path
 
-from bench.common import beside, save_figure, stamp, write_csv
+from bench.common import beside, caption_line, save_figure, stamp, write_csv
 
 PANELS = ((0.0, 0.0), (0.25, 0.02), (0.5, 0.05))
 """Zero-shot pose-noise levels plotted (degrees, share): none, the issue's 0.25° / 2 % and 0.5° / 5 %."""
@@ -69,8 +69,7 @@ def plot(rows: list[dict], path: Path) -> Path:
         ax.set_title(f"zero-shot, pose noise {deg:g}° / {share:.0%}", fontsize=8)
     axes[0].set_ylabel("PSNR gain over renders, held-out views (dB)", fontsize=8)
     axes[0].legend(fontsize=7)
-    s = stamp()
-    fig.suptitle(f"leave-one-kind-out | {s['machine'][:60]} | {s['commit']} | {s['date'][:10]}", fontsize=7)
+    caption_line(fig, [stamp()], "leave-one-kind-out")
     return save_figure(fig, path)
 
 

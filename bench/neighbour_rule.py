@@ -28,7 +28,7 @@ import json
 import time
 from pathlib import Path
 
-from bench.common import REPO, RESULTS, save_figure, stamp, write_json, write_outputs
+from bench.common import REPO, RESULTS, caption_line, configure_runtime, save_figure, stamp, write_json, write_outputs
 
 RULES = {
     "measured": {"measured": True},
@@ -334,10 +334,7 @@ def plot(rows: list[dict], path: Path) -> Path:
     ax.axhline(0, color="grey", lw=0.8)
     ax.set_ylabel("mean PSNR gain over the renders (dB), zero-shot", fontsize=8)
     ax.legend(fontsize=7, ncol=2)
-    if rows:
-        r = rows[0]
-        fig.suptitle(f"neighbour choice per view | {r['checkpoint']} | {r['machine'][:60]} | {r['commit']} | "
-                     f"{r['date'][:10]}", fontsize=7)
+    caption_line(fig, rows, "neighbour choice per view | {checkpoint}")
     return save_figure(fig, path)
 
 
@@ -368,13 +365,12 @@ def main(argv=None) -> int:
         return 0
     from tqdm import tqdm
 
-    from roguenerf import runtime
     from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
     from roguenerf.data.readers import load_scene
     from roguenerf.imageio import atomic_write
     from roguenerf.inference import SceneEnhancer
 
-    print(f"runtime: {runtime.configure()}", flush=True)
+    configure_runtime()
     checkpoint = args.checkpoint or default_checkpoint_path()
     model, _ = load_checkpoint(checkpoint)
     base = stamp()

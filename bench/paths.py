@@ -260,7 +260,8 @@ def main() -> None:
                         help="neighbour pose refinement (default on, as shipped)")
     parser.add_argument("--colour", default="on",
                         help="colour matching to the neighbour photos: on (default, as shipped), off, or a "
-                             "setting FIELD=VALUE[:FIELD=VALUE] of ColourConfig (bench.colour's --configs)")
+                             "setting FIELD=VALUE[:FIELD=VALUE] of ColourConfig (as bench.stage_settings "
+                             "--stage colour --settings)")
     parser.add_argument("--trust", choices=["on", "off"], default="on",
                         help="keep only part of the enhancer's change where the neighbours mostly disagree "
                              "(roguenerf.enhance.trust; default on, as shipped)")
@@ -278,7 +279,7 @@ def main() -> None:
         "an exact-geometry toy orbit instead of the fitted field (renders: the photos through "
         "roguenerf's NeRF-like Degradation, drawn anew per frame)"))
     args = parser.parse_args()
-    from bench.colour import colour_config
+    from bench.stage_settings import colour_config
     from roguenerf.errors import InputError
 
     colour = {"on": True, "off": False}.get(args.colour)

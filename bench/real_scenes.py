@@ -39,7 +39,7 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from bench.common import RESULTS, save_figure, scene_label, stamp, write_outputs
+from bench.common import RESULTS, add_stage_switches, configure_runtime, save_figure, scene_label, stamp, write_outputs
 
 PLANS = {
     "default": {},
@@ -74,13 +74,7 @@ def parse_args(argv=None):
     p.add_argument("--old-checkpoint", type=Path, default=None, help="the checkpoint to compare zero-shot against")
     p.add_argument("--minutes", type=_floats, default=[1, 3, 10], help="comma-separated fine-tuning budgets")
     p.add_argument("--max-views", type=int, default=None)
-    p.add_argument("--align", choices=["on", "off"], default="on",
-                   help="neighbour pose refinement at inference (default on, as shipped)")
-    p.add_argument("--colour", choices=["on", "off"], default="on",
-                   help="colour matching to the neighbour photos at inference (default on, as shipped)")
-    p.add_argument("--trust", choices=["on", "off"], default="on",
-                   help="keep only part of the enhancer's change where the neighbours mostly disagree "
-                        "(roguenerf.enhance.trust; default on, as shipped)")
+    add_stage_switches(p)
     p.add_argument("--plans", type=lambda t: [x for x in t.split(",") if x], default=["default"],
                    help=f"comma-separated fine-tuning plans: {', '.join(PLANS)}")
     p.add_argument("--replot", type=Path, nargs="+", default=None, metavar="CSV",
@@ -288,9 +282,7 @@ def main(argv=None) -> int:
     if args.replot:
         write_outputs(args.output, merge(args.replot), plot)
         return 0
-    from roguenerf import runtime
-
-    print(f"runtime: {runtime.configure()}", flush=True)
+    configure_runtime()
     run(args, save=lambda rows: write_outputs(args.output, rows, plot, quick=args.quick))
     return 0
 

@@ -19,7 +19,17 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from bench.common import LEGO, RESULTS, save_figure, scene_metrics, stamp, starting_checkpoint, write_outputs
+from bench.common import (
+    LEGO,
+    RESULTS,
+    caption_line,
+    configure_runtime,
+    save_figure,
+    scene_metrics,
+    stamp,
+    starting_checkpoint,
+    write_outputs,
+)
 
 
 def _floats(text: str) -> list[float]:
@@ -114,17 +124,13 @@ def plot(rows: list[dict], path: Path) -> Path:
     right.set_xlabel("inference latency per view (s)")
     right.set_ylabel("PSNR gain (dB)")
     right.set_title("gain vs variant")
-    if rows:
-        fig.suptitle(f"{rows[0]['scene']} test views | {rows[0]['machine'][:60]} | {rows[0]['commit']} | "
-                     f"{rows[0]['date'][:10]}", fontsize=8)
+    caption_line(fig, rows, "{scene} test views", fontsize=8)
     return save_figure(fig, path)
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    from roguenerf import runtime
-
-    print(f"runtime: {runtime.configure()}", flush=True)
+    configure_runtime()
     write_outputs(args.output, run(args), plot, quick=args.quick)
     return 0
 

@@ -48,7 +48,7 @@ from pathlib import Path
 
 import torch
 
-from bench.common import beside, stamp, write_csv, write_json
+from bench.common import beside, save_figure, stamp, write_csv, write_json
 from roguenerf import native, runtime
 from roguenerf.fastpath import reference_mode
 from roguenerf.models import VARIANTS, NeighbourBatch, Uformer, build_enhancer
@@ -272,8 +272,7 @@ def plot(rows: list[dict], summaries: list[dict], path: Path) -> None:
     s0 = rows[0]
     fig.suptitle(f"RoGUENeRF enhancement profile - peak {summaries[0]['peak_gflops']:.0f} GFLOP/s - "
                  f"{s0['date']} - {s0['commit']}\n{s0['machine']}", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path)
 
 
 def main(argv=None) -> None:

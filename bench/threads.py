@@ -24,6 +24,7 @@ child builds the variant with random weights, caches 5 neighbours' sampling sour
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
@@ -31,7 +32,7 @@ import sys
 import time
 from pathlib import Path
 
-from bench.common import beside, stamp, write_csv
+from bench.common import beside, save_figure, stamp, write_csv
 
 CHILD = r"""
 import json, statistics, sys, time
@@ -77,6 +78,22 @@ def _clean_env() -> dict:
             if k not in ("OMP_WAIT_POLICY", "OMP_NUM_THREADS", "GOMP_SPINCOUNT")}
 
 
+@contextlib.contextmanager
+def competing(env: dict | None):
+    """A process keeping both cores busy (``COMPETITOR``, in ``env``) while the block runs, started
+    2 s before it; none for ``env`` None (idle)."""
+    if env is None:
+        yield
+        return
+    competitor = subprocess.Popen([sys.executable, "-c", COMPETITOR], env=env)
+    time.sleep(2.0)
+    try:
+        yield
+    finally:
+        competitor.kill()
+        competitor.wait()
+
+
 def run_cli_evaluate(scene: Path, extra_env: dict) -> dict:
     """One ``roguenerf evaluate SCENE --json`` process: wall seconds, the CLI's seconds per view."""
     env = {**_clean_env(), **extra_env}
@@ -94,11 +111,7 @@ def run_cli_evaluate(scene: Path, extra_env: dict) -> dict:
 def cli_main(args, meta: dict) -> None:
     rows = []
     for load in ("idle", "competing process"):
-        competitor = None
-        if load != "idle":
-            competitor = subprocess.Popen([sys.executable, "-c", COMPETITOR], env=_clean_env())
-            time.sleep(2.0)
-        try:
+        with competing(None if load == "idle" else _clean_env()):
             for trial in range(1 if load == "idle" else max(1, args.trials)):
                 for label, extra in CLI_CONFIGS:
                     r = run_cli_evaluate(args.cli_evaluate, extra)
@@ -106,10 +119,6 @@ def cli_main(args, meta: dict) -> None:
                                  "load": load, "setting": label, "trial": trial, **r})
                     print(f"{load:18s} {label:40s} trial {trial}: {r['wall_s']:.1f} s "
                           f"({r['seconds_per_view']:.3f} s/view, load {r['loadavg_1min_before']})", flush=True)
-        finally:
-            if competitor is not None:
-                competitor.kill()
-                competitor.wait()
     write_csv(beside(args.output, ".csv"), rows)
     print(f"wrote {beside(args.output, '.csv')}")
 
@@ -145,14 +154,12 @@ def main(argv=None) -> None:
     meta = stamp()
     rows = []
     for load, competitor_policy in LOADS:
-        competitor = None
+        env = None
         if load != "idle":
             env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "OMP_NUM_THREADS")}
             if competitor_policy:
                 env["OMP_WAIT_POLICY"] = competitor_policy
-            competitor = subprocess.Popen([sys.executable, "-c", COMPETITOR], env=env)
-            time.sleep(2.0)
-        try:
+        with competing(env):
             for threads, policy, keep in CONFIGS:
                 if load != "idle" and not keep:
                     continue
@@ -164,10 +171,6 @@ def main(argv=None) -> None:
                     rows.append(row)
                     print(f"{load:18s} threads={threads} policy={policy or 'default':8s} keep_freed={keep!s:5s} "
                           f"trial {trial}: {r['seconds']:.3f} s", flush=True)
-        finally:
-            if competitor is not None:
-                competitor.kill()
-                competitor.wait()
     write_csv(beside(args.output, ".csv"), rows)
     plot(rows, beside(args.output, ".png"))
     print(f"wrote {beside(args.output, '.csv')} and {beside(args.output, '.png')}")
@@ -197,8 +200,7 @@ def plot(rows: list[dict], path: Path) -> None:
     r0 = rows[0]
     ax.set_title(f"{r0['variant']} {r0['width']}x{r0['height']}, 5 neighbours - {r0['date']} - {r0['commit']}\n"
                  f"{r0['machine']}", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path)
 
 
 if __name__ == "__main__":

@@ -29,38 +29,28 @@ from pathlib import Path
 
 from bench.common import stamp, write_json
 from service.settings import Settings
-from tests.service_helpers import (
-    FAST,
-    LiveServer,
-    PostgresServer,
-    WorkerProcess,
-    redis_server,
-    register,
-    toy_upload,
-    wait_job,
-    wait_until,
-)
+from tests import service_helpers as helpers
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def _settings(root: Path, redis_url: str, db_url: str) -> Settings:
-    return Settings(data_dir=root / "data", redis_url=redis_url, database_url=db_url, max_attempts=3, **FAST)
+    return Settings(data_dir=root / "data", redis_url=redis_url, database_url=db_url, max_attempts=3, **helpers.FAST)
 
 
-def throughput(pg: PostgresServer, toy: dict, root: Path, *, n_workers: int, jobs: int, steps: int) -> dict:
+def throughput(pg: helpers.PostgresServer, toy: dict, root: Path, *, n_workers: int, jobs: int, steps: int) -> dict:
     (root / "redis").mkdir(parents=True)
-    with redis_server(root / "redis") as redis_url:
+    with helpers.redis_server(root / "redis") as redis_url:
         settings = _settings(root, redis_url, pg.new_database())
-        workers = [WorkerProcess(settings, root / f"w{i}.log") for i in range(n_workers)]
+        workers = [helpers.WorkerProcess(settings, root / f"w{i}.log") for i in range(n_workers)]
         try:
-            with LiveServer(settings) as live, live.client() as c:
-                scenes = [register(c, toy["zip"], toy["checkpoint"]).json()["id"] for _ in range(jobs)]
+            with helpers.LiveServer(settings) as live, live.client() as c:
+                scenes = [helpers.register(c, toy["zip"], toy["checkpoint"]).json()["id"] for _ in range(jobs)]
                 for w in workers:
                     w.wait_ready(timeout=180)
                 t0 = time.perf_counter()
                 ids = [c.post(f"/scenes/{sid}/finetune", json={"steps": steps}).json()["id"] for sid in scenes]
-                done = [wait_job(c, j, {"succeeded", "failed", "cancelled"}, timeout=1800) for j in ids]
+                done = [helpers.wait_job(c, j, {"succeeded", "failed", "cancelled"}, timeout=1800) for j in ids]
                 wall = time.perf_counter() - t0
             assert all(j["state"] == "succeeded" for j in done), [j["state"] for j in done]
             per_worker = [w.log().count(": attempt ") for w in workers]
@@ -71,25 +61,27 @@ def throughput(pg: PostgresServer, toy: dict, root: Path, *, n_workers: int, job
             "jobs_per_hour": round(jobs / wall * 3600, 1), "jobs_taken_per_worker": per_worker}
 
 
-def failover(pg: PostgresServer, toy: dict, root: Path) -> dict:
+def failover(pg: helpers.PostgresServer, toy: dict, root: Path) -> dict:
     (root / "redis").mkdir(parents=True)
-    with redis_server(root / "redis") as redis_url:
+    with helpers.redis_server(root / "redis") as redis_url:
         settings = _settings(root, redis_url, pg.new_database())
-        workers = [WorkerProcess(settings, root / f"w{i}.log") for i in range(2)]
+        workers = [helpers.WorkerProcess(settings, root / f"w{i}.log") for i in range(2)]
         try:
-            with LiveServer(settings) as live, live.client() as c:
-                sid = register(c, toy["zip"], toy["checkpoint"]).json()["id"]
+            with helpers.LiveServer(settings) as live, live.client() as c:
+                sid = helpers.register(c, toy["zip"], toy["checkpoint"]).json()["id"]
                 for w in workers:
                     w.wait_ready(timeout=180)
                 job = c.post(f"/scenes/{sid}/finetune", json={"steps": 100_000}).json()["id"]
-                wait_until(lambda: (c.get(f"/jobs/{job}").json()["step"] or 0) >= 2, timeout=120, what="training")
+                helpers.wait_until(lambda: (c.get(f"/jobs/{job}").json()["step"] or 0) >= 2, timeout=120,
+                                   what="training")
                 time.sleep(3 * settings.checkpoint_every_s + 0.2)
                 victim = next(w for w in workers if job in w.log())
                 killed_at = time.perf_counter()
                 victim.kill9()
                 step = c.get(f"/jobs/{job}").json()["step"]
-                wait_until(lambda: (j := c.get(f"/jobs/{job}").json())["attempt"] == 2 and (j["step"] or 0) > step,
-                           timeout=120, interval=0.05, what="resumed on the other worker")
+                helpers.wait_until(lambda: (j := c.get(f"/jobs/{job}").json())["attempt"] == 2
+                                   and (j["step"] or 0) > step,
+                                   timeout=120, interval=0.05, what="resumed on the other worker")
                 seconds = time.perf_counter() - killed_at
                 c.post(f"/jobs/{job}/cancel")
         finally:
@@ -108,8 +100,8 @@ def main() -> None:
     args = parser.parse_args()
     root = Path(tempfile.mkdtemp(prefix="roguenerf-bench-workers-"))
     try:
-        toy = toy_upload(root / "toy")
-        with PostgresServer() as pg:
+        toy = helpers.toy_upload(root / "toy")
+        with helpers.PostgresServer() as pg:
             runs = []
             for n in args.workers:
                 runs.append(throughput(pg, toy, root / f"run{n}", n_workers=n, jobs=args.jobs, steps=args.steps))
@@ -119,8 +111,8 @@ def main() -> None:
     finally:
         shutil.rmtree(root, ignore_errors=True)
     out = {**stamp(), "queue": "redis", "database": "postgresql",
-           "job": {"scene": "toy 64x48, 6 train + 2 test views", "model": "micro", "crop": FAST["finetune_crop"],
-                   "batch": FAST["finetune_batch"], "evaluate": False},
+           "job": {"scene": "toy 64x48, 6 train + 2 test views", "model": "micro",
+                   "crop": helpers.FAST["finetune_crop"], "batch": helpers.FAST["finetune_batch"], "evaluate": False},
            "throughput": runs, "failover": fail}
     write_json(args.output, out)
     print(f"wrote {args.output}")

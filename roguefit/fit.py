@@ -24,8 +24,9 @@ from safetensors.torch import load_file, save_file
 from torch import Tensor
 
 from roguefit.field import GridField, scene_frame, seen_by_cameras
+from roguefit.fitter import fit_steps
 from roguefit.photos import PhotoSet
-from roguenerf.errors import InputError, TrainingCancelled, TrainingDivergedError
+from roguenerf.errors import InputError
 from roguenerf.imageio import atomic_write
 
 log = logging.getLogger("roguefit")
@@ -298,38 +299,28 @@ class GridFitter:
     def run(self, progress: Callable[[dict], None] | None, should_stop: Callable[[], bool] | None) -> None:
         c = self.config
         last_save = time.monotonic()
-        mse_avg = None
-        while self.fraction() < 1.0:
+
+        def grow() -> None:
             while self.level + 1 < len(self.levels) and self.fraction() >= c.grow_at[self.level]:
                 self.level += 1
                 self.field.upsample(self.levels[self.level])
                 self.field.use_mlp = True
                 self._make_optimizer()
                 self.field.prune(self.seen)
-            t0 = time.perf_counter()
-            try:
-                mse = self.train_step()
-            except KeyboardInterrupt:
-                self.save()
-                raise
-            self.step += 1
+
+        def prune() -> None:
             if self.step % c.prune_every == 0 and self.fraction() > 0.05:
                 self.field.prune(self.seen)
-            self.elapsed += time.perf_counter() - t0
-            mse_avg = mse if mse_avg is None else 0.95 * mse_avg + 0.05 * mse
-            if not math.isfinite(mse):  # the configuration was checked: this is real divergence
-                raise TrainingDivergedError(self.step, mse)
-            if progress is not None:
-                progress({"step": self.step, "fraction": min(self.fraction(), 1.0),
-                          "psnr": -10 * math.log10(max(mse_avg, 1e-10)), "resolution": self.field.resolution,
-                          "occupied": float(self.field.occupancy.float().mean())})
-            if should_stop is not None and should_stop():
-                self.save()
-                raise TrainingCancelled(f"fit stopped at step {self.step}; run again to resume")
+
+        def checkpoint() -> None:
+            nonlocal last_save
             if time.monotonic() - last_save > c.checkpoint_every_s:
                 self.save()
                 last_save = time.monotonic()
-        self.save()
+
+        fit_steps(self, progress, should_stop, before_step=grow, after_step=prune, checkpoint=checkpoint,
+                  report=lambda: {"resolution": self.field.resolution,
+                                  "occupied": float(self.field.occupancy.float().mean())})
 
     def summary(self) -> dict:
         """This field's own entries of the fit report."""

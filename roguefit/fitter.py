@@ -9,6 +9,8 @@ a frozen config dataclass (a :class:`FieldConfig`) and a :class:`Fitter` class, 
 
 from __future__ import annotations
 
+import math
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol
@@ -16,6 +18,7 @@ from typing import Protocol
 from torch import Tensor
 
 from roguefit.photos import PhotoSet
+from roguenerf.errors import TrainingCancelled, TrainingDivergedError
 
 Progress = Callable[[dict], None]
 """Called after every step with ``step``, ``fraction`` (of the budget, 0..1), ``psnr`` (a running
@@ -82,6 +85,43 @@ class Fitter(Protocol):
 
     def write_extras(self, output: Path) -> None:
         """Files beside the scene folder that only this kind writes (a one-field fit)."""
+
+
+def fit_steps(fitter, progress: Progress | None, should_stop: ShouldStop | None, *, report: Callable[[], dict],
+              after_step: Callable[[], None], checkpoint: Callable[[], None],
+              before_step: Callable[[], None] | None = None) -> None:
+    """The fitting loop of every kind (:meth:`Fitter.run`): ``fitter.train_step()`` (which returns
+    the step's MSE) until ``fitter.fraction()`` of the budget is 1, counting ``fitter.step`` and
+    ``fitter.elapsed`` (``after_step`` included: the kind's pruning or densifying), then
+    ``fitter.save()`` at the end, on Ctrl-C inside a step (re-raised) and on a stop (raising
+    :class:`~roguenerf.errors.TrainingCancelled`). ``before_step`` (growing a grid) runs untimed;
+    ``progress`` gets ``step``, ``fraction``, ``psnr`` (a running mean's) and ``report()``;
+    ``checkpoint()`` then saves when the kind's cadence says so. A non-finite MSE raises
+    :class:`~roguenerf.errors.TrainingDivergedError`."""
+    mse_avg = None
+    while fitter.fraction() < 1.0:
+        if before_step is not None:
+            before_step()
+        t0 = time.perf_counter()
+        try:
+            mse = fitter.train_step()
+        except KeyboardInterrupt:
+            fitter.save()
+            raise
+        fitter.step += 1
+        after_step()
+        fitter.elapsed += time.perf_counter() - t0
+        if not math.isfinite(mse):  # the configuration was checked: this is real divergence
+            raise TrainingDivergedError(fitter.step, mse)
+        mse_avg = mse if mse_avg is None else 0.95 * mse_avg + 0.05 * mse
+        if progress is not None:
+            progress({"step": fitter.step, "fraction": min(fitter.fraction(), 1.0),
+                      "psnr": -10 * math.log10(max(mse_avg, 1e-10)), **report()})
+        if should_stop is not None and should_stop():
+            fitter.save()
+            raise TrainingCancelled(f"fit stopped at step {fitter.step}; run again to resume")
+        checkpoint()
+    fitter.save()
 
 
 FitterType = Callable[[PhotoSet, FieldConfig, Path], Fitter]

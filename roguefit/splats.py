@@ -32,7 +32,6 @@ import json
 import logging
 import math
 import os
-import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -44,8 +43,9 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 from torch import Tensor
 
+from roguefit.fitter import fit_steps
 from roguefit.photos import PhotoSet
-from roguenerf.errors import InputError, TrainingCancelled, TrainingDivergedError
+from roguenerf.errors import InputError
 from roguenerf.splats import Gaussians, logit, render, write_ply
 from roguenerf.splats.sh import C0
 
@@ -359,31 +359,17 @@ class SplatFitter:
 
     def _run(self, progress: Callable[[dict], None] | None, should_stop: Callable[[], bool] | None) -> None:
         c = self.config
-        mse_avg = None
-        while self.fraction() < 1.0:
-            t0 = time.perf_counter()
-            try:
-                mse = self.train_step()
-            except KeyboardInterrupt:
-                self.save()
-                raise
-            self.step += 1
-            f = self.fraction()
-            if c.densify_from <= f < c.densify_until and self.step % c.densify_every == 0:
+
+        def densify() -> None:
+            if c.densify_from <= self.fraction() < c.densify_until and self.step % c.densify_every == 0:
                 self.densify_and_prune()
-            self.elapsed += time.perf_counter() - t0
-            if not math.isfinite(mse):  # the configuration was checked: this is real divergence
-                raise TrainingDivergedError(self.step, mse)
-            mse_avg = mse if mse_avg is None else 0.95 * mse_avg + 0.05 * mse
-            if progress is not None:
-                progress({"step": self.step, "fraction": min(self.fraction(), 1.0),
-                          "psnr": -10 * math.log10(max(mse_avg, 1e-10)), "gaussians": len(self.params["means"])})
-            if should_stop is not None and should_stop():
-                self.save()
-                raise TrainingCancelled(f"fit stopped at step {self.step}; run again to resume")
+
+        def checkpoint() -> None:
             if self.step % c.checkpoint_every == 0:
                 self.save()
-        self.save()
+
+        fit_steps(self, progress, should_stop, after_step=densify, checkpoint=checkpoint,
+                  report=lambda: {"gaussians": len(self.params["means"])})
 
     def summary(self) -> dict:
         """The splats' own entries of the fit report."""

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 import math
 import os
 import secrets
@@ -471,17 +472,34 @@ def atomic_write(path: str | os.PathLike, data: bytes, *, make_parents: bool = F
     return path
 
 
+def read_json(path: Path, fail: Callable[[str], Exception], *, missing: str, unreadable: str):
+    """The JSON value in the UTF-8 file ``path``; ``fail(message)`` is raised where there is no such
+    file (``missing``) or it cannot be read or parsed (``unreadable``, the reason in brackets)."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise fail(missing) from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise fail(f"{unreadable} ({exc})") from None
+
+
+def holds_files(folder: Path, not_a_folder: Callable[[], Exception]) -> bool:
+    """Whether the would-be output ``folder`` exists and holds anything: False where it does not
+    exist or is empty; ``not_a_folder()`` is raised where it is something else than a folder."""
+    if not folder.exists():
+        return False
+    if not folder.is_dir():
+        raise not_a_folder()
+    return any(folder.iterdir())
+
+
 def check_output_folder(final: Path, replaceable: Callable[[Path], bool], what: str = "output", *,
                         owned: Callable[[Path], Iterable[str]] | None = None) -> None:
     """An output folder may be new, empty, or an earlier output of the same command
     (``replaceable(final)``: the command's own marker), which is then replaced whole; anything else
     is an :class:`InputError`. ``owned(final)``: the files (relative POSIX paths) that earlier output
     wrote; a folder holding any other file is refused too, since replacing it would delete that file."""
-    if not final.exists():
-        return
-    if not final.is_dir():
-        raise InputError(f"{what}: {final} exists and is not a folder; choose a new folder")
-    if not any(final.iterdir()):
+    if not holds_files(final, lambda: InputError(f"{what}: {final} exists and is not a folder; choose a new folder")):
         return
     if not replaceable(final):
         raise InputError(f"{what}: {final} exists and is not empty: it holds other files, not an earlier "

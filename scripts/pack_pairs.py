@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from roguenerf.imageio import foreign_files
+from roguenerf.imageio import foreign_files, holds_files
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -41,11 +41,7 @@ def _save_jpeg(src: Path, dst: Path, quality: int) -> float:
 def check_out(out: Path) -> None:
     """``out`` may be new, empty, or a folder this script packed holding nothing else (it is then
     replaced); anything else (a dataset, a folder of the user's) is refused before any work."""
-    if not out.exists():
-        return
-    if not out.is_dir():
-        raise SystemExit(f"{out}: exists and is not a folder; choose a new --out")
-    if not any(out.iterdir()):
+    if not holds_files(out, lambda: SystemExit(f"{out}: exists and is not a folder; choose a new --out")):
         return
     try:
         meta = json.loads((out / "transforms.json").read_text())

@@ -1,11 +1,11 @@
-"""bench/align_cost.py end to end on a toy scene: both settings per view, in one run, with the
-pose-noise level; the refinement is used where the poses are wrong."""
+"""bench/stage_settings.py --stage align end to end on a toy scene: both settings per view, in one
+run, with the pose-noise level; the refinement is used where the poses are wrong."""
 
 from __future__ import annotations
 
 import csv
 
-from bench import align_cost
+from bench import stage_settings
 from roguenerf.checkpoint import save_checkpoint
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.models import Enhancer, make_config
@@ -15,8 +15,8 @@ def test_both_settings_side_by_side(tmp_path):
     make_toy_scene(tmp_path / "toy", seed=2, n_train=6, n_test=2, height=72, width=96)
     ckpt = save_checkpoint(tmp_path / "m.safetensors", Enhancer(make_config("nano", num_neighbours=2)))
     out = tmp_path / "cost"
-    assert align_cost.main([str(tmp_path / "toy"), "--checkpoint", str(ckpt), "--noise", "0/0,0.5/0.05",
-                            "--max-views", "1", "--output", str(out)]) == 0
+    assert stage_settings.main(["--stage", "align", str(tmp_path / "toy"), "--checkpoint", str(ckpt),
+                                "--noise", "0/0,0.5/0.05", "--max-views", "1", "--output", str(out)]) == 0
     rows = list(csv.DictReader(open(out.with_suffix(".csv"))))
     assert [(r["noise_deg"], r["align"]) for r in rows] == [("0.0", "False"), ("0.0", "True"),
                                                             ("0.5", "False"), ("0.5", "True")]

@@ -1,5 +1,5 @@
-"""bench/colour.py end to end on a toy scene: one model output per view, each colour setting
-applied to it; matching takes a model's colour bias out."""
+"""bench/stage_settings.py --stage colour end to end on a toy scene: one model output per view, each
+colour setting applied to it; matching takes a model's colour bias out."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import csv
 
 import pytest
 
-from bench import colour
+from bench import stage_settings
 from roguenerf.checkpoint import save_checkpoint
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.errors import InputError
@@ -24,8 +24,9 @@ def test_settings_side_by_side_on_one_output(tmp_path):
         write_png(png, (read_image(png.read_bytes()) + 0.06).clamp(0, 1))
     ckpt = save_checkpoint(tmp_path / "m.safetensors", Enhancer(make_config("nano", num_neighbours=2)))
     out = tmp_path / "colour_0.5"
-    assert colour.main([str(tmp_path / "toy"), "--checkpoint", str(ckpt), "--configs", "off,local_sigma=0,default",
-                        "--max-views", "1", "--output", str(out)]) == 0
+    assert stage_settings.main(["--stage", "colour", str(tmp_path / "toy"), "--checkpoint", str(ckpt),
+                                "--settings", "off,local_sigma=0,default", "--max-views", "1",
+                                "--output", str(out)]) == 0
     rows = list(csv.DictReader(open(tmp_path / "colour_0.5.csv")))
     assert [r["config"] for r in rows] == ["off", "local_sigma=0", "default"]
     off, flat, default = rows
@@ -35,12 +36,13 @@ def test_settings_side_by_side_on_one_output(tmp_path):
     assert float(default["gain_db"]) > float(off["gain_db"]) + 1 and float(flat["gain_db"]) > float(off["gain_db"])
     assert all(r["date"] and r["machine"] and r["commit"] for r in rows)
     assert (tmp_path / "colour_0.5.png").stat().st_size > 1000
-    s = {x["config"]: x for x in colour.summary([{**r, "gain_db": float(r["gain_db"]),
-                                                  "flip_change": float(r["flip_change"])} for r in rows])}
+    s = {x["config"]: x for x in stage_settings.summary([{**r, "gain_db": float(r["gain_db"]),
+                                                          "flip_change": float(r["flip_change"])} for r in rows],
+                                                        "colour")}
     assert s["default"]["gain_db"] == pytest.approx(float(default["gain_db"]))
 
 
 @pytest.mark.parametrize("spec", ["sigma", "nope=1", "local_sigma=-1"])
 def test_a_bad_setting_is_refused(spec):
     with pytest.raises(InputError):
-        colour.colour_config(spec)
+        stage_settings.colour_config(spec)

@@ -1,5 +1,5 @@
-"""bench/trust.py end to end on a toy scene: one enhanced output per view, each full_share
-setting applied to it as the share of its change kept."""
+"""bench/stage_settings.py --stage trust end to end on a toy scene: one enhanced output per view,
+each full_share setting applied to it as the share of its change kept."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import csv
 
 import pytest
 
-from bench import trust
+from bench import stage_settings
 from roguenerf.checkpoint import save_checkpoint
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.models import Enhancer, make_config
@@ -23,8 +23,9 @@ def test_settings_side_by_side_on_one_output(tmp_path):
         write_png(png, (read_image(png.read_bytes()) + 0.06).clamp(0, 1))
     ckpt = save_checkpoint(tmp_path / "m.safetensors", Enhancer(make_config("nano", num_neighbours=2)))
     out = tmp_path / "trust"
-    assert trust.main([str(tmp_path / "toy"), f"{tmp_path / 'toy'}={ckpt}", "--checkpoint", str(ckpt),
-                       "--settings", "off,0.5,1,local4,below1,alone", "--max-views", "1", "--output", str(out)]) == 0
+    assert stage_settings.main(["--stage", "trust", str(tmp_path / "toy"), f"{tmp_path / 'toy'}={ckpt}",
+                                "--checkpoint", str(ckpt), "--settings", "off,0.5,1,local4,below1,alone",
+                                "--max-views", "1", "--output", str(out)]) == 0
     rows = list(csv.DictReader(open(tmp_path / "trust.csv")))
     assert [r["setting"] for r in rows] == ["off", "0.5", "1", "local4", "below1", "alone"] * 2
     assert [r["scene"] for r in rows] == ["toy"] * 6 + ["toy (fine-tuned)"] * 6
@@ -44,8 +45,9 @@ def test_settings_side_by_side_on_one_output(tmp_path):
     assert float(alone["kept"]) == 1 and alone["gain_db"] == off["gain_db"]
     assert all(r["date"] and r["machine"] and r["commit"] for r in rows)
     assert (tmp_path / "trust.png").stat().st_size > 1000
-    s = {x["setting"]: x for x in trust.summary([{**r, "gain_db": float(r["gain_db"]),
-                                                  "flip_change": float(r["flip_change"])} for r in rows])}
+    s = {x["setting"]: x for x in stage_settings.summary([{**r, "gain_db": float(r["gain_db"]),
+                                                           "flip_change": float(r["flip_change"])} for r in rows],
+                                                         "trust")}
     assert s["1"]["gain_db"] == pytest.approx(float(whole["gain_db"]))
 
 
@@ -53,4 +55,4 @@ def test_settings_side_by_side_on_one_output(tmp_path):
                                   "below", "below2", "below-1"])
 def test_a_bad_setting_is_refused(spec):
     with pytest.raises(argparse.ArgumentTypeError):
-        trust._settings(spec)
+        stage_settings.trust_settings(spec)

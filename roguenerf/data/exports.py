@@ -40,7 +40,7 @@ from torch import Tensor
 
 from roguenerf.data.writers import camera_fields
 from roguenerf.errors import InputError, SceneFormatError
-from roguenerf.imageio import atomic_folder
+from roguenerf.imageio import atomic_folder, read_json
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 DEPTH_SUFFIXES = (".npy.gz", ".npy", ".npz", ".png", ".tif", ".tiff", ".exr")
@@ -69,12 +69,8 @@ class DataparserTransform:
     @classmethod
     def read(cls, path: str | Path) -> DataparserTransform:
         path = Path(path)
-        try:
-            data = json.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise SceneFormatError(path, "missing file") from None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise SceneFormatError(path, f"cannot read ({exc})") from None
+        data = read_json(path, lambda message: SceneFormatError(path, message), missing="missing file",
+                         unreadable="cannot read")
         if not isinstance(data, dict) or "transform" not in data or "scale" not in data:
             raise SceneFormatError(path, 'expected {"transform": 3x4 matrix, "scale": number}')
         try:

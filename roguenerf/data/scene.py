@@ -220,34 +220,13 @@ class Scene:
     def _load_image(frame: Frame, path: Path) -> Tensor:
         from roguenerf.imageio import read_image
 
-        try:
-            image = read_image(path)
-        except SceneFormatError:
-            raise
-        except InputError as exc:
-            raise SceneFormatError(path, _problem(exc, path)) from None
-        if image.shape[1:] != (frame.height, frame.width):
-            raise SceneFormatError(
-                path,
-                f"image is {image.shape[2]}x{image.shape[1]} (WxH), "
-                f"the scene says {frame.width}x{frame.height}",
-            )
-        return image
+        return _read_frame_file(frame, path, "image", read_image)
 
     @staticmethod
     def _load_depth(frame: Frame, path: Path) -> Tensor:
         from roguenerf.imageio import read_depth
 
-        try:
-            depth = read_depth(path, scale=frame.depth_scale)
-        except InputError as exc:
-            raise SceneFormatError(path, _problem(exc, path)) from None
-        if depth.shape[1:] != (frame.height, frame.width):
-            raise SceneFormatError(
-                path,
-                f"depth is {depth.shape[2]}x{depth.shape[1]} (WxH), "
-                f"the scene says {frame.width}x{frame.height}",
-            )
+        depth = _read_frame_file(frame, path, "depth", lambda p: read_depth(p, scale=frame.depth_scale))
         if frame.depth_type == "ray":
             from roguenerf.geometry.cameras import ray_to_z_depth
 
@@ -267,6 +246,24 @@ class Scene:
             f"depths={'yes' if self.has_depths else 'no'}",
         ]
         return f"Scene({str(self.root)!r}, {', '.join(parts)})"
+
+
+def _read_frame_file(frame: Frame, path: Path, what: str, read) -> Tensor:
+    """``read(path)``, a (C, H, W) tensor of the frame's size; a :class:`SceneFormatError` naming
+    the file otherwise (a bad file, or ``what`` of another size than the scene says)."""
+    try:
+        value = read(path)
+    except SceneFormatError:
+        raise
+    except InputError as exc:
+        raise SceneFormatError(path, _problem(exc, path)) from None
+    if value.shape[1:] != (frame.height, frame.width):
+        raise SceneFormatError(
+            path,
+            f"{what} is {value.shape[2]}x{value.shape[1]} (WxH), "
+            f"the scene says {frame.width}x{frame.height}",
+        )
+    return value
 
 
 def _problem(exc: Exception, path: Path) -> str:

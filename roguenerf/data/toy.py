@@ -271,14 +271,6 @@ def make_toy_scene(
             names.append(f"train_{n_tr:03d}")
             splits.append("train")
             n_tr += 1
-    write_scene_folder(
-        Path(root),
-        names=names,
-        photos=photos,
-        renders=renders,
-        depths=render_depths,
-        world_from_cam=poses,
-        K=K,
-        splits=splits,
-    )
+    write_scene_folder(Path(root), names=names, photos=photos, renders=renders, depths=render_depths,
+                       world_from_cam=poses, K=K, splits=splits)
     return load_scene(Path(root))

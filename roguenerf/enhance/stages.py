@@ -15,8 +15,8 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
-from roguenerf.enhance.colour import ColourConfig
-from roguenerf.enhance.trust import TrustConfig
+from roguenerf.enhance.colour import ColourConfig, apply_match, colour_match
+from roguenerf.enhance.trust import TrustConfig, kept_change, share_kept
 
 
 @dataclass
@@ -65,8 +65,6 @@ class ColourStage:
     name: str = "colour"
 
     def apply(self, state: ViewState) -> StageRecord:
-        from roguenerf.enhance.colour import apply_match, colour_match
-
         same = (self.config.sigma, self.config.max_disagreement) == state.test
         match = colour_match(state.small_image[None], state.seen, self.config,
                              agreement=state.agreement if same else None)
@@ -85,8 +83,6 @@ class TrustStage:
     name: str = "trust"
 
     def apply(self, state: ViewState) -> StageRecord:
-        from roguenerf.enhance.trust import kept_change, share_kept
-
         keep = kept_change(state.agreement[0], state.image.shape[-2:], self.config)
         factor = share_kept(keep)
         if factor < 1:

@@ -17,9 +17,9 @@ the enhancer's change is scaled down in proportion::
 On the leave-one-kind-out figure, views of fields with sound geometry have 57-82 % agreement
 (lego's test views 58-89 %), those of a hash field whose novel views are floaters 0-24 %; our
 own fitter's held-out views of dtu_scan37 and mary_rose 14-93 %. The setting was chosen side by
-side on the leave-one-kind-out figure (``python -m bench.trust``; docs/kinds.md, *Trusting the
-neighbours by their agreement*). With fewer than two neighbours there is nothing to compare,
-and the change is kept whole.
+side on the leave-one-kind-out figure (``python -m bench.stage_settings --stage trust``;
+docs/kinds.md, *Trusting the neighbours by their agreement*). With fewer than two neighbours
+there is nothing to compare, and the change is kept whole.
 
 Below :attr:`TrustConfig.local_below` (10 %) the view's geometry is broken almost everywhere,
 and the little change kept, spread evenly, still lands mostly where it is wrong. There the

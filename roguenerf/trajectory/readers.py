@@ -11,7 +11,6 @@ A new camera-path format is one reader here and one detection line in :func:`rea
 
 from __future__ import annotations
 
-import json
 import math
 import re
 from dataclasses import dataclass, field
@@ -21,6 +20,7 @@ import torch
 from torch import Tensor
 
 from roguenerf.errors import InputError
+from roguenerf.imageio import read_json
 
 CAMERA_FILES = ("camera_path.json", "cameras.json", "transforms.json", "images.txt")
 """Where :func:`find_camera_file` looks for a path's cameras in an uploaded folder (first found)."""
@@ -88,12 +88,8 @@ def read_camera_path(path: str | Path, *, dataparser=None) -> CameraPath:
     path = Path(path)
     if path.suffix.lower() in (".txt", ".bin"):
         return _read_colmap_path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise _fail(path, "camera path file not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise _fail(path, f"cannot read the camera path ({exc})") from None
+    data = read_json(path, lambda message: _fail(path, message), missing="camera path file not found",
+                     unreadable="cannot read the camera path")
     if _is_inria_cameras(data):
         return _read_inria_cameras(path, data)
     poses, Ks, labels = [], [], []
