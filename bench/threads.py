@@ -99,7 +99,7 @@ def run_cli_evaluate(scene: Path, extra_env: dict) -> dict:
     env = {**_clean_env(), **extra_env}
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
-    out = subprocess.run([sys.executable, "-m", "roguenerf", "evaluate", str(scene), "--json"], env=env,
+    out = subprocess.run([sys.executable, "-m", "roguecli", "evaluate", str(scene), "--json"], env=env,
                          capture_output=True, text=True, check=True)
     wall = time.perf_counter() - t0
     report = json.loads(out.stdout)
