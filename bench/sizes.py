@@ -16,8 +16,9 @@ the peak RSS (``VmHWM``, imports and model included) and the seconds spent loadi
 scene, checkpoint). With ``--cli`` the one-view command as a user runs it (``roguenerf enhance``,
 defaults) is timed too: its wall-clock beside the view time it prints.
 
-Settings: ``defaults``, ``no-align``, ``no-colour``, ``no-trust``, ``neighbours=N``; several
-switches joined by ``+`` (``no-align+no-trust``).
+Settings: ``defaults``, ``no-align``, ``no-colour``, ``no-trust``, ``neighbours=N``, ``cache=MiB``
+(the neighbour cache's budget, ``SceneEnhancer(cache_bytes=)``); several switches joined by ``+``
+(``no-align+no-trust``).
 
 Writes ``OUTPUT.csv`` (one row per view; date, machine, commit), ``OUTPUT.json`` (per size and
 setting: median seconds per view without the first, the first view, peak memory, mean gain) and
@@ -56,7 +57,7 @@ from roguenerf.metrics import psnr
 
 scene = load_scene({scene!r})
 model, _ = load_checkpoint(default_checkpoint_path())
-enhancer = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(**{flags!r}))
+enhancer = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(**{flags!r}), **{extra!r})
 loaded = time.perf_counter() - t0
 rows = []
 for view in scene.indices("test")[:{views}]:
@@ -83,9 +84,10 @@ def parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def parse_setting(text: str) -> dict:
-    """A setting's ``EnhanceOptions.from_flags`` arguments."""
+def parse_setting(text: str) -> tuple[dict, dict]:
+    """A setting's ``EnhanceOptions.from_flags`` arguments, and the ``SceneEnhancer``'s others."""
     flags: dict = {}
+    extra: dict = {}
     for part in text.split("+"):
         if part == "defaults":
             continue
@@ -93,10 +95,12 @@ def parse_setting(text: str) -> dict:
             flags[part[3:]] = False
         elif part.startswith("neighbours="):
             flags["neighbours"] = int(part.split("=", 1)[1])
+        elif part.startswith("cache="):
+            extra["cache_bytes"] = int(float(part.split("=", 1)[1]) * 2**20)
         else:
             raise SystemExit(f"--settings: unknown switch {part!r} (defaults, no-align, no-colour, no-trust, "
-                             "neighbours=N, joined by +)")
-    return flags
+                             "neighbours=N, cache=MiB, joined by +)")
+    return flags, extra
 
 
 def sized_scene(scene_dir: Path, size: tuple[int, int], out: Path) -> Path:
@@ -140,8 +144,9 @@ def sized_scene(scene_dir: Path, size: tuple[int, int], out: Path) -> Path:
     return out
 
 
-def run_child(scene: Path, flags: dict, views: int) -> dict:
-    code = CHILD.format(repo=str(ROOT), scene=str(scene), flags=flags, views=views)
+def run_child(scene: Path, setting: tuple[dict, dict], views: int) -> dict:
+    flags, extra = setting
+    code = CHILD.format(repo=str(ROOT), scene=str(scene), flags=flags, extra=extra, views=views)
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"the child failed on {scene}:\n{proc.stderr[-3000:]}")
@@ -245,8 +250,8 @@ def main(argv: list[str] | None = None) -> int:
 
             view = load_scene(folder).frames[load_scene(folder).indices("test")[0]].name
             cli = run_cli(folder, view, args.work)
-        for setting, flags in settings.items():
-            child = run_child(folder, flags, args.views)
+        for setting, parsed in settings.items():
+            child = run_child(folder, parsed, args.views)
             for k, r in enumerate(child["rows"]):
                 row = {**stamp(), "scene": args.scene.resolve().name, "size": f"{w}x{h}", "setting": setting,
                        **r, "peak_mb": child["peak_mb"], "load_s": child["load_s"], "child_wall_s": child["wall_s"]}

@@ -26,11 +26,18 @@ from roguenerf.images import check_float_image
 from roguenerf.models.layers import receptive_radius
 from roguenerf.runtime import release_freed_memory
 
-DEFAULT_CACHE_BYTES = 2 << 30
+DEFAULT_CACHE_BYTES = 512 << 20
 """Budget of the per-scene neighbour cache (features + depth, float32), least recently used
 first out. A photo whose entry alone would take more than budget / neighbours per request is
 never cached: each tile then encodes just the crop of it that the tile sees (bounded memory
-for very large images, at the cost of re-encoding)."""
+for very large images, at the cost of re-encoding; the same values). With the shipped model
+(16 features, an entry is 72 bytes a pixel) a 1920 x 1080 scene's three neighbours (149 MB
+each) are cached, a 2016 x 1512 scene's (219 MB each) are encoded per tile: one such view's
+peak memory about 1.1 GB instead of 1.8 (``python -m bench.sizes``, docs/results.md)."""
+
+ENCODE_PIXELS = 512 * 512
+"""Neighbour photos larger than two of this are encoded in strips of about this many pixels
+(:meth:`SceneEnhancer._encode`): the same features in a bounded working memory."""
 
 PROBE_PIXELS = 128 * 128
 """The "does any neighbour see this view" check looks at about this many target pixels."""
@@ -212,6 +219,28 @@ class SceneEnhancer:
             self._depths[position] = self.scene.depth(self.train[position]).to(self.device, torch.float32)
         return self._depths[position]
 
+    def _encode(self, photo: Tensor) -> Tensor:
+        """``model.encode_neighbours(photo)`` for one ``(1, 3, H, W)`` photo, in strips of rows of
+        about :data:`ENCODE_PIXELS` pixels where the photo is larger than two of them: each strip
+        encoded with a margin of conv_H's receptive radius (zero padding only at the photo's
+        real borders), so the values are the whole photo's (to float rounding) and the encoder's
+        working memory stays that of one strip."""
+        h, w = photo.shape[-2:]
+        if h * w <= 2 * ENCODE_PIXELS:
+            return self.model.encode_neighbours(photo)
+        halo = receptive_radius(self.model.conv_H)
+        rows = max(8, ENCODE_PIXELS // w)
+        out = None
+        for y0 in range(0, h, rows):
+            y1 = min(y0 + rows, h)
+            a, b = max(0, y0 - halo), min(h, y1 + halo)
+            part = self.model.encode_neighbours(photo[..., a:b, :])
+            if out is None:
+                out = part.new_empty(*part.shape[:2], h, w)
+            out[..., y0:y1, :] = part[..., y0 - a:y1 - a, :]
+            del part
+        return out
+
     def _cached_sources(self, positions: list[int]) -> list[Tensor]:
         """``(1, F + 2, Hs, Ws)`` sampling sources (features, depth, mask) of cacheable positions."""
         with self._lock:
@@ -220,8 +249,10 @@ class SceneEnhancer:
                 if p not in self._sources:
                     photo = self.scene.photo(self.train[p]).to(self.device, torch.float32)[None]
                     with torch.inference_mode():
-                        feats = self.model.encode_neighbours(photo)
+                        feats = self._encode(photo)
+                        del photo
                         self._sources[p] = self.model.neighbour_source(feats, self._depth(p)[None])
+                        del feats
                     used = sum(t.numel() * t.element_size() for t in self._sources.values())
                     while used > self.cache_bytes and len(self._sources) > 1:
                         _, old = self._sources.popitem(last=False)

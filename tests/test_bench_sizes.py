@@ -38,8 +38,9 @@ def test_a_sized_scene_keeps_its_geometry(tmp_path):
 
 
 def test_settings_and_sizes_are_checked():
-    assert sizes.parse_setting("defaults") == {}
-    assert sizes.parse_setting("no-align+no-trust+neighbours=3") == {"align": False, "trust": False, "neighbours": 3}
+    assert sizes.parse_setting("defaults") == ({}, {})
+    assert sizes.parse_setting("no-align+no-trust+neighbours=3+cache=0.5") == (
+        {"align": False, "trust": False, "neighbours": 3}, {"cache_bytes": 2**19})
     with pytest.raises(SystemExit, match="unknown switch 'no-model'"):
         sizes.parse_setting("no-model")
     assert sizes.parse_size("1920x1080") == (1920, 1080)
@@ -52,11 +53,11 @@ def test_a_run_reports_every_step_and_the_memory(tmp_path):
     make_toy_scene(tmp_path / "toy", seed=2, n_train=6, n_test=2, height=72, width=96)
     out = tmp_path / "res" / "sizes"
     assert sizes.main(["--scene", str(tmp_path / "toy"), "--sizes", "64x48", "--views", "2",
-                       "--settings", "defaults,no-align+no-colour+no-trust", "--work", str(tmp_path / "work"),
+                       "--settings", "defaults,no-align+no-colour+no-trust+cache=0", "--work", str(tmp_path / "work"),
                        "--output", str(out)]) == 0
     summary = json.loads((tmp_path / "res" / "sizes.json").read_text())["summary"]
     assert [(s["size"], s["setting"]) for s in summary] == [("64x48", "defaults"),
-                                                            ("64x48", "no-align+no-colour+no-trust")]
+                                                            ("64x48", "no-align+no-colour+no-trust+cache=0")]
     on, off = summary
     assert on["align_s"] > 0 and off["align_s"] < on["align_s"]
     assert off["colour_s"] == off["trust_s"] == 0  # stages off: never run

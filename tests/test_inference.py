@@ -287,3 +287,24 @@ def test_tiled_enhancement_reports_progress_per_tile(scene):
         "test_000", progress=lambda done, total: calls.append((done, total)))
     total = calls[-1][1]
     assert total > 1 and calls == [(k, total) for k in range(1, total + 1)]
+
+
+def test_large_photos_are_encoded_in_strips_with_the_whole_photos_features(scene, monkeypatch):
+    """A photo larger than two strips is encoded strip by strip with conv_H's margin: the same
+    features as the whole photo's, and the enhanced image the same."""
+    import roguenerf.inference as inference
+
+    model = _model()
+    enhancer = SceneEnhancer(scene, model, num_neighbours=3)
+    photo = scene.photo(scene.indices("train")[0])[None]
+    whole = model.encode_neighbours(photo)
+    monkeypatch.setattr(inference, "ENCODE_PIXELS", 40 * 8)  # strips of 8 rows of the 32 x 40 photo
+    calls = _counting(model)
+    strips = enhancer._encode(photo)
+    assert calls == [1] * 4 and strips.shape == whole.shape
+    torch.testing.assert_close(strips, whole, atol=1e-5, rtol=0)
+    del model.encode_neighbours
+    striped = enhancer.enhance_view("test_000").image
+    monkeypatch.setattr(inference, "ENCODE_PIXELS", 10**9)
+    torch.testing.assert_close(SceneEnhancer(scene, model, num_neighbours=3).enhance_view("test_000").image,
+                               striped, atol=1e-5, rtol=0)
