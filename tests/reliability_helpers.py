@@ -1,4 +1,4 @@
-"""Shared parts of the reliability tests (tests/test_reliability_*.py).
+"""Shared parts of the reliability tests (tests/service/test_reliability_*.py).
 
 What every rejected request must satisfy: the JSON error format, nothing stored changed
 (files under the data directory *and* the rows of the job/scene table), and the process

@@ -24,7 +24,7 @@ from roguenerf.models.layers import PixelAttention
 from roguenerf.models.uformer import LeFF, WindowAttention
 from roguenerf.native import NativeArgumentError
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[4]
 CL = "channels-last"
 
 
@@ -180,7 +180,7 @@ def run_all() -> int:
 
 
 def test_the_process_survives_every_refused_call():
-    code = "from tests.test_native_door import run_all\nprint('refused', run_all())"
+    code = "from tests.unit.roguenerf.native.test_native_door import run_all\nprint('refused', run_all())"
     run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
     assert run.stdout.split()[-2:] == ["refused", str(len(CASES))]

@@ -87,7 +87,7 @@ def test_evaluate_reports_trust_and_no_trust_keeps_the_whole_change(scene_dir, c
         assert 0 <= v_on["agreement"] <= 1
         if v_on["agreement"] >= TrustConfig().local_below:
             assert v_on["trust"] == pytest.approx(trust_factor(v_on["agreement"], TrustConfig()), abs=1e-3)
-        else:  # per pixel: the mean share kept (tests/test_trust.py)
+        else:  # per pixel: the mean share kept (tests/unit/roguenerf/enhance/test_trust.py)
             assert 0 <= v_on["trust"] < 1
         assert v_off["trust"] is None and v_off["agreement"] == v_on["agreement"]  # colour matching measured it
         assert v_off["enhanced"]["psnr"] == pytest.approx(v_direct["enhanced"]["psnr"], abs=1e-4)
@@ -487,13 +487,13 @@ def test_cli_process_runs_with_passive_wait():
 def test_console_script_is_the_top_level_cli_with_every_command():
     import tomllib
 
-    project = tomllib.loads((Path(__file__).resolve().parent.parent / "pyproject.toml").read_text())
+    project = tomllib.loads((Path(__file__).resolve().parents[3] / "pyproject.toml").read_text())
     assert project["project"]["scripts"]["roguenerf"] == "roguecli:main"
     assert "roguecli*" in project["tool"]["setuptools"]["packages"]["find"]["include"]
     names = [c.name or c.callback.__name__.replace("_", "-") for c in app.registered_commands]
     assert names == ["finetune", "pretrain", "make-pairs", "evaluate", "enhance", "import-nerfstudio",
                      "import-gsplat", "import-3dgs", "enhance-path", "serve"]
-    library = Path(__file__).resolve().parent.parent / "roguenerf"
+    library = Path(__file__).resolve().parents[3] / "roguenerf"
     assert not (library / "cli.py").exists() and not (library / "cli").exists()  # one command line: roguecli
     # --help names no module above the library and loads none of them.
     code = ("import sys; from roguecli import app\ntry:\n    app(['--help'])\nexcept SystemExit:\n    pass\n"

@@ -30,7 +30,7 @@ from roguenerf.models.uformer import LeWinBlock
 from roguenerf.reprojection import reproject
 from tests.model_helpers import make_views, randomise
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[4]
 
 
 class Calls:

@@ -198,7 +198,7 @@ def test_pretraining_pipeline_smoke(tmp_path):
     data = tmp_path / "real"
     write_photo_set(data / "alpha", views=9, seed=1)
     write_photo_set(data / "beta", views=9, seed=2)
-    repo = Path(__file__).resolve().parents[1]
+    repo = Path(__file__).resolve().parents[3]
     env = {**__import__("os").environ, "DATA": str(data), "CACHE": str(tmp_path / "cache"), "PRESETS": "blur,coarse",
            "HOLDOUT": "beta", "EXTRA": "", "HELD_OUT_SHARE": "0.5", "BUDGET_SCALE": "0.01", "STEPS": "2",
            "OUT": str(tmp_path / "run"), "DEST": str(tmp_path / "weights" / "default.safetensors"),
@@ -378,7 +378,7 @@ def test_real_scenes_blends_span_the_start_and_the_fine_tuned_weights(lego_dir, 
 
     from roguenerf.checkpoint import blend_state
 
-    repo = Path(__file__).resolve().parents[1]
+    repo = Path(__file__).resolve().parents[3]
     out = tmp_path / "blends"
     proc = subprocess.run([sys.executable, "-m", "bench.real_scenes", str(lego_dir), "--minutes", "0.03",
                            "--max-views", "1", "--blends", "0,1", "--output", str(out)],

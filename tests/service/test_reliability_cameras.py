@@ -135,7 +135,7 @@ def _with_pose(s, pose) -> dict:
 ])
 def test_bad_poses_are_422(s, case, needle):
     pose = s.scene.frames[6].world_from_cam.to(torch.float64).clone()
-    if case == "2x4":  # 3x4 is accepted (tests/test_service_api.py); fewer rows are not
+    if case == "2x4":  # 3x4 is accepted (tests/service/test_service_api.py); fewer rows are not
         value = pose[:2].tolist()
     elif case == "4x3":
         value = pose[:, :3].tolist()

@@ -325,7 +325,7 @@ def test_job_reports_evaluating_instead_of_done_while_it_evaluates(tmp_path, toy
 
 
 # An older job table getting the phase column (schema v3) is tested on SQLite and PostgreSQL in
-# tests/test_worker_jobs.py (test_a_v2_database_gets_the_phase_column).
+# tests/workers/test_worker_jobs.py (test_a_v2_database_gets_the_phase_column).
 
 
 # ----------------------------------------------------------------------------- CPU kernels

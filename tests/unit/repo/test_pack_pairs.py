@@ -13,7 +13,7 @@ from roguenerf.data.readers import load_scene
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.metrics import psnr
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def _pack_module():

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[3]
 PACKAGES = ("roguenerf", "roguefit", "service", "workers", "roguecli")
 MAY_IMPORT = {
     "roguenerf": {"roguenerf"},

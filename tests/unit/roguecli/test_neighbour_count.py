@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from roguecli import app
 from roguenerf import SceneEnhancer, default_checkpoint_path, load_checkpoint, make_toy_scene
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def _shipped_count() -> int:

@@ -7,7 +7,7 @@ import torch
 
 from roguenerf.enhance.temporal import TemporalConfig, TemporalFilter
 from roguenerf.errors import InputError
-from tests.test_inference import _turned
+from tests.unit.roguenerf.test_inference import _turned
 
 H, W = 20, 24
 K = torch.tensor([[30.0, 0, W / 2], [0, 30.0, H / 2], [0, 0, 1]])

@@ -17,7 +17,7 @@ import pytest
 
 from tests.service_helpers import free_port, wait_until
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _workers_of(parents: set[int], data_root: Path | None = None) -> list[int]:

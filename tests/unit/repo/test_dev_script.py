@@ -11,7 +11,7 @@ import stat
 import subprocess
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[3]
 
 RECORDER = """#!/bin/sh
 echo "$(basename "$0") $*" >> "{log}"
@@ -85,10 +85,11 @@ def test_dev_roguenerf_forwards_to_the_venvs_command_line(tmp_path):
 
 def test_quick_runs_the_unit_tier_only_and_passes_other_args_on(tmp_path):
     venv, log, env = _fake_venv(tmp_path)
-    result = _dev("test", "--quick", "-q", "tests/test_geometry.py", env=env)
+    one_file = "tests/unit/roguenerf/geometry/test_geometry.py"
+    result = _dev("test", "--quick", "-q", one_file, env=env)
     assert result.returncode == 0, result.stderr
     assert log.read_text().splitlines()[-1] == (
-        "python -m pytest -m not service and not workers and not browser and not slow -q tests/test_geometry.py")
+        f"python -m pytest -m not service and not workers and not browser and not slow -q {one_file}")
     assert _dev("test", "-x", env=env).returncode == 0  # without --quick: every tier, args as given
     assert log.read_text().splitlines()[-1] == "python -m pytest -x"
 

@@ -12,7 +12,7 @@ from roguenerf.enhance import EnhanceOptions, NeighbourRule
 from roguenerf.enhance.select import Candidate, choose, measure_candidates
 from roguenerf.errors import InputError
 from roguenerf.inference import SceneEnhancer
-from tests.test_inference import _model, _turned
+from tests.unit.roguenerf.test_inference import _model, _turned
 
 
 def _K(h: int, w: int, f: float = 40.0) -> torch.Tensor:

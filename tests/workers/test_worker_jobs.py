@@ -493,7 +493,7 @@ def test_workers_package_never_imports_service():
     import sys
     from pathlib import Path
 
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     offenders = []
     for path in sorted((root / "workers").glob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
