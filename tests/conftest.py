@@ -48,6 +48,28 @@ def lego_dir() -> Path:
     return path
 
 
+@pytest.fixture
+def one_thread():
+    """One intra-op thread during a test, the caller's count restored after. The models here are
+    tiny and a fit is many small tensor operations: on a shared 2-core machine a second OpenMP
+    thread spinning against other processes costs far more than it gains (measured: 4x to 20x
+    slower with 2 threads). A module takes it with ``pytestmark = pytest.mark.usefixtures("one_thread")``."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def toy(request, tmp_path_factory) -> dict:
+    """A toy scene and a micro checkpoint for a module's uploads (``service_helpers.toy_upload``:
+    ``folder``, ``scene``, ``zip``, ``zip_file``, ``ckpt``, ``checkpoint``). A module sets
+    ``TOY_SCENE = {...}`` for other ``make_scene`` arguments (seed, size, views)."""
+    from tests.service_helpers import toy_upload
+
+    return toy_upload(tmp_path_factory.mktemp("toy"), **getattr(request.module, "TOY_SCENE", {}))
+
+
 @pytest.fixture(scope="session")
 def postgres_server():
     """One PostgreSQL server (Debian's, on loopback, in a temp dir) for the whole session."""

@@ -24,12 +24,7 @@ from roguenerf.training.loop import SceneData, training_step_inputs
 OFFSET = (5e5, 5e6, 1e2)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _translated(poses: torch.Tensor, offset=OFFSET) -> torch.Tensor:

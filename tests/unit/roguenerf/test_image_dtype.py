@@ -29,12 +29,7 @@ def _as(image: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     return (image * top).round().to(dtype)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")

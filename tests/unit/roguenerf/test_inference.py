@@ -11,23 +11,13 @@ import torch
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.errors import InputError, RoGUENeRFError
 from roguenerf.inference import NO_NEIGHBOUR_NOTE, SceneEnhancer
-from roguenerf.models import build_enhancer
+from tests.geometry_helpers import turned
+from tests.model_helpers import perturbed_micro
 
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     return make_toy_scene(tmp_path_factory.mktemp("toy"), seed=3, n_train=6, n_test=2, height=32, width=40)
-
-
-def _model(seed: int = 0, **overrides):
-    torch.manual_seed(seed)
-    model = build_enhancer("micro", **overrides)
-    # A fresh enhancer is the identity (zero-initialised residual); perturb every weight so
-    # outputs depend on the neighbours and differences are visible.
-    with torch.no_grad():
-        for p in model.parameters():
-            p.add_(0.05 * torch.randn_like(p))
-    return model
 
 
 def _counting(model):
@@ -43,7 +33,7 @@ def _counting(model):
 
 
 def test_enhance_shape_range_and_neighbours_from_train(scene):
-    enhancer = SceneEnhancer(scene, _model(), num_neighbours=3)
+    enhancer = SceneEnhancer(scene, perturbed_micro(), num_neighbours=3)
     result = enhancer.enhance_view("test_000")
     assert result.image.shape == (3, 32, 40)
     assert result.image.dtype == torch.float32
@@ -54,7 +44,7 @@ def test_enhance_shape_range_and_neighbours_from_train(scene):
 
 
 def test_training_view_is_never_its_own_neighbour(scene):
-    enhancer = SceneEnhancer(scene, _model(), num_neighbours=5)
+    enhancer = SceneEnhancer(scene, perturbed_micro(), num_neighbours=5)
     for name in ("train_000", "train_003"):
         result = enhancer.enhance_view(name)
         assert name not in result.neighbours
@@ -68,20 +58,9 @@ def test_training_view_is_never_its_own_neighbour(scene):
 
 
 def test_num_neighbours_defaults_to_model_config(scene):
-    model = _model(num_neighbours=2)
+    model = perturbed_micro(num_neighbours=2)
     assert len(SceneEnhancer(scene, model).enhance_view("test_001").neighbours) == 2
     assert SceneEnhancer(scene, model, num_neighbours=0).enhance_view("test_001").neighbours == []
-
-
-def _turned(pose: torch.Tensor, degrees: float, axis: int = 1) -> torch.Tensor:
-    """``pose`` rotated in place by ``degrees`` about its own camera axis ``axis``."""
-    a = math.radians(degrees)
-    R = torch.eye(3, dtype=torch.float64)
-    i, j = [k for k in range(3) if k != axis]
-    R[i, i], R[i, j], R[j, i], R[j, j] = math.cos(a), -math.sin(a), math.sin(a), math.cos(a)
-    out = pose.clone().to(torch.float64)
-    out[:3, :3] = out[:3, :3] @ R
-    return out
 
 
 @pytest.mark.parametrize(("third", "expected"), [(3.5, 3), (4.5, 2)])
@@ -97,8 +76,8 @@ def test_a_third_neighbour_is_added_only_where_it_is_near(tmp_path, third, expec
     toy = make_toy_scene(tmp_path / "toy", seed=3, n_train=5, n_test=1, height=16, width=20)
     target = toy.frames[toy.indices("test")[0]].world_from_cam.to(torch.float64)
     # Training cameras where the test camera stands, turned 1, 2 and `third` degrees, and two far ones.
-    poses = [_turned(target, 1.0), _turned(target, 2.0), _turned(target, third, axis=0),
-             _turned(target, 30.0), _turned(target, 60.0), target]
+    poses = [turned(target, 1.0), turned(target, 2.0), turned(target, third, axis=0),
+             turned(target, 30.0), turned(target, 60.0), target]
     assert float(rotation_angle(target[:3, :3], poses[2][:3, :3])) == pytest.approx(third, abs=1e-6)
     n = len(poses)
     root = write_scene_folder(tmp_path / "near", names=[f"v{k}" for k in range(n)],
@@ -106,7 +85,7 @@ def test_a_third_neighbour_is_added_only_where_it_is_near(tmp_path, third, expec
                               depths=torch.ones(n, 1, 16, 20), world_from_cam=torch.stack(poses),
                               K=toy.intrinsics()[:1].expand(n, 3, 3).clone(), splits=["train"] * (n - 1) + ["test"])
     scene = load_scene(root)
-    model = _model(num_neighbours=2)
+    model = perturbed_micro(num_neighbours=2)
     default = SceneEnhancer(scene, model)
     assert [scene.frames[i].name for i in default.select(target)] == ["v0", "v1", "v2"][:expected]
     assert [scene.frames[i].name for i in SceneEnhancer(scene, model, num_neighbours=2).select(target)] == ["v0", "v1"]
@@ -118,12 +97,12 @@ def test_rotation_angle_is_the_geodesic_angle():
 
     pose = torch.eye(4, dtype=torch.float64)
     for degrees, axis in ((0.0, 0), (3.0, 1), (45.0, 2), (179.0, 0)):
-        assert float(rotation_angle(pose[:3, :3], _turned(pose, degrees, axis)[:3, :3])) == pytest.approx(degrees,
+        assert float(rotation_angle(pose[:3, :3], turned(pose, degrees, axis)[:3, :3])) == pytest.approx(degrees,
                                                                                                          abs=1e-5)
 
 
 def test_features_are_encoded_once_and_reused(scene):
-    model = _model()
+    model = perturbed_micro()
     calls = _counting(model)
     enhancer = SceneEnhancer(scene, model, num_neighbours=2)
     first = enhancer.enhance_view("test_000")
@@ -137,7 +116,7 @@ def test_features_are_encoded_once_and_reused(scene):
 def test_cached_result_equals_direct_model_call(scene):
     from roguenerf.models import NeighbourBatch
 
-    model = _model()
+    model = perturbed_micro()
     enhancer = SceneEnhancer(scene, model, num_neighbours=2, colour=False)
     i = scene.index("test_001")
     frame = scene.frames[i]
@@ -163,7 +142,7 @@ def test_cached_result_equals_direct_model_call(scene):
 
 
 def test_view_seen_by_no_neighbour_runs_without_them(scene):
-    model = _model()
+    model = perturbed_micro()
     enhancer = SceneEnhancer(scene, model, num_neighbours=3)
     i = scene.index("test_000")
     frame = scene.frames[i]
@@ -181,7 +160,7 @@ def test_view_seen_by_no_neighbour_runs_without_them(scene):
 
 
 def test_non_finite_output_raises_instead_of_returning_nan(scene):
-    model = _model()
+    model = perturbed_micro()
     with torch.no_grad():
         for p in model.conv_merge.parameters():
             p.fill_(math.nan)
@@ -190,7 +169,7 @@ def test_non_finite_output_raises_instead_of_returning_nan(scene):
 
 
 def test_input_errors_name_the_argument(scene):
-    enhancer = SceneEnhancer(scene, _model())
+    enhancer = SceneEnhancer(scene, perturbed_micro())
     frame = scene.frames[0]
     render, depth = scene.render(0), scene.depth(0)
     with pytest.raises(InputError, match="render"):
@@ -202,13 +181,13 @@ def test_input_errors_name_the_argument(scene):
     with pytest.raises(InputError, match="render"):
         enhancer.enhance(bad, depth, frame.K, frame.world_from_cam)
     with pytest.raises(InputError, match="num_neighbours"):
-        SceneEnhancer(scene, _model(), num_neighbours=-1)
+        SceneEnhancer(scene, perturbed_micro(), num_neighbours=-1)
 
 
 def test_3x4_pose_is_the_4x4_pose_and_still_checked(scene):
     """Poses as tools print them (3x4) give the same image as the 4x4 form; an improper rotation
     is refused the same way (one check: geometry.check_pose)."""
-    enhancer = SceneEnhancer(scene, _model())
+    enhancer = SceneEnhancer(scene, perturbed_micro())
     i = next(n for n, f in enumerate(scene.frames) if f.split == "test")
     frame = scene.frames[i]
     render, depth = scene.render(i), scene.depth(i)
@@ -228,7 +207,7 @@ def test_3x4_pose_is_the_4x4_pose_and_still_checked(scene):
 
 
 def test_concurrent_calls_match_sequential_and_encode_once(scene):
-    model = _model()
+    model = perturbed_micro()
     calls = _counting(model)
     enhancer = SceneEnhancer(scene, model, num_neighbours=3)
     names = ["test_000", "test_001", "train_001", "train_004"] * 2
@@ -241,7 +220,7 @@ def test_concurrent_calls_match_sequential_and_encode_once(scene):
 
 
 def test_large_images_are_tiled(scene):
-    model = _model(use_uformer=False)
+    model = perturbed_micro(use_uformer=False)
     whole = SceneEnhancer(scene, model, num_neighbours=2).enhance_view("test_000")
     tiled = SceneEnhancer(scene, model, num_neighbours=2, tile=16).enhance_view("test_000")
     assert tiled.image.shape == whole.image.shape
@@ -254,7 +233,7 @@ def test_large_images_are_tiled(scene):
 def test_uncacheable_photos_use_per_tile_crops_with_the_same_result(scene):
     """Photos too large for the cache budget are encoded per tile, only the part each tile
     sees (plus margins): the image equals the cached path's (same tiles), and nothing is cached."""
-    model = _model()
+    model = perturbed_micro()
     for tile in (16, 512):  # tiled, and one whole-image "tile"
         cached = SceneEnhancer(scene, model, num_neighbours=3, tile=tile)
         cropped = SceneEnhancer(scene, model, num_neighbours=3, tile=tile, cache_bytes=1)
@@ -271,7 +250,7 @@ def test_uncacheable_photos_use_per_tile_crops_with_the_same_result(scene):
 
 
 def test_neighbour_cache_keeps_to_its_byte_budget(scene):
-    model = _model()
+    model = perturbed_micro()
     one = (model.config.features + 2) * 32 * 40 * 4
     enhancer = SceneEnhancer(scene, model, num_neighbours=2, cache_bytes=3 * one)
     seen = set()
@@ -283,7 +262,7 @@ def test_neighbour_cache_keeps_to_its_byte_budget(scene):
 
 def test_tiled_enhancement_reports_progress_per_tile(scene):
     calls = []
-    SceneEnhancer(scene, _model(), num_neighbours=2, tile=16).enhance_view(
+    SceneEnhancer(scene, perturbed_micro(), num_neighbours=2, tile=16).enhance_view(
         "test_000", progress=lambda done, total: calls.append((done, total)))
     total = calls[-1][1]
     assert total > 1 and calls == [(k, total) for k in range(1, total + 1)]

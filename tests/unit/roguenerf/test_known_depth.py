@@ -22,9 +22,9 @@ from roguenerf.data.writers import write_scene_folder
 from roguenerf.errors import InputError
 from roguenerf.geometry import DEPTH_EPS, MAX_DEPTH, known_depth, known_depth_mask, median_known_depth, ray_to_z_depth
 from roguenerf.inference import SceneEnhancer
-from roguenerf.models import build_enhancer
 from roguenerf.models.enhancer import median_depth
 from roguenerf.reprojection import reproject
+from tests.model_helpers import perturbed_micro
 
 DENORMAL = 1e-40  # a float32 subnormal: 1 / DENORMAL overflows float32 to inf
 VALUES = [1.0, 0.0, -1.0, math.nan, math.inf, -math.inf, DENORMAL, 1e-30, 1e-7, DEPTH_EPS, 2e-6,
@@ -33,12 +33,7 @@ KNOWN = [True, False, False, False, False, False, False, False, False, False, Tr
          True, True, False, False]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -87,15 +82,6 @@ def scene(tmp_path_factory):
     return make_toy_scene(tmp_path_factory.mktemp("toy"), seed=3, n_train=6, n_test=2, height=32, width=40)
 
 
-def _model(seed: int = 0, **overrides):
-    torch.manual_seed(seed)
-    model = build_enhancer("micro", **overrides)
-    with torch.no_grad():
-        for p in model.parameters():
-            p.add_(0.05 * torch.randn_like(p))
-    return model
-
-
 def _holes(shape, seed: int, fraction: float) -> torch.Tensor:
     return torch.rand(shape, generator=torch.Generator().manual_seed(seed)) < fraction
 
@@ -104,7 +90,7 @@ def _holes(shape, seed: int, fraction: float) -> torch.Tensor:
 def test_enhance_with_mostly_denormal_depth_equals_enhance_with_zeros(scene, tile):
     """The outside check's case: most pixels ~1e-40, the rest true depths. Before, the median was
     ~1e-40, 1 / scale overflowed and enhance raised NonFiniteOutputError for an accepted input."""
-    enhancer = SceneEnhancer(scene, _model(), num_neighbours=3, tile=tile)
+    enhancer = SceneEnhancer(scene, perturbed_micro(), num_neighbours=3, tile=tile)
     i = scene.index("test_000")
     frame = scene.frames[i]
     render, depth = scene.render(i), scene.depth(i)
@@ -138,7 +124,7 @@ def test_denormal_depth_read_from_a_scene_folder_is_unknown(scene, tmp_path):
     b = _copy_scene(scene, tmp_path / "zero", 0.0)
     i = a.index("train_000")
     assert float(a.depth(i).abs().min()) == pytest.approx(DENORMAL, rel=1e-2)  # stored and read as is
-    model = _model()
+    model = perturbed_micro()
     for view in ("test_000", "train_002"):
         ra = SceneEnhancer(a, model, num_neighbours=3).enhance_view(view)
         rb = SceneEnhancer(b, model, num_neighbours=3).enhance_view(view)
@@ -147,7 +133,7 @@ def test_denormal_depth_read_from_a_scene_folder_is_unknown(scene, tmp_path):
 
 
 def test_explicit_tiny_depth_scale_is_refused_not_nan():
-    model = _model()
+    model = perturbed_micro()
     render = torch.rand(1, 3, 16, 16)
     depth = torch.full((1, 1, 16, 16), 2.0)
     K = torch.tensor([[16.0, 0, 8], [0, 16.0, 8], [0, 0, 1]])[None]

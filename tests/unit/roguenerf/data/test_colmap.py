@@ -28,14 +28,14 @@ from roguenerf.imageio import write_png
 
 
 @pytest.fixture(scope="module")
-def toy(tmp_path_factory):
+def toy_scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("toy")
     return make_toy_scene(root / "scene", seed=3, n_train=7, n_test=3, height=24, width=32)
 
 
-def _colmap_dataset(toy, root, *, binary, names=None, K=None):
+def _colmap_dataset(toy_scene, root, *, binary, names=None, K=None):
     """The toy scene's photos and poses as a COLMAP dataset at ``root`` (model order scrambled)."""
-    frames = toy.frames
+    frames = toy_scene.frames
     names = names or [f"{f.name}.png" for f in frames]
     (root / "images").mkdir(parents=True)
     for f, name in zip(frames, names, strict=True):
@@ -55,12 +55,12 @@ def _colmap_dataset(toy, root, *, binary, names=None, K=None):
 
 
 @pytest.mark.parametrize("binary", [True, False])
-def test_toy_scene_round_trip(toy, tmp_path, binary):
+def test_toy_scene_round_trip(toy_scene, tmp_path, binary):
     # Per-view focal lengths and principal points, so each view needs its own camera.
-    K = torch.stack([f.K for f in toy.frames]).clone()
+    K = torch.stack([f.K for f in toy_scene.frames]).clone()
     K[:, 0, 0] += torch.arange(10, dtype=torch.float64) * 0.37
     K[:, 1, 2] += 0.25
-    names = _colmap_dataset(toy, tmp_path, binary=binary, K=K)
+    names = _colmap_dataset(toy_scene, tmp_path, binary=binary, K=K)
     ext = "bin" if binary else "txt"
     assert (tmp_path / "sparse" / "0" / f"images.{ext}").is_file()
     data = read_colmap(tmp_path)
@@ -68,7 +68,7 @@ def test_toy_scene_round_trip(toy, tmp_path, binary):
     assert data.names == sorted(names)
     assert data.stems == [n[:-4] for n in sorted(names)]
     assert data.image_paths == [tmp_path / "images" / n for n in sorted(names)]
-    by_name = {f"{f.name}.png": (f, K[i]) for i, f in enumerate(toy.frames)}
+    by_name = {f"{f.name}.png": (f, K[i]) for i, f in enumerate(toy_scene.frames)}
     for i, name in enumerate(data.names):
         frame, k = by_name[name]
         assert data.world_from_cam.dtype == torch.float64 and data.K.dtype == torch.float64
@@ -134,8 +134,8 @@ def test_quaternion_of_every_branch():
         assert np.allclose(back, q if q[0] >= 0 else -q, atol=1e-12)
 
 
-def test_locates_the_model(toy, tmp_path):
-    _colmap_dataset(toy, tmp_path, binary=True)
+def test_locates_the_model(toy_scene, tmp_path):
+    _colmap_dataset(toy_scene, tmp_path, binary=True)
     model_dir = tmp_path / "sparse" / "0"
     assert find_sparse_dir(tmp_path) == model_dir
     assert find_sparse_dir(model_dir) == model_dir
@@ -161,8 +161,8 @@ def test_distortion_refused_and_zero_distortion_accepted(tmp_path):
             assert "OPENCV" in str(err.value) and "camera 1" in str(err.value)
 
 
-def test_malformed_files_are_named(toy, tmp_path):
-    _colmap_dataset(toy, tmp_path, binary=True)
+def test_malformed_files_are_named(toy_scene, tmp_path):
+    _colmap_dataset(toy_scene, tmp_path, binary=True)
     images_bin = tmp_path / "sparse" / "0" / "images.bin"
     images_bin.write_bytes(images_bin.read_bytes()[:-5])
     with pytest.raises(SceneFormatError, match="truncated") as err:
@@ -176,8 +176,8 @@ def test_malformed_files_are_named(toy, tmp_path):
         read_colmap(tmp_path, check_files=False)
 
 
-def test_missing_image_and_downscaled_folder(toy, tmp_path):
-    _colmap_dataset(toy, tmp_path, binary=True)
+def test_missing_image_and_downscaled_folder(toy_scene, tmp_path):
+    _colmap_dataset(toy_scene, tmp_path, binary=True)
     # A half-size copy as images_2/ (gsplat's --data-factor 2): K follows the files.
     (tmp_path / "images_2").mkdir()
     for path in (tmp_path / "images").iterdir():
@@ -192,11 +192,11 @@ def test_missing_image_and_downscaled_folder(toy, tmp_path):
 
 
 @pytest.mark.parametrize("binary", [True, False])
-def test_agrees_with_pycolmap(toy, tmp_path, binary):
+def test_agrees_with_pycolmap(toy_scene, tmp_path, binary):
     """pycolmap (COLMAP's own code) reads what we write, and we read what it writes."""
     import pycolmap  # in the dev extra (optional at run time: our reader needs no dependency)
 
-    _colmap_dataset(toy, tmp_path, binary=binary)
+    _colmap_dataset(toy_scene, tmp_path, binary=binary)
     model_dir = tmp_path / "sparse" / "0"
     ours = read_colmap(tmp_path)
     rec = pycolmap.Reconstruction(str(model_dir))
@@ -231,33 +231,33 @@ def _run(*args):
     return CliRunner().invoke(app, [str(a) for a in args])
 
 
-def _named_renders(toy, out):
+def _named_renders(toy_scene, out):
     """rgb/NAME.png + depth/NAME.npy (z), as a gsplat script writes them."""
     (out / "rgb").mkdir(parents=True)
     (out / "depth").mkdir()
-    for f in toy.frames:
+    for f in toy_scene.frames:
         shutil.copyfile(f.render_path, out / "rgb" / f"{f.name}.png")
-        np.save(out / "depth" / f"{f.name}.npy", toy.depth(f.name)[0].numpy())
+        np.save(out / "depth" / f"{f.name}.npy", toy_scene.depth(f.name)[0].numpy())
 
 
-def test_import_gsplat_reads_a_colmap_dataset(toy, tmp_path):
-    _colmap_dataset(toy, tmp_path / "data", binary=True)
-    _named_renders(toy, tmp_path / "renders")
+def test_import_gsplat_reads_a_colmap_dataset(toy_scene, tmp_path):
+    _colmap_dataset(toy_scene, tmp_path / "data", binary=True)
+    _named_renders(toy_scene, tmp_path / "renders")
     r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "renders", "--output",
              tmp_path / "out", "--eval")
     assert r.exit_code == 0, r.output
     from roguenerf.data.readers import load_scene
 
     scene = load_scene(tmp_path / "out")
-    names = sorted(f.name for f in toy.frames)
+    names = sorted(f.name for f in toy_scene.frames)
     assert [f.name for f in scene.frames] == names
     # --eval: names sorted, positions 0 and 8 held out (Inria's llffhold, gsplat's test_every).
     assert [f.name for f in scene.frames if f.split == "test"] == [names[0], names[8]]
     for f in scene.frames:
-        want = toy.frames[toy.index(f.name)]
+        want = toy_scene.frames[toy_scene.index(f.name)]
         assert (f.world_from_cam - want.world_from_cam).abs().max() < 1e-9
         assert (f.K - want.K).abs().max() < 1e-9
-        assert torch.equal(scene.depth(f.name), toy.depth(f.name))
+        assert torch.equal(scene.depth(f.name), toy_scene.depth(f.name))
     # Issue 49: without a flag, the same split (import-3dgs's default too); --hold 0: every view
     # trains; --hold N / --test-every N and --split-file override.
     r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "renders", "--output",
@@ -292,10 +292,10 @@ def test_import_gsplat_reads_a_colmap_dataset(toy, tmp_path):
     assert r.exit_code == 2 and "nope.png" in r.output and "Traceback" not in r.output
 
 
-def _inria_render(toy, model_dir, *, test_every, depth):
+def _inria_render(toy_scene, model_dir, *, test_every, depth):
     """What Inria's render.py writes: MODEL/<split>/ours_30000/renders/00000.png (+ gt/), the
     i-th camera of the split in name order; ``depth``: also a depth/ folder (as forks add)."""
-    names = sorted(f.name for f in toy.frames)
+    names = sorted(f.name for f in toy_scene.frames)
     for split in ("train", "test") if test_every else ("train",):  # 0: trained without --eval
         views = [n for i, n in enumerate(names) if (bool(test_every) and i % test_every == 0) == (split == "test")]
         base = model_dir / split / "ours_30000"
@@ -304,30 +304,35 @@ def _inria_render(toy, model_dir, *, test_every, depth):
         if depth:
             (base / "depth").mkdir()
         for i, name in enumerate(views):
-            frame = toy.frames[toy.index(name)]
+            frame = toy_scene.frames[toy_scene.index(name)]
             shutil.copyfile(frame.render_path, base / "renders" / f"{i:05d}.png")
             shutil.copyfile(frame.image_path, base / "gt" / f"{i:05d}.png")
             if depth:
-                np.save(base / "depth" / f"{i:05d}.npy", toy.depth(name)[0].numpy())
+                np.save(base / "depth" / f"{i:05d}.npy", toy_scene.depth(name)[0].numpy())
     # An older iteration that must not be used.
     (model_dir / ("test" if test_every else "train") / "ours_7000" / "renders").mkdir(parents=True)
 
 
-def test_inria_numbered_renders_map_to_views_in_name_order(toy, tmp_path):
+def _import_inria_renders(toy_scene, tmp_path, *, binary: bool, depth: bool):
+    """``import-gsplat`` of the toy scene as a COLMAP dataset (tmp_path/data) with Inria's renders of a
+    model trained with --eval (tmp_path/model, every 8th view held out) into tmp_path/out."""
+    _colmap_dataset(toy_scene, tmp_path / "data", binary=binary)
+    _inria_render(toy_scene, tmp_path / "model", test_every=8, depth=depth)
+    return _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "model", "--output", tmp_path / "out")
+
+
+def test_inria_numbered_renders_map_to_views_in_name_order(toy_scene, tmp_path):
     from roguenerf.data.readers import load_scene
 
-    _colmap_dataset(toy, tmp_path / "data", binary=False)
-    _inria_render(toy, tmp_path / "model", test_every=8, depth=True)
     # No --eval given: Inria's test renders say the model was trained with it (every 8th).
-    r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "model", "--output",
-             tmp_path / "out")
+    r = _import_inria_renders(toy_scene, tmp_path, binary=False, depth=True)
     assert r.exit_code == 0, r.output
     scene = load_scene(tmp_path / "out")
     assert len(scene.frames) == 10
     for f in scene.frames:
-        assert torch.equal(scene.depth(f.name), toy.depth(f.name)), f.name
-        assert torch.equal(scene.render(f.name), toy.render(f.name)), f.name
-    names = sorted(f.name for f in toy.frames)
+        assert torch.equal(scene.depth(f.name), toy_scene.depth(f.name)), f.name
+        assert torch.equal(scene.render(f.name), toy_scene.render(f.name)), f.name
+    names = sorted(f.name for f in toy_scene.frames)
     assert [f.name for f in scene.frames if f.split == "test"] == [names[0], names[8]]
     # A split that does not fit the renders is named, not guessed.
     r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "model", "--output",
@@ -335,18 +340,15 @@ def test_inria_numbered_renders_map_to_views_in_name_order(toy, tmp_path):
     assert r.exit_code == 2 and "renders, but the dataset has" in r.output
     assert "--hold 8" in r.output
     # Renders of a model trained without --eval (no test renders): all train, with no flag.
-    _inria_render(toy, tmp_path / "all_train", test_every=0, depth=True)
+    _inria_render(toy_scene, tmp_path / "all_train", test_every=0, depth=True)
     r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "all_train", "--output",
              tmp_path / "o3")
     assert r.exit_code == 0, r.output
     assert {f.split for f in load_scene(tmp_path / "o3").frames} == {"train"}
 
 
-def test_renders_without_depth_point_to_import_3dgs(toy, tmp_path):
-    _colmap_dataset(toy, tmp_path / "data", binary=True)
-    _inria_render(toy, tmp_path / "model", test_every=8, depth=False)
-    r = _run("import-gsplat", tmp_path / "data", "--renders", tmp_path / "model", "--output",
-             tmp_path / "out")
+def test_renders_without_depth_point_to_import_3dgs(toy_scene, tmp_path):
+    r = _import_inria_renders(toy_scene, tmp_path, binary=True, depth=False)
     assert r.exit_code == 2, r.output
     assert "depth" in r.output and "import-3dgs" in r.output and "Traceback" not in r.output
     # gsplat simple_trainer's eval canvases (photo | render, no depth).
@@ -373,13 +375,13 @@ def test_distorted_colmap_dataset_refused_by_the_cli(tmp_path):
     assert "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1
 
 
-def test_load_scene_autodetects_a_colmap_dataset(toy, tmp_path):
+def test_load_scene_autodetects_a_colmap_dataset(toy_scene, tmp_path):
     from roguenerf.data.readers import load_scene
 
-    _colmap_dataset(toy, tmp_path, binary=True)
+    _colmap_dataset(toy_scene, tmp_path, binary=True)
     scene = load_scene(tmp_path)
     assert scene.meta["format"] == "colmap"
-    assert [f.name for f in scene.frames] == sorted(f.name for f in toy.frames)
+    assert [f.name for f in scene.frames] == sorted(f.name for f in toy_scene.frames)
     assert {f.split for f in scene.frames} == {"train"}
 
 

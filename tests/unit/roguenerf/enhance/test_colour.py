@@ -9,13 +9,9 @@ import torch
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.enhance.colour import ColourConfig, colour_match, colour_offset
 from roguenerf.errors import InputError
+from tests.model_helpers import Biased, textured
 
 SHIFT = torch.tensor([0.02, -0.01, 0.03])
-
-
-def textured(seed: int, h: int = 48, w: int = 64) -> torch.Tensor:
-    g = torch.Generator().manual_seed(seed)
-    return (0.2 + 0.6 * torch.rand(1, 3, h, w, generator=g)).clamp(0, 1)
 
 
 def test_the_offset_brings_a_shifted_image_back_to_the_neighbours():
@@ -98,23 +94,6 @@ def test_shapes_are_checked():
         colour_offset(photo[0], [(photo, full), (photo, full)])
     with pytest.raises(InputError, match="neighbours"):
         colour_offset(photo, [(photo[..., :32], full), (photo, full)])
-
-
-class Biased(torch.nn.Module):
-    """A stand-in enhancer that returns the render a little too bright."""
-
-    def __init__(self, model, bias: torch.Tensor):
-        super().__init__()
-        self.inner, self.bias, self.config = model, bias, model.config
-
-    def forward(self, render, depth, K, pose, batch):
-        return render + self.bias.view(1, 3, 1, 1)
-
-    def encode_neighbours(self, photos):
-        return self.inner.encode_neighbours(photos)
-
-    def neighbour_source(self, features, depth):
-        return self.inner.neighbour_source(features, depth)
 
 
 def test_the_scene_enhancer_takes_a_colour_bias_back_out(tmp_path):

@@ -12,7 +12,8 @@ from roguenerf.enhance import EnhanceOptions, NeighbourRule
 from roguenerf.enhance.select import Candidate, choose, measure_candidates
 from roguenerf.errors import InputError
 from roguenerf.inference import SceneEnhancer
-from tests.unit.roguenerf.test_inference import _model, _turned
+from tests.geometry_helpers import turned
+from tests.model_helpers import perturbed_micro
 
 
 def _K(h: int, w: int, f: float = 40.0) -> torch.Tensor:
@@ -34,7 +35,7 @@ def test_measure_candidates_known_answers():
     depth = torch.full((1, h, w), 2.0)
     K = _K(h, w)
     pose = torch.eye(4, dtype=torch.float64)
-    away = _turned(pose, 180.0)
+    away = turned(pose, 180.0)
     brighter = (render + 0.3).clamp(0, 1)
     neighbours = [(render, depth, K, pose), (render.clone(), depth, K, pose), (brighter, depth, K, pose),
                   (render, depth, K, away)]
@@ -86,7 +87,7 @@ def test_neighbour_rule_refuses_bad_settings(kwargs):
 
 
 def test_measured_rule_in_the_enhancer(scene):
-    model = _model(num_neighbours=2)
+    model = perturbed_micro(num_neighbours=2)
     rule = NeighbourRule(measured=True, candidates=4, least=2, most=3, min_coverage=0.0, error_ratio=100.0)
     enhancer = SceneEnhancer(scene, model, options=EnhanceOptions(neighbours=rule))
     assert enhancer.options.describe().startswith("2-3 of 4 neighbours, measured")
@@ -109,7 +110,7 @@ def test_measured_rule_in_the_enhancer(scene):
 
 
 def test_explicit_neighbours_must_be_training_views(scene):
-    enhancer = SceneEnhancer(scene, _model())
+    enhancer = SceneEnhancer(scene, perturbed_micro())
     i = scene.index("test_000")
     frame = scene.frames[i]
     args = (scene.render(i), scene.depth(i), frame.K, frame.world_from_cam)

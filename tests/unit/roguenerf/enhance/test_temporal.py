@@ -7,7 +7,7 @@ import torch
 
 from roguenerf.enhance.temporal import TemporalConfig, TemporalFilter
 from roguenerf.errors import InputError
-from tests.unit.roguenerf.test_inference import _turned
+from tests.geometry_helpers import turned
 
 H, W = 20, 24
 K = torch.tensor([[30.0, 0, W / 2], [0, 30.0, H / 2], [0, 0, 1]])
@@ -45,7 +45,7 @@ def test_a_cut_keeps_the_frame_and_weight_zero_changes_nothing():
     r1, e1 = _frame(1)
     f(r1, e1, DEPTH, K, POSE)
     r2, e2 = _frame(2)
-    assert torch.equal(f(r2, e2, DEPTH, K, _turned(POSE, 180.0)), e2)  # sees nothing of the last frame
+    assert torch.equal(f(r2, e2, DEPTH, K, turned(POSE, 180.0)), e2)  # sees nothing of the last frame
     assert f.last_share == 0.0
     still = TemporalFilter(TemporalConfig(weight=0.0))
     still(r1, e1, DEPTH, K, POSE)

@@ -10,7 +10,7 @@ from roguenerf.data.toy import make_toy_scene
 from roguenerf.enhance.colour import neighbour_agreement
 from roguenerf.enhance.trust import TrustConfig, kept_change, trust_factor
 from roguenerf.errors import InputError
-from tests.unit.roguenerf.enhance.test_colour import Biased, textured
+from tests.model_helpers import Biased, textured
 
 
 def test_the_share_kept_rises_with_the_agreement_up_to_full_share():

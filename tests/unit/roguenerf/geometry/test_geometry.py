@@ -24,25 +24,7 @@ from roguenerf.geometry import (
 )
 from roguenerf.geometry.cameras import ORTHONORMAL_TOL
 from roguenerf.geometry.euler import angular_distance, euler_distance
-
-
-def rot_x(a):
-    c, s = math.cos(a), math.sin(a)
-    return torch.tensor([[1, 0, 0], [0, c, -s], [0, s, c]], dtype=torch.float64)
-
-
-def rot_y(a):
-    c, s = math.cos(a), math.sin(a)
-    return torch.tensor([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=torch.float64)
-
-
-def rot_z(a):
-    c, s = math.cos(a), math.sin(a)
-    return torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=torch.float64)
-
-
-def zyx(roll, pitch, yaw):
-    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+from tests.geometry_helpers import zyx
 
 
 def test_lego_backprojection_matches_readme(lego_dir):

@@ -10,8 +10,7 @@ import torch
 
 from roguenerf.errors import InputError
 from roguenerf.geometry import opengl_to_opencv, select_neighbours
-
-from .test_geometry import zyx
+from tests.geometry_helpers import zyx
 
 
 def pose(R, t):

@@ -13,8 +13,7 @@ from roguenerf.errors import InputError
 from roguenerf.geometry import check_pose, euler_angles, select_neighbours, wrap_angle
 from roguenerf.geometry.euler import angular_distance
 from roguenerf.reprojection import reproject
-
-from .test_geometry import zyx
+from tests.geometry_helpers import zyx
 
 SPECIAL_ANGLES = [0.0, math.pi, -math.pi, math.pi / 2, -math.pi / 2]
 angle = st.one_of(st.sampled_from(SPECIAL_ANGLES), st.floats(-math.pi, math.pi))

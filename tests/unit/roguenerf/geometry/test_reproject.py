@@ -15,8 +15,7 @@ from roguenerf.data.toy import cast_rays, make_toy_world, render_toy_view, toy_c
 from roguenerf.errors import InputError
 from roguenerf.geometry import intrinsics_matrix, opengl_to_opencv, scale_intrinsics
 from roguenerf.reprojection import reproject
-
-from .test_geometry import zyx
+from tests.geometry_helpers import zyx
 
 TOL = {torch.float32: dict(atol=1e-4, rtol=1e-4), torch.float64: dict(atol=1e-9, rtol=1e-9)}
 
@@ -277,15 +276,22 @@ def test_neighbour_facing_the_other_way():
     assert not out.valid.any()
 
 
-@pytest.mark.parametrize("pitch", [math.pi / 2, -math.pi / 2])
-def test_gimbal_lock_rig_gives_same_answer(pitch):
-    """Turning the whole rig to pitch +-90 deg changes nothing relative between the cameras."""
+def _small_pair():
+    """A 4 x 6 float64 view pair: K, features, a depth in [1.5, 2.5), the neighbour's pose
+    relative to the target, and the reprojection with the target at the origin."""
     H, W = 4, 6
     K = camera(H, W)
     feats = torch.rand(1, 3, H, W, dtype=torch.float64)
     depth = 1.5 + torch.rand(1, 1, H, W, dtype=torch.float64)
     rel = pose(zyx(0.05, 0.02, -0.03), (0.1, -0.05, 0.02))
     ref = reproject(feats, depth, depth, K, K, rel, pose())
+    return K, feats, depth, rel, ref
+
+
+@pytest.mark.parametrize("pitch", [math.pi / 2, -math.pi / 2])
+def test_gimbal_lock_rig_gives_same_answer(pitch):
+    """Turning the whole rig to pitch +-90 deg changes nothing relative between the cameras."""
+    K, feats, depth, rel, ref = _small_pair()
     rig = pose(zyx(0.3, pitch, 1.2), (1.0, 2.0, 3.0))
     out, _, _ = _finite_with_grads(feats, depth, depth, K, K, rig @ rel, rig)
     torch.testing.assert_close(out.coords, ref.coords)
@@ -338,12 +344,7 @@ def test_bad_focal_length_raises(fx):
 
 
 def test_non_orthonormal_rotation():
-    H, W = 4, 6
-    K = camera(H, W)
-    feats = torch.rand(1, 3, H, W, dtype=torch.float64)
-    depth = 1.5 + torch.rand(1, 1, H, W, dtype=torch.float64)
-    rel = pose(zyx(0.05, 0.02, -0.03), (0.1, -0.05, 0.02))
-    ref = reproject(feats, depth, depth, K, K, rel, pose())
+    K, feats, depth, rel, ref = _small_pair()
     slightly = rel.clone()
     slightly[:3, :3] *= 1 + 2e-4  # scale error within ORTHONORMAL_TOL (1e-3)
     out = reproject(feats, depth, depth, K, K, slightly, pose())

@@ -16,15 +16,7 @@ from roguenerf.models import VARIANTS, EnhancerConfig, NeighbourBatch, build_enh
 from roguenerf.models.enhancer import Enhancer, median_depth
 from tests.model_helpers import make_views, randomise
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """These models are tiny: on a shared 2-core machine, OpenMP threads spinning against other
-    processes cost far more than they gain (measured: 4x to 20x slower with 2 threads)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def small(variant: str = "micro", **overrides) -> Enhancer:

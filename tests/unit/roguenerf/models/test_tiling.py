@@ -10,14 +10,7 @@ from roguenerf.models import build_enhancer
 from roguenerf.models.tiling import axis_weights, enhance_tiled, tile_starts
 from tests.model_helpers import make_views, randomise
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Tiny models: on a shared 2-core machine a second OpenMP thread costs more than it gains."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def test_tile_starts_known_answers():

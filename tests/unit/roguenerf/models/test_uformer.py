@@ -8,14 +8,7 @@ import torch
 from roguenerf.models import make_config
 from roguenerf.models.uformer import LeWinBlock, Uformer, WindowAttention, _shift_mask
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Tiny models: on a shared 2-core machine a second OpenMP thread costs more than it gains."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _perturb_output(u: Uformer, std: float = 0.05) -> Uformer:

@@ -28,21 +28,9 @@ from roguenerf.models.flow import FlowRefiner, flow_warp, upsample_flow
 from roguenerf.models.layers import PixelAttention
 from roguenerf.models.uformer import LeWinBlock
 from roguenerf.reprojection import reproject
-from tests.model_helpers import make_views, randomise
+from tests.model_helpers import KernelCalls, make_views, randomise
 
 ROOT = Path(__file__).resolve().parents[4]
-
-
-class Calls:
-    """Counts the kernels run inside the ``with`` block (proves the native path ran)."""
-
-    def __enter__(self):
-        self.names: list[str] = []
-        native.on_call = lambda name, nbytes: self.names.append(name)
-        return self
-
-    def __exit__(self, *exc):
-        native.on_call = None
 
 
 def test_kernels_are_built_here_and_cached():
@@ -71,7 +59,7 @@ def test_reprojection_kernel_equals_the_torch_fast_path_on_hard_cases():
     poses[1, 2, 3] = 3.0  # the second target's neighbour stands inside the scene: points behind it
     args = (feats, src_depth, depth, nb.K[:, 0], K, poses, P)
     with torch.inference_mode():
-        with Calls() as calls:
+        with KernelCalls() as calls:
             fast = reproject(*args, leniency=0.1)
         with native.disabled():
             plain = reproject(*args, leniency=0.1)
@@ -93,7 +81,7 @@ def test_reprojection_kernel_equals_the_torch_fast_path_on_hard_cases():
 def test_reprojection_without_neighbour_depth_keeps_the_torch_path():
     model = build_enhancer("micro")
     _, depth, K, P, nb = make_views(model, n=1, h=20, w=24)
-    with torch.inference_mode(), Calls() as calls:
+    with torch.inference_mode(), KernelCalls() as calls:
         rp = reproject(nb.features[:, 0], None, depth, nb.K[:, 0], K, nb.world_from_cam[:, 0], P)
     assert calls.names == [] and rp.packed is None
 
@@ -133,7 +121,7 @@ def test_pool_kernel_equals_padded_average_pool(size):
     flow = FlowRefiner(features=16, hidden=8, iters=1)
     x = torch.randn(2, 18, *size).contiguous(memory_format=torch.channels_last)
     with torch.inference_mode():
-        with Calls() as calls:
+        with KernelCalls() as calls:
             got = flow._pool(x)
         with native.disabled():
             want = flow._pool(x)
@@ -183,7 +171,7 @@ def test_lewin_block_kernels_equal_the_torch_block(shift, dim, heads):
             p.copy_(torch.randn(p.shape, generator=g) * 0.3 + (1.0 if p.ndim == 1 and p is block.norm1.weight else 0.0))
     x = torch.randn(2, 16, 24, dim, generator=g)
     with torch.inference_mode():
-        with Calls() as calls:
+        with KernelCalls() as calls:
             got = block(x)
         with native.disabled():
             want = block(x)
@@ -219,7 +207,7 @@ def test_small_conv_kernel_equals_conv2d(size, cs, cin, co, bias):
     weight = torch.randn(co, cin, 3, 3, generator=g)
     b = torch.randn(co, generator=g) if bias else None
     with torch.inference_mode():
-        with Calls() as calls:
+        with KernelCalls() as calls:
             got = native.conv3x3(x, weight, b)
     want = F.conv2d(x[:, :cin], weight, b, padding=1)
     assert calls.names == ["conv3x3"] and got.shape == want.shape
@@ -251,7 +239,7 @@ def test_leff_kernel_equals_the_torch_feed_forward(dim, size, batch, residual):
     res = torch.randn(batch, *size, dim, generator=g) if residual else None
     for step in range(2):
         with torch.inference_mode():
-            with Calls() as calls:
+            with KernelCalls() as calls:
                 got = leff(x, residual=res)
             with native.disabled():
                 want = leff(x, residual=res)
@@ -316,7 +304,7 @@ def test_window_attention_kernel_equals_torch_attention(dim, heads, shifted):
     mask = _shift_mask(12, 16, 4, 2, "cpu") if shifted else None
     x = torch.randn(2 * 12, 16, dim, generator=g)
     with torch.inference_mode():
-        with Calls() as calls:
+        with KernelCalls() as calls:
             got = attn(x, mask)
         with native.disabled():
             want = attn(x, mask)
@@ -332,7 +320,7 @@ def test_enhancer_with_kernels_equals_the_plain_implementation():
     render, depth, K, P, nb = make_views(model, b=2, n=3, h=40, w=56)
     depth = depth.clone()
     depth[0, 0, :5, :7] = float("nan")
-    with torch.inference_mode(), Calls() as calls:
+    with torch.inference_mode(), KernelCalls() as calls:
         fast = model(render, depth, K, P, nb)
     with torch.inference_mode(), native.disabled():
         torch_fast = model(render, depth, K, P, nb)
@@ -367,7 +355,7 @@ def test_without_kernels_the_torch_path_gives_the_same_output(how, tmp_path):
         from roguenerf import native
         from roguenerf.fastpath import reference_mode
         from roguenerf.models import build_enhancer
-        from tests.model_helpers import make_views, randomise
+        from tests.model_helpers import KernelCalls, make_views, randomise
         assert native.library() is None
         model = randomise(build_enhancer("micro").eval())
         views = make_views(model, n=2, h=24, w=32)

@@ -23,6 +23,7 @@ from roguenerf.errors import InputError
 from roguenerf.models.layers import PixelAttention
 from roguenerf.models.uformer import LeFF, WindowAttention
 from roguenerf.native import NativeArgumentError
+from tests.model_helpers import KernelCalls
 
 ROOT = Path(__file__).resolve().parents[4]
 CL = "channels-last"
@@ -117,26 +118,16 @@ def _broken(kernel: str, name: str, fault: str) -> tuple[dict, str]:
     return args, f"expected a {layouts.get(name, 'contiguous')} tensor"
 
 
-class _NoKernel:
-    def __enter__(self):
-        self.ran: list[str] = []
-        native.on_call = lambda name, nbytes: self.ran.append(name)
-        return self
-
-    def __exit__(self, *exc):
-        native.on_call = None
-
-
 @pytest.mark.parametrize("kernel, name, fault", CASES)
 def test_a_wrong_tensor_is_refused_before_the_kernel_runs(kernel, name, fault):
     args, expected = _broken(kernel, name, fault)
-    with torch.inference_mode(), _NoKernel() as calls, pytest.raises(NativeArgumentError) as info:
+    with torch.inference_mode(), KernelCalls() as calls, pytest.raises(NativeArgumentError) as info:
         KERNELS[kernel][0](**args)
     message = str(info.value)
     assert isinstance(info.value, InputError)
     assert f"roguenerf.native.rg_{kernel}" in message or f"roguenerf.native.{kernel}" in message, message
     assert f"argument {name!r}" in message and expected in message, message
-    assert calls.ran == []
+    assert calls.names == []
 
 
 @pytest.mark.parametrize("kernel", list(KERNELS))
@@ -147,9 +138,9 @@ def test_the_good_tensors_pass_the_door(kernel):
         with pytest.raises(NativeArgumentError, match="a supported channel count"):
             call(**good())
         return
-    with torch.inference_mode(), _NoKernel() as calls:
+    with torch.inference_mode(), KernelCalls() as calls:
         call(**good())
-    assert calls.ran == [kernel]
+    assert calls.names == [kernel]
 
 
 def test_shape_and_device_faults_name_what_was_expected():

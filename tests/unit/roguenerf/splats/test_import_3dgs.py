@@ -47,6 +47,15 @@ def cameras(count: int) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.stack(poses), K
 
 
+def _camera_path(path, poses: torch.Tensor, *, opengl: bool = True):
+    """``poses`` (OpenCV) as a nerfstudio transforms.json camera path at the dataset's size, focal
+    40 px; ``opengl=False`` writes them without the axis change (the user's mix-up)."""
+    frames = [{"transform_matrix": (opencv_to_opengl(p) if opengl else p).tolist()} for p in poses]
+    path.write_text(json.dumps({"fl_x": 40.0, "fl_y": 40.0, "cx": W / 2, "cy": H / 2, "w": W, "h": H,
+                                "frames": frames}))
+    return path
+
+
 @pytest.fixture(scope="module")
 def splat_data(tmp_path_factory):
     """A transforms.json dataset whose photos are the splats' renders plus a little noise, and the .ply."""
@@ -101,9 +110,7 @@ def test_a_camera_path_goes_to_an_enhanced_mp4_in_two_commands(splat_data, tmp_p
     root, g, poses, K = splat_data
     path_poses, _ = cameras(5)
     path_poses[:, 2, 3] += 0.2  # novel views: above the dataset's
-    path = tmp_path / "path.json"
-    path.write_text(json.dumps({"fl_x": 40.0, "fl_y": 40.0, "cx": W / 2, "cy": H / 2, "w": W, "h": H,
-                                "frames": [{"transform_matrix": opencv_to_opengl(p).tolist()} for p in path_poses]}))
+    path = _camera_path(tmp_path / "path.json", path_poses)
     out = tmp_path / "scene"
     first = runner.invoke(app, ["import-3dgs", str(root / "data"), "--ply", str(root / "point_cloud.ply"),
                                 "--output", str(out), "--path", str(path), "--backend", "cpu"])
@@ -232,9 +239,8 @@ def test_the_world_check_passes_the_right_ply_cheaply(splat_data):
 def test_a_path_that_sees_nothing_is_refused_before_rendering(splat_data, tmp_path):
     root, g, poses, K = splat_data
     path_poses, _ = cameras(5)
-    path = tmp_path / "path.json"  # OpenCV poses written as OpenGL: every camera looks away
-    path.write_text(json.dumps({"fl_x": 40.0, "fl_y": 40.0, "cx": W / 2, "cy": H / 2, "w": W, "h": H,
-                                "frames": [{"transform_matrix": p.tolist()} for p in path_poses]}))
+    # OpenCV poses written as OpenGL: every camera looks away.
+    path = _camera_path(tmp_path / "path.json", path_poses, opengl=False)
     out = tmp_path / "scene"
     args = ["import-3dgs", str(root / "data"), "--ply", str(root / "point_cloud.ply"), "--output", str(out),
             "--path", str(path), "--backend", "cpu"]
@@ -415,9 +421,7 @@ def test_import_3dgs_never_replaces_a_folder_it_did_not_write(splat_data, tmp_pa
 def test_import_3dgs_replaces_its_own_output_but_never_a_file_it_did_not_write(splat_data, tmp_path):
     root, _, _, K = splat_data
     path_poses, _ = cameras(3)
-    path = tmp_path / "path.json"
-    path.write_text(json.dumps({"fl_x": 40.0, "fl_y": 40.0, "cx": W / 2, "cy": H / 2, "w": W, "h": H,
-                                "frames": [{"transform_matrix": opencv_to_opengl(p).tolist()} for p in path_poses]}))
+    path = _camera_path(tmp_path / "path.json", path_poses)
     out = tmp_path / "scene"
     args = ["import-3dgs", str(root / "data"), "--ply", str(root / "point_cloud.ply"), "--output", str(out),
             "--path", str(path), "--backend", "cpu"]
@@ -449,9 +453,7 @@ def test_render_camera_path_never_replaces_a_folder_it_did_not_write(splat_data,
 
     root, _, _, _ = splat_data
     path_poses, _ = cameras(3)
-    path = tmp_path / "path.json"
-    path.write_text(json.dumps({"fl_x": 40.0, "fl_y": 40.0, "cx": W / 2, "cy": H / 2, "w": W, "h": H,
-                                "frames": [{"transform_matrix": opencv_to_opengl(p).tolist()} for p in path_poses]}))
+    path = _camera_path(tmp_path / "path.json", path_poses)
     ply = root / "point_cloud.ply"
     dataset = tmp_path / "dataset"  # a nerfstudio dataset: its transforms.json is not a rendered path
     dataset.mkdir()
