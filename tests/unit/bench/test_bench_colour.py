@@ -8,21 +8,13 @@ import csv
 import pytest
 
 from bench import colour
-from roguenerf.checkpoint import save_checkpoint
-from roguenerf.data.toy import make_toy_scene
 from roguenerf.errors import InputError
-from roguenerf.models import Enhancer, make_config
 
 
-def test_settings_side_by_side_on_one_output(tmp_path):
-    from roguenerf.imageio import read_image, write_png
-
-    make_toy_scene(tmp_path / "toy", seed=2, n_train=6, n_test=2, height=72, width=96)
+def test_settings_side_by_side_on_one_output(tmp_path, bright_toy):
     # The test views' renders come out too bright (as a field that learned another exposure):
     # a fresh enhancer is the identity, so only colour matching can take it back out.
-    for png in (tmp_path / "toy" / "renders").glob("test_*.png"):
-        write_png(png, (read_image(png.read_bytes()) + 0.06).clamp(0, 1))
-    ckpt = save_checkpoint(tmp_path / "m.safetensors", Enhancer(make_config("nano", num_neighbours=2)))
+    _, ckpt = bright_toy
     out = tmp_path / "colour_0.5"
     assert colour.main([str(tmp_path / "toy"), "--checkpoint", str(ckpt), "--configs", "off,local_sigma=0,default",
                         "--max-views", "1", "--output", str(out)]) == 0

@@ -9,19 +9,11 @@ import csv
 import pytest
 
 from bench import trust
-from roguenerf.checkpoint import save_checkpoint
-from roguenerf.data.toy import make_toy_scene
-from roguenerf.models import Enhancer, make_config
 
 
-def test_settings_side_by_side_on_one_output(tmp_path):
-    from roguenerf.imageio import read_image, write_png
-
-    make_toy_scene(tmp_path / "toy", seed=2, n_train=6, n_test=2, height=72, width=96)
+def test_settings_side_by_side_on_one_output(tmp_path, bright_toy):
     # Renders too bright: colour matching (on, as shipped) changes them, so there is a change to keep.
-    for png in (tmp_path / "toy" / "renders").glob("test_*.png"):
-        write_png(png, (read_image(png.read_bytes()) + 0.06).clamp(0, 1))
-    ckpt = save_checkpoint(tmp_path / "m.safetensors", Enhancer(make_config("nano", num_neighbours=2)))
+    _, ckpt = bright_toy
     out = tmp_path / "trust"
     assert trust.main([str(tmp_path / "toy"), f"{tmp_path / 'toy'}={ckpt}", "--checkpoint", str(ckpt),
                        "--settings", "off,0.5,1,local4,below1,alone", "--max-views", "1", "--output", str(out)]) == 0

@@ -9,7 +9,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 from PIL import Image
@@ -17,8 +16,18 @@ from PIL import Image
 from roguefit import FitConfig, make_pairs, read_photo_set
 from roguefit.field import GridField
 from roguenerf.data.readers import load_scene
-from roguenerf.errors import InputError, TrainingCancelled
-from tests.fit_helpers import VIEWS, H, W, write_photo_set
+from roguenerf.errors import InputError
+from tests.fit_helpers import (
+    VIEWS,
+    H,
+    W,
+    constant_psnr,
+    depth_errors,
+    fit_stopped_and_resumed,
+    ray_bundle,
+    run_make_pairs,
+    write_photo_set,
+)
 
 SMALL = FitConfig(resolution=40, features=0, steps=240, minutes=None, rays=1024, samples=48, prune_every=40)
 
@@ -49,10 +58,7 @@ def test_fit_writes_a_scene_folder_with_every_view(fitted):
 @pytest.mark.slow
 def test_fit_reaches_a_psnr_floor_and_beats_a_constant_image(fitted):
     root, out, report, _ = fitted
-    ps = read_photo_set(root)
-    train = ps.indices("train")
-    mean_colour = ps.photos[train].mean(dim=(0, 2, 3), keepdim=True)
-    constant = float(-10 * torch.log10(((ps.photos[train] - mean_colour) ** 2).mean()))
+    constant = constant_psnr(root)
     assert report["train"]["psnr"] > 22.0, report
     assert report["train"]["psnr"] > constant + 8.0, (report["train"], constant)
     assert report["test"]["psnr"] > constant + 4.0, (report["test"], constant)  # held-out views include both path ends
@@ -61,46 +67,22 @@ def test_fit_reaches_a_psnr_floor_and_beats_a_constant_image(fitted):
 @pytest.mark.slow
 def test_rendered_depth_is_close_to_the_true_depth(fitted):
     _, out, _, truth = fitted
-    scene = load_scene(out)
-    errors, coverage = [], []
-    for i, frame in enumerate(scene.frames):
-        if frame.split != "train":
-            continue
-        depth, true = scene.depth(i)[0], truth[frame.name][0]
-        acc = torch.from_numpy(np.asarray(Image.open(out / "acc" / f"{frame.name}.png"), dtype=np.float32) / 255.0)
-        near = true < 8.0  # the floor, wall and boxes; the far backdrop sphere is ill-posed for any field
-        ok = near & (acc > 0.5)
-        coverage.append(float(ok.float().sum() / near.float().sum()))
-        errors.append(((depth[ok] - true[ok]).abs() / true[ok]).median())
+    errors, coverage = depth_errors(out, truth)
     assert float(torch.stack(errors).median()) < 0.08, errors
     assert min(coverage) > 0.9, coverage
 
 
 @pytest.mark.slow
 def test_interrupted_fit_resumes_to_the_same_result(tmp_path):
-    root = tmp_path / "photos"
-    write_photo_set(root, views=9)
     config = dataclasses.replace(SMALL, steps=30, prune_every=10)
-    whole = make_pairs(root, tmp_path / "whole", config)
-    calls = {"n": 0}
-
-    def stop_after_12() -> bool:
-        calls["n"] += 1
-        return calls["n"] == 12
-
-    with pytest.raises(TrainingCancelled):
-        make_pairs(root, tmp_path / "resumed", config, should_stop=stop_after_12)
-    state = json.loads((tmp_path / "resumed" / ".fit" / "state.json").read_text())
-    assert state["step"] == 12
-    resumed = make_pairs(root, tmp_path / "resumed", config)
-    assert resumed["steps"] == 30
-    assert resumed["train"]["psnr"] == pytest.approx(whole["train"]["psnr"], abs=1e-4)
-    a = load_scene(tmp_path / "whole").render(1)
-    b = load_scene(tmp_path / "resumed").render(1)
-    assert (a - b).abs().max() <= 1 / 255
+    run = fit_stopped_and_resumed(tmp_path, config, stop_at=12)
+    assert run.state_json["step"] == 12
+    assert run.resumed["steps"] == 30
+    assert run.resumed["train"]["psnr"] == pytest.approx(run.whole["train"]["psnr"], abs=1e-4)
+    assert run.render_difference(1) <= 1 / 255
     # A finished folder is left as it is (no refit: the report is returned from fit.json).
-    again = make_pairs(root, tmp_path / "resumed", config)
-    assert again == resumed
+    again = make_pairs(tmp_path / "photos", tmp_path / "resumed", config)
+    assert again == run.resumed
 
 
 def test_contraction_round_trips_and_bounds_the_world():
@@ -135,8 +117,7 @@ def test_a_photo_set_it_cannot_read_is_a_clear_error(tmp_path, breakage, message
     with pytest.raises(InputError, match=message.replace("(", r"\(")):
         read_photo_set(root)
     # The CLI says the same in one line, exit code 2, no traceback.
-    proc = subprocess.run([sys.executable, "-m", "roguecli", "make-pairs", str(root), "--output",
-                           str(tmp_path / "out"), "--steps", "2"], capture_output=True, text=True, timeout=120)
+    proc = run_make_pairs(root, tmp_path / "out", "--steps", "2", timeout=120)
     assert proc.returncode == 2, proc.stderr
     assert message in proc.stderr and "Traceback" not in proc.stderr
 
@@ -145,9 +126,7 @@ def test_a_photo_set_it_cannot_read_is_a_clear_error(tmp_path, breakage, message
 def test_make_pairs_cli_runs_and_the_library_never_imports_the_fitter(tmp_path):
     root = tmp_path / "photos"
     write_photo_set(root, views=9)
-    proc = subprocess.run([sys.executable, "-m", "roguecli", "make-pairs", str(root), "--output",
-                           str(tmp_path / "out"), "--preset", "coarse", "--steps", "3", "--resolution", "24"],
-                          capture_output=True, text=True, timeout=300)
+    proc = run_make_pairs(root, tmp_path / "out", "--preset", "coarse", "--steps", "3", "--resolution", "24")
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == str(tmp_path / "out")
     assert "fitted 3 steps" in proc.stderr
@@ -286,10 +265,7 @@ def test_early_terminating_renderer_equals_the_training_renderer():
         for p in field.mlp.parameters():
             p.copy_(torch.randn(p.shape, generator=g) * 0.3)
     field.use_mlp = True
-    n = 500
-    origins = torch.randn(n, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, -4.0])
-    dirs = torch.cat([torch.randn(n, 2, generator=g) * 0.3, torch.ones(n, 1)], dim=1)
-    near, far = torch.full((n,), 2.0), torch.full((n,), 7.0)
+    origins, dirs, near, far = ray_bundle(500, g)
     with torch.no_grad():
         ref = field.render(origins, dirs, near, far, 40)
     exact = field.render_fast(origins, dirs, near, far, 40, segment=7, termination=0.0)

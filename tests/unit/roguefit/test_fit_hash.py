@@ -8,17 +8,22 @@ import dataclasses
 import json
 import math
 
-import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from PIL import Image
 
-from roguefit import PRESETS, FitConfig, make_pairs, read_photo_set
+from roguefit import PRESETS, FitConfig, make_pairs
 from roguefit.hashfield import HASH_PRIMES, HashEncoding, HashField, level_resolutions, spherical_harmonics
 from roguenerf.data.readers import load_scene
-from roguenerf.errors import InputError, TrainingCancelled
-from tests.fit_helpers import write_photo_set
+from roguenerf.errors import InputError
+from tests.fit_helpers import (
+    constant_psnr,
+    depth_errors,
+    fit_stopped_and_resumed,
+    ray_bundle,
+    run_make_pairs,
+    write_photo_set,
+)
 
 # The preset's field, small: 4 levels (16 to 32; the first two dense, the others hashed into
 # 2^14 rows), at a test's budget. On the 30 x 40 px toy views a hash field memorises the
@@ -132,24 +137,11 @@ def hash_fit(tmp_path_factory):
 
 def test_hash_fit_reaches_a_psnr_floor_and_the_true_depth(hash_fit):
     root, out, report, truth, reports = hash_fit
-    ps = read_photo_set(root)
-    train = ps.indices("train")
-    mean_colour = ps.photos[train].mean(dim=(0, 2, 3), keepdim=True)
-    constant = float(-10 * torch.log10(((ps.photos[train] - mean_colour) ** 2).mean()))
+    constant = constant_psnr(root)
     assert report["config"]["kind"] == "hash" and report["steps"] == SMALL_HASH.steps
     assert report["train"]["psnr"] > HASH_PSNR_FLOOR, report
     assert report["train"]["psnr"] > constant + 5.0, (report["train"], constant)  # measured + 6.5 dB
-    scene = load_scene(out)
-    errors, coverage = [], []
-    for i, frame in enumerate(scene.frames):
-        if frame.split != "train":
-            continue
-        depth, true = scene.depth(i)[0], truth[frame.name][0]
-        acc = torch.from_numpy(np.asarray(Image.open(out / "acc" / f"{frame.name}.png"), dtype=np.float32) / 255.0)
-        near = true < 8.0  # the floor, wall and boxes (the far backdrop is ill-posed for any field)
-        ok = near & (acc > 0.5)
-        coverage.append(float(ok.float().sum() / near.float().sum()))
-        errors.append(((depth[ok] - true[ok]).abs() / true[ok]).median())
+    errors, coverage = depth_errors(out, truth)
     assert float(torch.stack(errors).median()) < HASH_DEPTH_BOUND, errors
     assert min(coverage) > 0.9, coverage
     # Progress: one report per step, rising PSNR, the finest level's resolution as the grid.
@@ -167,27 +159,13 @@ geometry (0.5 and more) or a transparent one (the coverage check)."""
 
 
 def test_stopped_hash_fit_resumes_from_its_saved_step(tmp_path):
-    root = tmp_path / "photos"
-    write_photo_set(root, views=9)
-    config = dataclasses.replace(SMALL_HASH, steps=24, prune_every=8)
-    whole = make_pairs(root, tmp_path / "whole", config)
-    calls = {"n": 0}
-
-    def stop_after_10() -> bool:
-        calls["n"] += 1
-        return calls["n"] == 10
-
-    with pytest.raises(TrainingCancelled):
-        make_pairs(root, tmp_path / "resumed", config, should_stop=stop_after_10)
-    state = json.loads((tmp_path / "resumed" / ".fit" / "state.json").read_text())
-    assert state["step"] == 10 and state["config"]["kind"] == "hash"
     steps_seen = []
-    resumed = make_pairs(root, tmp_path / "resumed", config, progress=lambda p: steps_seen.append(p["step"]))
-    assert steps_seen[0] == 11 and resumed["steps"] == 24  # resumed from the saved step, not from 0
-    assert resumed["train"]["psnr"] == pytest.approx(whole["train"]["psnr"], abs=1e-3)
-    a = load_scene(tmp_path / "whole").render(1)
-    b = load_scene(tmp_path / "resumed").render(1)
-    assert (a - b).abs().max() <= 2 / 255
+    run = fit_stopped_and_resumed(tmp_path, dataclasses.replace(SMALL_HASH, steps=24, prune_every=8), stop_at=10,
+                                  progress=lambda p: steps_seen.append(p["step"]))
+    assert run.state_json["step"] == 10 and run.state_json["config"]["kind"] == "hash"
+    assert steps_seen[0] == 11 and run.resumed["steps"] == 24  # resumed from the saved step, not from 0
+    assert run.resumed["train"]["psnr"] == pytest.approx(run.whole["train"]["psnr"], abs=1e-3)
+    assert run.render_difference(1) <= 2 / 255
 
 
 def test_hash_field_renders_with_the_shared_renderers(monkeypatch):
@@ -200,10 +178,7 @@ def test_hash_field_renders_with_the_shared_renderers(monkeypatch):
         field.encoding.tables.normal_(0, 1, generator=g)
         for p in list(field.density_mlp.parameters()) + list(field.colour_mlp.parameters()):
             p.copy_(torch.randn(p.shape, generator=g) * 0.5)
-    n = 300
-    origins = torch.randn(n, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, -4.0])
-    dirs = torch.cat([torch.randn(n, 2, generator=g) * 0.3, torch.ones(n, 1)], dim=1)
-    near, far = torch.full((n,), 2.0), torch.full((n,), 7.0)
+    origins, dirs, near, far = ray_bundle(300, g)
     with torch.no_grad():
         ref = field.render(origins, dirs, near, far, 32)
     exact = field.render_fast(origins, dirs, near, far, 32, segment=5, termination=0.0)
@@ -220,14 +195,9 @@ def test_hash_field_renders_with_the_shared_renderers(monkeypatch):
 
 
 def test_make_pairs_cli_hash_preset_smoke(tmp_path):
-    import subprocess
-    import sys
-
     root = tmp_path / "photos"
     write_photo_set(root, views=9)
-    proc = subprocess.run([sys.executable, "-m", "roguecli", "make-pairs", str(root), "--output",
-                           str(tmp_path / "out"), "--preset", "hash", "--steps", "3", "--resolution", "32"],
-                          capture_output=True, text=True, timeout=300)
+    proc = run_make_pairs(root, tmp_path / "out", "--preset", "hash", "--steps", "3", "--resolution", "32")
     assert proc.returncode == 0, proc.stderr
     assert "fitted 3 steps" in proc.stderr and "fitting photos" in proc.stderr  # the progress bar
     report = json.loads((tmp_path / "out" / "fit.json").read_text())

@@ -14,9 +14,9 @@ from roguecli import app
 from roguefit import PRESETS, SplatConfig, make_pairs, read_photo_set
 from roguefit.splats import PLY_FILE, STATE_FILE
 from roguenerf.data.readers import load_scene
-from roguenerf.errors import InputError, TrainingCancelled
+from roguenerf.errors import InputError
 from roguenerf.splats import read_ply, render
-from tests.fit_helpers import write_photo_set
+from tests.fit_helpers import constant_psnr, depth_errors, fit_stopped_and_resumed, write_photo_set
 
 SMALL = SplatConfig(steps=150, scale=1, init_points=2000, checkpoint_every=50)
 # Measured at this budget (9 views, 30x40, seeds 0, 1, 2): training PSNR 32.3 / 32.8 / 32.5 dB,
@@ -25,13 +25,7 @@ SMALL = SplatConfig(steps=150, scale=1, init_points=2000, checkpoint_every=50)
 FLOOR_PSNR, DEPTH_BOUND = 28.0, 0.14
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """The fit is many small tensor operations: one thread is faster than two contending ones."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
@@ -46,24 +40,13 @@ def fitted(tmp_path_factory):
 
 def test_splat_fit_reaches_a_psnr_floor_and_the_true_depth(fitted):
     root, out, report, truth = fitted
-    ps = read_photo_set(root)
-    train = ps.indices("train")
-    mean_colour = ps.photos[train].mean(dim=(0, 2, 3), keepdim=True)
-    constant = float(-10 * torch.log10(((ps.photos[train] - mean_colour) ** 2).mean()))
+    constant = constant_psnr(root)
     assert report["steps"] == SMALL.steps and report["config"] == SMALL.identity()
     assert report["train"]["psnr"] > FLOOR_PSNR, report
     assert report["train"]["psnr"] > constant + 10.0, (report["train"], constant)
     scene = load_scene(out)
     assert [f.name for f in scene.frames if f.split == "test"] == ["000", "008"]
-    errors, coverage = [], []
-    for i, frame in enumerate(scene.frames):
-        if frame.split != "train":
-            continue
-        depth, true = scene.depth(i)[0], truth[frame.name][0]
-        near = true < 8.0  # floor, wall and boxes; the backdrop sphere at 40 is ill-posed for any field
-        ok = near & (depth > 0)
-        coverage.append(float(ok.float().sum() / near.float().sum()))
-        errors.append(((depth[ok] - true[ok]).abs() / true[ok]).median())
+    errors, coverage = depth_errors(out, truth, acc=False)
     assert float(torch.stack(errors).median()) < DEPTH_BOUND, errors
     assert min(coverage) > 0.95, coverage
 
@@ -84,20 +67,11 @@ def test_splat_fit_writes_its_splats_and_they_render_the_scene_folder(fitted):
 
 
 def test_interrupted_splat_fit_resumes_to_the_same_result(tmp_path):
-    root = tmp_path / "photos"
-    write_photo_set(root, views=9)
     config = dataclasses.replace(SMALL, steps=30, init_points=600, densify_every=5, checkpoint_every=7)
-    whole = make_pairs(root, tmp_path / "whole", config)
-    calls = {"n": 0}
-
-    def stop_after_12() -> bool:
-        calls["n"] += 1
-        return calls["n"] == 12
-
-    with pytest.raises(TrainingCancelled, match="step 12"):
-        make_pairs(root, tmp_path / "resumed", config, should_stop=stop_after_12)
-    assert (tmp_path / "resumed" / ".fit" / STATE_FILE).is_file()
-    resumed = make_pairs(root, tmp_path / "resumed", config)
+    run = fit_stopped_and_resumed(tmp_path, config, stop_at=12)
+    assert "step 12" in run.stopped
+    assert STATE_FILE in run.saved
+    whole, resumed = run.whole, run.resumed
     assert resumed["steps"] == 30 and resumed["gaussians"] == whole["gaussians"]
     a, b = read_ply(tmp_path / "whole" / PLY_FILE), read_ply(tmp_path / "resumed" / PLY_FILE)
     for name in ("means", "sh", "opacity", "log_scales", "quats"):
