@@ -20,32 +20,30 @@ import json
 import httpx
 import pytest
 
-from tests.browser_helpers import browser, embedded_server, path_zip, pixels_of_img, wait_for
-from tests.service_helpers import make_checkpoint, make_scene, splat_dataset, wait_until, zip_folder
+from tests.browser_helpers import browser, pixels_of_img, wait_for
+from tests.service_helpers import (
+    EmbeddedServer,
+    make_checkpoint,
+    make_scene,
+    path_zip,
+    splat_dataset,
+    wait_until,
+    zip_folder,
+)
 
 KEY = "page-key-4c2e9a71d0"
 AUTH = {"Authorization": f"Bearer {KEY}"}
 pytestmark = pytest.mark.slow
-
-
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory):
-    root = tmp_path_factory.mktemp("toy")
-    scene = make_scene(root / "scene", seed=2)
-    (root / "scene.zip").write_bytes(zip_folder(root / "scene"))
-    make_checkpoint(root / "micro.safetensors")
-    (root / "broken.zip").write_bytes(b"this is not a zip archive")
-    return {"root": root, "scene": scene, "zip": root / "scene.zip", "ckpt": root / "micro.safetensors",
-            "broken": root / "broken.zip"}
+TOY_SCENE = {"seed": 2}  # the shared toy fixture's scene (tests/conftest.py)
 
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory):
     data = tmp_path_factory.mktemp("data")
-    with embedded_server(data, log_path=data.parent / f"{data.name}-server.log", api_key=KEY,
-                         finetune_evaluate="true") as url:
-        with httpx.Client(base_url=url, headers=AUTH, timeout=120) as api:
-            yield {"url": url, "api": api, "data": data}
+    with EmbeddedServer(data, log_path=data.parent / f"{data.name}-server.log", api_key=KEY,
+                        finetune_evaluate="true") as server:
+        with httpx.Client(base_url=server.url, headers=AUTH, timeout=120) as api:
+            yield {"url": server.url, "api": api, "data": data}
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +82,7 @@ def _text(page, selector: str) -> str:
     return page.locator(selector).inner_text().strip()
 
 
-def test_1_key_then_upload_with_api_errors_as_worded(session, site, toy):
+def test_1_key_then_upload_with_api_errors_as_worded(session, site, toy, tmp_path):
     page = session["page"]
     page.goto(site["url"] + "/")
     anon = httpx.get(site["url"] + "/scenes", timeout=30).json()["error"]["message"]
@@ -101,15 +99,17 @@ def test_1_key_then_upload_with_api_errors_as_worded(session, site, toy):
     assert page.locator("#scenes-empty").is_visible()
 
     # A broken zip: the API's words, exactly.
-    expected = site["api"].post("/scenes", files={"archive": ("broken.zip", toy["broken"].read_bytes(),
+    broken = tmp_path / "broken.zip"
+    broken.write_bytes(b"this is not a zip archive")
+    expected = site["api"].post("/scenes", files={"archive": ("broken.zip", broken.read_bytes(),
                                                               "application/zip")}).json()["error"]
-    page.get_by_label("Scene zip").set_input_files(str(toy["broken"]))
+    page.get_by_label("Scene zip").set_input_files(str(broken))
     page.get_by_role("button", name="Upload", exact=True).click()
     page.locator("#scenes-error").wait_for(state="visible", timeout=30_000)
     assert _text(page, "#scenes-error .msg") == expected["message"]
     assert _text(page, "#scenes-error .code") == expected["code"] == "invalid_archive"
 
-    page.get_by_label("Scene zip").set_input_files(str(toy["zip"]))
+    page.get_by_label("Scene zip").set_input_files(str(toy["zip_file"]))
     page.get_by_label("Name (optional)").fill("  Toy  garden ")
     page.get_by_label("Checkpoint (optional, .safetensors)").set_input_files(str(toy["ckpt"]))
     page.get_by_role("button", name="Upload", exact=True).click()
@@ -667,7 +667,7 @@ def test_9_videos_tab_lists_plays_and_downloads_path_jobs(chromium, site, sessio
 
 def test_a_delete_a_scene_refused_while_busy(chromium, site, toy):
     api = site["api"]
-    files = {"archive": ("doomed.zip", toy["zip"].read_bytes(), "application/zip"),
+    files = {"archive": ("doomed.zip", toy["zip"], "application/zip"),
              "checkpoint": ("m.safetensors", toy["ckpt"].read_bytes(), "application/octet-stream")}
     r = api.post("/scenes", files=files, data={"name": "Doomed scene"})
     sid = r.json()["id"]

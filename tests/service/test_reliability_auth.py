@@ -11,15 +11,13 @@ import httpx
 import pytest
 
 from service.settings import Settings
-from tests.reliability_helpers import assert_error, assert_healthy, post_enhance, site
+from tests.reliability_helpers import assert_error, assert_healthy, post_enhance
 from tests.service_helpers import FAST, LiveServer
 
 KEY = "rel-Key-7f3a9c1e5b-never-log-me"
 
 
-@pytest.fixture(scope="module")
-def s(tmp_path_factory):
-    yield from site(tmp_path_factory, api_key=KEY)
+SERVER = {"api_key": KEY}  # the shared server fixture's settings (tests/service/conftest.py)
 
 
 @pytest.fixture()

@@ -23,13 +23,7 @@ from tests.reliability_helpers import (
     pickled_npy,
     post_enhance,
     read_png,
-    site,
 )
-
-
-@pytest.fixture(scope="module")
-def s(tmp_path_factory):
-    yield from site(tmp_path_factory)
 
 
 def _opencv_camera(s, index: int = 6, pose=None) -> dict:

@@ -21,15 +21,12 @@ from tests.reliability_helpers import (
     pickled_checkpoint,
     post_enhance,
     read_png,
-    site,
 )
 
 MAX_CKPT = 4 << 20
 
 
-@pytest.fixture(scope="module")
-def s(tmp_path_factory):
-    yield from site(tmp_path_factory, max_checkpoint_bytes=MAX_CKPT)
+SERVER = {"max_checkpoint_bytes": MAX_CKPT}  # the shared server fixture's settings
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,6 @@ import time
 
 import httpx
 import numpy as np
-import pytest
 
 from service.settings import Settings
 from tests.reliability_helpers import (
@@ -28,16 +27,15 @@ from tests.reliability_helpers import (
     file_digest,
     post_enhance,
     read_png,
-    site,
 )
 from tests.service_helpers import (
     FAST,
     ROOT,
     LiveServer,
     WorkerProcess,
+    get_job,
     redis_server,
     register,
-    toy_upload,
     view_request,
     wait_job,
     wait_until,
@@ -46,17 +44,8 @@ from tests.service_helpers import (
 STEPS = 8
 
 
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory):
-    return toy_upload(tmp_path_factory.mktemp("toy"))
-
-
-def _job(c, job_id) -> dict:
-    return c.get(f"/jobs/{job_id}").json()
-
-
 def _step(c, job_id) -> int:
-    return _job(c, job_id)["step"] or 0
+    return get_job(c, job_id)["step"] or 0
 
 
 def test_drain_kill_resume_finish_then_api_crash_and_restart(tmp_path, toy):
@@ -78,7 +67,7 @@ def test_drain_kill_resume_finish_then_api_crash_and_restart(tmp_path, toy):
             # 1. SIGINT: the worker drains, the job goes back to the queue, no attempt used.
             wait_until(lambda: _step(c, job_id) >= 2, timeout=120, what="two steps on worker 1")
             assert w1.interrupt(timeout=60) == 0
-            drained = _job(c, job_id)
+            drained = get_job(c, job_id)
             assert (drained["state"], drained["attempt"]) == ("queued", 1), drained
             assert "worker draining; requeued" in w1.log()
 
@@ -91,7 +80,7 @@ def test_drain_kill_resume_finish_then_api_crash_and_restart(tmp_path, toy):
             assert "resuming finetune from step" in w2.log()
             resumed_from = int(w2.log().split("resuming finetune from step")[1].split()[0])
             assert 1 <= resumed_from <= drained["step"] + 1
-            killed = _job(c, job_id)
+            killed = get_job(c, job_id)
             assert killed["state"] == "running" and killed["attempt"] == 1, killed
             assert killed["step"] < STEPS
 
@@ -107,7 +96,7 @@ def test_drain_kill_resume_finish_then_api_crash_and_restart(tmp_path, toy):
             view = view_request(toy["scene"], 6)
             ok = post_enhance(c, sid, render=view["render"], depth=view["depth"], camera=view["camera"])
             assert ok.headers["X-Checkpoint-Version"] == "2"
-            job_before, scene_before = _job(c, job_id), c.get(f"/scenes/{sid}").json()
+            job_before, scene_before = get_job(c, job_id), c.get(f"/scenes/{sid}").json()
         rows_before = db_rows(data)
         files_before = file_digest(data / "scenes")
 
@@ -144,7 +133,7 @@ def test_drain_kill_resume_finish_then_api_crash_and_restart(tmp_path, toy):
         api2.wait_ready()
         with api2.client() as c:
             assert c.get("/readyz").status_code == 200
-            assert _job(c, job_id) == job_before
+            assert get_job(c, job_id) == job_before
             assert c.get(f"/scenes/{sid}").json() == scene_before
             again = post_enhance(c, sid, render=view["render"], depth=view["depth"], camera=view["camera"])
             assert again.status_code == 200 and again.headers["X-Checkpoint-Version"] == "2"
@@ -251,13 +240,10 @@ def test_redis_down_at_submit_is_503_and_leaves_no_job(tmp_path, toy):
             redis.__exit__(None, None, None)
 
 
-@pytest.fixture(scope="module")
-def diverging(tmp_path_factory):
-    yield from site(tmp_path_factory, finetune_lr=1e10)
+SERVER = {"finetune_lr": 1e10}  # the shared server fixture `s` (tests/service/conftest.py): training diverges
 
 
-def test_non_finite_training_loss_fails_with_the_step_and_keeps_the_checkpoint(diverging, tmp_path):
-    s = diverging
+def test_non_finite_training_loss_fails_with_the_step_and_keeps_the_checkpoint(s, tmp_path):
     ckpt = s.data_dir / "scenes" / s.scene_id / "checkpoints" / "v1.safetensors"
     before = ckpt.read_bytes()
     worker = WorkerProcess(s.live.settings, tmp_path / "w.log")

@@ -23,14 +23,9 @@ from tests.reliability_helpers import (
     png_zlib_bomb,
     post_enhance,
     read_png,
-    site,
 )
 
-
-@pytest.fixture(scope="module")
-def s(tmp_path_factory):
-    # The default pixel limit (4096 x 4096): bombs must be caught by the real guard.
-    yield from site(tmp_path_factory)
+# The shared server fixture `s` has the default pixel limit (4096 x 4096): bombs must be caught by the real guard.
 
 
 @pytest.fixture(scope="module")

@@ -14,19 +14,18 @@ from concurrent.futures import ThreadPoolExecutor
 
 import httpx
 import numpy as np
-import pytest
 
-from tests.reliability_helpers import assert_error, assert_healthy, db_rows, post_enhance, site
+from tests.reliability_helpers import assert_error, assert_healthy, db_rows, post_enhance
 
 CLIENTS = 12
 PER_CLIENT = 4
 MIN_PROBES = 10  # /healthz samples taken while the clients hammer /enhance
 
 
-@pytest.fixture(scope="module")
-def s(tmp_path_factory):
-    # A larger render makes each enhancement long enough (tens of ms) to overlap on 2 cores.
-    yield from site(tmp_path_factory, scene_size=(96, 128), enhance_concurrency=1, max_queued_jobs=2)
+# The shared fixtures' scene and settings: a larger render makes each enhancement long enough
+# (tens of ms) to overlap on 2 cores.
+TOY_SCENE = {"height": 96, "width": 128}
+SERVER = {"enhance_concurrency": 1, "max_queued_jobs": 2}
 
 
 def test_enhance_over_capacity_is_503_at_once_and_healthz_stays_fast(s):

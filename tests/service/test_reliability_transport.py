@@ -11,14 +11,12 @@ import time
 
 import pytest
 
-from tests.reliability_helpers import assert_error, assert_healthy, site
+from tests.reliability_helpers import assert_error, assert_healthy
 
 MAX_BODY = 8 << 20
 
 
-@pytest.fixture(scope="module")
-def s(tmp_path_factory):
-    yield from site(tmp_path_factory, max_body_bytes=MAX_BODY)
+SERVER = {"max_body_bytes": MAX_BODY}  # the shared server fixture's settings (tests/service/conftest.py)
 
 
 def _raw_post(port: int, path: str, head_lines: list[str], body_chunks, *, chunked: bool) -> tuple[int, dict, float]:

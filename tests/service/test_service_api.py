@@ -25,43 +25,14 @@ from tests.service_helpers import (
     LiveServer,
     enhance,
     make_checkpoint,
-    make_scene,
     register,
     tree_digest,
     view_request,
-    zip_folder,
 )
 
 MAX_BODY = 4 << 20
-
-
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory):
-    root = tmp_path_factory.mktemp("toy")
-    scene = make_scene(root / "scene")
-    ckpt = make_checkpoint(root / "micro.safetensors")
-    return {"scene": scene, "zip": zip_folder(root / "scene"), "checkpoint": ckpt.read_bytes()}
-
-
-@pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    settings = Settings(data_dir=tmp_path_factory.mktemp("data"), max_body_bytes=MAX_BODY,
-                        max_scene_files=40, max_upload_pixels=64 * 64, **FAST)
-    with LiveServer(settings) as live:
-        yield live
-
-
-@pytest.fixture(scope="module")
-def client(server):
-    with server.client() as c:
-        yield c
-
-
-@pytest.fixture(scope="module")
-def scene_id(client, toy):
-    r = register(client, toy["zip"], toy["checkpoint"])
-    assert r.status_code == 201, r.text
-    return r.json()["id"]
+# The shared server fixture's settings (tests/service/conftest.py).
+SERVER = {"max_body_bytes": MAX_BODY, "max_scene_files": 40, "max_upload_pixels": 64 * 64}
 
 
 def stored(server) -> dict:

@@ -9,22 +9,18 @@ library bit for bit; Ctrl-C stops API and worker. Latency and start-up figures a
 from __future__ import annotations
 
 import io
-import os
 import signal
 import statistics
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import httpx
 import pytest
 
 from tests.service_helpers import (
-    FAST,
-    ROOT,
+    EmbeddedServer,
+    alive,
+    children_of,
     enhance,
-    free_port,
     make_checkpoint,
     make_scene,
     register,
@@ -37,72 +33,23 @@ from tests.service_helpers import (
 FIGURES: dict[str, float] = {}
 
 
-def _children(pid: int) -> list[int]:
-    out = []
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        text = (task / "children").read_text().split()
-        out += [int(x) for x in text]
-    return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
-    except FileNotFoundError:
-        return False
-    return state != "Z"
-
-
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory):
-    root = tmp_path_factory.mktemp("toy")
-    scene = make_scene(root / "scene")
-    ckpt = make_checkpoint(root / "micro.safetensors")
-    return {"root": root, "scene": scene, "zip": zip_folder(root / "scene"), "checkpoint": ckpt}
-
-
 @pytest.fixture(scope="module")
 def embedded(tmp_path_factory):
     data = tmp_path_factory.mktemp("data")
-    port = free_port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("ROGUENERF_")}
-    env.update({f"ROGUENERF_{k.upper()}": str(v) for k, v in FAST.items()})
-    env["PYTHONPATH"] = str(ROOT)
-    log = open(data.parent / f"{data.name}-server.log", "wb")
-    started = time.perf_counter()
-    proc = subprocess.Popen(
-        [sys.executable, "-c",
-         f"from service.server import run; run(host='127.0.0.1', port={port}, data_dir={str(data)!r})"],
-        env=env, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-    url = f"http://127.0.0.1:{port}"
-
-    def ready():
-        try:
-            return httpx.get(f"{url}/readyz", timeout=2).status_code == 200
-        except httpx.HTTPError:
-            return proc.poll() is not None
-
-    wait_until(ready, timeout=90, interval=0.05, what="embedded server /readyz")
-    assert proc.poll() is None, Path(log.name).read_text()
-    FIGURES["start_to_readyz_s"] = time.perf_counter() - started
-    yield {"url": url, "proc": proc, "data": data, "log": Path(log.name)}
-    if proc.poll() is None:
-        proc.kill()
-        proc.wait(10)
-    for child in _children(proc.pid) if _alive(proc.pid) else []:
-        os.kill(child, signal.SIGKILL)
-    log.close()
+    with EmbeddedServer(data, log_path=data.parent / f"{data.name}-server.log", ready="/readyz") as server:
+        FIGURES["start_to_readyz_s"] = server.started_s
+        yield server
     print("\nservice figures:", {k: round(v, 3) for k, v in FIGURES.items()})
 
 
 @pytest.fixture(scope="module")
 def client(embedded):
-    with httpx.Client(base_url=embedded["url"], timeout=180) as c:
+    with httpx.Client(base_url=embedded.url, timeout=180) as c:
         yield c
 
 
 def _register(client, toy) -> str:
-    r = register(client, toy["zip"], toy["checkpoint"].read_bytes())
+    r = register(client, toy["zip"], toy["checkpoint"])
     assert r.status_code == 201, r.text
     assert r.json()["views"] == 8
     return r.json()["id"]
@@ -135,8 +82,8 @@ def test_register_enhance_finetune_enhance_delete(client, toy, embedded):
     scene = client.get(f"/scenes/{sid}").json()
     assert scene["active_version"] == 2 and scene["checkpoint_versions"] == [1, 2]
     assert scene["active_job"] is None
-    folder = embedded["data"] / "scenes" / sid
-    assert (folder / "checkpoints" / "v1.safetensors").read_bytes() == toy["checkpoint"].read_bytes()
+    folder = embedded.data_dir / "scenes" / sid
+    assert (folder / "checkpoints" / "v1.safetensors").read_bytes() == toy["checkpoint"]
 
     second = enhance(client, sid, view)
     assert second.status_code == 200 and second.headers["X-Checkpoint-Version"] == "2"
@@ -150,7 +97,7 @@ def test_register_enhance_finetune_enhance_delete(client, toy, embedded):
     assert client.delete(f"/scenes/{sid}").status_code == 204
     assert client.get(f"/scenes/{sid}").status_code == 404
     assert not folder.exists()
-    assert not (embedded["data"] / "jobs" / job_id).exists()
+    assert not (embedded.data_dir / "jobs" / job_id).exists()
 
 
 def test_cancel_mid_run(client, toy, embedded):
@@ -164,7 +111,7 @@ def test_cancel_mid_run(client, toy, embedded):
     job = wait_job(client, job_id, {"cancelled", "succeeded", "failed"}, timeout=60)
     assert job["state"] == "cancelled" and job["error"]["code"] == "cancelled"
     assert job["step"] < 10_000
-    assert not (embedded["data"] / "jobs" / job_id).exists()  # a cancelled job leaves no training state
+    assert not (embedded.data_dir / "jobs" / job_id).exists()  # a cancelled job leaves no training state
     scene = client.get(f"/scenes/{sid}").json()
     assert scene["active_version"] == 1 and scene["checkpoint_versions"] == [1]
     again = client.post(f"/jobs/{job_id}/cancel")  # a finished job, cancelled ones included: 409
@@ -233,14 +180,14 @@ def test_enhance_bit_for_bit_and_latency_504x378(client, tmp_path):
 
 
 def test_ctrl_c_stops_api_and_worker(embedded):
-    proc = embedded["proc"]
-    workers = _children(proc.pid)
-    assert len(workers) == 1 and _alive(workers[0])
+    proc = embedded.proc
+    workers = children_of(proc.pid)
+    assert len(workers) == 1 and alive(workers[0])
     t0 = time.perf_counter()
     proc.send_signal(signal.SIGINT)
     assert proc.wait(60) == 0
     FIGURES["ctrl_c_shutdown_s"] = time.perf_counter() - t0
-    wait_until(lambda: not _alive(workers[0]), timeout=10, what="the worker to exit")
-    log = embedded["log"].read_text()
+    wait_until(lambda: not alive(workers[0]), timeout=10, what="the worker to exit")
+    log = embedded.log_path.read_text()
     assert "API docs: http://127.0.0.1:" in log and "/docs" in log
     assert "stopped" in log

@@ -14,28 +14,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.settings import Settings
-from tests.service_helpers import FAST, LiveServer, make_scene, register, tree_digest
+from tests.service_helpers import register, tree_digest
+
+# The shared toy fixture's scene (tests/conftest.py): small, quick to register.
+TOY_SCENE = {"height": 24, "width": 32, "n_train": 4, "n_test": 1}
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    settings = Settings(data_dir=tmp_path_factory.mktemp("data"), **FAST)
-    with LiveServer(settings) as live:
-        yield live
-
-
-@pytest.fixture(scope="module")
-def client(server):
-    with server.client() as c:
-        yield c
-
-
-@pytest.fixture(scope="module")
-def folder(tmp_path_factory):
-    root = tmp_path_factory.mktemp("toy") / "scene"
-    make_scene(root, height=24, width=32, n_train=4, n_test=1)
-    return root
+def folder(toy):
+    return toy["folder"]
 
 
 def _zip(folder: Path, rename: dict[str, str] | None = None, *, json_form: str | None = None) -> bytes:

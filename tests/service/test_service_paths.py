@@ -8,20 +8,23 @@ path job can be cancelled.
 from __future__ import annotations
 
 import io
-import json
-import math
 import threading
 import zipfile
 
 import pytest
 
-from roguenerf.data.toy import make_toy_world, render_toy_view
-from roguenerf.geometry import opencv_to_opengl
-from roguenerf.imageio import encode_npy, encode_png
-from roguenerf.trajectory import smooth_path
 from roguenerf.video import read_video_info
 from service.settings import Settings
-from tests.service_helpers import FAST, LiveServer, make_checkpoint, register, tree_digest, wait_until, zip_folder
+from tests.service_helpers import (
+    FAST,
+    LiveServer,
+    make_checkpoint,
+    path_zip,
+    register,
+    tree_digest,
+    wait_until,
+    zip_folder,
+)
 from workers.dispatch import run_job
 from workers.worker import build_worker
 
@@ -45,29 +48,6 @@ def setup(tmp_path_factory):
                    "data": settings.data_dir}
 
 
-def path_zip(scene, *, frames_per_segment=2, drop_camera=False, drop_frame=False,
-             opencv_axes=False) -> tuple[bytes, int]:
-    """A nerfstudio camera_path.json through three scene views plus rgb/ and depth/ per frame."""
-    world = make_toy_world(SEED)
-    poses = smooth_path(scene.poses([0, 1, 2]), frames_per_segment)
-    K = scene.frames[0].K
-    fov = math.degrees(2 * math.atan(H / 2 / float(K[1, 1])))
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w") as zf:
-        cams = []
-        for t, pose in enumerate(poses):
-            rgb, depth = render_toy_view(world, pose, K, H, W)
-            if not (drop_frame and t == 1):
-                zf.writestr(f"rgb/{t:04d}.png", encode_png((rgb * 0.9).clamp(0, 1)))
-            zf.writestr(f"depth/{t:04d}.npy", encode_npy(depth[0].numpy()))
-            gl = pose if opencv_axes else opencv_to_opengl(pose)  # opencv_axes: the user's axis mix-up
-            cams.append({"camera_to_world": gl.flatten().tolist(), "fov": fov, "aspect": W / H})
-        if not drop_camera:
-            zf.writestr("camera_path.json", json.dumps({"render_height": H, "render_width": W, "fps": 10,
-                                                        "camera_path": cams}))
-    return buf.getvalue(), len(poses)
-
-
 def post_path(client, scene_id, archive, **form):
     return client.post(f"/scenes/{scene_id}/paths", files={"archive": ("path.zip", archive, "application/zip")},
                        data={k: str(v) for k, v in form.items()})
@@ -83,7 +63,7 @@ def jobs_of(client, scene_id):
 
 def test_path_job_round_trip(setup, tmp_path):
     client, scene_id = setup["client"], setup["scene_id"]
-    archive, frames = path_zip(setup["scene"])
+    archive, frames = path_zip(setup["scene"], seed=SEED)
     r = post_path(client, scene_id, archive, quality=28)
     assert r.status_code == 202, r.text
     job = r.json()
@@ -119,7 +99,7 @@ def test_a_path_in_the_wrong_axes_is_refused_at_upload_saying_why(setup):
     its advice names the API's field, and force=true goes on."""
     client, scene_id, data = setup["client"], setup["scene_id"], setup["data"]
     before, jobs_before = stored(data), jobs_of(client, scene_id)
-    archive, _frames = path_zip(setup["scene"], opencv_axes=True)
+    archive, _frames = path_zip(setup["scene"], seed=SEED, opencv_axes=True)
     r = post_path(client, scene_id, archive)
     assert r.status_code == 422, r.text
     error = r.json()["error"]
@@ -140,7 +120,8 @@ def test_a_path_in_the_wrong_axes_is_refused_at_upload_saying_why(setup):
 def test_bad_path_upload_is_a_clear_4xx_and_stores_nothing(setup, case):
     client, scene_id, data = setup["client"], setup["scene_id"], setup["data"]
     before, jobs_before = stored(data), jobs_of(client, scene_id)
-    archive, _ = path_zip(setup["scene"], drop_camera=case == "no_camera", drop_frame=case == "missing_frame")
+    archive, _ = path_zip(setup["scene"], seed=SEED, drop_camera=case == "no_camera",
+                          drop_frame=case == "missing_frame")
     target = "0" * 32 if case == "unknown_scene" else scene_id
     form = {"quality": 99} if case == "bad_quality" else {}
     r = post_path(client, target, b"not a zip" if case == "not_zip" else archive, **form)
@@ -157,7 +138,7 @@ def test_bad_path_upload_is_a_clear_4xx_and_stores_nothing(setup, case):
 
 def test_cancel_queued_and_running_path_jobs(setup, monkeypatch):
     client, scene_id, data = setup["client"], setup["scene_id"], setup["data"]
-    archive, frames = path_zip(setup["scene"], frames_per_segment=3)
+    archive, frames = path_zip(setup["scene"], seed=SEED, frames_per_segment=3)
     queued = post_path(client, scene_id, archive).json()
     assert (data / "jobs" / queued["id"] / "input").is_dir()
     r = client.post(f"/jobs/{queued['id']}/cancel")
@@ -194,7 +175,7 @@ def test_video_served_in_ranges_and_deleted_with_its_scene(setup, tmp_path):
     r = register(client, zip_folder(setup["scene"].root), ckpt.read_bytes())
     assert r.status_code == 201, r.text
     sid = r.json()["id"]
-    archive, _ = path_zip(setup["scene"])
+    archive, _ = path_zip(setup["scene"], seed=SEED)
     job = post_path(client, sid, archive).json()
     assert run_job(setup["ctx"], job["id"]) == "succeeded"
     url = f"/jobs/{job['id']}/result"

@@ -22,30 +22,10 @@ import numpy as np
 import pytest
 
 from service.settings import Settings
-from tests.service_helpers import FAST, ROOT, LiveServer, make_checkpoint, make_scene, register, zip_folder
+from tests.service_helpers import FAST, ROOT, LiveServer, register, zip_folder
 
-# ----------------------------------------------------------------------------- fixtures
-
-
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory):
-    root = tmp_path_factory.mktemp("toy")
-    scene = make_scene(root / "scene", height=24, width=32, n_train=4, n_test=1)
-    return {"root": root / "scene", "scene": scene, "zip": zip_folder(root / "scene"),
-            "checkpoint": make_checkpoint(root / "micro.safetensors").read_bytes()}
-
-
-@pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    settings = Settings(data_dir=tmp_path_factory.mktemp("data"), **FAST)
-    with LiveServer(settings) as live:
-        yield live
-
-
-@pytest.fixture(scope="module")
-def client(server):
-    with server.client() as c:
-        yield c
+# The shared toy fixture's scene (tests/conftest.py): small, quick to register.
+TOY_SCENE = {"height": 24, "width": 32, "n_train": 4, "n_test": 1}
 
 
 # ----------------------------------------------------------------------------- /docs offline
@@ -152,7 +132,7 @@ def _assert_no_server_path(text: str, data_dir: Path) -> None:
 @pytest.mark.parametrize("case", sorted(BROKEN))
 def test_broken_scene_errors_name_upload_paths_only(client, server, toy, tmp_path, case):
     change, expected = BROKEN[case]
-    r = register(client, _broken(toy["root"], tmp_path, re.sub(r"\W", "_", case), change))
+    r = register(client, _broken(toy["folder"], tmp_path, re.sub(r"\W", "_", case), change))
     assert r.status_code == 422, r.text
     body = r.json()
     assert body["error"]["code"] in ("invalid_scene", "invalid_archive"), body

@@ -17,38 +17,12 @@ import numpy as np
 import pytest
 import torch
 
-from service.settings import Settings
-from tests.service_helpers import FAST, LiveServer, make_checkpoint, make_scene, register, zip_folder
+from tests.service_helpers import register
 
 KEY = "views-key-0b7d1e"
-
-
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory):
-    root = tmp_path_factory.mktemp("toy")
-    scene = make_scene(root / "scene", seed=5)
-    ckpt = make_checkpoint(root / "micro.safetensors")
-    return {"scene": scene, "zip": zip_folder(root / "scene"), "checkpoint": ckpt.read_bytes(), "ckpt": ckpt}
-
-
-@pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    settings = Settings(data_dir=tmp_path_factory.mktemp("data"), api_key=KEY, max_upload_pixels=64 * 64, **FAST)
-    with LiveServer(settings) as live:
-        yield live
-
-
-@pytest.fixture(scope="module")
-def client(server):
-    with server.client(headers={"Authorization": f"Bearer {KEY}"}) as c:
-        yield c
-
-
-@pytest.fixture(scope="module")
-def scene_id(client, toy):
-    r = register(client, toy["zip"], toy["checkpoint"])
-    assert r.status_code == 201, r.text
-    return r.json()["id"]
+# The shared fixtures' scene and server settings (tests/conftest.py, tests/service/conftest.py).
+TOY_SCENE = {"seed": 5}
+SERVER = {"api_key": KEY, "max_upload_pixels": 64 * 64}
 
 
 def _error(r, status, code):

@@ -15,21 +15,12 @@ from tests.service_helpers import (
     FAST,
     LiveServer,
     WorkerProcess,
+    get_job,
     register,
-    toy_upload,
     tree_digest,
     wait_job,
     wait_until,
 )
-
-
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory):
-    return toy_upload(tmp_path_factory.mktemp("toy"))
-
-
-def _job(client, job_id):
-    return client.get(f"/jobs/{job_id}").json()
 
 
 def test_kill9_requeues_and_resumes_then_fails_when_out_of_attempts(tmp_path, toy, database_url):
@@ -43,12 +34,12 @@ def test_kill9_requeues_and_resumes_then_fails_when_out_of_attempts(tmp_path, to
             before = tree_digest(scene_folder)
             job_id = c.post(f"/scenes/{sid}/finetune", json={"steps": 10_000}).json()["id"]
             workers[0].wait_ready()
-            wait_until(lambda: (_job(c, job_id)["step"] or 0) >= 2, timeout=120, what="two training steps")
+            wait_until(lambda: (get_job(c, job_id)["step"] or 0) >= 2, timeout=120, what="two training steps")
             # Fast steps can reach step 2 before the first periodic save (every 0.2 s): give
             # it time, so there is a saved step > 0 for the next worker to resume from.
             time.sleep(3 * settings.checkpoint_every_s + 0.2)
             workers[0].kill9()
-            killed = _job(c, job_id)
+            killed = get_job(c, job_id)
             assert killed["state"] == "running" and killed["attempt"] == 1
             stale_at = time.time() + settings.heartbeat_timeout
 
@@ -56,13 +47,13 @@ def test_kill9_requeues_and_resumes_then_fails_when_out_of_attempts(tmp_path, to
             workers.append(second)
             second.wait_ready()
             ready_at = time.time()
-            requeued_by = wait_until(lambda: _job(c, job_id)["attempt"] == 2 and time.time(),
+            requeued_by = wait_until(lambda: get_job(c, job_id)["attempt"] == 2 and time.time(),
                                      timeout=60, interval=0.05, what="the sweeper to requeue the job")
             # Requeued within one sweeper period of the heartbeat going stale (or of the new
             # worker's start, whichever is later), plus polling slack.
             assert requeued_by - max(stale_at, ready_at) <= settings.sweeper_period + 1.0
             # Training resumes from the saved state, not from step 0.
-            resumed = wait_until(lambda: (j := _job(c, job_id))["state"] == "running" and
+            resumed = wait_until(lambda: (j := get_job(c, job_id))["state"] == "running" and
                                  (j["step"] or 0) > killed["step"] and j, timeout=120, what="resumed steps")
             assert "resuming finetune from step" in second.log()
             first_after = int(second.log().split("resuming finetune from step")[1].split()[0])

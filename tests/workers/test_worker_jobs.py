@@ -217,11 +217,22 @@ def _columns(db: Database, table: str = "jobs") -> set[str]:
         return {c["name"] for c in sa.inspect(tx.conn).get_columns(table)}
 
 
-def test_schema_is_versioned_and_a_legacy_database_is_upgraded(database_url):
-    legacy = Database(database_url)
-    with legacy.tx() as tx:
-        for statement in LEGACY_SCHEMA:
+def _legacy_database(database_url: str, *statements: str, version: int | None = None) -> Database:
+    """A database made by an older release: the v1 schema (LEGACY_SCHEMA), then ``statements``;
+    with ``version``, the schema_version table saying so."""
+    db = Database(database_url)
+    with db.tx() as tx:
+        for statement in LEGACY_SCHEMA + list(statements):
             tx.conn.exec_driver_sql(statement)
+        if version is not None:
+            tx.conn.exec_driver_sql("CREATE TABLE schema_version (id INTEGER PRIMARY KEY, version INTEGER NOT NULL,"
+                                    " upgraded_at DOUBLE PRECISION NOT NULL)")
+            tx.conn.exec_driver_sql(f"INSERT INTO schema_version VALUES (1, {version}, 1.0)")
+    return db
+
+
+def test_schema_is_versioned_and_a_legacy_database_is_upgraded(database_url):
+    legacy = _legacy_database(database_url)
     assert "jobs_by_scene_created" not in _indexes(legacy)
     store = JobStore(database_url)
     assert store.init_schema() == 0  # no version table: the legacy schema, adopted as v1
@@ -256,14 +267,8 @@ def test_processes_starting_together_create_the_schema_once(database_url):
 
 def test_a_v2_database_gets_the_phase_column(database_url):
     """Schema v3 adds jobs.phase (training / evaluating) to a table made by v1/v2, rows kept."""
-    old = Database(database_url)
-    with old.tx() as tx:
-        for statement in LEGACY_SCHEMA:
-            tx.conn.exec_driver_sql(statement)
-        tx.conn.exec_driver_sql("CREATE INDEX jobs_by_scene_created ON jobs (scene_id, created_at)")
-        tx.conn.exec_driver_sql("CREATE TABLE schema_version (id INTEGER PRIMARY KEY, version INTEGER NOT NULL,"
-                                " upgraded_at DOUBLE PRECISION NOT NULL)")
-        tx.conn.exec_driver_sql("INSERT INTO schema_version VALUES (1, 2, 1.0)")
+    old = _legacy_database(database_url, "CREATE INDEX jobs_by_scene_created ON jobs (scene_id, created_at)",
+                           version=2)
     assert "phase" not in _columns(old)
     store = JobStore(database_url)
     assert store.init_schema() == 2
@@ -281,14 +286,8 @@ def test_a_v2_database_gets_the_phase_column(database_url):
 def test_a_v3_database_gets_scene_names(database_url):
     """Schema v4 adds scenes.name to a v3 table: old scenes keep their rows and have no name;
     new ones store theirs; deleting a scene removes its finished jobs' rows too."""
-    old = Database(database_url)
+    old = _legacy_database(database_url, "ALTER TABLE jobs ADD COLUMN phase TEXT", version=3)
     with old.tx() as tx:
-        for statement in LEGACY_SCHEMA:
-            tx.conn.exec_driver_sql(statement)
-        tx.conn.exec_driver_sql("ALTER TABLE jobs ADD COLUMN phase TEXT")
-        tx.conn.exec_driver_sql("CREATE TABLE schema_version (id INTEGER PRIMARY KEY, version INTEGER NOT NULL,"
-                                " upgraded_at DOUBLE PRECISION NOT NULL)")
-        tx.conn.exec_driver_sql("INSERT INTO schema_version VALUES (1, 3, 1.0)")
         tx.conn.exec_driver_sql("INSERT INTO scenes (id, created_at, views, train_views, test_views, width,"
                                 f" height, active_version, next_version) VALUES ('{'c' * 32}', 1.0, 3, 2, 1,"
                                 " 8, 6, 0, 1)")

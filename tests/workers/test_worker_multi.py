@@ -13,28 +13,17 @@ import shutil
 import time
 from concurrent.futures import ThreadPoolExecutor
 
-import pytest
-
 from service.settings import Settings
 from tests.service_helpers import (
     FAST,
     LiveServer,
     WorkerProcess,
+    get_job,
     redis_server,
     register,
-    toy_upload,
     wait_job,
     wait_until,
 )
-
-
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory):
-    return toy_upload(tmp_path_factory.mktemp("toy"))
-
-
-def _job(client, job_id):
-    return client.get(f"/jobs/{job_id}").json()
 
 
 def _claimed(worker: WorkerProcess) -> set[str]:
@@ -53,11 +42,11 @@ def test_two_workers_share_the_queue_and_the_survivor_resumes_a_killed_job(tmp_p
                 for w in workers:
                     w.wait_ready()
                 a = c.post(f"/scenes/{scenes[0]}/finetune", json={"steps": 10_000}).json()["id"]
-                wait_until(lambda: _job(c, a)["state"] == "running", timeout=60, what="job A to start")
+                wait_until(lambda: get_job(c, a)["state"] == "running", timeout=60, what="job A to start")
                 # A duplicate message for a running job (a redelivery): the lease refuses it.
                 live.app.state.services.queue.enqueue(a)
                 b = c.post(f"/scenes/{scenes[1]}/finetune", json={"steps": 10_000}).json()["id"]
-                both = wait_until(lambda: all(_job(c, j)["state"] == "running" and (_job(c, j)["step"] or 0) >= 1
+                both = wait_until(lambda: all(get_job(c, j)["state"] == "running" and (get_job(c, j)["step"] or 0) >= 1
                                               for j in (a, b)), timeout=120, what="both jobs training at once")
                 assert both
                 # Each worker took one of them: two processes, one queue.
@@ -65,19 +54,19 @@ def test_two_workers_share_the_queue_and_the_survivor_resumes_a_killed_job(tmp_p
                 assert sorted(owner[a] + owner[b]) == [0, 1], owner
                 wait_until(lambda: "not claimable" in workers[0].log() + workers[1].log(), timeout=30,
                            what="the duplicate message to be refused")
-                assert _job(c, a)["attempt"] == 1  # the duplicate started nothing
+                assert get_job(c, a)["attempt"] == 1  # the duplicate started nothing
 
                 # Stop B, so the survivor is free; let A checkpoint, then SIGKILL A's worker.
                 c.post(f"/jobs/{b}/cancel")
                 assert wait_job(c, b, {"cancelled", "failed", "succeeded"}, timeout=60)["state"] == "cancelled"
-                wait_until(lambda: (_job(c, a)["step"] or 0) >= 2, timeout=120, what="job A to train")
+                wait_until(lambda: (get_job(c, a)["step"] or 0) >= 2, timeout=120, what="job A to train")
                 time.sleep(3 * settings.checkpoint_every_s + 0.2)
                 victim, survivor = workers[owner[a][0]], workers[1 - owner[a][0]]
                 killed_at = time.time()
                 victim.kill9()
-                killed = _job(c, a)
+                killed = get_job(c, a)
                 assert killed["state"] == "running" and killed["attempt"] == 1
-                resumed = wait_until(lambda: (j := _job(c, a))["attempt"] == 2 and j["state"] == "running"
+                resumed = wait_until(lambda: (j := get_job(c, a))["attempt"] == 2 and j["state"] == "running"
                                      and (j["step"] or 0) > killed["step"] and j,
                                      timeout=60, interval=0.05, what="the survivor to resume job A")
                 failover_s = time.time() - killed_at

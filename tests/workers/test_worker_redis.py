@@ -7,8 +7,6 @@ file and on a real PostgreSQL server.
 
 from __future__ import annotations
 
-import pytest
-
 from roguenerf.imageio import read_image
 from service.settings import Settings
 from tests.service_helpers import (
@@ -18,16 +16,10 @@ from tests.service_helpers import (
     enhance,
     redis_server,
     register,
-    toy_upload,
     view_request,
     wait_job,
     wait_until,
 )
-
-
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory):
-    return toy_upload(tmp_path_factory.mktemp("toy"))
 
 
 def test_redis_job_flow_drain_and_readiness(tmp_path, toy, database_url):
