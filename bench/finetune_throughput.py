@@ -44,7 +44,7 @@ neighbour photos the batch uses, whole; ``window`` only the window
 of each neighbour photo that each crop can see (same loss and gradients); ``whole-loop`` is the
 step before issue 12: whole photos, and each neighbour refined, weighed and pooled one at a time
 (``reference_mode()``; ``whole`` and ``window`` run the neighbours as one batch, sharing the
-target's work: same loss and gradients, tests/test_training_batched.py). The timed step is
+target's work: same loss and gradients, tests/unit/roguenerf/training/test_training_batched.py). The timed step is
 waiting for the next batch plus ``optimise``. Per point: up to ``--warmup`` untimed steps (no
 more once they have taken ``--max-seconds``/4), then timed steps until ``--steps`` of them or
 ``--max-seconds`` (at least one is always timed). Reported: median seconds/step, steps/s =

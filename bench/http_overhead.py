@@ -10,7 +10,7 @@ next to ``--output``; every file carries date, machine and commit (``bench.commo
 Set-up (everything real, nothing mocked):
 
 * A toy scene of 504 x 378 (``make_toy_scene``: seed 3, 2 training + 1 test view, as in
-  ``tests/test_service_flow.py::test_enhance_bit_for_bit_and_latency_504x378``).
+  ``tests/service/test_service_flow.py::test_enhance_bit_for_bit_and_latency_504x378``).
 * The service as a subprocess, started like ``./dev serve`` / the end-to-end tests:
   ``service.server.run(host="127.0.0.1", port=<free>, data_dir=<temporary>)`` with embedded
   defaults (every ``ROGUENERF_*`` variable removed; the API and its sibling worker start, the

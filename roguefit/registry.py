@@ -7,7 +7,7 @@ that fits it (:func:`roguefit.pairs.make_pairs` looks it up there, and nowhere e
 strings list them with :func:`describe_presets`).
 
 Imports: this module imports every kind's module; none of them imports it, nor
-:mod:`roguefit.pairs` (tests/test_layers.py checks roguefit for import circles).
+:mod:`roguefit.pairs` (tests/unit/repo/test_layers.py checks roguefit for import circles).
 """
 
 from __future__ import annotations

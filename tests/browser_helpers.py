@@ -1,22 +1,14 @@
 """A real browser for the web page's tests and screenshots: Debian's ``chromium`` driven by
-Playwright for Python (Playwright's own browser download is never used), and the embedded
-server (API + worker) started on loopback with test settings."""
+Playwright for Python (Playwright's own browser download is never used); the embedded server
+(API + worker) they drive is ``service_helpers.EmbeddedServer``."""
 
 from __future__ import annotations
 
 import contextlib
-import io
-import json
 import os
 import shutil
-import subprocess
-import sys
 import time
 from pathlib import Path
-
-import httpx
-
-from tests.service_helpers import FAST, ROOT, free_port, wait_until
 
 CHROMIUM_ARGS = [
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -47,72 +39,6 @@ def browser():
             yield b
         finally:
             b.close()
-
-
-@contextlib.contextmanager
-def embedded_server(data_dir: Path, *, log_path: Path, **settings):
-    """``service.server.run`` (API + sibling worker) on a free loopback port; yields its URL."""
-    port = free_port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("ROGUENERF_")}
-    env.update({f"ROGUENERF_{k.upper()}": str(v) for k, v in {**FAST, **settings}.items()})
-    env["PYTHONPATH"] = str(ROOT)
-    log = open(log_path, "wb")
-    proc = subprocess.Popen(
-        [sys.executable, "-c",
-         f"from service.server import run; run(host='127.0.0.1', port={port}, data_dir={str(data_dir)!r})"],
-        env=env, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-    url = f"http://127.0.0.1:{port}"
-
-    def up():
-        try:
-            return httpx.get(f"{url}/healthz", timeout=2).status_code == 200
-        except httpx.HTTPError:
-            return proc.poll() is not None
-
-    try:
-        wait_until(up, timeout=120, interval=0.1, what="embedded server")
-        assert proc.poll() is None, log_path.read_text()
-        yield url
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(2)  # SIGINT: API and worker stop cleanly
-            try:
-                proc.wait(60)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(10)
-        log.close()
-
-
-def path_zip(scene, *, seed: int, frames_per_segment: int = 2) -> tuple[bytes, int]:
-    """A camera-path upload for ``POST /scenes/{id}/paths`` of a toy scene made with ``seed``: a
-    nerfstudio camera_path.json through three of its views, rgb/ and depth/ of each frame.
-    Returns (zip bytes, frame count)."""
-    import math
-    import zipfile
-
-    from roguenerf.data.toy import make_toy_world, render_toy_view
-    from roguenerf.geometry import opencv_to_opengl
-    from roguenerf.imageio import encode_npy, encode_png
-    from roguenerf.trajectory import smooth_path
-
-    world = make_toy_world(seed)
-    height, width = scene.frames[0].height, scene.frames[0].width
-    poses = smooth_path(scene.poses([0, 1, 2]), frames_per_segment)
-    K = scene.frames[0].K
-    fov = math.degrees(2 * math.atan(height / 2 / float(K[1, 1])))
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w") as zf:
-        cams = []
-        for t, pose in enumerate(poses):
-            rgb, depth = render_toy_view(world, pose, K, height, width)
-            zf.writestr(f"rgb/{t:04d}.png", encode_png((rgb * 0.9).clamp(0, 1)))
-            zf.writestr(f"depth/{t:04d}.npy", encode_npy(depth[0].numpy()))
-            cams.append({"camera_to_world": opencv_to_opengl(pose).flatten().tolist(), "fov": fov,
-                         "aspect": width / height})
-        zf.writestr("camera_path.json", json.dumps({"render_height": height, "render_width": width, "fps": 10,
-                                                    "camera_path": cams}))
-    return buf.getvalue(), len(poses)
 
 
 def pixels_of_img(page, selector: str) -> tuple[int, int, bytes]:

@@ -48,6 +48,28 @@ def lego_dir() -> Path:
     return path
 
 
+@pytest.fixture
+def one_thread():
+    """One intra-op thread during a test, the caller's count restored after. The models here are
+    tiny and a fit is many small tensor operations: on a shared 2-core machine a second OpenMP
+    thread spinning against other processes costs far more than it gains (measured: 4x to 20x
+    slower with 2 threads). A module takes it with ``pytestmark = pytest.mark.usefixtures("one_thread")``."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def toy(request, tmp_path_factory) -> dict:
+    """A toy scene and a micro checkpoint for a module's uploads (``service_helpers.toy_upload``:
+    ``folder``, ``scene``, ``zip``, ``zip_file``, ``ckpt``, ``checkpoint``). A module sets
+    ``TOY_SCENE = {...}`` for other ``make_scene`` arguments (seed, size, views)."""
+    from tests.service_helpers import toy_upload
+
+    return toy_upload(tmp_path_factory.mktemp("toy"), **getattr(request.module, "TOY_SCENE", {}))
+
+
 @pytest.fixture(scope="session")
 def postgres_server():
     """One PostgreSQL server (Debian's, on loopback, in a temp dir) for the whole session."""
@@ -69,25 +91,24 @@ def database_url(request, tmp_path):
 # ----------------------------------------------------------------------------- test tiers
 # Every test gets one tier marker by what it needs, so `./dev test --quick` (the unit tier:
 # -m "not service and not workers and not browser and not slow") needs no server at all.
-# The tier follows from the test's module and fixtures, so new tests are placed without a
-# decorator: a module named test_worker_*, or one that uses worker/API processes, Redis or
-# PostgreSQL (its helpers or fixtures), is `workers`; test_service_* / test_reliability_*, or one
-# that runs the app in-process (LiveServer, TestClient), is `service`; the browser helpers make
-# it `browser`. An explicit marker on a test or module wins.
+# The tier follows from the test's folder (tests/unit, tests/service, tests/workers,
+# tests/browser), raised by what it uses, so new tests are placed without a decorator: a test
+# that uses worker/API processes, Redis or PostgreSQL (their helpers or fixtures) is `workers`;
+# one that runs the app in-process (LiveServer, TestClient) is at least `service`; the browser
+# helpers make it `browser`. An explicit marker on a test or module wins.
 TIERS = ("browser", "workers", "service", "unit")
-_MODULE_PREFIXES = {"test_web_page": "browser", "test_worker_": "workers", "test_service_": "service",
-                    "test_reliability_": "service"}
 _WORKER_FIXTURES = {"postgres_server", "database_url"}
 _WORKER_NAMES = {"WorkerProcess", "ApiProcess", "PostgresServer", "redis_server"}
 _SERVICE_NAMES = {"LiveServer", "TestClient", "create_app"}
 
 
 def tier_of(module_name: str, module_globals: dict, fixtures) -> str:
-    """The tier a test belongs to (see above): browser > workers > service > unit."""
+    """The tier a test belongs to (see above): browser > workers > service > unit.
+    ``module_name`` is the dotted name, ``tests.<folder>.…``."""
     found = {"unit"}
-    for prefix, tier in _MODULE_PREFIXES.items():
-        if module_name.startswith(prefix):
-            found.add(tier)
+    parts = module_name.split(".")
+    if len(parts) > 2 and parts[0] == "tests" and parts[1] in TIERS:
+        found.add(parts[1])
     if _WORKER_FIXTURES & set(fixtures) or _WORKER_NAMES & set(module_globals):
         found.add("workers")
     if _SERVICE_NAMES & set(module_globals):
@@ -102,5 +123,5 @@ def pytest_collection_modifyitems(config, items):
         if any(item.get_closest_marker(t) for t in TIERS):
             continue
         module = getattr(item, "module", None)
-        name = module.__name__.rsplit(".", 1)[-1] if module else ""
+        name = module.__name__ if module else ""
         item.add_marker(tier_of(name, vars(module) if module else {}, item.fixturenames))

@@ -1,6 +1,7 @@
 """Synthetic inputs for the model tests (test_model, test_fastpath, test_native, test_profiling,
-test_tiling): a target camera facing a wall and neighbours beside it, and random weights for the
-layers that start at zero."""
+test_tiling, test_inference, test_colour, test_trust, ...): a target camera facing a wall and
+neighbours beside it, random weights for the layers that start at zero, textured images and a
+stand-in enhancer with a known colour bias."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import math
 
 import torch
 
-from roguenerf.models import NeighbourBatch
+from roguenerf.models import NeighbourBatch, build_enhancer
 from roguenerf.models.enhancer import Enhancer
 
 
@@ -62,3 +63,55 @@ def randomise(model: Enhancer, std: float = 0.05, seed: int = 0) -> Enhancer:
         for layer in layers:
             layer.weight.copy_(torch.randn(layer.weight.shape, generator=g) * std)
     return model
+
+
+def perturbed_micro(seed: int = 0, **overrides) -> Enhancer:
+    """A 'micro' enhancer with every weight perturbed. A fresh enhancer is the identity
+    (zero-initialised residual); the perturbation makes outputs depend on the neighbours, so
+    differences are visible."""
+    torch.manual_seed(seed)
+    model = build_enhancer("micro", **overrides)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    return model
+
+
+def textured(seed: int, h: int = 48, w: int = 64) -> torch.Tensor:
+    """A random ``(1, 3, h, w)`` image in [0.2, 0.8]."""
+    g = torch.Generator().manual_seed(seed)
+    return (0.2 + 0.6 * torch.rand(1, 3, h, w, generator=g)).clamp(0, 1)
+
+
+class Biased(torch.nn.Module):
+    """A stand-in enhancer that returns the render a little too bright."""
+
+    def __init__(self, model, bias: torch.Tensor):
+        super().__init__()
+        self.inner, self.bias, self.config = model, bias, model.config
+
+    def forward(self, render, depth, K, pose, batch):
+        return render + self.bias.view(1, 3, 1, 1)
+
+    def encode_neighbours(self, photos):
+        return self.inner.encode_neighbours(photos)
+
+    def neighbour_source(self, features, depth):
+        return self.inner.neighbour_source(features, depth)
+
+
+class KernelCalls:
+    """The names of the C kernels (``roguenerf.native``) run inside the ``with`` block, in
+    ``names`` (proves the native path ran, or that a refused call ran none)."""
+
+    def __enter__(self):
+        from roguenerf import native
+
+        self.names: list[str] = []
+        native.on_call = lambda name, nbytes: self.names.append(name)
+        return self
+
+    def __exit__(self, *exc):
+        from roguenerf import native
+
+        native.on_call = None

@@ -1,4 +1,4 @@
-"""Shared parts of the reliability tests (tests/test_reliability_*.py).
+"""Shared parts of the reliability tests (tests/service/test_reliability_*.py).
 
 What every rejected request must satisfy: the JSON error format, nothing stored changed
 (files under the data directory *and* the rows of the job/scene table), and the process
@@ -25,16 +25,11 @@ import httpx
 import numpy as np
 
 from tests.service_helpers import (
-    FAST,
     ROOT,
     LiveServer,
     free_port,
-    make_checkpoint,
-    make_scene,
-    register,
     view_request,
     wait_until,
-    zip_folder,
 )
 
 SQLITE_FILES = (".db", ".db-wal", ".db-shm", ".db-journal")
@@ -83,7 +78,7 @@ def assert_healthy(client: httpx.Client) -> None:
 
 @dataclass
 class Site:
-    """A live server with one registered toy scene (48x64, 6 train + 2 test views)."""
+    """A live server with one registered toy scene (the shared fixture ``s``, tests/service/conftest.py)."""
 
     live: LiveServer
     client: httpx.Client
@@ -101,24 +96,6 @@ class Site:
 
     def view(self, index: int = 6) -> dict:
         return view_request(self.scene, index)
-
-
-def site(tmp_path_factory, *, scene_size: tuple[int, int] = (48, 64), **settings_overrides):
-    """Generator for a module fixture: ``yield from site(tmp_path_factory, ...)``."""
-    from service.settings import Settings
-
-    root = tmp_path_factory.mktemp("toy")
-    scene = make_scene(root / "scene", height=scene_size[0], width=scene_size[1])
-    checkpoint = make_checkpoint(root / "micro.safetensors").read_bytes()
-    archive = zip_folder(root / "scene")
-    options = {**FAST, **settings_overrides}
-    settings = Settings(data_dir=tmp_path_factory.mktemp("data"), **options)
-    key = settings_overrides.get("api_key")
-    headers = {"Authorization": f"Bearer {key}"} if key else {}
-    with LiveServer(settings) as live, live.client(headers=headers) as client:
-        r = register(client, archive, checkpoint)
-        assert r.status_code == 201, r.text
-        yield Site(live, client, scene, r.json()["id"], checkpoint, archive)
 
 
 def post_enhance(client: httpx.Client, scene_id: str, *, render: bytes, depth: bytes, camera: dict | str,

@@ -129,6 +129,41 @@ def zip_folder(folder: Path, *, prefix: str | None = "scene") -> bytes:
     return buf.getvalue()
 
 
+def path_zip(scene, *, seed: int, frames_per_segment: int = 2, drop_camera: bool = False, drop_frame: bool = False,
+             opencv_axes: bool = False) -> tuple[bytes, int]:
+    """A camera-path upload for ``POST /scenes/{id}/paths`` of a toy scene made with ``seed``: a
+    nerfstudio camera_path.json through three of its views, rgb/ and depth/ of each frame.
+    Broken on purpose: ``drop_camera`` leaves camera_path.json out, ``drop_frame`` frame 1's
+    rgb, ``opencv_axes`` writes the poses in OpenCV axes (the user's axis mix-up). Returns
+    (zip bytes, frame count)."""
+    import math
+
+    from roguenerf.data.toy import make_toy_world, render_toy_view
+    from roguenerf.geometry import opencv_to_opengl
+    from roguenerf.imageio import encode_npy, encode_png
+    from roguenerf.trajectory import smooth_path
+
+    world = make_toy_world(seed)
+    height, width = scene.frames[0].height, scene.frames[0].width
+    poses = smooth_path(scene.poses([0, 1, 2]), frames_per_segment)
+    K = scene.frames[0].K
+    fov = math.degrees(2 * math.atan(height / 2 / float(K[1, 1])))
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        cams = []
+        for t, pose in enumerate(poses):
+            rgb, depth = render_toy_view(world, pose, K, height, width)
+            if not (drop_frame and t == 1):
+                zf.writestr(f"rgb/{t:04d}.png", encode_png((rgb * 0.9).clamp(0, 1)))
+            zf.writestr(f"depth/{t:04d}.npy", encode_npy(depth[0].numpy()))
+            gl = pose if opencv_axes else opencv_to_opengl(pose)
+            cams.append({"camera_to_world": gl.flatten().tolist(), "fov": fov, "aspect": width / height})
+        if not drop_camera:
+            zf.writestr("camera_path.json", json.dumps({"render_height": height, "render_width": width, "fps": 10,
+                                                        "camera_path": cams}))
+    return buf.getvalue(), len(poses)
+
+
 def view_request(scene, index: int) -> dict:
     """The /enhance form of one scene view: its render PNG, depth .npy and camera JSON."""
     from roguenerf.geometry import opencv_to_opengl
@@ -205,6 +240,78 @@ class LiveServer:
         self.thread.join(30)
 
 
+def children_of(pid: int) -> list[int]:
+    """The child processes of ``pid`` (Linux /proc)."""
+    out = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        text = (task / "children").read_text().split()
+        out += [int(x) for x in text]
+    return out
+
+
+def alive(pid: int) -> bool:
+    """``pid`` runs (a zombie does not)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state != "Z"
+
+
+class EmbeddedServer:
+    """``service.server.run`` (API + sibling worker) in its own process on a free loopback port,
+    with ``FAST`` and ``settings`` as its ``ROGUENERF_*`` environment; output to ``log_path``.
+    Entered, it waits until ``ready`` (a route) answers 200 (``started_s``: how long that took);
+    on exit it stops it with SIGINT (API and worker stop cleanly), kills it after 60 s, and kills
+    a worker still alive."""
+
+    def __init__(self, data_dir: Path, *, log_path: Path, ready: str = "/healthz", **settings):
+        self.data_dir, self.log_path, self.ready = data_dir, log_path, ready
+        self.env = {k: v for k, v in os.environ.items() if not k.startswith("ROGUENERF_")}
+        self.env.update({f"ROGUENERF_{k.upper()}": str(v) for k, v in {**FAST, **settings}.items()})
+        self.env["PYTHONPATH"] = str(ROOT)
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+
+    def __enter__(self) -> EmbeddedServer:
+        self.log = open(self.log_path, "wb")
+        started = time.perf_counter()
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", "from service.server import run; "
+             f"run(host='127.0.0.1', port={self.port}, data_dir={str(self.data_dir)!r})"],
+            env=self.env, cwd=ROOT, stdout=self.log, stderr=subprocess.STDOUT)
+
+        def up():
+            try:
+                return httpx.get(f"{self.url}{self.ready}", timeout=2).status_code == 200
+            except httpx.HTTPError:
+                return self.proc.poll() is not None
+
+        try:
+            wait_until(up, timeout=120, interval=0.05, what=f"embedded server {self.ready}")
+            assert self.proc.poll() is None, self.log_path.read_text()
+        except BaseException:
+            self.__exit__()
+            raise
+        self.started_s = time.perf_counter() - started
+        return self
+
+    def __exit__(self, *exc) -> None:
+        proc = self.proc
+        children = children_of(proc.pid) if alive(proc.pid) else []
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(10)
+        for child in children:
+            if alive(child):
+                os.kill(child, signal.SIGKILL)
+        self.log.close()
+
+
 class WorkerProcess:
     """``python -m workers`` as a separate process with the given settings."""
 
@@ -271,12 +378,21 @@ def tree_digest(folder: Path) -> dict[str, int]:
     return {p.relative_to(folder).as_posix(): p.stat().st_size for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
-def toy_upload(root: Path) -> dict:
-    """A toy scene under ``root`` with what a test uploads: ``scene``, its ``zip`` bytes and a
-    micro ``checkpoint``'s bytes."""
-    scene = make_scene(root / "scene")
-    return {"scene": scene, "zip": zip_folder(root / "scene"),
-            "checkpoint": make_checkpoint(root / "micro.safetensors").read_bytes()}
+def toy_upload(root: Path, **scene) -> dict:
+    """A toy scene under ``root`` (``make_scene``'s arguments in ``scene``) with what a test
+    uploads: ``folder`` (the scene folder), ``scene``, its ``zip`` bytes and the same written as
+    ``zip_file``, a micro checkpoint ``ckpt`` (its path) and ``checkpoint`` (its bytes)."""
+    folder = root / "scene"
+    loaded = make_scene(folder, **scene)
+    archive = zip_folder(folder)
+    (root / "scene.zip").write_bytes(archive)
+    ckpt = make_checkpoint(root / "micro.safetensors")
+    return {"folder": folder, "scene": loaded, "zip": archive, "zip_file": root / "scene.zip", "ckpt": ckpt,
+            "checkpoint": ckpt.read_bytes()}
+
+
+def get_job(client: httpx.Client, job_id: str) -> dict:
+    return client.get(f"/jobs/{job_id}").json()
 
 
 def _postgres_bin() -> Path | None:

@@ -18,7 +18,7 @@ them); :func:`read_colmap` turns the model into our conventions:
   Inria's ``readColmapSceneInfo`` sort them before taking every 8th view as a test view.
 
 No dependency: the formats are small. ``pycolmap`` (an optional dependency, when installed)
-reads the same files; ``tests/test_colmap.py`` checks the two agree.
+reads the same files; ``tests/unit/roguenerf/data/test_colmap.py`` checks the two agree.
 """
 
 from __future__ import annotations

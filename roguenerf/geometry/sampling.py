@@ -5,7 +5,7 @@ to channels-last costs as much as the sampling. Here each output pixel's four bi
 become one ``F.embedding_bag(mode="sum")`` row with per-sample weights over the source viewed
 as a ``(B * Hs * Ws, C)`` table: a single fused gather + weighted sum whose output rows are
 the channels-last output. Same function as ``grid_sample(mode="bilinear")`` up to float32
-rounding of the weights (tests/test_fastpath.py); forward only (no gradient to the source).
+rounding of the weights (tests/unit/roguenerf/native/test_fastpath.py); forward only (no gradient to the source).
 
 Coordinates are pixel units with pixel centres at integers (x right, y down).
 Dimension letters: B batch, C channels, (Hs, Ws) source size, (H, W) output size.

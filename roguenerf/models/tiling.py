@@ -12,7 +12,7 @@ for the first quarter of the overlap (seen from its own interior), falls as a ha
 over the middle half and is 0 in the quarter nearest its own border, where the tile lacks
 context. The two weights sum to 1; 2-D weights are products. A pixel that both tiles see at
 least ``overlap / 4`` away from their borders is therefore reproduced exactly whenever the
-model's receptive field is under ``overlap / 4`` (see tests/test_tiling.py).
+model's receptive field is under ``overlap / 4`` (see tests/unit/roguenerf/models/test_tiling.py).
 """
 
 from __future__ import annotations

@@ -27,7 +27,7 @@ may fuse multiply-adds, as oneDNN does, and the LeFF's GELU evaluates erf by a r
 approximation (error below 1e-7, as oneDNN's own is an approximation). The callers use a kernel
 only where the torch fast path would run (no gradient, float32, CPU; never in
 ``reference_mode()`` or :func:`disabled`; :mod:`roguenerf.ops` chooses). Results agree with the
-plain implementation to float32 rounding (``tests/test_native.py``).
+plain implementation to float32 rounding (``tests/unit/roguenerf/native/test_native.py``).
 
 Every kernel is called through one door, :func:`_call`: before the ctypes call it checks each
 tensor argument's dtype (float32), device (CPU), layout (row-major, or channels-last where the

@@ -3,7 +3,8 @@ of :mod:`roguenerf.native`, torch's fast path, the plain reference) is one funct
 chooses its body with :func:`~roguenerf.ops.backend.pick` on every call: NATIVE where the
 kernels are built and allowed, else FAST, else TORCH (with gradient) or REFERENCE (inside
 :func:`~roguenerf.fastpath.reference_mode`). Model and geometry code call these functions; the
-reference bodies are the ground truth of ``tests/test_fastpath.py`` and ``tests/test_native.py``.
+reference bodies are the ground truth of ``tests/unit/roguenerf/native/test_fastpath.py`` and
+``tests/unit/roguenerf/native/test_native.py``.
 
 ====================  ============================================  ==============================
 operation             function                                      bodies

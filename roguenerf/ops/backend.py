@@ -1,7 +1,7 @@
 """The one place that chooses which body of an operation runs.
 
 Every operation of :mod:`roguenerf.ops` has up to four bodies that compute the same function
-(to float32 rounding; ``tests/test_fastpath.py``, ``tests/test_native.py``):
+(to float32 rounding; ``tests/unit/roguenerf/native/test_fastpath.py``, ``tests/unit/roguenerf/native/test_native.py``):
 
 * ``NATIVE``: a fused C kernel of :mod:`roguenerf.native`: no gradient recorded, float32 CPU
   tensors, the kernels built and not :func:`roguenerf.native.disabled`;

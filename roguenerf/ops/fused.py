@@ -7,7 +7,7 @@ tokens: the Uformer's shape) faster than MKL's ``addmm``. PyTorch exposes these 
 generates for CPU). They have no autograd formula, so they are used only when no gradient is
 being recorded, on float32 CPU tensors, and when the build has them; otherwise the helpers
 fall back to ``F.linear`` / ``conv`` followed by the activation. The fused and plain paths
-agree to float32 rounding (``tests/test_fastpath.py``).
+agree to float32 rounding (``tests/unit/roguenerf/native/test_fastpath.py``).
 
 :func:`~roguenerf.fastpath.reference_mode` switches every fast path of the package off
 (fused kernels here, fused attention, channels-last layout, shared per-target work in the

@@ -4,7 +4,7 @@ Dimension legend: B batch, N neighbours per target, c crop side, Hs x Ws the nei
 size (a scene's training views share one size), h x w a neighbour window, P photos encoded.
 
 Two ways to give the enhancer its neighbours (``NEIGHBOUR_ENCODINGS``), equal in loss and in
-every gradient (tests/test_training_windows.py):
+every gradient (tests/unit/roguenerf/training/test_training_windows.py):
 
 ``"whole"``
     conv_H encodes every distinct neighbour photo the batch uses, whole, at full resolution.

@@ -1,0 +1,214 @@
+"""Who may import whom (docs/architecture.md, Layers), read from the code itself.
+
+    roguecli  (the console script: the library's commands + serve + make-pairs)
+      |-> service  -> workers -> roguenerf
+      |-> roguefit -> roguenerf
+      '-> roguenerf (the library imports nothing above it)
+
+Every import counts, a function's lazy one included.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[3]
+PACKAGES = ("roguenerf", "roguefit", "service", "workers", "roguecli")
+MAY_IMPORT = {
+    "roguenerf": {"roguenerf"},
+    "roguefit": {"roguefit", "roguenerf"},
+    "workers": {"workers", "roguenerf"},
+    "service": {"service", "workers", "roguenerf"},
+    "roguecli": {"roguecli", "roguenerf", "roguefit", "service"},
+}
+
+
+def _imports(path: Path) -> list[tuple[int, str]]:
+    """(line, module) of every import in a file, at any depth, relative ones resolved."""
+    package = ".".join(path.relative_to(ROOT).with_suffix("").parts)
+    if path.name != "__init__.py":
+        package = package.rpartition(".")[0]
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            module = node.module or ""
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                module = ".".join(base + ([module] if module else []))
+            found += [(node.lineno, module)] + [(node.lineno, f"{module}.{a.name}") for a in node.names
+                                                 if (ROOT / module.replace(".", "/") / f"{a.name}.py").is_file()]
+    return found
+
+
+def _files(package: str) -> list[Path]:
+    return sorted((ROOT / package).rglob("*.py"))
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_each_package_imports_only_the_layers_below_it(package):
+    offenders = [f"{path.relative_to(ROOT)}:{line}: {module}"
+                 for path in _files(package) for line, module in _imports(path)
+                 if module.split(".")[0] in PACKAGES and module.split(".")[0] not in MAY_IMPORT[package]]
+    assert offenders == []
+
+
+def test_nothing_imports_the_console_script_package():
+    offenders = [f"{path.relative_to(ROOT)}:{line}" for package in PACKAGES if package != "roguecli"
+                 for path in _files(package) for line, module in _imports(path)
+                 if module.split(".")[0] == "roguecli"]
+    assert offenders == []
+
+
+def test_the_issue_grep_finds_nothing_in_the_library():
+    proc = subprocess.run(["grep", "-rnE", r"^\s*(from|import) (service|workers|roguefit|roguecli)", "roguenerf/"],
+                          cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 1 and proc.stdout == ""  # 1: no line matched
+
+
+def _module_graph(package: str) -> dict[str, set[str]]:
+    """The imports between a package's modules (its ``__init__`` as the package's own name)."""
+    graph = {}
+    for path in _files(package):
+        name = f"{package}.{path.stem}" if path.stem != "__init__" else package
+        graph[name] = {m for _, m in _imports(path) if m != name and (
+            m == package or m.startswith(f"{package}.") and (ROOT / (m.replace(".", "/") + ".py")).is_file())}
+    return graph
+
+
+def _workers_graph() -> dict[str, set[str]]:
+    return _module_graph("workers")
+
+
+def _circles(graph: dict[str, set[str]]) -> list[str]:
+    """Every import circle a depth-first walk meets (a node still on its own path), as "a -> b -> a"."""
+    state: dict[str, str] = {}
+    found: list[str] = []
+
+    def visit(node: str, trail: list[str]) -> None:
+        state[node] = "open"
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == "open":
+                found.append(" -> ".join(trail + [node, nxt]))
+            elif nxt not in state:
+                visit(nxt, trail + [node])
+        state[node] = "done"
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node, [])
+    return found
+
+
+def test_workers_modules_import_each_other_without_cycles():
+    graph = _workers_graph()
+    assert graph["workers.runtime"] <= {"workers.jobs", "workers.layout", "workers.db"}
+    # The two tasks share the job runtime and never import each other.
+    assert "workers.tasks" not in graph["workers.paths"] and "workers.paths" not in graph["workers.tasks"]
+    assert "workers.runtime" in graph["workers.paths"] and "workers.runtime" in graph["workers.tasks"]
+    # A DAG: a depth-first walk never meets a module still on its own path.
+    circles = _circles(graph)
+    assert not circles, f"import cycle: {circles[0]}"
+
+
+def test_the_cycle_check_catches_a_cycle(monkeypatch):
+    # The check above can fail: jobs -> dispatch closes dispatch -> tasks -> runtime -> jobs.
+    graph = _workers_graph()
+    graph["workers.jobs"] = graph["workers.jobs"] | {"workers.dispatch"}
+    monkeypatch.setattr(sys.modules[__name__], "_workers_graph", lambda: graph)
+    with pytest.raises(AssertionError, match="import cycle: .*workers.jobs -> workers.dispatch"):
+        test_workers_modules_import_each_other_without_cycles()
+
+
+def test_roguefit_modules_import_each_other_without_cycles():
+    """A kind of field's module (its config and fitter) imports neither the orchestration
+    (``pairs``), nor the registry that lists it, nor the package: ``registry`` imports the kinds,
+    ``pairs`` the registry (CONTRIBUTING.md, Adding a kind of field)."""
+    graph = _module_graph("roguefit")
+    above = {"roguefit", "roguefit.pairs", "roguefit.registry", "roguefit.batch"}
+    for kind in ("roguefit.fit", "roguefit.field", "roguefit.hashfield", "roguefit.splats"):
+        assert not graph[kind] & above, kind
+    assert graph["roguefit.fitter"] <= {"roguefit.photos"}
+    assert "roguefit.registry" in graph["roguefit.pairs"]
+    assert {"roguefit.fit", "roguefit.hashfield", "roguefit.splats"} <= graph["roguefit.registry"]
+    assert "roguefit.splats" not in graph["roguefit.fit"]  # the import circle of issue 50
+    circles = _circles(graph)
+    assert not circles, f"import cycle: {circles[0]}"
+
+
+def test_the_api_settings_live_in_the_service_and_extend_the_workers():
+    from service.settings import Settings
+    from workers import settings as worker_settings
+    from workers.settings import WorkerSettings
+
+    assert issubclass(Settings, WorkerSettings) and Settings.__module__ == "service.settings"
+    assert not hasattr(worker_settings, "Settings")
+    assert {"api_key", "max_body_bytes", "cors_origins"} <= set(Settings.model_fields)
+    assert not {"api_key", "max_body_bytes", "cors_origins"} & set(WorkerSettings.model_fields)
+
+
+def test_routers_take_shared_dependencies_from_deps_not_from_each_other():
+    offenders = [f"{path.name}:{line}: {module}" for path in _files("service/routers")
+                 for line, module in _imports(path) if module.startswith("service.routers.")]
+    assert offenders == []
+
+
+LIBRARY_LAYERS = (
+    ("errors", "fastpath", "profiling", "runtime"),
+    ("images", "native"),
+    ("geometry", "imageio", "metrics", "video"),  # camera maths and files
+    ("ops",),  # the kernels: native, fast or reference per op
+    ("reprojection",),  # checked reprojection on the ops
+    ("data", "models", "enhance"),
+    ("checkpoint", "inference", "trajectory"),
+    ("splats", "training"),
+    ("__main__",),  # says where the command line is (package roguecli, above the library)
+)
+"""Inside the library, bottom up: a module imports only its own unit and units of lower layers
+(docs/architecture.md, Layers). A unit is a top-level module or sub-package of ``roguenerf``."""
+
+
+def _library_arrows() -> list[tuple[str, str, str]]:
+    """(importer unit, imported unit, where) for every import between units of the library."""
+    arrows = []
+    for path in _files("roguenerf"):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        if len(parts) < 2 or parts[1] == "__init__":
+            continue  # the package's own lazy re-exports
+        for line, module in _imports(path):
+            target = module.split(".")
+            if target[0] == "roguenerf" and len(target) > 1 and target[1] != parts[1]:
+                arrows.append((parts[1], target[1], f"{path.relative_to(ROOT)}:{line}"))
+    return arrows
+
+
+def _library_problems(arrows: list[tuple[str, str, str]]) -> list[str]:
+    """Arrows that run up a layer, and import circles between units (same layer included)."""
+    layer = {unit: k for k, units in enumerate(LIBRARY_LAYERS) for unit in units}
+    problems = [f"{where}: {a} -> {b} runs up" for a, b, where in arrows if layer[b] > layer[a]]
+    graph: dict[str, set[str]] = {}
+    for a, b, _ in arrows:
+        graph.setdefault(a, set()).add(b)
+    return problems + [f"import circle: {c}" for c in _circles(graph)]
+
+
+def test_no_arrow_inside_the_library_runs_back_up():
+    units = {p.relative_to(ROOT / "roguenerf").with_suffix("").parts[0] for p in _files("roguenerf")} - {"__init__"}
+    assert units == {u for layer in LIBRARY_LAYERS for u in layer}, "every unit of the library has a layer"
+    assert _library_problems(_library_arrows()) == []
+
+
+def test_the_library_layer_check_catches_an_arrow_up_and_a_circle():
+    arrows = _library_arrows()
+    assert ("reprojection", "ops", "roguenerf/reprojection.py") in {(a, b, w.split(":")[0]) for a, b, w in arrows}
+    up = _library_problems(arrows + [("geometry", "ops", "x.py:1")])
+    assert up[0] == "x.py:1: geometry -> ops runs up"  # and it closes the circle ops -> geometry -> ops
+    assert len(up) == 2 and up[1].startswith("import circle") and up[1].endswith("geometry -> ops -> geometry")
+    circle = _library_problems(arrows + [("data", "enhance", "x.py:1"), ("enhance", "data", "y.py:1")])
+    assert circle and all("import circle" in c for c in circle) and "data -> enhance -> data" in circle[0]

@@ -1,0 +1,114 @@
+"""The temporal filter of camera-path videos (roguenerf.enhance.temporal): known answers."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from roguenerf.enhance.temporal import TemporalConfig, TemporalFilter
+from roguenerf.errors import InputError
+from tests.geometry_helpers import turned
+
+H, W = 20, 24
+K = torch.tensor([[30.0, 0, W / 2], [0, 30.0, H / 2], [0, 0, 1]])
+DEPTH = torch.full((1, H, W), 3.0)
+POSE = torch.eye(4, dtype=torch.float64)
+
+
+def _frame(seed: int):
+    g = torch.Generator().manual_seed(seed)
+    render = 0.25 + 0.5 * torch.rand(3, H, W, generator=g)
+    enhanced = (render + 0.1 * torch.randn(3, H, W, generator=g)).clamp(0, 1)
+    return render, enhanced
+
+
+def test_first_frame_is_its_own_and_a_still_camera_averages_the_residuals():
+    f = TemporalFilter(TemporalConfig(weight=0.5, blend="residual"))
+    r1, e1 = _frame(1)
+    assert torch.equal(f(r1, e1, DEPTH, K, POSE), e1)
+    assert f.last_share == 0.0
+    r2, e2 = _frame(2)
+    out = f(r2, e2, DEPTH, K, POSE)
+    # the same camera: every pixel sees the previous frame, at the same place
+    assert f.last_share == pytest.approx(1.0)
+    expected = (r2 + 0.5 * (e2 - r2) + 0.5 * (e1 - r1)).clamp(0, 1)
+    assert torch.allclose(out, expected, atol=1e-5)
+    # recursive: the third frame weighs the first by 1/4
+    r3, e3 = _frame(3)
+    out3 = f(r3, e3, DEPTH, K, POSE)
+    expected3 = (r3 + 0.5 * (e3 - r3) + 0.5 * (expected - r2)).clamp(0, 1)
+    assert torch.allclose(out3, expected3, atol=1e-5)
+
+
+def test_a_cut_keeps_the_frame_and_weight_zero_changes_nothing():
+    f = TemporalFilter()
+    r1, e1 = _frame(1)
+    f(r1, e1, DEPTH, K, POSE)
+    r2, e2 = _frame(2)
+    assert torch.equal(f(r2, e2, DEPTH, K, turned(POSE, 180.0)), e2)  # sees nothing of the last frame
+    assert f.last_share == 0.0
+    still = TemporalFilter(TemporalConfig(weight=0.0))
+    still(r1, e1, DEPTH, K, POSE)
+    assert torch.equal(still(r2, e2, DEPTH, K, POSE), e2)
+    f.reset()
+    assert torch.equal(f(r1, e1, DEPTH, K, POSE), e1)
+
+
+def test_a_moving_camera_carries_the_residual_to_where_the_point_went():
+    """A camera moved sideways by one pixel's worth: a residual spike at pixel (10, 8) lands at
+    (10, 7) in the next frame (z = 3, f = 30: 0.1 units to the right is one pixel to the left)."""
+    f = TemporalFilter(TemporalConfig(weight=0.5, blend="residual"))
+    render = torch.full((3, H, W), 0.5)
+    spike = render.clone()
+    spike[:, 10, 8] = 0.9
+    f(render, spike, DEPTH, K, POSE)
+    moved = POSE.clone()
+    moved[0, 3] = 0.1
+    out = f(render, render, DEPTH, K, moved)
+    assert float(out[0, 10, 7]) == pytest.approx(0.5 + 0.5 * 0.4, abs=1e-4)
+    assert float(out[0, 10, 8]) == pytest.approx(0.5, abs=1e-4)
+
+
+@pytest.mark.parametrize("weight", [1.0, -0.1, float("nan"), "0.5"])
+def test_bad_weights_are_refused(weight):
+    with pytest.raises(InputError, match="weight"):
+        TemporalConfig(weight=weight)
+
+
+def test_shapes_are_checked():
+    f = TemporalFilter()
+    r, e = _frame(1)
+    with pytest.raises(InputError, match="same"):
+        f(r, e[:, :-1], DEPTH, K, POSE)
+    with pytest.raises(InputError, match="depth"):
+        f(r, e, DEPTH[:, :-1], K, POSE)
+
+
+def test_sticky_neighbours_keep_what_is_still_near():
+    from roguenerf.enhance.temporal import sticky_neighbours
+
+    assert sticky_neighbours(None, [3, 4], [3, 4, 5, 6]) == [3, 4]  # the first frame: the rule's choice
+    # 7 is still among the nearest: kept; 8 is not: the rule's first choice not kept takes its place
+    assert sticky_neighbours([7, 8], [3, 4], [3, 7, 4, 5]) == [7, 3]
+    assert sticky_neighbours([3, 4], [4, 5], [3, 4, 5, 6]) == [3, 4]  # both still near: no change
+    # the rule now takes 3: two kept, one added; then 1: only the first kept one
+    assert sticky_neighbours([3, 4], [5, 6, 7], [3, 4, 5, 6]) == [3, 4, 5]
+    assert sticky_neighbours([3, 4], [5], [3, 4, 5, 6]) == [3]
+    assert sticky_neighbours([3, 4], [], [3, 4]) == []
+
+
+@pytest.mark.parametrize("keep", [-1, 2.5, True])
+def test_bad_keep_within_is_refused(keep):
+    with pytest.raises(InputError, match="keep_within"):
+        TemporalConfig(keep_within=keep)
+
+
+def test_blending_the_image_averages_the_frames_themselves():
+    """blend="image": the enhanced frames are averaged (a render's own flicker too), not the change."""
+    f = TemporalFilter(TemporalConfig(weight=0.5, blend="image"))
+    r1, e1 = _frame(1)
+    assert torch.equal(f(r1, e1, DEPTH, K, POSE), e1)
+    r2, e2 = _frame(2)
+    assert torch.allclose(f(r2, e2, DEPTH, K, POSE), 0.5 * e2 + 0.5 * e1, atol=1e-5)
+    with pytest.raises(InputError, match="blend"):
+        TemporalConfig(blend="pixels")
