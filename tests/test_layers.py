@@ -1,9 +1,13 @@
 """Who may import whom (docs/architecture.md, Layers), read from the code itself.
 
     roguecli  (the console script: the library's commands + serve + make-pairs)
-      |-> service  -> workers -> roguenerf
+      |-> service  -> jobs -> roguenerf     (the API)
+      |   workers  -> jobs -> roguenerf     (the worker: a process of its own, nothing imports it)
       |-> roguefit -> roguenerf
       '-> roguenerf (the library imports nothing above it)
+
+``service`` and ``workers`` share ``jobs`` (job table, layout, settings, queue, the job lifecycle)
+and never import each other.
 
 Every import counts, a function's lazy one included.
 """
@@ -18,13 +22,14 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("roguenerf", "roguefit", "service", "workers", "roguecli")
+PACKAGES = ("roguenerf", "roguefit", "jobs", "service", "workers", "roguecli")
 MAY_IMPORT = {
     "roguenerf": {"roguenerf"},
     "roguefit": {"roguefit", "roguenerf"},
-    "workers": {"workers", "roguenerf"},
-    "service": {"service", "workers", "roguenerf"},
-    "roguecli": {"roguecli", "roguenerf", "roguefit", "service"},
+    "jobs": {"jobs", "roguenerf"},
+    "workers": {"workers", "jobs", "roguenerf"},
+    "service": {"service", "jobs", "roguenerf"},
+    "roguecli": {"roguecli", "roguenerf", "roguefit", "service", "jobs"},
 }
 
 
@@ -86,6 +91,10 @@ def _workers_graph() -> dict[str, set[str]]:
     return _module_graph("workers")
 
 
+def _jobs_graph() -> dict[str, set[str]]:
+    return _module_graph("jobs")
+
+
 def _circles(graph: dict[str, set[str]]) -> list[str]:
     """Every import circle a depth-first walk meets (a node still on its own path), as "a -> b -> a"."""
     state: dict[str, str] = {}
@@ -106,24 +115,54 @@ def _circles(graph: dict[str, set[str]]) -> list[str]:
     return found
 
 
+TASKS = ("workers.tasks", "workers.paths", "workers.imports")
+"""The worker's kinds of job: each a body run through the one lifecycle, ``jobs.lifecycle``."""
+
+
 def test_workers_modules_import_each_other_without_cycles():
     graph = _workers_graph()
-    assert graph["workers.runtime"] <= {"workers.jobs", "workers.layout", "workers.db"}
-    # The two tasks share the job runtime and never import each other.
-    assert "workers.tasks" not in graph["workers.paths"] and "workers.paths" not in graph["workers.tasks"]
-    assert "workers.runtime" in graph["workers.paths"] and "workers.runtime" in graph["workers.tasks"]
+    # The tasks share the job lifecycle (jobs/lifecycle.py) and never import each other.
+    for task in TASKS:
+        assert not graph[task] & set(TASKS), task
+    assert set(TASKS) <= graph["workers.dispatch"] and "workers.dispatch" in graph["workers.worker"]
     # A DAG: a depth-first walk never meets a module still on its own path.
     circles = _circles(graph)
     assert not circles, f"import cycle: {circles[0]}"
 
 
 def test_the_cycle_check_catches_a_cycle(monkeypatch):
-    # The check above can fail: jobs -> dispatch closes dispatch -> tasks -> runtime -> jobs.
+    # The check above can fail: worker -> dispatch -> tasks, and tasks -> worker closes it.
     graph = _workers_graph()
-    graph["workers.jobs"] = graph["workers.jobs"] | {"workers.dispatch"}
+    graph["workers.tasks"] = graph["workers.tasks"] | {"workers.worker"}
     monkeypatch.setattr(sys.modules[__name__], "_workers_graph", lambda: graph)
-    with pytest.raises(AssertionError, match="import cycle: .*workers.jobs -> workers.dispatch"):
+    with pytest.raises(AssertionError, match="import cycle: .*workers.tasks -> workers.worker"):
         test_workers_modules_import_each_other_without_cycles()
+
+
+def test_jobs_modules_import_each_other_without_cycles():
+    """Bottom up: ``db``, ``layout``, ``settings`` and ``queue`` import nothing of the package,
+    ``store`` the database, ``data`` the layout and the store, ``lifecycle`` (the one job lifecycle
+    the tasks share) the database, the layout and the store; nothing of the package imports it."""
+    graph = _jobs_graph()
+    # A DAG: a depth-first walk never meets a module still on its own path.
+    circles = _circles(graph)
+    assert not circles, f"import cycle: {circles[0]}"
+    assert graph["jobs"] == set()  # the package's __init__ holds only its docstring
+    for leaf in ("jobs.db", "jobs.layout", "jobs.settings", "jobs.queue"):
+        assert graph[leaf] == set(), leaf
+    assert graph["jobs.store"] == {"jobs.db"}
+    assert graph["jobs.data"] <= {"jobs.layout", "jobs.store"}
+    assert graph["jobs.lifecycle"] <= {"jobs.db", "jobs.layout", "jobs.store"}
+    assert not [name for name, deps in graph.items() if "jobs.lifecycle" in deps]
+
+
+def test_the_jobs_cycle_check_catches_a_cycle(monkeypatch):
+    # The check above can fail: store -> db, and db -> store closes it.
+    graph = _jobs_graph()
+    graph["jobs.db"] = graph["jobs.db"] | {"jobs.store"}
+    monkeypatch.setattr(sys.modules[__name__], "_jobs_graph", lambda: graph)
+    with pytest.raises(AssertionError, match="import cycle: .*jobs.store -> jobs.db -> jobs.store"):
+        test_jobs_modules_import_each_other_without_cycles()
 
 
 def test_roguefit_modules_import_each_other_without_cycles():
@@ -142,15 +181,25 @@ def test_roguefit_modules_import_each_other_without_cycles():
     assert not circles, f"import cycle: {circles[0]}"
 
 
-def test_the_api_settings_live_in_the_service_and_extend_the_workers():
+def test_the_api_settings_live_in_the_service_and_extend_the_shared_ones():
+    from jobs import settings as job_settings
+    from jobs.settings import JobSettings
     from service.settings import Settings
-    from workers import settings as worker_settings
-    from workers.settings import WorkerSettings
 
-    assert issubclass(Settings, WorkerSettings) and Settings.__module__ == "service.settings"
-    assert not hasattr(worker_settings, "Settings")
+    assert issubclass(Settings, JobSettings) and Settings.__module__ == "service.settings"
+    assert not hasattr(job_settings, "Settings")
     assert {"api_key", "max_body_bytes", "cors_origins"} <= set(Settings.model_fields)
-    assert not {"api_key", "max_body_bytes", "cors_origins"} & set(WorkerSettings.model_fields)
+    assert not {"api_key", "max_body_bytes", "cors_origins"} & set(JobSettings.model_fields)
+
+
+def test_service_and_workers_never_import_each_other():
+    """The issue's check: both import ``jobs`` and the library, and neither imports the other
+    (the grep, and every import the AST holds, a function's lazy one included)."""
+    for package, other in (("service", "workers"), ("workers", "service")):
+        proc = subprocess.run(["grep", "-rnE", rf"^\s*(from|import) {other}\b", f"{package}/"],
+                              cwd=ROOT, capture_output=True, text=True)
+        assert proc.returncode == 1 and proc.stdout == "", proc.stdout  # 1: no line matched
+        assert not [m for path in _files(package) for _, m in _imports(path) if m.split(".")[0] == other]
 
 
 def test_routers_take_shared_dependencies_from_deps_not_from_each_other():
