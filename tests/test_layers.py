@@ -72,7 +72,7 @@ def test_nothing_imports_the_console_script_package():
 
 
 def test_the_issue_grep_finds_nothing_in_the_library():
-    proc = subprocess.run(["grep", "-rnE", r"^\s*(from|import) (service|workers|roguefit|roguecli)", "roguenerf/"],
+    proc = subprocess.run(["grep", "-rnE", r"^\s*(from|import) (jobs|service|workers|roguefit|roguecli)", "roguenerf/"],
                           cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 1 and proc.stdout == ""  # 1: no line matched
 
@@ -178,6 +178,23 @@ def test_roguefit_modules_import_each_other_without_cycles():
     assert "roguefit.splats" not in graph["roguefit.fit"]  # the import circle of issue 50
     circles = _circles(graph)
     assert not circles, f"import cycle: {circles[0]}"
+
+
+def test_jobs_takes_only_the_library_public_names():
+    """``jobs`` sits right above the library and uses it as its users do: ``from roguenerf import
+    NAME`` with NAME in ``roguenerf.__all__``, never a module inside it."""
+    import roguenerf
+
+    found = []
+    for path in _files("jobs"):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                found += [(path.name, a.name, None) for a in node.names if a.name.split(".")[0] == "roguenerf"]
+            elif isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "roguenerf":
+                found += [(path.name, node.module, a.name) for a in node.names]
+    assert found, "jobs uses the library (errors, the default checkpoint)"
+    offenders = [f for f in found if f[1] != "roguenerf" or f[2] not in roguenerf.__all__]
+    assert offenders == []
 
 
 def test_the_api_settings_live_in_the_service_and_extend_the_shared_ones():
