@@ -29,6 +29,7 @@ RUN pip install "torch==${TORCH_VERSION}" --index-url "${TORCH_INDEX_URL}"
 WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY roguenerf ./roguenerf
+COPY jobs ./jobs
 COPY service ./service
 COPY workers ./workers
 COPY roguecli ./roguecli

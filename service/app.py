@@ -18,6 +18,8 @@ from fastapi.responses import FileResponse, Response
 from starlette.middleware.cors import CORSMiddleware
 from starlette.staticfiles import StaticFiles
 
+from jobs.data import bundled_checkpoint, open_data
+from jobs.queue import JobQueue
 from roguenerf import native
 from service.auth import BearerAuthMiddleware
 from service.docs import install_docs
@@ -25,10 +27,6 @@ from service.errors import error_response, install_error_handlers
 from service.routers import checkpoints, enhance, health, jobs, paths, scenes, views
 from service.settings import Settings
 from service.state import EnhancerCache, Services
-from workers.jobs import JobStore
-from workers.layout import Layout
-from workers.queue import JobQueue
-from workers.runtime import bundled_checkpoint
 
 log = logging.getLogger("roguenerf.service")
 
@@ -81,12 +79,7 @@ def _load_default_model(settings: Settings):
 
 
 def _open(settings: Settings) -> Services:
-    layout = Layout(settings.data_dir)
-    layout.ensure()
-    for path in layout.sweep_stale_temp(settings.stale_temp_after_s):
-        log.info("swept a stale temp file left by a killed writer: %s", path)
-    store = JobStore(settings.db_url)
-    store.init_schema()
+    layout, store = open_data(settings)
     import roguenerf.inference  # noqa: F401  (torch's import cost belongs to startup, not the first request)
     from roguenerf import runtime
 

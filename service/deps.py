@@ -5,12 +5,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from jobs.layout import ID_RE
+from jobs.queue import QueueUnavailable
 from service.errors import ApiError
 from service.schemas import ScenePublic, iso
 from service.state import Services
 from service.storage import place
-from workers.layout import ID_RE
-from workers.queue import QueueUnavailable
 
 
 def scene_or_404(services: Services, scene_id: str) -> dict:

@@ -14,8 +14,8 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from jobs.layout import public_message
 from roguenerf.errors import CameraMismatchError, CheckpointError, InputError, RoGUENeRFError, SceneFormatError
-from workers.layout import public_message
 
 log = logging.getLogger("roguenerf.service")
 

@@ -45,7 +45,7 @@ def check_depth_coverage(depth, *, field: str = "depth") -> float:
 
 
 def queue_full(exc) -> ApiError:
-    """A :class:`workers.jobs.QueueFull` refusal as 503 + Retry-After.
+    """A :class:`jobs.store.QueueFull` refusal as 503 + Retry-After.
 
     The store counts waiting jobs and inserts the new one under one lock (one transaction),
     so ``max_queued_jobs`` holds under concurrent submissions to any number of API processes;

@@ -15,8 +15,8 @@ from typing import Annotated
 
 from fastapi import Query
 
+from jobs.store import MAX_PAGE
 from service.errors import ApiError
-from workers.jobs import MAX_PAGE
 
 LimitQuery = Annotated[int, Query(ge=1, le=MAX_PAGE, description=f"items per page (at most {MAX_PAGE})")]
 CursorQuery = Annotated[str | None, Query(max_length=200, description="next_cursor of the previous page")]

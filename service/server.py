@@ -108,7 +108,7 @@ def run(host: str = "127.0.0.1", port: int = 8000, data_dir: Path | str = Path("
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     settings = Settings(data_dir=Path(data_dir))
-    from workers.layout import Layout
+    from jobs.layout import Layout
 
     Layout(settings.data_dir).ensure()  # a folder of the user's is refused here, in one line, before any start
     app = create_app(settings)

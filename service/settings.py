@@ -1,7 +1,7 @@
-"""The API's settings: the worker's :class:`~workers.settings.WorkerSettings` plus the API's own
+"""The API's settings: the shared :class:`~jobs.settings.JobSettings` plus the API's own
 knobs, in one class (env prefix ``ROGUENERF_``, e.g. ``ROGUENERF_API_KEY``).
 
-The service owns these; the worker reads only its part (:class:`WorkerSettings` ignores the
+The service owns these; the worker reads only its part (:class:`JobSettings` ignores the
 others), and :meth:`Settings.env` hands all of them to a sibling worker process.
 """
 
@@ -9,12 +9,12 @@ from __future__ import annotations
 
 from pydantic import Field, SecretStr, field_validator
 
-from workers.settings import WorkerSettings, unset_if_empty
+from jobs.settings import JobSettings, unset_if_empty
 
-__all__ = ["Settings", "WorkerSettings"]
+__all__ = ["JobSettings", "Settings"]
 
 
-class Settings(WorkerSettings):
+class Settings(JobSettings):
     """Configuration of the API and the fine-tuning worker (env prefix ``ROGUENERF_``)."""
 
     api_key: SecretStr | None = None

@@ -16,12 +16,12 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 
+from jobs.data import base_checkpoint
+from jobs.layout import Layout
+from jobs.queue import JobQueue
+from jobs.store import JobStore
 from service.errors import ApiError
 from service.settings import Settings
-from workers.jobs import JobStore
-from workers.layout import Layout
-from workers.queue import JobQueue
-from workers.runtime import base_checkpoint
 
 log = logging.getLogger("roguenerf.service")
 

@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> None:
     # user chose one: a training job's idle threads then sleep instead of spinning against the API's
     # enhancements on the same cores (roguenerf.runtime, bench/threads.py).
     import roguenerf  # noqa: F401
-    from workers.settings import WorkerSettings
+    from jobs.settings import JobSettings
     from workers.worker import run_worker
 
     parser = argparse.ArgumentParser(prog="python -m workers", description=__doc__)
@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     # From here on SIGINT drains (the consumer replays one noted during start-up); SIGTERM stops.
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    run_worker(WorkerSettings(**overrides), interrupted=_interrupted)
+    run_worker(JobSettings(**overrides), interrupted=_interrupted)
 
 
 def _watch_parent(parent: int) -> None:

@@ -1,36 +1,19 @@
-"""Claim a job and hand it to its task: fine-tuning (:mod:`workers.tasks`), a camera path
-(:mod:`workers.paths`) or a 3DGS import (:mod:`workers.imports`), under a heartbeat (:mod:`workers.runtime`)."""
+"""The worker's kinds of job: fine-tuning (:mod:`workers.tasks`), a camera path
+(:mod:`workers.paths`) and a 3DGS import (:mod:`workers.imports`), each a body run through the one
+lifecycle of :mod:`jobs.lifecycle` (claim, heartbeat, how a job ends)."""
 
 from __future__ import annotations
 
-import logging
-import uuid
+from jobs.lifecycle import WorkerContext
+from jobs.lifecycle import run_job as run_claimed
+from workers.imports import IMPORT
+from workers.paths import PATH
+from workers.tasks import FINETUNE
 
-from workers.imports import run_import_job
-from workers.paths import run_path_job
-from workers.runtime import Heartbeat, WorkerContext
-from workers.tasks import run_finetune_job
-
-log = logging.getLogger("roguenerf.worker")
+TASKS = {"finetune": FINETUNE, "path": PATH, "import": IMPORT}
+"""A job's ``request["kind"]`` -> its task; a request without one is a fine-tune."""
 
 
 def run_job(ctx: WorkerContext, job_id: str) -> str:
     """Claim and run one job; returns what happened (for logs and tests)."""
-    lease = uuid.uuid4().hex
-    job = ctx.store.claim(job_id, lease)
-    if job is None:
-        log.info("job %s not claimable (not queued any more); message dropped", job_id)
-        return "skipped"
-    log.info("job %s: attempt %s on scene %s", job_id, job["attempt"], job["scene_id"])
-    beat = Heartbeat(ctx.store, job_id, lease, ctx.settings.heartbeat_period)
-    beat.start()
-    try:
-        kind = (job.get("request") or {}).get("kind")
-        if kind == "path":
-            return run_path_job(ctx, job, lease, beat)
-        if kind == "import":
-            return run_import_job(ctx, job, lease, beat)
-        return run_finetune_job(ctx, job, lease, beat)
-    finally:
-        beat.stop.set()
-        beat.join()
+    return run_claimed(ctx, job_id, TASKS, default="finetune")

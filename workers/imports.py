@@ -14,82 +14,42 @@ from __future__ import annotations
 
 import logging
 import time
-import traceback
 
-from workers.layout import IMPORT_CHECKPOINT as CHECKPOINT
-from workers.layout import IMPORT_DATASET as DATASET
-from workers.layout import IMPORT_PLY as PLY
-from workers.layout import copy_atomic, public_message
-from workers.runtime import cancel_poller, jsonable
+from jobs.layout import IMPORT_CHECKPOINT as CHECKPOINT
+from jobs.layout import IMPORT_DATASET as DATASET
+from jobs.layout import IMPORT_PLY as PLY
+from jobs.layout import copy_atomic, public_message
+from jobs.lifecycle import JobRun, JobStopped, Task
 
 log = logging.getLogger("roguenerf.worker")
 
 
-class _Stopped(Exception):
-    """Raised from the progress callback: cancel, drain or a lost lease."""
+def run_import_job(run: JobRun) -> str:
+    """Render the uploaded dataset's views from the splats into a new scene (``run.scene_id``)."""
+    from roguenerf import import_3dgs, load_scene, unusable_views
 
-    def __init__(self, done: int):
-        self.done = done
-        super().__init__(f"import stopped after {done} views")
-
-
-def run_import_job(ctx, job: dict, lease: str, beat) -> str:
-    from roguenerf import RoGUENeRFError, import_3dgs, load_scene, unusable_views
-
-    store, layout = ctx.store, ctx.layout
-    job_id, scene_id, request = job["id"], job["scene_id"], job["request"]
-    inputs = layout.job_dir(job_id) / "input"
-    tmp = layout.temp_dir()
-
-    def fail(code: str, message: str) -> str:
-        log.warning("import job %s failed: %s: %s", job_id, code, message)
-        public = public_message(message.replace(str(tmp / "scene"), "the imported scene"), root=inputs / DATASET,
-                                data_dir=layout.root)
-        if store.finish(job_id, lease, "failed", error_code=code, error_message=public):
-            layout.remove_tree(layout.job_dir(job_id))
-        return "failed"
-
+    store, layout, scene_id = run.store, run.layout, run.scene_id
+    inputs = run.job_dir / "input"
     if store.get_scene(scene_id) is not None:  # an earlier attempt got as far as adding the scene
-        store.finish(job_id, lease, "succeeded", result={"kind": "import", "scene_id": scene_id})
-        return "succeeded"
-    should_stop = cancel_poller(ctx, beat, store, job_id, lease)
+        return run.succeed({"kind": "import", "scene_id": scene_id}, keep_files=True)
+    tmp = layout.temp_dir()
+    run.root, run.aliases[str(tmp / "scene")], run.clean_on_failure = inputs / DATASET, "the imported scene", True
     started = time.monotonic()
 
     def progress(done: int, total: int) -> None:
         rate = done / max(time.monotonic() - started, 1e-6)
-        try:
-            if not store.record_frames(job_id, lease, done=done, total=total, eta_s=(total - done) / rate):
-                beat.lost.set()
-        except Exception:
-            log.exception("import job %s: could not record progress", job_id)
-        if should_stop():
-            raise _Stopped(done)
+        run.record(store.record_frames, done=done, total=total, eta_s=(total - done) / rate if rate > 0 else None)
+        if run.should_stop():
+            raise JobStopped(f"after {done} views")
 
     try:
-        try:
-            import_3dgs(inputs / DATASET, inputs / PLY, tmp / "scene", hold=int(request.get("hold", 8)),
-                        progress=progress)
-            scene = load_scene(tmp / "scene", confine=True)
-        except _Stopped as exc:
-            if beat.lost.is_set():
-                log.warning("import job %s: lost its lease; stopped after %s views", job_id, exc.done)
-                return "lost"
-            current = store.get_job(job_id)
-            if current is not None and current["cancel_requested"]:
-                if store.finish(job_id, lease, "cancelled", error_code="cancelled",
-                                error_message=f"cancelled after {exc.done} views"):
-                    layout.remove_tree(layout.job_dir(job_id))
-                return "cancelled"
-            if ctx.draining.is_set() and store.release(job_id, lease):
-                ctx.enqueue(job_id)
-                return "requeued"
-            return fail("internal_error", f"import stopped without a reason after {exc.done} views")
-        except RoGUENeRFError as exc:
-            return fail("invalid_input", str(exc))
+        import_3dgs(inputs / DATASET, inputs / PLY, tmp / "scene", hold=int(run.request.get("hold", 8)),
+                    progress=progress)
+        scene = load_scene(tmp / "scene", confine=True)
         train = len(scene.indices("train"))
         if train == 0:
-            return fail("invalid_input", "the imported scene has no 'train' views: neighbours come from them "
-                                         "(hold: every N-th view is a test view; use a larger N or 0)")
+            return run.fail("invalid_input", "the imported scene has no 'train' views: neighbours come from them "
+                                             "(hold: every N-th view is a test view; use a larger N or 0)")
         warnings = [public_message(f"unusable view {v}", root=tmp / "scene") for v in unusable_views(scene)]
         version = 0
         if (inputs / CHECKPOINT).is_file():
@@ -102,22 +62,20 @@ def run_import_job(ctx, job: dict, lease: str, beat) -> str:
         try:
             store.create_scene(scene_id, views=len(scene.frames), train_views=train,
                                test_views=len(scene.indices("test")), width=int(first.width),
-                               height=int(first.height), active_version=version, name=request.get("name"))
+                               height=int(first.height), active_version=version, name=run.request.get("name"))
         except BaseException:
             layout.remove_tree(destination)
             raise
-    except Exception as exc:
-        log.error("import job %s crashed:\n%s", job_id, traceback.format_exc())
-        return fail("internal_error", f"{type(exc).__name__}: {exc}")
     finally:
         if tmp.exists():
             layout.remove_tree(tmp)
 
     summary = {"kind": "import", "scene_id": scene_id, "views": len(scene.frames), "train_views": train,
                "test_views": len(scene.indices("test")), "checkpoint_version": version, "warnings": warnings}
-    if not store.finish(job_id, lease, "succeeded", result=jsonable(summary)):
-        log.warning("import job %s finished after losing its lease", job_id)
-        return "lost"
-    layout.remove_tree(layout.job_dir(job_id))
-    log.info("import job %s succeeded: scene %s, %d views", job_id, scene_id, len(scene.frames))
-    return "succeeded"
+    outcome = run.succeed(summary)
+    if outcome == "succeeded":
+        log.info("import job %s succeeded: scene %s, %d views", run.id, scene_id, len(scene.frames))
+    return outcome
+
+
+IMPORT = Task(run_import_job, label="import job", work="import")

@@ -10,12 +10,11 @@ from __future__ import annotations
 import logging
 import os
 import time
-import traceback
 import zipfile
 from pathlib import Path
 
-from workers.layout import public_message
-from workers.runtime import base_checkpoint, cancel_poller, jsonable
+from jobs.data import base_checkpoint
+from jobs.lifecycle import JobRun, JobStopped, Task
 
 log = logging.getLogger("roguenerf.worker")
 
@@ -29,33 +28,28 @@ def zip_frames(frame_dir: Path, destination: Path) -> None:
     os.replace(tmp, destination)
 
 
-def run_path_job(ctx, job: dict, lease: str, beat) -> str:
+def run_path_job(run: JobRun) -> str:
+    """Enhance the uploaded camera path with the scene's active checkpoint; the files stay in the
+    job's folder (``GET /jobs/{id}/result``)."""
     from roguenerf import (
         CameraMismatchError,
+        DataparserTransform,
         EnhanceOptions,
         PathCancelled,
-        RoGUENeRFError,
         SceneEnhancer,
+        enhance_path,
         load_checkpoint,
         load_scene,
+        read_camera_path,
     )
-    from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
-    from roguenerf.trajectory import enhance_path, find_camera_file, read_camera_path
+    from roguenerf.data.exports import DATAPARSER_FILE
+    from roguenerf.trajectory import find_camera_file
 
-    settings, store, layout = ctx.settings, ctx.store, ctx.layout
-    job_id, scene_id, request = job["id"], job["scene_id"], job["request"]
-    job_dir = layout.job_dir(job_id)
-
-    def fail(code: str, message: str) -> str:
-        log.warning("path job %s failed: %s: %s", job_id, code, message)
-        public = public_message(message, root=job_dir / "input", data_dir=layout.root, root_name="the path archive")
-        store.finish(job_id, lease, "failed", error_code=code, error_message=public)
-        return "failed"
-
+    store, layout, scene_id, request, job_dir = run.store, run.layout, run.scene_id, run.request, run.job_dir
+    run.root, run.root_name = job_dir / "input", "the path archive"
     scene_row = store.get_scene(scene_id)
     if scene_row is None:
-        return fail("scene_deleted", f"scene {scene_id} no longer exists")
-    should_stop = cancel_poller(ctx, beat, store, job_id, lease)
+        return run.fail("scene_deleted", f"scene {scene_id} no longer exists")
 
     started = time.monotonic()
     first_done: list = []
@@ -63,55 +57,32 @@ def run_path_job(ctx, job: dict, lease: str, beat) -> str:
     def progress(done: int, total: int) -> None:
         first_done.append(done) if not first_done else None
         rate = (done - first_done[0] + 1) / max(time.monotonic() - started, 1e-6)
-        eta = (total - done) / rate if rate > 0 else None
-        try:
-            if not store.record_frames(job_id, lease, done=done, total=total, eta_s=eta):
-                beat.lost.set()
-        except Exception:
-            log.exception("path job %s: could not record progress", job_id)
+        run.record(store.record_frames, done=done, total=total, eta_s=(total - done) / rate if rate > 0 else None)
 
+    scene = load_scene(layout.scene_files(scene_id), confine=True)
+    checkpoint = base_checkpoint(run.settings, layout, scene_id, scene_row["active_version"])
+    if checkpoint is None:
+        return run.fail("no_checkpoint", "the scene has no enhancer checkpoint")
+    model, _ = load_checkpoint(checkpoint)
+    parser_file = layout.scene_files(scene_id) / DATAPARSER_FILE
+    parser = DataparserTransform.read(parser_file) if parser_file.is_file() else None
+    inputs = job_dir / "input"
+    camera_path = read_camera_path(find_camera_file(inputs), dataparser=parser)
+    enhancer = SceneEnhancer(scene, model, options=EnhanceOptions())  # the shipped defaults
+    stat = Path(checkpoint).stat()
     try:
-        scene = load_scene(layout.scene_files(scene_id), confine=True)
-        checkpoint = base_checkpoint(settings, layout, scene_id, scene_row["active_version"])
-        if checkpoint is None:
-            return fail("no_checkpoint", "the scene has no enhancer checkpoint")
-        model, _ = load_checkpoint(checkpoint)
-        parser_file = layout.scene_files(scene_id) / DATAPARSER_FILE
-        parser = DataparserTransform.read(parser_file) if parser_file.is_file() else None
-        inputs = job_dir / "input"
-        camera_path = read_camera_path(find_camera_file(inputs), dataparser=parser)
-        enhancer = SceneEnhancer(scene, model, options=EnhanceOptions())  # the shipped defaults
-        stat = Path(checkpoint).stat()
         result = enhance_path(
             scene, enhancer, camera_path, inputs, job_dir / "output",
             depth_type=request.get("depth_type", "z"), depth_scale=float(request.get("depth_scale", 1.0)),
             background=request.get("background", "zero"), quality=int(request.get("quality", 20)),
             checkpoint_id=f"{checkpoint}:{stat.st_size}:{stat.st_mtime_ns}", progress=progress,
-            should_stop=should_stop, force=bool(request.get("force", False)),
+            should_stop=run.should_stop, force=bool(request.get("force", False)),
             force_hint="force=true (a form field of the path upload)")
-        zip_frames(job_dir / "output" / "frames", job_dir / "output" / "frames.zip")
     except PathCancelled as exc:
-        if beat.lost.is_set():
-            log.warning("path job %s: lost its lease; stopped after %s frames", job_id, exc.frame)
-            return "lost"
-        current = store.get_job(job_id)
-        if current is not None and current["cancel_requested"]:
-            if store.finish(job_id, lease, "cancelled", error_code="cancelled",
-                            error_message=f"cancelled after {exc.frame} frames"):
-                layout.remove_tree(job_dir)
-            return "cancelled"
-        if ctx.draining.is_set():
-            if store.release(job_id, lease):
-                ctx.enqueue(job_id)
-            return "requeued"
-        return fail("internal_error", f"path stopped without a reason after {exc.frame} frames")
+        raise JobStopped(f"after {exc.frame} frames") from exc
     except CameraMismatchError as exc:  # the API checked it at upload; the scene changed since
-        return fail("invalid_input", f"{exc.problem}. To enhance it anyway: upload the path again with force=true")
-    except RoGUENeRFError as exc:
-        return fail("invalid_input", str(exc))
-    except Exception as exc:
-        log.error("path job %s crashed:\n%s", job_id, traceback.format_exc())
-        return fail("internal_error", f"{type(exc).__name__}: {exc}")
+        return run.fail("invalid_input", f"{exc.problem}. To enhance it anyway: upload the path again with force=true")
+    zip_frames(job_dir / "output" / "frames", job_dir / "output" / "frames.zip")
 
     summary = {
         "kind": "path", "frames": result.frames, "seconds": result.seconds, "cached_views": result.cached_views,
@@ -120,8 +91,10 @@ def run_path_job(ctx, job: dict, lease: str, beat) -> str:
         "files": {"video": "GET /jobs/{id}/result", "side_by_side": "?what=side_by_side",
                   "frames": "?what=frames", "flicker": "?what=flicker"},
     }
-    if not store.finish(job_id, lease, "succeeded", result=jsonable(summary)):
-        log.warning("path job %s finished after losing its lease", job_id)
-        return "lost"
-    log.info("path job %s succeeded: %d frames, flicker %s", job_id, result.frames, summary["flicker"])
-    return "succeeded"
+    outcome = run.succeed(summary, keep_files=True)  # the job's folder holds the result
+    if outcome == "succeeded":
+        log.info("path job %s succeeded: %d frames, flicker %s", run.id, result.frames, summary["flicker"])
+    return outcome
+
+
+PATH = Task(run_path_job, label="path job", work="path")

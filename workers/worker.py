@@ -13,11 +13,11 @@ import threading
 
 from huey.consumer import Consumer
 
+from jobs.data import open_data
+from jobs.lifecycle import WorkerContext
+from jobs.queue import JobQueue
+from jobs.store import JobStore
 from workers.dispatch import run_job
-from workers.jobs import JobStore
-from workers.layout import Layout
-from workers.queue import JobQueue
-from workers.runtime import WorkerContext
 
 log = logging.getLogger("roguenerf.worker")
 
@@ -72,12 +72,7 @@ class DrainingConsumer(Consumer):
 
 
 def build_worker(settings) -> tuple[WorkerContext, JobQueue, JobStore]:
-    layout = Layout(settings.data_dir)
-    layout.ensure()
-    for path in layout.sweep_stale_temp(settings.stale_temp_after_s):
-        log.info("swept a stale temp file left by a killed writer: %s", path)
-    store = JobStore(settings.db_url)
-    store.init_schema()
+    layout, store = open_data(settings)
     holder: dict = {}
     queue = JobQueue(settings, handler=lambda job_id: run_job(holder["ctx"], job_id))
     ctx = WorkerContext(settings=settings, store=store, layout=layout, enqueue=queue.enqueue)

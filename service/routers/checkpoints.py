@@ -16,6 +16,7 @@ from typing import Annotated
 from fastapi import APIRouter, File, UploadFile
 from fastapi.responses import FileResponse
 
+from jobs.layout import fsync_dir
 from roguenerf.errors import RoGUENeRFError
 from service.deps import scene_or_404, scene_public
 from service.errors import ApiError, error_responses
@@ -23,7 +24,6 @@ from service.limits import checkpoint_error
 from service.schemas import ScenePublic
 from service.state import Services, ServicesDep
 from service.storage import discard, save_upload
-from workers.layout import fsync_dir
 
 log = logging.getLogger("roguenerf.service")
 router = APIRouter(prefix="/scenes", tags=["scenes"])

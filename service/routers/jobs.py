@@ -7,12 +7,12 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Response
 from fastapi.responses import FileResponse
 
+from jobs.layout import ID_RE
+from jobs.store import ACTIVE_STATES
 from service.errors import ApiError, error_responses
 from service.pagination import CursorQuery, LimitQuery, decode_cursor, page
 from service.schemas import JobPage, JobPublic
 from service.state import ServicesDep
-from workers.jobs import ACTIVE_STATES
-from workers.layout import ID_RE
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 

@@ -8,6 +8,7 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, File, Form, Response, UploadFile
 
+from jobs.store import ActiveJobExists, QueueFull
 from roguenerf.errors import RoGUENeRFError
 from service.deps import queue_with_input, scene_or_404
 from service.errors import ApiError, error_responses, library_error
@@ -15,7 +16,6 @@ from service.limits import queue_full
 from service.schemas import JobPublic
 from service.state import ServicesDep
 from service.storage import ZipLimits, discard, extract_scene_zip
-from workers.jobs import ActiveJobExists, QueueFull
 
 log = logging.getLogger("roguenerf.service")
 router = APIRouter(prefix="/scenes", tags=["paths"])

@@ -9,6 +9,9 @@ from typing import Annotated
 
 from fastapi import APIRouter, File, Form, Header, Response, UploadFile
 
+from jobs.layout import IMPORT_CHECKPOINT, IMPORT_DATASET, IMPORT_PLY, new_id, public_message
+from jobs.queue import QueueUnavailable
+from jobs.store import ActiveJobExists, IdempotencyMismatch, QueueFull, SceneBusy
 from roguenerf.errors import RoGUENeRFError
 from service.deps import queue_with_input, scene_or_404, scene_public
 from service.errors import ApiError, error_responses, library_error
@@ -17,9 +20,6 @@ from service.pagination import CursorQuery, LimitQuery, decode_cursor, page
 from service.schemas import JobCreate, JobPublic, ScenePage, ScenePublic, SceneUpdate
 from service.state import Services, ServicesDep
 from service.storage import ZipLimits, discard, extract_scene_zip, place, save_upload
-from workers.jobs import ActiveJobExists, IdempotencyMismatch, QueueFull, SceneBusy
-from workers.layout import IMPORT_CHECKPOINT, IMPORT_DATASET, IMPORT_PLY, new_id, public_message
-from workers.queue import QueueUnavailable
 
 log = logging.getLogger("roguenerf.service")
 router = APIRouter(prefix="/scenes", tags=["scenes"])

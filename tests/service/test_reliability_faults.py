@@ -153,7 +153,7 @@ WRITER = textwrap.dedent("""
     import itertools, sys, torch
     from pathlib import Path
     from roguenerf import build_enhancer, save_checkpoint
-    from workers.layout import copy_atomic
+    from jobs.layout import copy_atomic
 
     root = Path(sys.argv[1])
     models = []

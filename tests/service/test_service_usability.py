@@ -144,11 +144,11 @@ def test_broken_scene_errors_name_upload_paths_only(client, server, toy, tmp_pat
 
 def test_job_error_names_no_server_path(server, toy, tmp_path):
     """A scene broken after registration fails its job with a relative path (GET /jobs shows it)."""
+    from jobs.layout import Layout
+    from jobs.lifecycle import WorkerContext
+    from jobs.store import JobStore
     from service.schemas import JobPublic
     from workers.dispatch import run_job
-    from workers.jobs import JobStore
-    from workers.layout import Layout
-    from workers.runtime import WorkerContext
 
     settings = server.settings
     with server.client() as c:
@@ -264,11 +264,11 @@ def test_cancel_of_a_finished_job_is_409_every_time(client, server, toy):
 def test_job_reports_evaluating_instead_of_done_while_it_evaluates(tmp_path, toy):
     """After the last step the job measures its held-out views: GET /jobs shows phase
     "evaluating" without an ETA then, never "progress 1.0, eta 0" while still running."""
+    from jobs.layout import Layout
+    from jobs.lifecycle import WorkerContext
+    from jobs.store import JobStore
     from service.schemas import JobPublic
     from workers.dispatch import run_job
-    from workers.jobs import JobStore
-    from workers.layout import Layout
-    from workers.runtime import WorkerContext
 
     settings = Settings(data_dir=tmp_path / "data", **{**FAST, "finetune_evaluate": True})
     seen: list[dict] = []

@@ -17,9 +17,9 @@ import time
 import pytest
 import sqlalchemy as sa
 
-from service.settings import Settings
-from workers.db import Database, DatabaseError
-from workers.jobs import (
+from jobs.db import Database, DatabaseError
+from jobs.layout import Layout, copy_atomic, new_id
+from jobs.store import (
     SCHEMA_VERSION,
     ActiveJobExists,
     IdempotencyMismatch,
@@ -27,7 +27,7 @@ from workers.jobs import (
     QueueFull,
     SceneBusy,
 )
-from workers.layout import Layout, copy_atomic, new_id
+from service.settings import Settings
 from workers.tasks import train_options
 
 SCENE = "a" * 32
@@ -501,7 +501,7 @@ def test_workers_package_never_imports_service():
             offenders += [f"{path.name}: {n}" for n in names if n == "service" or n.startswith("service.")]
     assert offenders == []
     # ... and at run time, importing all of it (the worker's entry point included) loads none of it.
-    code = ("import sys, workers.__main__, workers.worker, workers.tasks, workers.jobs, workers.settings; "
+    code = ("import sys, workers.__main__, workers.worker, workers.tasks, jobs.store, jobs.settings; "
             "print(sorted(m for m in sys.modules if m == 'service' or m.startswith('service.') "
             "or m.startswith('fastapi')))")
     out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)

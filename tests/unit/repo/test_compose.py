@@ -92,6 +92,9 @@ def test_dockerfile_cpu_torch_and_non_root():
     assert torch_line < text.index('pip install ".[service,postgresql]"'), "torch must be installed before the package"
     assert re.search(r"^USER (?!root)\S+", text, re.M)
     assert "/healthz" in text
+    # The packages the API and the worker run (jobs: what both share; docs/architecture.md, Layers).
+    for package in ("roguenerf", "jobs", "service", "workers", "roguecli"):
+        assert re.search(rf"^COPY {package} \./{package}$", text, re.M), package
     # API and worker containers share the host's cores (as `roguenerf serve` sets it)
     assert re.search(r"^\s+OMP_WAIT_POLICY=PASSIVE$", text, re.M)
     # The fused C kernels are compiled in the container, for its CPU: a compiler is installed,

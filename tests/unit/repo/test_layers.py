@@ -1,9 +1,13 @@
 """Who may import whom (docs/architecture.md, Layers), read from the code itself.
 
     roguecli  (the console script: the library's commands + serve + make-pairs)
-      |-> service  -> workers -> roguenerf
+      |-> service  -> jobs -> roguenerf     (the API)
+      |   workers  -> jobs -> roguenerf     (the worker: a process of its own, nothing imports it)
       |-> roguefit -> roguenerf
       '-> roguenerf (the library imports nothing above it)
+
+``service`` and ``workers`` share ``jobs`` (job table, layout, settings, queue, the job lifecycle)
+and never import each other.
 
 Every import counts, a function's lazy one included.
 """
@@ -18,13 +22,14 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[3]
-PACKAGES = ("roguenerf", "roguefit", "service", "workers", "roguecli")
+PACKAGES = ("roguenerf", "roguefit", "jobs", "service", "workers", "roguecli")
 MAY_IMPORT = {
     "roguenerf": {"roguenerf"},
     "roguefit": {"roguefit", "roguenerf"},
-    "workers": {"workers", "roguenerf"},
-    "service": {"service", "workers", "roguenerf"},
-    "roguecli": {"roguecli", "roguenerf", "roguefit", "service"},
+    "jobs": {"jobs", "roguenerf"},
+    "workers": {"workers", "jobs", "roguenerf"},
+    "service": {"service", "jobs", "roguenerf"},
+    "roguecli": {"roguecli", "roguenerf", "roguefit", "service", "jobs"},
 }
 
 
@@ -67,7 +72,7 @@ def test_nothing_imports_the_console_script_package():
 
 
 def test_the_issue_grep_finds_nothing_in_the_library():
-    proc = subprocess.run(["grep", "-rnE", r"^\s*(from|import) (service|workers|roguefit|roguecli)", "roguenerf/"],
+    proc = subprocess.run(["grep", "-rnE", r"^\s*(from|import) (jobs|service|workers|roguefit|roguecli)", "roguenerf/"],
                           cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 1 and proc.stdout == ""  # 1: no line matched
 
@@ -84,6 +89,10 @@ def _module_graph(package: str) -> dict[str, set[str]]:
 
 def _workers_graph() -> dict[str, set[str]]:
     return _module_graph("workers")
+
+
+def _jobs_graph() -> dict[str, set[str]]:
+    return _module_graph("jobs")
 
 
 def _circles(graph: dict[str, set[str]]) -> list[str]:
@@ -106,24 +115,53 @@ def _circles(graph: dict[str, set[str]]) -> list[str]:
     return found
 
 
+TASKS = ("workers.tasks", "workers.paths", "workers.imports")
+"""The worker's kinds of job: each a body run through the one lifecycle, ``jobs.lifecycle``."""
+
+
 def test_workers_modules_import_each_other_without_cycles():
     graph = _workers_graph()
-    assert graph["workers.runtime"] <= {"workers.jobs", "workers.layout", "workers.db"}
-    # The two tasks share the job runtime and never import each other.
-    assert "workers.tasks" not in graph["workers.paths"] and "workers.paths" not in graph["workers.tasks"]
-    assert "workers.runtime" in graph["workers.paths"] and "workers.runtime" in graph["workers.tasks"]
+    # The tasks share the job lifecycle (jobs/lifecycle.py) and never import each other.
+    for task in TASKS:
+        assert not graph[task] & set(TASKS), task
+    assert set(TASKS) <= graph["workers.dispatch"] and "workers.dispatch" in graph["workers.worker"]
     # A DAG: a depth-first walk never meets a module still on its own path.
     circles = _circles(graph)
     assert not circles, f"import cycle: {circles[0]}"
 
 
-def test_the_cycle_check_catches_a_cycle(monkeypatch):
-    # The check above can fail: jobs -> dispatch closes dispatch -> tasks -> runtime -> jobs.
-    graph = _workers_graph()
-    graph["workers.jobs"] = graph["workers.jobs"] | {"workers.dispatch"}
-    monkeypatch.setattr(sys.modules[__name__], "_workers_graph", lambda: graph)
-    with pytest.raises(AssertionError, match="import cycle: .*workers.jobs -> workers.dispatch"):
-        test_workers_modules_import_each_other_without_cycles()
+def test_jobs_modules_import_each_other_without_cycles():
+    """Bottom up: ``db``, ``layout``, ``settings`` and ``queue`` import nothing of the package,
+    ``store`` the database, ``data`` the layout and the store, ``lifecycle`` (the one job lifecycle
+    the tasks share) the database, the layout and the store; nothing of the package imports it."""
+    graph = _jobs_graph()
+    # A DAG: a depth-first walk never meets a module still on its own path.
+    circles = _circles(graph)
+    assert not circles, f"import cycle: {circles[0]}"
+    assert graph["jobs"] == set()  # the package's __init__ holds only its docstring
+    for leaf in ("jobs.db", "jobs.layout", "jobs.settings", "jobs.queue"):
+        assert graph[leaf] == set(), leaf
+    assert graph["jobs.store"] == {"jobs.db"}
+    assert graph["jobs.data"] <= {"jobs.layout", "jobs.store"}
+    assert graph["jobs.lifecycle"] <= {"jobs.db", "jobs.layout", "jobs.store"}
+    assert not [name for name, deps in graph.items() if "jobs.lifecycle" in deps]
+
+
+@pytest.mark.parametrize("graph_of, check, importer, imported, circle", [
+    # worker -> dispatch -> tasks: tasks -> worker closes it.
+    ("_workers_graph", test_workers_modules_import_each_other_without_cycles, "workers.tasks", "workers.worker",
+     "workers.tasks -> workers.worker"),
+    # store -> db: db -> store closes it.
+    ("_jobs_graph", test_jobs_modules_import_each_other_without_cycles, "jobs.db", "jobs.store",
+     "jobs.store -> jobs.db -> jobs.store"),
+])
+def test_the_cycle_check_catches_a_cycle(monkeypatch, graph_of, check, importer, imported, circle):
+    """The checks above can fail: one arrow more closes a circle, and the check names it."""
+    graph = getattr(sys.modules[__name__], graph_of)()
+    graph[importer] = graph[importer] | {imported}
+    monkeypatch.setattr(sys.modules[__name__], graph_of, lambda: graph)
+    with pytest.raises(AssertionError, match=f"import cycle: .*{circle}"):
+        check()
 
 
 def test_roguefit_modules_import_each_other_without_cycles():
@@ -142,15 +180,42 @@ def test_roguefit_modules_import_each_other_without_cycles():
     assert not circles, f"import cycle: {circles[0]}"
 
 
-def test_the_api_settings_live_in_the_service_and_extend_the_workers():
-    from service.settings import Settings
-    from workers import settings as worker_settings
-    from workers.settings import WorkerSettings
+def test_jobs_takes_only_the_library_public_names():
+    """``jobs`` sits right above the library and uses it as its users do: ``from roguenerf import
+    NAME`` with NAME in ``roguenerf.__all__``, never a module inside it."""
+    import roguenerf
 
-    assert issubclass(Settings, WorkerSettings) and Settings.__module__ == "service.settings"
-    assert not hasattr(worker_settings, "Settings")
+    found = []
+    for path in _files("jobs"):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                found += [(path.name, a.name, None) for a in node.names if a.name.split(".")[0] == "roguenerf"]
+            elif isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "roguenerf":
+                found += [(path.name, node.module, a.name) for a in node.names]
+    assert found, "jobs uses the library (errors, the default checkpoint)"
+    offenders = [f for f in found if f[1] != "roguenerf" or f[2] not in roguenerf.__all__]
+    assert offenders == []
+
+
+def test_the_api_settings_live_in_the_service_and_extend_the_shared_ones():
+    from jobs import settings as job_settings
+    from jobs.settings import JobSettings
+    from service.settings import Settings
+
+    assert issubclass(Settings, JobSettings) and Settings.__module__ == "service.settings"
+    assert not hasattr(job_settings, "Settings")
     assert {"api_key", "max_body_bytes", "cors_origins"} <= set(Settings.model_fields)
-    assert not {"api_key", "max_body_bytes", "cors_origins"} & set(WorkerSettings.model_fields)
+    assert not {"api_key", "max_body_bytes", "cors_origins"} & set(JobSettings.model_fields)
+
+
+def test_service_and_workers_never_import_each_other():
+    """The issue's check: both import ``jobs`` and the library, and neither imports the other
+    (the grep, and every import the AST holds, a function's lazy one included)."""
+    for package, other in (("service", "workers"), ("workers", "service")):
+        proc = subprocess.run(["grep", "-rnE", rf"^\s*(from|import) {other}\b", f"{package}/"],
+                              cwd=ROOT, capture_output=True, text=True)
+        assert proc.returncode == 1 and proc.stdout == "", proc.stdout  # 1: no line matched
+        assert not [m for path in _files(package) for _, m in _imports(path) if m.split(".")[0] == other]
 
 
 def test_routers_take_shared_dependencies_from_deps_not_from_each_other():

@@ -275,7 +275,7 @@ def test_serve_without_the_service_is_a_clear_error(monkeypatch):
 
 def test_serve_refuses_a_data_dir_it_did_not_make(tmp_path):
     """Issue 49: `serve --data-dir ~` swept ~/tmp of entries older than six hours."""
-    from workers.layout import Layout
+    from jobs.layout import Layout
 
     home = tmp_path / "home"
     (home / "tmp").mkdir(parents=True)

@@ -45,9 +45,9 @@ def test_library_cli_and_service_default_to_the_checkpoints_count(scene, tmp_pat
     # The service: its cached SceneEnhancer of a scene on the default checkpoint (version 0).
     import shutil
 
+    from jobs.layout import Layout
     from service.settings import Settings
     from service.state import EnhancerCache
-    from workers.layout import Layout
 
     settings = Settings(data_dir=tmp_path / "data")
     layout = Layout(settings.data_dir)

@@ -1,6 +1,6 @@
 """Huey wiring: SqliteHuey in data_dir by default, RedisHuey when ``redis_url`` is set.
 
-Messages only say "run job <id>"; the job table (workers.jobs) holds the truth, so a
+Messages only say "run job <id>"; the job table (:mod:`jobs.store`) holds the truth, so a
 lost or duplicated message is harmless: the sweeper requeues lost jobs and a claim refuses
 a job that is not queued.
 """

@@ -51,7 +51,7 @@ IMPORT_DATASET = "dataset"
 IMPORT_PLY = "point_cloud.ply"
 IMPORT_CHECKPOINT = "checkpoint.safetensors"
 """Names inside an import job's ``input/`` folder: written by the API (``POST /scenes/import``),
-read by :mod:`workers.imports`."""
+read by the import task (``workers/imports.py``)."""
 
 
 def new_id() -> str:
@@ -73,7 +73,7 @@ class Layout:
         """The data directory must be new, empty or ours (its marker, or the scenes/ jobs/ tmp/ an
         older version made): the service sweeps ``tmp/`` and removes folders under ``scenes/`` and
         ``jobs/``, so a folder of the user's (``--data-dir ~``) is refused before anything is touched."""
-        from roguenerf.errors import InputError
+        from roguenerf import InputError
 
         root = self.root
         if not root.exists():

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import sqlalchemy as sa
 
-from workers.db import Database, DatabaseError, IntegrityConflict, Tx
+from jobs.db import Database, DatabaseError, IntegrityConflict, Tx
 
 ACTIVE_STATES = ("queued", "running")
 TERMINAL_STATES = ("succeeded", "failed", "cancelled")

@@ -1,7 +1,7 @@
 """The job database through SQLAlchemy Core 2.x: SQLite (WAL) by default, PostgreSQL via psycopg 3.
 
 :class:`Database` owns one engine (a connection pool) and hands out transactions with
-:meth:`Database.tx`; the statements themselves live in :mod:`workers.jobs` as Core
+:meth:`Database.tx`; the statements themselves live in :mod:`jobs.store` as Core
 expressions, so no SQL text is rewritten per dialect.
 
 Write transactions serialise where the job layer needs it:

@@ -1,13 +1,14 @@
-"""Every knob of the worker, from ``ROGUENERF_*`` environment variables.
+"""Every knob the job processes share, from ``ROGUENERF_*`` environment variables.
 
 Each field reads the environment variable ``ROGUENERF_<FIELD>`` (case-insensitive), e.g.
 ``ROGUENERF_DATA_DIR=/srv/roguenerf``. Lists (``cors_origins``) are JSON:
 ``ROGUENERF_CORS_ORIGINS='["https://app.example"]'``.
 
-:class:`WorkerSettings` holds what the fine-tuning worker needs (data, job table, queue,
-training, liveness); the API's :class:`service.settings.Settings` extends it with its own
-knobs, so one set of variables configures both processes (the workers package never imports
-``service``). This module imports only pydantic.
+:class:`JobSettings` holds what the fine-tuning worker needs (data, job table, queue,
+training, liveness); ``python -m workers`` reads it, and the API's
+:class:`service.settings.Settings` extends it with its own knobs, so one set of variables
+configures both processes (``jobs`` imports neither ``service`` nor ``workers``). This module
+imports only pydantic.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ def unset_if_empty(value):
     return value
 
 
-class WorkerSettings(BaseSettings):
+class JobSettings(BaseSettings):
     """Configuration of the fine-tuning worker: data, job table, queue, training, liveness."""
 
     model_config = SettingsConfigDict(env_prefix="ROGUENERF_", extra="ignore")
