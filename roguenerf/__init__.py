@@ -72,6 +72,27 @@ _LAZY = {
     "DataparserTransform": "roguenerf.data.exports",
     "read_colmap": "roguenerf.data.colmap",
     "write_colmap": "roguenerf.data.colmap",
+    # what the service and the workers read, write and check with
+    "DATAPARSER_FILE": "roguenerf.data.exports",
+    "DEPTH_EPS": "roguenerf.geometry.depth",
+    "ImageTooLargeError": "roguenerf.imageio",
+    "MAX_DEPTH": "roguenerf.geometry.depth",
+    "check_intrinsics": "roguenerf.geometry",
+    "check_pose": "roguenerf.geometry",
+    "encode_png": "roguenerf.imageio",
+    "find_camera_file": "roguenerf.trajectory",
+    "find_path_frames": "roguenerf.trajectory",
+    "intrinsics_matrix": "roguenerf.geometry",
+    "is_colmap_dataset": "roguenerf.data.colmap",
+    "known_depth_mask": "roguenerf.geometry.depth",
+    "opencv_to_opengl": "roguenerf.geometry",
+    "opengl_to_opencv": "roguenerf.geometry",
+    "ray_to_z_depth": "roguenerf.geometry",
+    "read_dataset_views": "roguenerf.splats.importer",
+    "read_depth": "roguenerf.imageio",
+    "read_image": "roguenerf.imageio",
+    "read_image_size": "roguenerf.imageio",
+    "read_ply": "roguenerf.splats.ply",
 }
 
 __all__ = [
@@ -85,6 +106,8 @@ __all__ = [
     "TrainingCancelled",
     "TrainingDivergedError",
     "__version__",
+    "native",  # public submodules: the C kernels' status, the process settings
+    "runtime",
     *_LAZY,
 ]
 

@@ -80,8 +80,10 @@ def _load_default_model(settings: Settings):
 
 def _open(settings: Settings) -> Services:
     layout, store = open_data(settings)
-    import roguenerf.inference  # noqa: F401  (torch's import cost belongs to startup, not the first request)
-    from roguenerf import runtime
+    from roguenerf import (
+        SceneEnhancer,  # noqa: F401  (torch's import cost belongs to startup, not the first request)
+        runtime,
+    )
 
     log.info("runtime: %s", runtime.configure())
 

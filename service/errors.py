@@ -15,7 +15,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from jobs.layout import public_message
-from roguenerf.errors import CameraMismatchError, CheckpointError, InputError, RoGUENeRFError, SceneFormatError
+from roguenerf import CameraMismatchError, CheckpointError, InputError, RoGUENeRFError, SceneFormatError
 
 log = logging.getLogger("roguenerf.service")
 
@@ -60,7 +60,7 @@ def library_error(exc: RoGUENeRFError, *, root=None, root_name: str = "the scene
     ``root``: the uploaded folder the input came from; paths inside it are shown relative to it,
     the folder itself as ``root_name`` (the message handlers below also replace anything left
     under the data directory)."""
-    from roguenerf.imageio import ImageTooLargeError
+    from roguenerf import ImageTooLargeError
 
     message = str(exc) if root is None else public_message(str(exc), root=root, root_name=root_name)
     if isinstance(exc, ImageTooLargeError):

@@ -25,7 +25,7 @@ def check_depth_coverage(depth, *, field: str = "depth") -> float:
     """
     import numpy as np
 
-    from roguenerf.geometry.depth import DEPTH_EPS, MAX_DEPTH, known_depth_mask
+    from roguenerf import DEPTH_EPS, MAX_DEPTH, known_depth_mask
 
     # NumPy, single-threaded: a few torch element-wise ops on a render-sized map each enter an
     # OpenMP parallel region, which costs tens of ms when the cores are busy (e.g. with a
@@ -62,7 +62,7 @@ def queue_full(exc) -> ApiError:
 def decode_field(field: str, decode, data: bytes, **kwargs):
     """``decode(data, **kwargs)`` with library errors mapped to HTTP and prefixed by the form
     field: uploads arrive as bytes, so the library can only call them ``<N bytes>``."""
-    from roguenerf.errors import RoGUENeRFError
+    from roguenerf import RoGUENeRFError
     from service.errors import library_error
 
     try:

@@ -141,8 +141,7 @@ def _budget(steps, minutes, *, required: bool = False, field: str | None = None)
     """The training budget's rules, from the library (:meth:`TrainConfig.validate_budget`);
     broken, they answer 422 with the library's message (less the field's name when the error
     names the ``field`` already)."""
-    from roguenerf.errors import InputError
-    from roguenerf.training.config import TrainConfig
+    from roguenerf import InputError, TrainConfig
 
     try:
         TrainConfig.validate_budget(steps, minutes, required=required)

@@ -32,18 +32,18 @@ def run_path_job(run: JobRun) -> str:
     """Enhance the uploaded camera path with the scene's active checkpoint; the files stay in the
     job's folder (``GET /jobs/{id}/result``)."""
     from roguenerf import (
+        DATAPARSER_FILE,
         CameraMismatchError,
         DataparserTransform,
         EnhanceOptions,
         PathCancelled,
         SceneEnhancer,
         enhance_path,
+        find_camera_file,
         load_checkpoint,
         load_scene,
         read_camera_path,
     )
-    from roguenerf.data.exports import DATAPARSER_FILE
-    from roguenerf.trajectory import find_camera_file
 
     store, layout, scene_id, request, job_dir = run.store, run.layout, run.scene_id, run.request, run.job_dir
     run.root, run.root_name = job_dir / "input", "the path archive"

@@ -84,8 +84,10 @@ def run_worker(settings, *, interrupted: threading.Event | None = None) -> None:
     """Run until SIGINT (drain) or SIGTERM; blocks. ``interrupted``: set by the caller's own
     SIGINT handler during start-up; the consumer then stops as soon as it starts."""
     ctx, queue, store = build_worker(settings)
-    import roguenerf.training.loop  # noqa: F401  (pay torch's import before the first job, not during it)
-    from roguenerf import runtime
+    from roguenerf import (
+        finetune,  # noqa: F401  (pay torch's import before the first job, not during it)
+        runtime,
+    )
 
     log.info("runtime: %s", runtime.configure())
 

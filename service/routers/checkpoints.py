@@ -17,7 +17,7 @@ from fastapi import APIRouter, File, UploadFile
 from fastapi.responses import FileResponse
 
 from jobs.layout import fsync_dir
-from roguenerf.errors import RoGUENeRFError
+from roguenerf import RoGUENeRFError
 from service.deps import scene_or_404, scene_public
 from service.errors import ApiError, error_responses
 from service.limits import checkpoint_error

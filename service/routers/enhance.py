@@ -11,7 +11,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 from pydantic import ValidationError
 
-from roguenerf.errors import CameraMismatchError, InputError, RoGUENeRFError
+from roguenerf import CameraMismatchError, InputError, RoGUENeRFError
 from service.deps import scene_or_404
 from service.errors import ApiError, error_responses, library_error
 from service.limits import check_depth_coverage, decode_field
@@ -50,7 +50,7 @@ def camera_tensors(camera: Camera):
     computes (a 3x4 pose gets its last row there, in the one check, ``check_pose``)."""
     import torch
 
-    from roguenerf.geometry import check_intrinsics, check_pose, intrinsics_matrix, opengl_to_opencv
+    from roguenerf import check_intrinsics, check_pose, intrinsics_matrix, opengl_to_opencv
 
     pose = torch.tensor(camera.transform_matrix, dtype=torch.float64)
     if camera.convention == "opengl":
@@ -81,8 +81,7 @@ def camera_fix(exc: CameraMismatchError, camera: Camera, scene_id: str) -> str:
 
 def _enhance(services: Services, scene: dict, render_bytes: bytes, depth_bytes: bytes,
              camera: Camera, depth_scale: float, force: bool = False) -> tuple[bytes, object, int, str | None]:
-    from roguenerf.geometry import ray_to_z_depth
-    from roguenerf.imageio import encode_png, read_depth, read_image
+    from roguenerf import encode_png, ray_to_z_depth, read_depth, read_image
 
     limit = services.settings.max_upload_pixels
     try:

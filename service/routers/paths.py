@@ -9,7 +9,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, File, Form, Response, UploadFile
 
 from jobs.store import ActiveJobExists, QueueFull
-from roguenerf.errors import RoGUENeRFError
+from roguenerf import RoGUENeRFError
 from service.deps import queue_with_input, scene_or_404
 from service.errors import ApiError, error_responses, library_error
 from service.limits import queue_full
@@ -32,10 +32,15 @@ def validate_path_upload(services, row: dict, root: Path, *, max_pixels: int, de
     """Check an extracted path upload with the library, the checks ``enhance_path`` runs before
     its first frame included (``check_path``: depth type, cameras in the scene's world); returns
     its frame count (ApiError otherwise)."""
-    from roguenerf import check_path
-    from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
-    from roguenerf.imageio import read_image_size
-    from roguenerf.trajectory import find_camera_file, find_path_frames, read_camera_path
+    from roguenerf import (
+        DATAPARSER_FILE,
+        DataparserTransform,
+        check_path,
+        find_camera_file,
+        find_path_frames,
+        read_camera_path,
+        read_image_size,
+    )
 
     scene_id = row["id"]
     try:

@@ -12,7 +12,7 @@ from fastapi import APIRouter, File, Form, Header, Response, UploadFile
 from jobs.layout import IMPORT_CHECKPOINT, IMPORT_DATASET, IMPORT_PLY, new_id, public_message
 from jobs.queue import QueueUnavailable
 from jobs.store import ActiveJobExists, IdempotencyMismatch, QueueFull, SceneBusy
-from roguenerf.errors import RoGUENeRFError
+from roguenerf import RoGUENeRFError
 from service.deps import queue_with_input, scene_or_404, scene_public
 from service.errors import ApiError, error_responses, library_error
 from service.limits import checkpoint_error, queue_full
@@ -84,7 +84,7 @@ def _register(services: Services, archive: UploadFile, checkpoint: UploadFile | 
         root = extract_scene_zip(archive.file, tmp / "scene",
                                  ZipLimits(settings.max_scene_files, settings.max_scene_bytes))
         _unwrapped(tmp, root, tmp / "scene")
-        from roguenerf.data.colmap import is_colmap_dataset
+        from roguenerf import is_colmap_dataset
 
         if not (tmp / "scene" / "transforms.json").is_file() and is_colmap_dataset(tmp / "scene"):
             raise ApiError(422, "invalid_scene", COLMAP_ZIP)
@@ -152,9 +152,7 @@ def _validate_import(services: Services, tmp: Path, archive: UploadFile, ply: Up
                      checkpoint: UploadFile | None, hold: int) -> int:
     """Store an import upload under ``tmp/input`` and check it with the library (the dataset's
     views and photos, the .ply, the checkpoint); returns the number of views."""
-    from roguenerf import load_checkpoint, load_scene
-    from roguenerf.splats.importer import read_dataset_views
-    from roguenerf.splats.ply import read_ply
+    from roguenerf import load_checkpoint, load_scene, read_dataset_views, read_ply
 
     settings = services.settings
     inputs = tmp / "input"

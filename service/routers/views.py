@@ -16,7 +16,7 @@ from fastapi import APIRouter, File, Query, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
-from roguenerf.errors import RoGUENeRFError
+from roguenerf import RoGUENeRFError
 from service.deps import scene_or_404
 from service.errors import ApiError, error_responses, library_error
 from service.limits import decode_field
@@ -54,7 +54,7 @@ def _frame(scene, scene_id: str, index: int, kind: str | None = None):
 def view_public(index: int, frame) -> ViewPublic:
     import torch
 
-    from roguenerf.geometry import opencv_to_opengl
+    from roguenerf import opencv_to_opengl
 
     pose = opencv_to_opengl(frame.world_from_cam.to(torch.float64))
     K = frame.K
@@ -86,7 +86,7 @@ def list_views(
 
 
 def _file(services: Services, scene_id: str, index: int, kind: str) -> Response:
-    from roguenerf.imageio import encode_png
+    from roguenerf import encode_png
 
     scene = _scene(services, scene_id)
     _frame(scene, scene_id, index, kind)
@@ -129,8 +129,7 @@ def read_depth(scene_id: str, index: int, services: ServicesDep) -> Response:
 def _score(services: Services, scene_id: str, index: int, data: bytes) -> ImageScore:
     import math
 
-    from roguenerf import flip, psnr, ssim
-    from roguenerf.imageio import read_image
+    from roguenerf import flip, psnr, read_image, ssim
 
     scene = _scene(services, scene_id)
     frame = _frame(scene, scene_id, index, "photo")
