@@ -64,11 +64,6 @@ class AlignConfig:
     fits cost up to 0.7 dB on our own `coarse` look); a wrong pose's fit gains 10-75 %."""
     charbonnier: float = 0.01
     """Scale of the Charbonnier penalty ``sqrt(r^2 + c^2) - c`` on colour differences in [0, 1]."""
-    check_pixels: float = 0.0
-    """A cheap check before the fit: one Gauss-Newton step from the dataset pose on the
-    coarsest level; where it would move the pixels by less than this (pixels of the finest
-    level), the photo is taken to sit where it should and the fit is skipped (the dataset pose
-    kept, ``accepted`` False). 0: always fit."""
 
 
 @dataclass
@@ -235,19 +230,6 @@ class _Level:
         return -torch.linalg.solve(A, b)
 
 
-def _settled(levels: list[_Level], start: Tensor, c: float, pixels: float) -> bool:
-    """Whether one undamped Gauss-Newton step from ``start`` on the coarsest level that sees
-    enough would move the pixels of the finest level by less than ``pixels``."""
-    finest_focal = float(levels[-1].K[0, 0])
-    for level in levels:
-        sampled, counted = level.sample(start)
-        if int(counted.sum()) < 16:
-            continue
-        delta = level.step(start, sampled, counted, counted, c, 0.0)
-        return bool(torch.isfinite(delta).all()) and float(delta.norm()) * finest_focal < pixels
-    return False
-
-
 def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_from_photo: Tensor,
                     render: Tensor, render_depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
                     config: AlignConfig | None = None, cache: dict | None = None) -> Alignment:
@@ -307,8 +289,6 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
         start_sampled, counted_finest = finest.sample(start)
         if int(counted_finest.sum()) < 64:
             return unchanged()
-        if config.check_pixels > 0 and _settled(levels, start, c, config.check_pixels):
-            return unchanged(finest.error(start_sampled, counted_finest, counted_finest, c))
         pose = start
         for level in levels:
             sampled, counted = level.sample(pose)
