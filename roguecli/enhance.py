@@ -96,7 +96,7 @@ def enhance(
         warn_unusable(scene, [index, *chosen])
         with progress_bar(f"enhancing {view}", "tile") as progress:
             result = enhancer.enhance_view(index, progress=progress)
-        write_png(output, result.image)
+        write_png(output, result.image, strategy="rle")  # the same pixels in a quarter of zlib's time
         used = ", ".join(f"{n} (pose refined)" if done else n
                          for n, done in zip(result.neighbours, result.aligned or [False] * len(result.neighbours)))
         used = used or "none"
