@@ -16,14 +16,7 @@ from roguefit import PRESETS, FitConfig, make_pairs
 from roguefit.hashfield import HASH_PRIMES, HashEncoding, HashField, level_resolutions, spherical_harmonics
 from roguenerf.data.readers import load_scene
 from roguenerf.errors import InputError
-from tests.fit_helpers import (
-    constant_psnr,
-    depth_errors,
-    fit_stopped_and_resumed,
-    ray_bundle,
-    run_make_pairs,
-    write_photo_set,
-)
+from tests import fit_helpers
 
 # The preset's field, small: 4 levels (16 to 32; the first two dense, the others hashed into
 # 2^14 rows), at a test's budget. On the 30 x 40 px toy views a hash field memorises the
@@ -129,7 +122,7 @@ def test_hash_config_is_checked_and_grid_identities_are_unchanged():
 @pytest.fixture(scope="module")
 def hash_fit(tmp_path_factory):
     root = tmp_path_factory.mktemp("hash_photos")
-    truth = write_photo_set(root)
+    truth = fit_helpers.write_photo_set(root)
     reports = []
     report = make_pairs(root, root.parent / "hash_pairs", SMALL_HASH, progress=reports.append)
     return root, root.parent / "hash_pairs", report, truth, reports
@@ -137,11 +130,11 @@ def hash_fit(tmp_path_factory):
 
 def test_hash_fit_reaches_a_psnr_floor_and_the_true_depth(hash_fit):
     root, out, report, truth, reports = hash_fit
-    constant = constant_psnr(root)
+    constant = fit_helpers.constant_psnr(root)
     assert report["config"]["kind"] == "hash" and report["steps"] == SMALL_HASH.steps
     assert report["train"]["psnr"] > HASH_PSNR_FLOOR, report
     assert report["train"]["psnr"] > constant + 5.0, (report["train"], constant)  # measured + 6.5 dB
-    errors, coverage = depth_errors(out, truth)
+    errors, coverage = fit_helpers.depth_errors(out, truth)
     assert float(torch.stack(errors).median()) < HASH_DEPTH_BOUND, errors
     assert min(coverage) > 0.9, coverage
     # Progress: one report per step, rising PSNR, the finest level's resolution as the grid.
@@ -160,8 +153,9 @@ geometry (0.5 and more) or a transparent one (the coverage check)."""
 
 def test_stopped_hash_fit_resumes_from_its_saved_step(tmp_path):
     steps_seen = []
-    run = fit_stopped_and_resumed(tmp_path, dataclasses.replace(SMALL_HASH, steps=24, prune_every=8), stop_at=10,
-                                  progress=lambda p: steps_seen.append(p["step"]))
+    config = dataclasses.replace(SMALL_HASH, steps=24, prune_every=8)
+    run = fit_helpers.fit_stopped_and_resumed(tmp_path, config, stop_at=10,
+                                              progress=lambda p: steps_seen.append(p["step"]))
     assert run.state_json["step"] == 10 and run.state_json["config"]["kind"] == "hash"
     assert steps_seen[0] == 11 and run.resumed["steps"] == 24  # resumed from the saved step, not from 0
     assert run.resumed["train"]["psnr"] == pytest.approx(run.whole["train"]["psnr"], abs=1e-3)
@@ -178,7 +172,7 @@ def test_hash_field_renders_with_the_shared_renderers(monkeypatch):
         field.encoding.tables.normal_(0, 1, generator=g)
         for p in list(field.density_mlp.parameters()) + list(field.colour_mlp.parameters()):
             p.copy_(torch.randn(p.shape, generator=g) * 0.5)
-    origins, dirs, near, far = ray_bundle(300, g)
+    origins, dirs, near, far = fit_helpers.ray_bundle(300, g)
     with torch.no_grad():
         ref = field.render(origins, dirs, near, far, 32)
     exact = field.render_fast(origins, dirs, near, far, 32, segment=5, termination=0.0)
@@ -196,8 +190,8 @@ def test_hash_field_renders_with_the_shared_renderers(monkeypatch):
 
 def test_make_pairs_cli_hash_preset_smoke(tmp_path):
     root = tmp_path / "photos"
-    write_photo_set(root, views=9)
-    proc = run_make_pairs(root, tmp_path / "out", "--preset", "hash", "--steps", "3", "--resolution", "32")
+    fit_helpers.write_photo_set(root, views=9)
+    proc = fit_helpers.run_make_pairs(root, tmp_path / "out", "--preset", "hash", "--steps", "3", "--resolution", "32")
     assert proc.returncode == 0, proc.stderr
     assert "fitted 3 steps" in proc.stderr and "fitting photos" in proc.stderr  # the progress bar
     report = json.loads((tmp_path / "out" / "fit.json").read_text())
