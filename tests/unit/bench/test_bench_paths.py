@@ -59,3 +59,28 @@ def test_every_kind_renders_a_path_camera_at_a_view_as_the_fit_did(tmp_path, kin
         assert rgb.shape == (3, frame.height, frame.width) and depth.shape == (1, frame.height, frame.width)
         assert float(psnr(rgb[None], scene.render(i)[None])[0]) > 45  # 8-bit PNG rounding only
         assert torch.allclose(depth, scene.depth(i), rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.slow
+def test_path_speed_alternates_frame_by_frame_and_the_temporal_filter(tmp_path):
+    import json
+
+    from bench import path_speed
+
+    root = tmp_path / "photos"
+    write_photo_set(root, views=9)
+    make_pairs(root, tmp_path / "pairs", CONFIGS["grid"])
+    out = tmp_path / "res" / "speed"
+    assert path_speed.main(["--fit", str(tmp_path / "pairs"), "--work", str(tmp_path / "work"), "--keys", "2",
+                            "--steps", "2", "--repeats", "2", "--force", "--output", str(out)]) == 0
+    summary = json.loads((tmp_path / "res" / "speed.json").read_text())
+    assert summary["frames"] == 3 and summary["repeats"] == 2
+    fps = summary["frames_per_second"]
+    assert fps["off"] > 0 and fps["on"] > 0 and summary["speed_ratio"] == pytest.approx(fps["on"] / fps["off"])
+    import csv
+
+    rows = list(csv.DictReader(open(tmp_path / "res" / "speed.csv")))
+    assert [r["temporal"] for r in rows] == ["off", "on", "off", "on"]
+    assert {r["flicker_ratio"] for r in rows if r["temporal"] == "off"} != {r["flicker_ratio"] for r in rows
+                                                                           if r["temporal"] == "on"}
+    assert (tmp_path / "res" / "speed.png").is_file()

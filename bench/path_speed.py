@@ -1,0 +1,98 @@
+"""Frames per second along a camera path: frame by frame against the temporal filter, alternated.
+
+    python -m bench.path_speed --fit runs/speed/dtu_scan37_fine --factor 1 --keys 4 --steps 16 \\
+        --work runs/paths [--repeats 2] [--output bench/results/path_speed_dtu_scan37_fine]
+
+The path and its frames are ``bench.paths``'s (same ``--fit``, ``--factor``, ``--keys``,
+``--steps`` and ``--work``: rendered once, cached). In one process, ``enhance_path`` runs on them
+``--repeats`` times with the temporal filter off and on, alternated (off, on, off, on ...), each
+into a fresh folder without videos: the frames per second of ``PathResult.frames_per_second``
+(reading, enhancing, smoothing and writing each frame), the flicker against the render's and the
+gain on the frames with photos. Writes ``OUTPUT.csv`` (a row per run; date, machine, commit),
+``OUTPUT.json`` (the medians, the ratio) and ``OUTPUT.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+
+from bench.common import RESULTS, beside, save_figure, stamp, write_csv, write_json
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--fit", type=Path, required=True, help="make-pairs output (as bench.paths --fit)")
+    ap.add_argument("--work", type=Path, default=Path("runs/paths"))
+    ap.add_argument("--factor", type=int, default=1)
+    ap.add_argument("--keys", type=int, default=4)
+    ap.add_argument("--steps", type=int, default=16)
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--output", type=Path, default=None)
+    ap.add_argument("--force", action="store_true", help="enhance a path enhance_path's check refuses (as bench.paths)")
+    args = ap.parse_args(argv)
+    if args.repeats < 1:
+        raise SystemExit(f"--repeats: expected 1 or more, got {args.repeats}")
+    args.photo_path, args.toy, args.quick = False, False, False
+
+    import roguenerf.runtime
+    from bench.paths import field_frames
+    from roguenerf import SceneEnhancer, load_checkpoint
+    from roguenerf.checkpoint import default_checkpoint_path
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.trajectory import CameraPath, enhance_path
+
+    roguenerf.runtime.configure()
+    scene, frames, poses, K, width, height, *_rest, name = field_frames(args)
+    camera_path = CameraPath(world_from_cam=poses, K=K.expand(len(poses), 3, 3).clone(), width=width,
+                             height=height, fps=24.0)
+    model, _ = load_checkpoint(default_checkpoint_path())
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for repeat in range(args.repeats):
+            for mode in ("off", "on"):
+                enhancer = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(temporal=mode == "on"))
+                out = Path(tmp) / mode
+                shutil.rmtree(out, ignore_errors=True)
+                result = enhance_path(scene, enhancer, camera_path, frames, out, video=False, force=args.force)
+                report = result.flicker
+                rows.append({**stamp(), "scene": name, "size": f"{width}x{height}", "frames": result.enhanced_now,
+                             "repeat": repeat, "temporal": mode, "enhance_seconds": round(result.enhance_seconds, 3),
+                             "frames_per_second": round(result.frames_per_second, 4),
+                             "flicker_ratio": round(report["flicker"]["ratio"], 4),
+                             "gain_db": round(report["psnr"]["mean_gain_db"], 4)})
+                print(f"temporal {mode}: {rows[-1]['frames_per_second']:.2f} frames/s, flicker x"
+                      f"{rows[-1]['flicker_ratio']:.3f}, gain {rows[-1]['gain_db']:+.3f} dB", flush=True)
+    fps = {m: statistics.median(r["frames_per_second"] for r in rows if r["temporal"] == m) for m in ("off", "on")}
+    summary = {**stamp(), "command": " ".join(["python -m bench.path_speed", *(argv or sys.argv[1:])]),
+               "scene": name, "size": f"{width}x{height}", "frames": len(poses), "repeats": args.repeats,
+               "frames_per_second": fps, "speed_ratio": fps["on"] / fps["off"],
+               "flicker_ratio": {m: next(r["flicker_ratio"] for r in rows if r["temporal"] == m) for m in fps},
+               "gain_db": {m: next(r["gain_db"] for r in rows if r["temporal"] == m) for m in fps}}
+    output = args.output or RESULTS / f"path_speed_{name}_{args.fit.name}"
+    write_csv(beside(output, ".csv"), rows)
+    write_json(beside(output, ".json"), summary)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for i, mode in enumerate(("off", "on")):
+        ax.scatter([i] * args.repeats, [r["frames_per_second"] for r in rows if r["temporal"] == mode])
+    ax.set_xticks([0, 1], ["frame by frame", "temporal filter"])
+    ax.set_ylabel("frames per second")
+    ax.set_title(f"{name} {width}x{height}, {len(poses)} frames: x{summary['speed_ratio']:.2f}", fontsize=9)
+    fig.suptitle(f"{summary['date']} {summary['machine']} {summary['commit']}", fontsize=6)
+    save_figure(fig, beside(output, ".png"))
+    print(f"wrote {beside(output, '.csv')}, {beside(output, '.json')} and {beside(output, '.png')}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
