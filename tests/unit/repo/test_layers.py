@@ -211,6 +211,39 @@ def test_the_api_settings_live_in_the_service_and_extend_the_shared_ones():
     assert not {"api_key", "max_body_bytes", "cors_origins"} & set(JobSettings.model_fields)
 
 
+def _dotted_graph(package: str) -> dict[str, set[str]]:
+    """Every module of ``package`` (sub-packages included, a package as its ``__init__``) and the
+    modules of the same package it imports, at any depth. A module's import of a package it
+    belongs to (its ``__init__``) is not an arrow: Python runs that ``__init__`` first anyway."""
+    names = {}
+    for path in _files(package):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        names[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    graph = {}
+    for name, path in names.items():
+        edges = set()
+        for _, module in _imports(path):
+            while module and module not in names:
+                module = module.rpartition(".")[0]
+            if module and module != name and not name.startswith(module + "."):
+                edges.add(module)
+        graph[name] = edges
+    return graph
+
+
+@pytest.mark.parametrize("package", [*PACKAGES, "bench"])
+def test_no_package_has_an_import_circle(package):
+    graph = _dotted_graph(package)
+    assert len(graph) > 3
+    circles = _circles(graph)
+    assert not circles, f"import cycle: {circles[0]}"
+    # The check can fail: an arrow back from the first module a module imports closes a circle.
+    name = next(n for n in sorted(graph) if graph[n])
+    target = sorted(graph[name])[0]
+    graph[target] = graph[target] | {name}
+    assert _circles(graph)
+
+
 def test_service_and_workers_never_import_each_other():
     """The issue's check: both import ``jobs`` and the library, and neither imports the other
     (the grep, and every import the AST holds, a function's lazy one included)."""
