@@ -128,6 +128,7 @@ def hash_fit(tmp_path_factory):
     return root, root.parent / "hash_pairs", report, truth, reports
 
 
+@pytest.mark.slow
 def test_hash_fit_reaches_a_psnr_floor_and_the_true_depth(hash_fit):
     root, out, report, truth, reports = hash_fit
     constant = fit_helpers.constant_psnr(root)
@@ -151,6 +152,7 @@ the hash field's depth on these tiny views is much rougher; the bound catches a 
 geometry (0.5 and more) or a transparent one (the coverage check)."""
 
 
+@pytest.mark.slow
 def test_stopped_hash_fit_resumes_from_its_saved_step(tmp_path):
     steps_seen = []
     config = dataclasses.replace(SMALL_HASH, steps=24, prune_every=8)
@@ -188,6 +190,7 @@ def test_hash_field_renders_with_the_shared_renderers(monkeypatch):
     assert float((ref["rgb"] - 0.5).abs().max()) > 0.05  # colours that would differ if misassigned
 
 
+@pytest.mark.slow
 def test_make_pairs_cli_hash_preset_smoke(tmp_path):
     root = tmp_path / "photos"
     fit_helpers.write_photo_set(root, views=9)

@@ -38,6 +38,7 @@ def fitted(tmp_path_factory):
     return root, out, report, truth
 
 
+@pytest.mark.slow
 def test_splat_fit_reaches_a_psnr_floor_and_the_true_depth(fitted):
     root, out, report, truth = fitted
     constant = constant_psnr(root)
@@ -51,6 +52,7 @@ def test_splat_fit_reaches_a_psnr_floor_and_the_true_depth(fitted):
     assert min(coverage) > 0.95, coverage
 
 
+@pytest.mark.slow
 def test_splat_fit_writes_its_splats_and_they_render_the_scene_folder(fitted):
     root, out, report, _ = fitted
     g = read_ply(out / PLY_FILE)
@@ -66,6 +68,7 @@ def test_splat_fit_writes_its_splats_and_they_render_the_scene_folder(fitted):
     assert (out / "fit.json").stat().st_mtime_ns == stamp
 
 
+@pytest.mark.slow
 def test_interrupted_splat_fit_resumes_to_the_same_result(tmp_path):
     config = dataclasses.replace(SMALL, steps=30, init_points=600, densify_every=5, checkpoint_every=7)
     run = fit_stopped_and_resumed(tmp_path, config, stop_at=12)
