@@ -248,7 +248,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.cli:
             from roguenerf.data.readers import load_scene
 
-            view = load_scene(folder).frames[load_scene(folder).indices("test")[0]].name
+            sized = load_scene(folder)
+            view = sized.frames[sized.indices("test")[0]].name
             cli = run_cli(folder, view, args.work)
         for setting, parsed in settings.items():
             child = run_child(folder, parsed, args.views)

@@ -464,12 +464,13 @@ class SceneEnhancer:
 
         start = time.perf_counter()
         timings: dict[str, float] = {}
-        clock = [start]
+        last = start
 
         def lap(name: str) -> None:
+            nonlocal last
             now = time.perf_counter()
-            timings[name] = timings.get(name, 0.0) + now - clock[0]
-            clock[0] = now
+            timings[name] = now - last
+            last = now
 
         _check_image(render, "render", 3)
         _check_image(depth, "depth", 1)
