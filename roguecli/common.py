@@ -12,9 +12,12 @@ quick, and the library's defaults read here come from torch-free modules.
 
 from __future__ import annotations
 
+import _thread
 import contextlib
 import logging
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Annotated
 
@@ -59,16 +62,45 @@ _reported = {"interrupted": False}
 """Whether a command's error handling has said "interrupted" already (:func:`run_app`)."""
 
 
+def _importing(frame) -> bool:
+    """Whether ``frame`` runs inside an import (importlib's frames are on its stack)."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _on_interrupt(signum, frame) -> None:
+    """SIGINT: ``KeyboardInterrupt``, but never inside an import. An interrupted import leaves a
+    module half made, and some callers (torch's C++ importing ``torch._dynamo`` or NumPy) swallow
+    the exception: the Ctrl-C was lost, or a later import failed (a RecursionError, "cannot load
+    module more than once"). There the interrupt is raised again 20 ms later, until it lands
+    outside any import."""
+    if not _importing(frame):
+        raise KeyboardInterrupt
+    timer = threading.Timer(0.02, _thread.interrupt_main)
+    timer.daemon = True
+    timer.start()
+
+
 def run_app(typer_app) -> None:
     """Run ``typer_app``; Ctrl-C outside a command's error handling (typer exits 130 silently) gets
-    its one line too."""
+    its one line too, and never lands inside an import (:func:`_on_interrupt`)."""
     _reported["interrupted"] = False
+    handled = threading.current_thread() is threading.main_thread() and \
+        signal.getsignal(signal.SIGINT) is signal.default_int_handler  # not where SIGINT is ignored
+    if handled:
+        signal.signal(signal.SIGINT, _on_interrupt)
     try:
         typer_app()
     except SystemExit as exc:
         if exc.code == INTERRUPTED and not _reported["interrupted"]:
             typer.echo("error: interrupted", err=True)
         raise
+    finally:
+        if handled:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def fail(message: str, code: int) -> None:
