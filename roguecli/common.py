@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import _thread
 import contextlib
+import gc
 import logging
 import signal
 import sys
@@ -60,6 +61,20 @@ INTERRUPTED = 130
 """Exit status after Ctrl-C (128 + SIGINT), as shells report it."""
 _reported = {"interrupted": False}
 """Whether a command's error handling has said "interrupted" already (:func:`run_app`)."""
+START_UP_THRESHOLD = 200_000
+"""Objects made between two of the collector's youngest passes while :func:`run_app` starts up
+(Python's default: 700)."""
+_start_up: dict = {"thresholds": None}
+"""The collector's thresholds to restore once the imports are done (:func:`_started`)."""
+
+
+def _started() -> None:
+    """The imports are done (:func:`handle_errors`, after torch's): the objects made so far are
+    kept out of every later collection and the collector's usual thresholds come back."""
+    if _start_up["thresholds"] is not None:
+        gc.freeze()
+        gc.set_threshold(*_start_up["thresholds"])
+        _start_up["thresholds"] = None
 
 
 def _importing(frame) -> bool:
@@ -92,6 +107,14 @@ def run_app(typer_app) -> None:
         signal.getsignal(signal.SIGINT) is signal.default_int_handler  # not where SIGINT is ignored
     if handled:
         signal.signal(signal.SIGINT, _on_interrupt)
+    # Start-up and exit: importing torch makes about a million objects, which the collector
+    # walks again and again while they are made and once more at exit (0.2-0.5 s each on
+    # 2 cores); none of them is garbage. The collector runs rarely until the imports are done
+    # (:func:`_started`; a command that never gets there still collects), and everything is
+    # frozen before the interpreter exits.
+    if _start_up["thresholds"] is None:
+        _start_up["thresholds"] = gc.get_threshold()
+        gc.set_threshold(START_UP_THRESHOLD, *_start_up["thresholds"][1:])
     try:
         typer_app()
     except SystemExit as exc:
@@ -99,6 +122,8 @@ def run_app(typer_app) -> None:
             typer.echo("error: interrupted", err=True)
         raise
     finally:
+        _started()
+        gc.freeze()
         if handled:
             signal.signal(signal.SIGINT, signal.default_int_handler)
 
@@ -116,7 +141,8 @@ def handle_errors():
     try:
         from roguenerf import runtime
 
-        runtime.configure()
+        runtime.configure()  # imports torch
+        _started()
         yield
     except typer.Exit:
         raise

@@ -692,3 +692,36 @@ def test_ctrl_c_anywhere_in_the_start_up_exits_130(scene_dir, tmp_path):
         proc = _interrupted_finetune(scene_dir, tmp_path / f"out{i}", after, timeout=30)
         assert proc.returncode == 130, (after, proc.stderr[-2000:])
         _assert_one_interrupted_line(proc)
+
+
+
+def test_the_collector_is_rare_in_the_start_up_and_everything_frozen_after(monkeypatch):
+    """``run_app`` lets the garbage collector run rarely through the imports; ``handle_errors``
+    brings its thresholds back; at the end everything is frozen (a fast exit)."""
+    import gc
+
+    import typer
+
+    from roguecli.common import START_UP_THRESHOLD, handle_errors, run_app
+
+    seen = {}
+    probe = typer.Typer()
+
+    @probe.command()
+    def work() -> None:
+        seen["before"] = gc.get_threshold()[0]
+        with handle_errors():
+            seen["inside"] = gc.get_threshold()[0]
+
+    monkeypatch.setattr(sys, "argv", ["probe"])
+    usual = gc.get_threshold()
+    frozen = gc.get_freeze_count()
+    try:
+        with pytest.raises(SystemExit) as exit_:
+            run_app(probe)
+        after = gc.get_freeze_count()
+    finally:
+        gc.unfreeze()
+    assert exit_.value.code == 0
+    assert seen == {"before": START_UP_THRESHOLD, "inside": usual[0]} and gc.get_threshold() == usual
+    assert after > frozen
