@@ -16,7 +16,8 @@ the peak RSS (``VmHWM``, imports and model included) and the seconds spent loadi
 scene, checkpoint). With ``--cli`` the one-view command as a user runs it (``roguenerf enhance``,
 defaults) is timed too: its wall-clock beside the view time it prints.
 
-Settings: ``defaults``, ``no-align``, ``no-colour``, ``no-trust``, ``neighbours=N``, ``cache=MiB``
+Settings: ``defaults``, ``no-align``, ``no-colour``, ``no-trust``, ``neighbours=N``, ``tile=PX`` (the
+tile size, ``EnhanceOptions.tile``), ``cache=MiB``
 (the neighbour cache's budget, ``SceneEnhancer(cache_bytes=)``); several switches joined by ``+``
 (``no-align+no-trust``).
 
@@ -95,11 +96,13 @@ def parse_setting(text: str) -> tuple[dict, dict]:
             flags[part[3:]] = False
         elif part.startswith("neighbours="):
             flags["neighbours"] = int(part.split("=", 1)[1])
+        elif part.startswith("tile="):
+            flags["tile"] = int(part.split("=", 1)[1])
         elif part.startswith("cache="):
             extra["cache_bytes"] = int(float(part.split("=", 1)[1]) * 2**20)
         else:
             raise SystemExit(f"--settings: unknown switch {part!r} (defaults, no-align, no-colour, no-trust, "
-                             "neighbours=N, cache=MiB, joined by +)")
+                             "neighbours=N, tile=PX, cache=MiB, joined by +)")
     return flags, extra
 
 
