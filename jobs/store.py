@@ -53,13 +53,8 @@ scenes = sa.Table(
     "scenes", metadata,
     sa.Column("id", sa.Text, primary_key=True),
     sa.Column("created_at", sa.Double, nullable=False),
-    sa.Column("views", sa.Integer, nullable=False),
-    sa.Column("train_views", sa.Integer, nullable=False),
-    sa.Column("test_views", sa.Integer, nullable=False),
-    sa.Column("width", sa.Integer, nullable=False),
-    sa.Column("height", sa.Integer, nullable=False),
-    sa.Column("active_version", sa.Integer, nullable=False),
-    sa.Column("next_version", sa.Integer, nullable=False),
+    *(sa.Column(count, sa.Integer, nullable=False)  # its views, its images' size, its checkpoint versions
+      for count in ("views", "train_views", "test_views", "width", "height", "active_version", "next_version")),
     sa.Column("name", sa.Text),
     # Schema v4 added ``name`` (a person's label for the scene; a table made by v1-v3 gets it
     # from the v4 step, its scenes keep none).
@@ -89,9 +84,7 @@ jobs = sa.Table(
     sa.Column("checkpoint_version", sa.Integer),
     sa.Column("created_at", sa.Double, nullable=False),
     sa.Column("updated_at", sa.Double, nullable=False),
-    sa.Column("started_at", sa.Double),
-    sa.Column("finished_at", sa.Double),
-    sa.Column("heartbeat_at", sa.Double),
+    *(sa.Column(moment, sa.Double) for moment in ("started_at", "finished_at", "heartbeat_at")),  # None until then
     sa.Column("phase", sa.Text),
     # Schema v3 added ``phase`` (a table made by v1/v2 gets it from the v3 step).
 )

@@ -14,11 +14,15 @@ from __future__ import annotations
 
 import _thread
 import contextlib
+import dataclasses
+import functools
 import gc
+import inspect
 import logging
 import signal
 import sys
 import threading
+import typing
 from pathlib import Path
 from typing import Annotated
 
@@ -31,30 +35,91 @@ CheckpointOpt = Annotated[Path | None, typer.Option(
                          "default: the shipped default checkpoint.")]
 SeedOpt = Annotated[int, typer.Option("--seed", help="Random seed.")]
 NeighboursOpt = Annotated[int | None, typer.Option("--neighbours", help="Neighbours per view (default: model's).")]
-AlignOpt = Annotated[bool, typer.Option("--align/--no-align", help=(
-    "Refine each neighbour's pose against the render before using its photo (for dataset poses that are a "
-    "little off; refused where it does not clearly help). Default on."))]
-ColourOpt = Annotated[bool, typer.Option("--colour/--no-colour", help=(
-    "Match the enhanced view's overall colour to the neighbour photos where two or more agree (the model's "
-    "colour prior comes from its pre-training renders). Default on."))]
-TrustOpt = Annotated[bool, typer.Option("--trust/--no-trust", help=(
-    "Keep only part of the enhancer's change on a view where the neighbour photos mostly disagree (the "
-    "field's geometry is off there: floaters), in proportion to the share where they agree; where they agree on "
-    "under a tenth of it, only where they agree nearby. Default on."))]
-TemporalOpt = Annotated[bool, typer.Option("--temporal/--no-temporal", help=(
-    "Along the path, blend each frame's change with the last frame's (reprojected through the depth) and fit "
-    "each neighbour's pose once: less flicker, faster; --no-temporal enhances every frame on its own. "
-    "Default on."))]
 DepthScaleOpt = Annotated[float, typer.Option(
     "--depth-scale", help="Multiply stored depth by this (0.001 for millimetre PNGs).")]
 
 
-def enhance_options(neighbours, align: bool, colour: bool, trust: bool, temporal: bool = True):
-    """The one :class:`~roguenerf.enhance.EnhanceOptions` of evaluate, enhance and enhance-path."""
-    from roguenerf.enhance import EnhanceOptions
+class Flags:
+    """Options several commands take, handed to each command as one object.
 
-    return EnhanceOptions.from_flags(neighbours=neighbours, align=align, colour=colour, trust=trust,
-                                     temporal=temporal)
+    A subclass is a frozen dataclass whose fields are typer parameters (an ``Annotated`` option
+    type and its default). A command decorated with :func:`takes_flags` declares the group as one
+    keyword-only parameter annotated with the subclass: typer sees the fields' options in its
+    place (``--help`` lists them there) and the command gets one object holding their values.
+    Building anything from them (and its errors) is left to the command, inside its
+    :func:`handle_errors`.
+    """
+
+
+def takes_flags(command=None, *, omit: tuple[str, ...] = ()):
+    """Decorate a command whose parameters include :class:`Flags` groups (see there); ``omit``:
+    fields the command does not offer (they keep their defaults)."""
+    if command is None:
+        return functools.partial(takes_flags, omit=omit)
+    params, groups, offered = [], {}, set()
+    for param in inspect.signature(command, eval_str=True).parameters.values():
+        group = param.annotation
+        if Flags not in getattr(group, "__mro__", ()):
+            params.append(param)
+            continue
+        hints = typing.get_type_hints(group, include_extras=True)
+        fields = [f for f in dataclasses.fields(group) if f.name not in omit]
+        groups[param.name] = (group, [f.name for f in fields])
+        offered.update(f.name for f in dataclasses.fields(group))
+        params += [inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, annotation=hints[f.name],
+                                     default=f.default) for f in fields]
+    if not offered.issuperset(omit):
+        raise TypeError(f"{command.__name__}: omit names no field of its flags: {sorted(set(omit) - offered)}")
+    signature = inspect.Signature(params)  # raises where a field's name is a parameter's too
+
+    @functools.wraps(command)
+    def run(*args, **kwargs):
+        for name, (group, fields) in groups.items():
+            kwargs[name] = group(**{field: kwargs.pop(field) for field in fields if field in kwargs})
+        return command(*args, **kwargs)
+
+    run.__signature__ = signature  # what typer reads, with the annotations' values
+    run.__annotations__ = {p.name: p.annotation for p in params}
+    return run
+
+
+@dataclasses.dataclass(frozen=True)
+class EnhanceFlags(Flags):
+    """The enhance options of evaluate and enhance; :meth:`options` builds their
+    :class:`~roguenerf.enhance.EnhanceOptions`."""
+
+    neighbours: NeighboursOpt = None
+    align: Annotated[bool, typer.Option("--align/--no-align", help=(
+        "Refine each neighbour's pose against the render before using its photo (for dataset poses that are a "
+        "little off; refused where it does not clearly help). Default on."))] = True
+    colour: Annotated[bool, typer.Option("--colour/--no-colour", help=(
+        "Match the enhanced view's overall colour to the neighbour photos where two or more agree (the model's "
+        "colour prior comes from its pre-training renders). Default on."))] = True
+    trust: Annotated[bool, typer.Option("--trust/--no-trust", help=(
+        "Keep only part of the enhancer's change on a view where the neighbour photos mostly disagree (the "
+        "field's geometry is off there: floaters), in proportion to the share where they agree; where they "
+        "agree on under a tenth of it, only where they agree nearby. Default on."))] = True
+
+    def options(self, **more):
+        """The :class:`~roguenerf.enhance.EnhanceOptions` (``more``: a subclass's flags); bad
+        values raise :class:`InputError`."""
+        from roguenerf.enhance import EnhanceOptions
+
+        return EnhanceOptions.from_flags(neighbours=self.neighbours, align=self.align, colour=self.colour,
+                                         trust=self.trust, **more)
+
+
+@dataclasses.dataclass(frozen=True)
+class PathEnhanceFlags(EnhanceFlags):
+    """enhance-path's: those of :class:`EnhanceFlags` and ``--temporal``."""
+
+    temporal: Annotated[bool, typer.Option("--temporal/--no-temporal", help=(
+        "Along the path, blend each frame's change with the last frame's (reprojected through the depth) and fit "
+        "each neighbour's pose once: less flicker, faster; --no-temporal enhances every frame on its own. "
+        "Default on."))] = True
+
+    def options(self):
+        return super().options(temporal=self.temporal)
 
 
 INTERRUPTED = 130

@@ -9,30 +9,26 @@ from typing import Annotated
 import typer
 
 from roguecli.common import (
-    AlignOpt,
     CheckpointOpt,
-    ColourOpt,
-    NeighboursOpt,
-    TrustOpt,
-    enhance_options,
+    EnhanceFlags,
     handle_errors,
     load_model,
     open_scene,
     progress_bar,
+    takes_flags,
     warn_unusable,
 )
 from roguenerf.errors import InputError
 
 
+@takes_flags
 def evaluate(
     scene_dir: Annotated[Path, typer.Argument(help="Scene folder.")],
     checkpoint: CheckpointOpt = None,
     split: Annotated[str, typer.Option("--split", help="Views to evaluate: test, train or all.")] = "test",
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object and nothing else.")] = False,
-    neighbours: NeighboursOpt = None,
-    align: AlignOpt = True,
-    colour: ColourOpt = True,
-    trust: TrustOpt = True,
+    *,
+    flags: EnhanceFlags,
 ) -> None:
     """PSNR/SSIM/FLIP of renders and enhanced renders against the photos, per view and mean (FLIP: lower is better)."""
     from roguenerf.training import evaluate as run_evaluate
@@ -44,7 +40,7 @@ def evaluate(
         model = load_model(checkpoint)
         with progress_bar(f"evaluating {split} views", "view") as progress:
             report = run_evaluate(scene, model, split=split, progress=progress,
-                                  options=enhance_options(neighbours, align, colour, trust))
+                                  options=flags.options())
     if as_json:
         from roguenerf.imageio import finite_for_json
 
@@ -65,15 +61,14 @@ def evaluate(
     typer.echo(row("mean", report["render"], report["enhanced"], sum(kept) / len(kept) if kept else None))
 
 
+@takes_flags
 def enhance(
     scene_dir: Annotated[Path, typer.Argument(help="Scene folder holding the view's render and depth.")],
     view: Annotated[str, typer.Option("--view", help="Name of the view to enhance (e.g. test_r_0).")],
     output: Annotated[Path, typer.Option("--output", help="Where to write the enhanced PNG.")],
     checkpoint: CheckpointOpt = None,
-    neighbours: NeighboursOpt = None,
-    align: AlignOpt = True,
-    colour: ColourOpt = True,
-    trust: TrustOpt = True,
+    *,
+    flags: EnhanceFlags,
 ) -> None:
     """Enhance one view's render (a training view never uses its own photo)."""
     from roguenerf.imageio import write_png
@@ -90,7 +85,7 @@ def enhance(
         scene = open_scene(scene_dir, check=False)  # the views read are checked below, not all
         index = scene.index(view)
         model = load_model(checkpoint)
-        enhancer = SceneEnhancer(scene, model, options=enhance_options(neighbours, align, colour, trust))
+        enhancer = SceneEnhancer(scene, model, options=flags.options())
         frame = scene.frames[index]
         chosen = enhancer.select(frame.world_from_cam, exclude=index if frame.split == "train" else None)
         warn_unusable(scene, [index, *chosen])

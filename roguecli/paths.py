@@ -9,22 +9,19 @@ from typing import Annotated
 import typer
 
 from roguecli.common import (
-    AlignOpt,
     CheckpointOpt,
-    ColourOpt,
     DepthScaleOpt,
-    NeighboursOpt,
-    TemporalOpt,
-    TrustOpt,
+    PathEnhanceFlags,
     checkpoint_file,
-    enhance_options,
     handle_errors,
     open_scene,
     progress_bar,
+    takes_flags,
 )
 from roguenerf.errors import InputError
 
 
+@takes_flags
 def enhance_path_command(
     scene_dir: Annotated[Path, typer.Argument(help="Scene folder (the training photos, poses, renders, depths).")],
     frames: Annotated[Path, typer.Option(
@@ -35,11 +32,8 @@ def enhance_path_command(
     output: Annotated[Path, typer.Option(
         "--output", help="Output folder: frames/, enhanced.mp4, side_by_side.mp4, flicker.json.")],
     checkpoint: CheckpointOpt = None,
-    neighbours: NeighboursOpt = None,
-    align: AlignOpt = True,
-    colour: ColourOpt = True,
-    trust: TrustOpt = True,
-    temporal: TemporalOpt = True,
+    *,
+    flags: PathEnhanceFlags,
     quality: Annotated[int, typer.Option("--quality", help="x264 CRF, 0 (lossless) .. 51; 18-23 look good.")] = 20,
     fps: Annotated[float | None, typer.Option(
         "--fps", help="Frame rate (default: the camera path's, else 24).")] = None,
@@ -94,15 +88,15 @@ def enhance_path_command(
         from roguenerf.checkpoint import load_checkpoint
 
         model, _meta = load_checkpoint(ckpt)
-        enhancer = SceneEnhancer(scene, model, options=enhance_options(neighbours, align, colour, trust, temporal))
+        enhancer = SceneEnhancer(scene, model, options=flags.options())
         stat = ckpt.stat()
         with progress_bar(f"enhancing {len(camera_path)} frames", "frame") as progress:
             result = enhance_path(scene, enhancer, camera_path, frames, output, depth_type=depth_type,
                                   depth_scale=depth_scale, background=background, video=not no_video,
                                   quality=quality, fps=fps,
                                   checkpoint_id=f"{ckpt.resolve()}:{stat.st_size}:{stat.st_mtime_ns}"
-                                  + ("" if align else ":no-align") + ("" if colour else ":no-colour")
-                                  + ("" if temporal else ":no-temporal"),
+                                  + ("" if flags.align else ":no-align") + ("" if flags.colour else ":no-colour")
+                                  + ("" if flags.temporal else ":no-temporal"),
                                   progress=progress, force=force, force_hint="--force")
         for warning in result.warnings:
             typer.echo(f"warning: {warning}", err=True)

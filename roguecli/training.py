@@ -6,6 +6,7 @@ which loads without torch), not restated here.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
@@ -13,6 +14,7 @@ import typer
 
 from roguecli.common import (
     CheckpointOpt,
+    Flags,
     NeighboursOpt,
     SeedOpt,
     check_budget,
@@ -20,6 +22,7 @@ from roguecli.common import (
     handle_errors,
     open_scene,
     setup_logging,
+    takes_flags,
 )
 from roguenerf.errors import InputError
 from roguenerf.training.config import COMPONENTS, CPU_LR, CPU_MINUTES, GPU_LR, GPU_MINUTES, TrainConfig
@@ -63,16 +66,34 @@ RenderWarpOpt = Annotated[float | None, typer.Option(
                           "shift up to this size, so the training views look like novel views (default: the plan's).")]
 
 
-def _train_config(*, minutes, steps, without, variant, crop, vgg_weights, seed, neighbours, lr=None,
-                  lr_schedule=None, evaluate=True, **extra):
-    check_budget(steps, minutes, evaluate_hint=True)
-    without = tuple(without or ())
-    for w in without:
-        if w not in COMPONENTS:
-            raise InputError(f"--without: expected one of {', '.join(COMPONENTS)}, got {w!r}")
-    return TrainConfig(steps=steps, minutes=minutes, crop=crop, vgg_weights=vgg_weights, seed=seed,
-                       variant=variant, without=without, num_neighbours=neighbours, evaluate=evaluate,
-                       lr=lr, lr_schedule=lr_schedule, **extra).validate()
+@dataclass(frozen=True)
+class TrainFlags(Flags):
+    """The training options of finetune and pretrain (finetune has no ``--batch``);
+    :meth:`config` builds their :class:`TrainConfig`."""
+
+    minutes: MinutesOpt = None
+    steps: StepsOpt = None
+    without: WithoutOpt = None
+    variant: VariantOpt = None
+    crop: CropOpt = None
+    batch: BatchOpt = TrainConfig.batch
+    vgg_weights: VggOpt = None
+    seed: SeedOpt = TrainConfig.seed
+    neighbours: NeighboursOpt = None
+    lr: LrOpt = None
+    lr_schedule: LrScheduleOpt = None
+
+    def config(self, *, evaluate: bool, **extra) -> TrainConfig:
+        """The validated config: these options, ``evaluate`` and a command's own (``extra``)."""
+        check_budget(self.steps, self.minutes, evaluate_hint=True)
+        without = tuple(self.without or ())
+        for w in without:
+            if w not in COMPONENTS:
+                raise InputError(f"--without: expected one of {', '.join(COMPONENTS)}, got {w!r}")
+        return TrainConfig(steps=self.steps, minutes=self.minutes, crop=self.crop, batch=self.batch,
+                           vgg_weights=self.vgg_weights, seed=self.seed, variant=self.variant, without=without,
+                           num_neighbours=self.neighbours, evaluate=evaluate, lr=self.lr,
+                           lr_schedule=self.lr_schedule, **extra).validate()
 
 
 def _report_training(result) -> None:
@@ -90,21 +111,14 @@ def _report_training(result) -> None:
                    f"after {a['enhanced']['psnr']:.2f} dB", err=True)
 
 
+@takes_flags(omit=("batch",))
 def finetune(
     scene_dir: Annotated[Path, typer.Argument(help="Scene folder (transforms.json with renders and depths).")],
     output: Annotated[Path, typer.Option("--output", help="Output directory (model + resumable state).")],
     checkpoint: CheckpointOpt = None,
     scratch: Annotated[bool, typer.Option("--scratch", help="Start from random weights, not a checkpoint.")] = False,
-    minutes: MinutesOpt = None,
-    steps: StepsOpt = None,
-    without: WithoutOpt = None,
-    variant: VariantOpt = None,
-    crop: CropOpt = None,
-    vgg_weights: VggOpt = None,
-    seed: SeedOpt = TrainConfig.seed,
-    neighbours: NeighboursOpt = None,
-    lr: LrOpt = None,
-    lr_schedule: LrScheduleOpt = None,
+    *,
+    train: TrainFlags,
     freeze_neighbour_encoder: FreezeOpt = None,
     render_warp: RenderWarpOpt = None,
     depth_noise: DepthNoiseOpt = None,
@@ -117,11 +131,8 @@ def finetune(
     with handle_errors():
         if scratch and checkpoint is not None:
             raise InputError("give either --checkpoint or --scratch, not both")
-        config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
-                               vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, lr=lr,
-                               lr_schedule=lr_schedule, evaluate=not no_eval,
-                               freeze_neighbour_encoder=freeze_neighbour_encoder, render_warp=render_warp,
-                               depth_noise=depth_noise)
+        config = train.config(evaluate=not no_eval, freeze_neighbour_encoder=freeze_neighbour_encoder,
+                              render_warp=render_warp, depth_noise=depth_noise)
         from roguenerf.training.loop import check_training_output
 
         check_training_output(output)
@@ -132,22 +143,14 @@ def finetune(
         typer.echo(str(result.checkpoint))
 
 
+@takes_flags
 def pretrain(
     scene_dirs: Annotated[list[Path] | None, typer.Argument(help="Scene folders to pre-train on.")] = None,
     output: Annotated[Path, typer.Option("--output", help="Output directory (model + resumable state).")] = ...,
     toy: Annotated[int, typer.Option("--toy", help="Add N generated toy scenes (degraded renders).")] = 0,
     checkpoint: Annotated[Path | None, typer.Option("--checkpoint", help="Start from these weights.")] = None,
-    minutes: MinutesOpt = None,
-    steps: StepsOpt = None,
-    without: WithoutOpt = None,
-    variant: VariantOpt = None,
-    crop: CropOpt = None,
-    batch: BatchOpt = TrainConfig.batch,
-    vgg_weights: VggOpt = None,
-    seed: SeedOpt = TrainConfig.seed,
-    neighbours: NeighboursOpt = None,
-    lr: LrOpt = None,
-    lr_schedule: LrScheduleOpt = None,
+    *,
+    train: TrainFlags,
     held_out_from: Annotated[list[Path] | None, typer.Option(
         "--held-out-from", help="Also train on this scene folder's held-out views (repeatable; added to the "
         "scenes if missing): renders of views its radiance field never saw, with training-view neighbours. "
@@ -179,10 +182,8 @@ def pretrain(
             except ValueError:
                 raise InputError("--neighbour-pose-noise: expected DEG,SHARE numbers, "
                                  f"got {neighbour_pose_noise!r}") from None
-        config = _train_config(minutes=minutes, steps=steps, without=without, variant=variant, crop=crop,
-                               vgg_weights=vgg_weights, seed=seed, neighbours=neighbours, lr=lr,
-                               lr_schedule=lr_schedule, evaluate=False, held_out_share=held_out_share, batch=batch,
-                               pool_spread=pool_spread, neighbour_pose_noise=noise, depth_noise=depth_noise)
+        config = train.config(evaluate=False, held_out_share=held_out_share, pool_spread=pool_spread,
+                              neighbour_pose_noise=noise, depth_noise=depth_noise)
         dirs = list(scene_dirs or [])
         position = {}  # resolved folder -> its first position in dirs
         for k, d in enumerate(dirs):
@@ -198,7 +199,7 @@ def pretrain(
 
         check_training_output(output)  # before the toy scenes are written into it
         scenes = [open_scene(d) for d in dirs]
-        scenes += make_toy_scenes(output / TOY_FOLDER, toy, seed=seed)
+        scenes += make_toy_scenes(output / TOY_FOLDER, toy, seed=train.seed)
         if not scenes:
             raise InputError("no scenes to pre-train on: give SCENE_DIR arguments and/or --toy N")
         if checkpoint is not None:

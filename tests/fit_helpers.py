@@ -104,6 +104,17 @@ class StoppedFit:
         return float((a - b).abs().max())
 
 
+def fit_photo_set(tmp_path_factory, config, out_name: str, *, photos: str = "photos", views: int = VIEWS,
+                  **options) -> tuple[Path, Path, dict, dict]:
+    """A module's fitted toy photo set: :func:`write_photo_set` into a new folder named ``photos``,
+    then ``make_pairs`` with ``config`` (and ``options``) into ``out_name`` beside it. Returns the
+    photo folder, the pair folder, make_pairs' report and the set's truth."""
+    root = tmp_path_factory.mktemp(photos)
+    truth = write_photo_set(root, views=views)
+    out = root.parent / out_name
+    return root, out, make_pairs(root, out, config, **options), truth
+
+
 def fit_stopped_and_resumed(tmp_path: Path, config, stop_at: int, *, progress=None) -> StoppedFit:
     """On a 9-view photo set, ``make_pairs`` with ``config`` run whole; then again into a second
     folder, stopped by ``should_stop`` on its ``stop_at``-th call (it must raise

@@ -3,14 +3,14 @@
 A stage reads and updates a :class:`ViewState` (the enhanced image, the render it came from,
 the neighbours reprojected into the view's small copy and where two or more of them agree) and
 returns a :class:`StageRecord` of what it did; :class:`~roguenerf.inference.EnhanceResult` keeps
-the records. A new stage is a class with ``name``, ``config`` and ``apply`` added to
+the records. A new stage is a :class:`ConfiguredStage` with ``name`` and ``apply`` added to
 :func:`stages_for` (CONTRIBUTING.md, *Adding a stage*).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import ClassVar, Generic, Protocol, TypeVar
 
 import torch
 from torch import Tensor
@@ -56,13 +56,23 @@ class Stage(Protocol):
     def apply(self, state: ViewState) -> StageRecord: ...
 
 
+C = TypeVar("C")
+
+
 @dataclass(frozen=True)
-class ColourStage:
+class ConfiguredStage(Generic[C]):
+    """A stage run with its frozen config; ``name``: the subclass's key in the records and in
+    :func:`agreement_test`."""
+
+    config: C
+    name: ClassVar[str]
+
+
+class ColourStage(ConfiguredStage[ColourConfig]):
     """Match the view's low-frequency colour to the agreeing neighbours'
     (:func:`~roguenerf.enhance.colour.colour_match`)."""
 
-    config: ColourConfig
-    name: str = "colour"
+    name = "colour"
 
     def apply(self, state: ViewState) -> StageRecord:
         same = (self.config.sigma, self.config.max_disagreement) == state.test
@@ -74,13 +84,11 @@ class ColourStage:
         return StageRecord(self.name, True, {"offset": [round(float(x), 6) for x in match.offset]})
 
 
-@dataclass(frozen=True)
-class TrustStage:
+class TrustStage(ConfiguredStage[TrustConfig]):
     """Keep only part of the model's change where the neighbours mostly disagree
     (:func:`~roguenerf.enhance.trust.kept_change`)."""
 
-    config: TrustConfig
-    name: str = "trust"
+    name = "trust"
 
     def apply(self, state: ViewState) -> StageRecord:
         keep = kept_change(state.agreement[0], state.image.shape[-2:], self.config)

@@ -9,6 +9,7 @@ import pytest
 
 from bench import stage_settings
 from roguenerf.errors import InputError
+from tests.bench_helpers import summary_by_setting
 
 
 def test_settings_side_by_side_on_one_output(tmp_path, bright_toy):
@@ -28,9 +29,7 @@ def test_settings_side_by_side_on_one_output(tmp_path, bright_toy):
     assert float(default["gain_db"]) > float(off["gain_db"]) + 1 and float(flat["gain_db"]) > float(off["gain_db"])
     assert all(r["date"] and r["machine"] and r["commit"] for r in rows)
     assert (tmp_path / "colour_0.5.png").stat().st_size > 1000
-    s = {x["config"]: x for x in stage_settings.summary([{**r, "gain_db": float(r["gain_db"]),
-                                                          "flip_change": float(r["flip_change"])} for r in rows],
-                                                        "colour")}
+    s = summary_by_setting(rows, "colour")
     assert s["default"]["gain_db"] == pytest.approx(float(default["gain_db"]))
 
 

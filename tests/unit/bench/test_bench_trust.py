@@ -9,6 +9,7 @@ import csv
 import pytest
 
 from bench import stage_settings
+from tests.bench_helpers import summary_by_setting
 
 
 def test_settings_side_by_side_on_one_output(tmp_path, bright_toy):
@@ -37,9 +38,7 @@ def test_settings_side_by_side_on_one_output(tmp_path, bright_toy):
     assert float(alone["kept"]) == 1 and alone["gain_db"] == off["gain_db"]
     assert all(r["date"] and r["machine"] and r["commit"] for r in rows)
     assert (tmp_path / "trust.png").stat().st_size > 1000
-    s = {x["setting"]: x for x in stage_settings.summary([{**r, "gain_db": float(r["gain_db"]),
-                                                           "flip_change": float(r["flip_change"])} for r in rows],
-                                                         "trust")}
+    s = summary_by_setting(rows, "trust")
     assert s["1"]["gain_db"] == pytest.approx(float(whole["gain_db"]))
 
 

@@ -23,6 +23,7 @@ from tests.fit_helpers import (
     W,
     constant_psnr,
     depth_errors,
+    fit_photo_set,
     fit_stopped_and_resumed,
     ray_bundle,
     run_make_pairs,
@@ -34,11 +35,7 @@ SMALL = FitConfig(resolution=40, features=0, steps=240, minutes=None, rays=1024,
 
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
-    root = tmp_path_factory.mktemp("photos")
-    truth = write_photo_set(root)
-    out = root.parent / "pairs"
-    report = make_pairs(root, out, SMALL)
-    return root, out, report, truth
+    return fit_photo_set(tmp_path_factory, SMALL, "pairs")
 
 
 @pytest.mark.slow

@@ -12,7 +12,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from roguefit import PRESETS, FitConfig, make_pairs
+from roguefit import PRESETS, FitConfig
 from roguefit.hashfield import HASH_PRIMES, HashEncoding, HashField, level_resolutions, spherical_harmonics
 from roguenerf.data.readers import load_scene
 from roguenerf.errors import InputError
@@ -121,11 +121,10 @@ def test_hash_config_is_checked_and_grid_identities_are_unchanged():
 
 @pytest.fixture(scope="module")
 def hash_fit(tmp_path_factory):
-    root = tmp_path_factory.mktemp("hash_photos")
-    truth = fit_helpers.write_photo_set(root)
     reports = []
-    report = make_pairs(root, root.parent / "hash_pairs", SMALL_HASH, progress=reports.append)
-    return root, root.parent / "hash_pairs", report, truth, reports
+    fit = fit_helpers.fit_photo_set(tmp_path_factory, SMALL_HASH, "hash_pairs", photos="hash_photos",
+                                    progress=reports.append)
+    return *fit, reports
 
 
 @pytest.mark.slow

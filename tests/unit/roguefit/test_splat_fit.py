@@ -16,7 +16,7 @@ from roguefit.splats import PLY_FILE, STATE_FILE
 from roguenerf.data.readers import load_scene
 from roguenerf.errors import InputError
 from roguenerf.splats import read_ply, render
-from tests.fit_helpers import constant_psnr, depth_errors, fit_stopped_and_resumed, write_photo_set
+from tests.fit_helpers import constant_psnr, depth_errors, fit_photo_set, fit_stopped_and_resumed, write_photo_set
 
 SMALL = SplatConfig(steps=150, scale=1, init_points=2000, checkpoint_every=50)
 # Measured at this budget (9 views, 30x40, seeds 0, 1, 2): training PSNR 32.3 / 32.8 / 32.5 dB,
@@ -31,11 +31,7 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
     torch.set_num_threads(1)
-    root = tmp_path_factory.mktemp("photos")
-    truth = write_photo_set(root, views=9)
-    out = root.parent / "splat_pairs"
-    report = make_pairs(root, out, SMALL)
-    return root, out, report, truth
+    return fit_photo_set(tmp_path_factory, SMALL, "splat_pairs", views=9)
 
 
 @pytest.mark.slow

@@ -29,8 +29,7 @@ from roguenerf.imageio import write_png
 
 @pytest.fixture(scope="module")
 def toy_scene(tmp_path_factory):
-    root = tmp_path_factory.mktemp("toy")
-    return make_toy_scene(root / "scene", seed=3, n_train=7, n_test=3, height=24, width=32)
+    return make_toy_scene(tmp_path_factory.mktemp("toy") / "scene", seed=3, n_train=7, n_test=3, height=24, width=32)
 
 
 def _colmap_dataset(toy_scene, root, *, binary, names=None, K=None):
