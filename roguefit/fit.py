@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -24,7 +23,7 @@ from safetensors.torch import load_file, save_file
 from torch import Tensor
 
 from roguefit.field import GridField, scene_frame, seen_by_cameras
-from roguefit.fitter import fit_steps
+from roguefit.fitter import ConfigCheck, fit_steps
 from roguefit.photos import PhotoSet
 from roguenerf.errors import InputError
 from roguenerf.imageio import atomic_write
@@ -40,102 +39,83 @@ FORMAT_VERSION = 1
 
 @dataclasses.dataclass(frozen=True)
 class FitConfig:
-    """How to fit one field.
-
-    resolution: final grid side; the fit starts at half of it and grows (coarse to fine) at
-    ``grow_at`` fractions of the budget. features: colour-feature channels read by the
-    view-dependent MLP (0: an RGB grid, view-independent). minutes / steps: the budget (steps
-    wins when both are given). rays: rays per step; samples: samples per ray (inverse depth).
-    render_scale: render every view at 1/render_scale of the photo size and upsample (bilinear)
-    to it: a cheap render for a field whose voxels already span several pixels, where it changes
-    almost nothing but costs render_scale² fewer rays.
-    """
+    """How to fit one field."""
 
     resolution: int = 160
+    """Final grid side; the fit starts at half of it and grows (coarse to fine) at ``grow_at``
+    fractions of the budget."""
     features: int = 6
-    minutes: float | None = 10.0
-    steps: int | None = None
+    """Colour-feature channels read by the view-dependent MLP (0: an RGB grid, view-independent)."""
     rays: int = 2048
+    """Rays per step."""
     samples: int = 64
+    """Samples per ray (spaced in inverse depth)."""
     lr_grid: float = 0.1
     lr_mlp: float = 2e-3
     tv_weight: float = 1e-4
+    """Weight of the density's total variation (mean squared neighbour difference over a random
+    32³ block of the grid)."""
     distortion_weight: float = 0.01
     grow_at: tuple[float, ...] = (0.15, 0.35)
     prune_every: int = 200
+    """Steps between prunings of the occupancy grid (cells no training camera sees, or all but
+    transparent)."""
+    minutes: float | None = 10.0
+    steps: int | None = None
+    """The budget: ``steps`` wins over ``minutes`` when both are given."""
     seed: int = 0
     hold: int = 8
+    """Every ``hold``-th view (0, hold, 2 hold, ...) is held out: a test view."""
     folds: int = 1
     """Cross-fitting (:func:`make_pairs`): K > 1 fields, each rendering the training views it
     never saw; 1: one field, its own training views rendered."""
     checkpoint_every_s: float = 60.0
     render_scale: int = 1
+    """Render every view at 1/render_scale of the photo size and upsample (bilinear) to it: a
+    cheap render for a field whose voxels already span several pixels, where it changes almost
+    nothing but costs render_scale² fewer rays."""
     kind: str = "grid"
     """"grid": :class:`GridField` (dense grids); "hash": :class:`~roguefit.hashfield.HashField`
     (Instant-NGP's multi-resolution hash encoding, ``resolution`` its finest level, with the
     ``hash_*`` sizes and spherical harmonics of ``sh_degree``; ``features`` and ``grow_at``
     unused)."""
     hash_levels: int = 12
+    """Levels of the hash encoding, from ``hash_base`` cells a side to ``resolution``."""
     hash_log2_table: int = 16
+    """Entries of each level's table, as a power of two."""
     hash_features: int = 2
+    """Features per level."""
     hash_base: int = 16
     sh_degree: int = 3
+    """Degree of the spherical harmonics of the hash field's colour."""
 
     def __post_init__(self) -> None:
-        """The one validation of a fit's configuration, before any work (also on
-        ``dataclasses.replace``): :class:`InputError` naming the field, never an error from deep
-        inside torch, nor a NaN budget that fits 0 steps and writes the scene anyway."""
-
-        def integer(name: str, low: int) -> None:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise InputError(f"FitConfig.{name}: expected an integer >= {low}, got {value!r}")
-
-        def number(name: str, *, positive: bool, optional: bool = False) -> None:
-            value = getattr(self, name)
-            if value is None and optional:
-                return
-            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-            if not ok or (value <= 0 if positive else value < 0):
-                want = "a finite number > 0" if positive else "a finite number >= 0"
-                raise InputError(f"FitConfig.{name}: expected {want}, got {value!r}")
-
-        integer("resolution", 4)
-        integer("features", 0)
-        integer("rays", 1)
-        integer("samples", 2)
-        integer("prune_every", 1)
-        integer("hold", 2)
-        integer("render_scale", 1)
-        integer("folds", 1)
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
-            raise InputError(f"FitConfig.seed: expected an integer, got {self.seed!r}")
-        if self.steps is not None:
-            integer("steps", 1)
-        number("minutes", positive=True, optional=True)
-        if self.minutes is None and self.steps is None:
-            raise InputError("FitConfig: expected a budget, minutes or steps (both are None)")
-        number("lr_grid", positive=True)
-        number("lr_mlp", positive=True)
-        number("tv_weight", positive=False)
-        number("distortion_weight", positive=False)
-        number("checkpoint_every_s", positive=True)
+        """The one validation of a fit's configuration (:class:`~roguefit.fitter.ConfigCheck`)."""
+        check = ConfigCheck(self)
+        for name, low in (("resolution", 4), ("features", 0), ("rays", 1), ("samples", 2), ("prune_every", 1),
+                          ("hold", 2), ("render_scale", 1), ("folds", 1)):
+            check.integer(name, low)
+        check.integer("seed")
+        check.budget()
+        for name in ("lr_grid", "lr_mlp", "checkpoint_every_s"):
+            check.number(name, positive=True)
+        for name in ("tv_weight", "distortion_weight"):
+            check.number(name, positive=False)
         try:
             grow = [float(g) for g in self.grow_at]
         except (TypeError, ValueError):
-            raise InputError(f"FitConfig.grow_at: expected fractions of the budget, got {self.grow_at!r}") from None
+            check.fail("grow_at", "fractions of the budget")
         if any(not (0 < g < 1) for g in grow) or grow != sorted(grow):
-            raise InputError(f"FitConfig.grow_at: expected increasing fractions in (0, 1), got {self.grow_at!r}")
+            check.fail("grow_at", "increasing fractions in (0, 1)")
         if self.kind not in FIELD_KINDS:
-            raise InputError(f"FitConfig.kind: expected one of {', '.join(FIELD_KINDS)}, got {self.kind!r}")
+            check.fail("kind", f"one of {', '.join(FIELD_KINDS)}")
         if self.kind == "hash":
             bounds = {"hash_levels": (1, 32), "hash_log2_table": (4, 24), "hash_features": (1, 64),
                       "hash_base": (1, self.resolution), "sh_degree": (0, 3)}
             for name, (low, high) in bounds.items():
                 value = getattr(self, name)
                 if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-                    raise InputError(f"FitConfig.{name}: the hash field expects an integer in "
-                                     f"[{low}, {high}], got {value!r}")
+                    check.fail(name, f"an integer in [{low}, {high}] (the hash field)")
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)

@@ -18,12 +18,52 @@ from typing import Protocol
 from torch import Tensor
 
 from roguefit.photos import PhotoSet
-from roguenerf.errors import TrainingCancelled, TrainingDivergedError
+from roguenerf.errors import InputError, TrainingCancelled, TrainingDivergedError
 
 Progress = Callable[[dict], None]
 """Called after every step with ``step``, ``fraction`` (of the budget, 0..1), ``psnr`` (a running
 mean of the training loss's), and the kind's own size (``resolution`` or ``gaussians``)."""
 ShouldStop = Callable[[], bool]
+
+
+class ConfigCheck:
+    """The validation of a kind's configuration fields, in its ``__post_init__`` (so before any
+    work, and on ``dataclasses.replace``): :class:`InputError` naming ``Config.field`` and the
+    rule, never an error from deep inside torch, nor a NaN budget that fits 0 steps."""
+
+    def __init__(self, config) -> None:
+        self.config, self.owner = config, type(config).__name__
+
+    def fail(self, name: str, want: str) -> None:
+        raise InputError(f"{self.owner}.{name}: expected {want}, got {getattr(self.config, name)!r}")
+
+    def integer(self, name: str, low: int | None = None, high: int | None = None) -> None:
+        """An int (not a bool) within ``[low, high]`` (each bound where given)."""
+        value = getattr(self.config, name)
+        if isinstance(value, bool) or not isinstance(value, int) or (low is not None and value < low) \
+                or (high is not None and value > high):
+            rule = (f" in [{low}, {high}]" if low is not None and high is not None
+                    else f" >= {low}" if low is not None else "")
+            self.fail(name, "an integer" + rule)
+
+    def number(self, name: str, *, positive: bool, optional: bool = False, high: float | None = None) -> None:
+        """A finite int or float (not a bool), > 0 (``positive``) or >= 0, at most ``high``;
+        None passes where ``optional``."""
+        value = getattr(self.config, name)
+        if value is None and optional:
+            return
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        if not ok or (value <= 0 if positive else value < 0) or (high is not None and value > high):
+            want = "a finite number > 0" if positive else "a finite number >= 0"
+            self.fail(name, want + (f" and <= {high:g}" if high is not None else ""))
+
+    def budget(self) -> None:
+        """``steps`` (an integer >= 1) or ``minutes`` (> 0), at least one of them."""
+        if self.config.steps is not None:
+            self.integer("steps", 1)
+        self.number("minutes", positive=True, optional=True)
+        if self.config.minutes is None and self.config.steps is None:
+            raise InputError(f"{self.owner}: expected a budget, steps or minutes (both are None)")
 
 
 class FieldConfig(Protocol):

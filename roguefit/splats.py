@@ -43,7 +43,7 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 from torch import Tensor
 
-from roguefit.fitter import fit_steps
+from roguefit.fitter import ConfigCheck, fit_steps
 from roguefit.photos import PhotoSet
 from roguenerf.errors import InputError
 from roguenerf.splats import Gaussians, logit, render, write_ply
@@ -67,7 +67,9 @@ class SplatConfig:
     steps: int | None = 1000
     minutes: float | None = None
     scale: int = 2
+    """The fit sees the photos at 1/scale of their size (the renders are made at full size)."""
     init_points: int = 6000
+    """Random points the splats start from, in the training cameras' frustums."""
     sh_degree: int = 1
     lr_means: float = 1.6e-3
     """Times the scene extent."""
@@ -76,34 +78,44 @@ class SplatConfig:
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
     ssim_weight: float = 0.2
+    """λ of the loss ``(1 - λ) L1 + λ (1 - SSIM)``."""
     densify_from: float = 0.1
     densify_until: float = 0.7
+    """Densification runs in ``[densify_from, densify_until)`` of the budget ..."""
     densify_every: int = 50
+    """... every this many steps."""
     grad_threshold: float = 2e-4
+    """Mean view-space gradient (NDC units) above which a Gaussian is cloned or split."""
     dense_share: float = 0.01
+    """A Gaussian wider than this share of the scene extent is split, a smaller one cloned."""
     prune_opacity: float = 0.005
     prune_size: float = 0.5
+    """Gaussians below ``prune_opacity`` or wider than ``prune_size`` × the extent are pruned."""
     max_gaussians: int = 20000
+    """Densification stops growing the splats at this count (the largest gradients first)."""
     seed: int = 0
     hold: int = 8
     folds: int = 1
     """Cross-fitting, as :attr:`roguefit.fit.FitConfig.folds`."""
     checkpoint_every: int = 50
+    """Steps between two saves of the whole state (a stopped fit resumes from the last)."""
 
     def __post_init__(self) -> None:
-        if self.steps is None and self.minutes is None:
-            raise InputError("SplatConfig: give steps or minutes")
-        if self.steps is not None and self.steps < 1:
-            raise InputError(f"steps: expected >= 1, got {self.steps}")
-        if self.minutes is not None and not (math.isfinite(self.minutes) and self.minutes > 0):
-            raise InputError(f"minutes: expected > 0, got {self.minutes}")
-        if self.scale < 1 or self.init_points < 1 or self.sh_degree not in (0, 1, 2, 3):
-            raise InputError(f"scale >= 1, init_points >= 1 and sh_degree 0..3 expected, got {self.scale}, "
-                             f"{self.init_points}, {self.sh_degree}")
-        if isinstance(self.folds, bool) or not isinstance(self.folds, int) or self.folds < 1:
-            raise InputError(f"folds: expected an integer >= 1, got {self.folds!r}")
-        if self.checkpoint_every < 1 or self.densify_every < 1:
-            raise InputError("checkpoint_every and densify_every: expected >= 1")
+        """The one validation of a splat fit's configuration (:class:`~roguefit.fitter.ConfigCheck`)."""
+        check = ConfigCheck(self)
+        check.budget()
+        for name, low in (("scale", 1), ("init_points", 1), ("densify_every", 1), ("max_gaussians", 1),
+                          ("hold", 2), ("folds", 1), ("checkpoint_every", 1)):
+            check.integer(name, low)
+        check.integer("sh_degree", 0, 3)
+        check.integer("seed")
+        for name in ("lr_means", "lr_sh", "lr_opacity", "lr_scales", "lr_quats", "grad_threshold", "dense_share",
+                     "prune_size"):
+            check.number(name, positive=True)
+        for name in ("ssim_weight", "densify_from", "densify_until", "prune_opacity"):
+            check.number(name, positive=False, high=1.0)
+        if self.densify_from > self.densify_until:
+            check.fail("densify_until", f"at least densify_from ({self.densify_from:g})")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

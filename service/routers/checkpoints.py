@@ -60,14 +60,13 @@ def _replace(services: Services, scene_id: str, upload: UploadFile) -> ScenePubl
     return scene_public(services, store.get_scene(scene_id))
 
 
+CheckpointUpload = Annotated[UploadFile, File(description="enhancer checkpoint (.safetensors)")]
+
+
 @router.post("/{scene_id}/checkpoints", status_code=201, response_model=ScenePublic,
              summary="Upload an enhancer checkpoint (.safetensors); it becomes the active version",
              responses=error_responses(400, 404, 409, 413, 422))
-def create_checkpoint(
-    scene_id: str,
-    services: ServicesDep,
-    checkpoint: Annotated[UploadFile, File(description="enhancer checkpoint (.safetensors)")],
-) -> ScenePublic:
+def create_checkpoint(scene_id: str, services: ServicesDep, checkpoint: CheckpointUpload) -> ScenePublic:
     return _replace(services, scene_id, checkpoint)
 
 

@@ -92,12 +92,15 @@ def test_contraction_round_trips_and_bounds_the_world():
     assert torch.allclose(field.uncontract(u[:3]), pts[:3], rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.parametrize("breakage, message", [
-    ("missing_photo", "images/003.png: missing file"),
-    ("bad_bounds", "expected 0 < near < far"),
-    ("bad_json", "transforms.json: cannot be read as JSON"),
-    ("no_transforms", "expected a posed photo set with transforms.json"),
-])
+UNREADABLE = {  # how a photo set is broken: what the error says
+    "missing_photo": "images/003.png: missing file",
+    "bad_bounds": "expected 0 < near < far",
+    "bad_json": "transforms.json: cannot be read as JSON",
+    "no_transforms": "expected a posed photo set with transforms.json",
+}
+
+
+@pytest.mark.parametrize("breakage, message", UNREADABLE.items())
 def test_a_photo_set_it_cannot_read_is_a_clear_error(tmp_path, breakage, message):
     root = tmp_path / "photos"
     write_photo_set(root, views=5)
