@@ -99,6 +99,9 @@ class EnhanceFlags(Flags):
         "Keep only part of the enhancer's change on a view where the neighbour photos mostly disagree (the "
         "field's geometry is off there: floaters), in proportion to the share where they agree; where they "
         "agree on under a tenth of it, only where they agree nearby. Default on."))] = True
+    tile: Annotated[int | None, typer.Option("--tile", help=(
+        "Enhance images taller or wider than this many pixels tile by tile (default 512): larger tiles are "
+        "faster on large images and take more memory (docs/results.md, Speed at users' sizes)."))] = None
 
     def options(self, **more):
         """The :class:`~roguenerf.enhance.EnhanceOptions` (``more``: a subclass's flags); bad
@@ -106,7 +109,7 @@ class EnhanceFlags(Flags):
         from roguenerf.enhance import EnhanceOptions
 
         return EnhanceOptions.from_flags(neighbours=self.neighbours, align=self.align, colour=self.colour,
-                                         trust=self.trust, **more)
+                                         trust=self.trust, tile=self.tile, **more)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -146,6 +146,29 @@ def test_enhance_writes_the_png(scene_dir, checkpoint, tmp_path):
     assert bad.exit_code == 2 and "nope" in bad.stderr
 
 
+def test_enhance_tile_is_the_libraries_tile(scene_dir, checkpoint, tmp_path):
+    """``--tile`` (issue 51: larger tiles are faster at full HD, and take more memory) is
+    EnhanceOptions.tile: the same image as the library's tiled enhancement; bad sizes are refused."""
+    from roguenerf.data.readers import load_scene
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.imageio import read_image
+    from roguenerf.inference import SceneEnhancer
+
+    out = tmp_path / "tiled.png"
+    result = _run("enhance", scene_dir, "--view", "test_001", "--checkpoint", checkpoint, "--output", out,
+                  "--tile", "16")
+    assert result.exit_code == 0, result.output
+    model, _ = load_checkpoint(checkpoint)
+    scene = load_scene(scene_dir)
+    tiled = SceneEnhancer(scene, model, options=EnhanceOptions(tile=16)).enhance_view("test_001").image
+    whole = SceneEnhancer(scene, model).enhance_view("test_001").image
+    assert float((read_image(out) - tiled).abs().max()) <= 1 / 255 + 1e-6
+    assert float((tiled - whole).abs().max()) > 1.5 / 255  # 16-pixel tiles do change this 24 x 32 view
+    bad = _run("enhance", scene_dir, "--view", "test_001", "--checkpoint", checkpoint, "--output", out,
+               "--tile", "8")
+    assert bad.exit_code == 2 and "tile: expected >= 16 pixels, got 8" in bad.stderr
+
+
 @pytest.mark.slow
 def test_finetune_from_scratch_then_resume_to_more_steps(scene_dir, tmp_path):
     out = tmp_path / "ft"
