@@ -20,8 +20,8 @@ neighbour photo encoded whole each step, the training step before crop windows; 
 and ``trained`` (conv_H fixed with its features encoded once, or trained) are the
 alternatives weighed for the CPU defaults; ``seed1`` and ``seed2`` are the default plan with
 another seed (crops, order), for the run-to-run spread of one plan; ``warp4``/``warp8`` warp
-the target render and depth of half the crops by up to 4/8 px (``render_warp``), ``blur1``/``blur2``
-blur the target render (``render_blur``), ``warp8blur2`` both;
+the target render and depth of half the crops by up to 4/8 px (``render_warp``; blurring the
+target render instead, ``blur1``/``blur2``, was measured to hurt and removed: docs/results.md);
 ``bench/results/real_scenes.csv`` compared ``default`` when its lr was 1e-4 with ``lr5e-4``,
 after which 5e-4 became the default). Same data, seed and start.
 
@@ -54,11 +54,8 @@ PLANS = {
     "trained": {"freeze_neighbour_encoder": False},
     "seed1": {"seed": 1},
     "seed2": {"seed": 2},
-    "blur1": {"render_blur": 1.0},
-    "blur2": {"render_blur": 2.0},
     "warp4": {"render_warp": 4.0},
     "warp8": {"render_warp": 8.0},
-    "warp8blur2": {"render_warp": 8.0, "render_blur": 2.0},
 }
 """Fine-tuning plans as TrainConfig overrides of the shipped CPU plan (``--plans``)."""
 

@@ -5,8 +5,9 @@ For every scene folder given, the mean PSNR of render against photo over the tra
 the held-out views, with both images average-pooled by 1, 2, 4, 8 and 16 first: an error that
 survives pooling by 16 is a large-scale one (misplaced structure, floaters, colour), which
 sharper detail from the neighbours cannot mend pixel by pixel. Also each split's PSNR after the
-render is blurred by a Gaussian of sigma 1 and 2 px (``render_blur``'s degradation) and after a
-per-channel affine colour fit (how much of the error is colour). No model runs; seconds per scene.
+render is blurred by a Gaussian of sigma 1 and 2 px (what the removed ``render_blur`` fine-tuning
+option did to the targets) and after a per-channel affine colour fit (how much of the error is
+colour). No model runs; seconds per scene.
 
     .venv/bin/python -m bench.render_scales ~/.cache/roguenerf/pairs/{dtu_scan37,mary_rose}/{coarse,fine} \\
         ../shared/data/lego --output bench/results/render_scales

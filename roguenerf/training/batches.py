@@ -51,7 +51,6 @@ distinct whole photos, the batch encodes those instead (same values).
 
 from __future__ import annotations
 
-import math
 import queue
 import threading
 from collections.abc import Callable
@@ -226,22 +225,6 @@ def place_windows(bounds: Tensor, size: tuple[int, int]) -> tuple[Tensor, Tensor
     return order, origins, sizes
 
 
-def blur_renders(render: Tensor, max_sigma: float, generator: torch.Generator, share: float = 0.5) -> Tensor:
-    """``render`` ``(B, 3, c, c)`` with a Gaussian blur on each crop with probability ``share``,
-    its sigma drawn uniformly in (0, ``max_sigma``] pixels (kornia, reflected borders); the
-    others unchanged. Draws ``2 B`` numbers from ``generator`` whatever the outcome."""
-    from kornia.filters import gaussian_blur2d
-
-    b = render.shape[0]
-    pick = torch.rand(b, generator=generator) < share
-    sigma = (1.0 - torch.rand(b, generator=generator)) * float(max_sigma)  # in (0, max]
-    if max_sigma <= 0 or not bool(pick.any()):
-        return render
-    radius = min(math.ceil(3.0 * max_sigma), (min(render.shape[-2:]) - 1) // 2)
-    blurred = gaussian_blur2d(render, 2 * radius + 1, sigma[:, None].expand(b, 2).to(render.dtype))
-    return torch.where(pick[:, None, None, None], blurred, render)
-
-
 def displace(render: Tensor, depth: Tensor, shift: Tensor) -> tuple[Tensor, Tensor]:
     """``render`` ``(B, C, h, w)`` and ``depth`` ``(B, 1, h, w)`` read at each pixel plus ``shift``
     ``(B, 2, h, w)`` (x then y, pixels): the render bilinearly, the depth at the nearest pixel (no
@@ -323,7 +306,7 @@ def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding
         use_neighbours: False gives a batch without neighbours.
         augment: ``(render, depth) -> (render, depth)`` applied to the target crops before the
             neighbour windows are bounded, so the windows hold what the changed depth reads
-            (:func:`warp_renders`, :func:`blur_renders`).
+            (:func:`warp_renders`, :func:`corrupt_depths`).
         pose_noise: ``(B, N, 4, 4) -> (B, N, 4, 4)`` float64, the neighbours' poses as the model
             gets them (``TrainConfig.neighbour_pose_noise``); the windows are bounded with these
             (what the model reads), the photos and depths are the neighbours' own.

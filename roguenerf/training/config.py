@@ -48,12 +48,6 @@ faster (5 neighbours), but 10-minute fine-tunes from the shipped checkpoint gain
 (bench/results/frozen_encoder_paired.json, docs/results.md)."""
 FEATURE_CACHE_BYTES = 2 * 1024**3
 """Largest cache of frozen neighbour features (float32, training views x F x H x W) kept in memory."""
-RENDER_BLUR = 0.0
-"""Fine-tuning's default for :attr:`TrainConfig.render_blur` (0: the renders as they are). A sigma
-up to 2 px lowered the 3-minute gain on both unseen ``fine`` fits (-0.05, -0.04 dB): blurring a
-training render costs it under 1 dB, where a field's novel views are 3-6 dB worse than its
-training views, and 7-10 dB worse pooled by 16 px (python -m bench.render_scales; docs/results.md)."""
-MAX_RENDER_BLUR = 8.0
 RENDER_WARP = 0.0
 """Fine-tuning's default for :attr:`TrainConfig.render_warp` (0: the renders as they are). Off by
 default: in one sitting, 3-minute fine-tunes with 4 px gained more on the four unseen real-scene
@@ -152,12 +146,6 @@ class TrainConfig:
     """Build the model with (True) or without (False) :attr:`EnhancerConfig.pool_spread`; from a
     checkpoint without it, conv_merge's new inputs start at zero weight (the same function).
     None: the checkpoint's, or the variant's."""
-    render_blur: float | None = None
-    """Fine-tuning: the largest sigma (pixels) of a Gaussian blur put on the target renders of
-    half of the crops, each its own sigma drawn uniformly in (0, render_blur]: training views
-    (the fine-tune's targets) rendered less sharp, as novel views are. Measured not to help
-    (RENDER_BLUR); kept for that comparison (``bench/real_scenes.py --plans blur2``).
-    0: the renders as they are. None: the plan's (RENDER_BLUR); pre-training: 0."""
     render_warp: float | None = None
     """Fine-tuning: the largest shift (pixels) of a smooth random displacement put on the
     target render and depth of half of the crops (:func:`~roguenerf.training.batches.warp_renders`):
@@ -196,9 +184,6 @@ class TrainConfig:
             raise InputError(f"lr: expected > 0, got {self.lr}")
         if not 0.0 <= float(self.held_out_share) <= 1.0:
             raise InputError(f"held_out_share: expected a probability in [0, 1], got {self.held_out_share}")
-        if self.render_blur is not None and not 0.0 <= float(self.render_blur) <= MAX_RENDER_BLUR:
-            raise InputError(f"render_blur: expected a sigma in [0, {MAX_RENDER_BLUR:g}] pixels, "
-                             f"got {self.render_blur}")
         if self.render_warp is not None and not 0.0 <= float(self.render_warp) <= MAX_RENDER_WARP:
             raise InputError(f"render_warp: expected a shift in [0, {MAX_RENDER_WARP:g}] pixels, "
                              f"got {self.render_warp}")
@@ -278,7 +263,6 @@ class TrainPlan:
     """Defaults below: what a run saved before the field existed had (see :meth:`from_dict`)."""
     neighbour_encoding: str = "window"
     freeze_neighbour_encoder: bool = False
-    render_blur: float = 0.0
     render_warp: float = 0.0
     why: str = ""
     threads: int = 0
@@ -292,7 +276,7 @@ class TrainPlan:
     # The saved plan's key order (JSON in the state and the checkpoint's meta).
     _ORDER = ("device", "variant", "crop", "crop_used", "batch", "lr", "lr_schedule", "num_neighbours",
               "steps", "minutes", "without", "seed", "neighbour_encoding", "freeze_neighbour_encoder",
-              "render_blur", "render_warp", "why", "threads", "held_out_share", "neighbour_pose_noise",
+              "render_warp", "why", "threads", "held_out_share", "neighbour_pose_noise",
               "depth_noise")
 
     def to_dict(self) -> dict:
@@ -396,9 +380,7 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
     if freeze is None:
         freeze = FREEZE_NEIGHBOUR_ENCODER if kind == "finetune" else False
     # Target augmentation: the caller's, else the fine-tuning default; pre-training none.
-    augment = {key: float(wish if wish is not None else (default if kind == "finetune" else 0.0))
-               for key, wish, default in (("render_blur", config.render_blur, RENDER_BLUR),
-                                          ("render_warp", config.render_warp, RENDER_WARP))}
+    warp = config.render_warp if config.render_warp is not None else (RENDER_WARP if kind == "finetune" else 0.0)
     steps, minutes = config.steps, config.minutes
     if steps is None and minutes is None:
         minutes = GPU_MINUTES if on_gpu else CPU_MINUTES
@@ -421,7 +403,7 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
                               else None),
         freeze_neighbour_encoder=bool(freeze),
         depth_noise=float(config.depth_noise or 0.0),
-        **augment,
+        render_warp=float(warp),
         why=GPU_PLAN_WHY if on_gpu else CPU_PLAN_WHY,
         threads=torch.get_num_threads(),
     )
@@ -434,8 +416,6 @@ def describe_plan(plan: TrainPlan | Mapping) -> str:
     if plan.steps is not None and plan.minutes is not None:
         budget = f"{plan.steps} steps or {plan.minutes:g} min"
     without = f", without {'+'.join(plan.without)}" if plan.without else ""
-    if plan.render_blur:
-        without += f", half the target renders blurred (sigma up to {plan.render_blur:g} px)"
     if plan.render_warp:
         without += f", half the target renders warped (up to {plan.render_warp:g} px)"
     if plan.neighbour_pose_noise:

@@ -34,7 +34,6 @@ from roguenerf.models.layers import receptive_radius
 from roguenerf.training.batches import (
     Prefetcher,
     StepBatch,
-    blur_renders,
     corrupt_depths,
     crop_targets,
     model_inputs,
@@ -315,7 +314,7 @@ def _initial_model(checkpoint, config: TrainConfig, plan_variant: str | None):
 
 
 RESUMED_KEYS = ("variant", "crop", "crop_used", "batch", "lr", "num_neighbours", "without", "seed",
-                "lr_schedule", "freeze_neighbour_encoder", "held_out_share", "render_blur", "render_warp",
+                "lr_schedule", "freeze_neighbour_encoder", "held_out_share", "render_warp",
                 "neighbour_pose_noise", "depth_noise")
 """What a resumed run keeps of its saved plan whatever the new wishes (a run saved before a field
 existed keeps TrainPlan's default: no schedule, no freezing, no held-out views, no augmentation)."""
@@ -387,11 +386,9 @@ class _Run:
     thread is ahead), so a resumed run draws the very batches this one would have drawn next."""
 
     def augment(self, render: Tensor, depth: Tensor) -> tuple[Tensor, Tensor]:
-        # Fine-tuning targets made to look like novel views (TrainConfig.render_warp, render_blur).
+        # Fine-tuning targets made to look like novel views (TrainConfig.render_warp).
         if self.plan.render_warp > 0:
             render, depth = warp_renders(render, depth, self.plan.render_warp, self.generator)
-        if self.plan.render_blur > 0:
-            render = blur_renders(render, self.plan.render_blur, self.generator)
         if self.plan.depth_noise > 0:  # TrainConfig.depth_noise: the reprojections read a wrong depth
             depth = corrupt_depths(depth, self.plan.depth_noise, self.generator)
         return render, depth
@@ -412,7 +409,7 @@ class _Run:
 
         batch = prepare_batch(d, targets, origins, plan.crop, encoding=self.encoding, margin=self.margin,
                               use_neighbours=self.model.config.use_neighbours,
-                              augment=(self.augment if plan.render_warp or plan.render_blur or plan.depth_noise
+                              augment=(self.augment if plan.render_warp or plan.depth_noise
                                        else None),
                               pose_noise=noisy if noise else None)
         batch.dataset, batch.sampler_state = index, generator.get_state()

@@ -151,8 +151,7 @@ def test_the_printed_plan_says_why(scene):
     assert "the paper's" in describe_plan(plan_training(scene, TrainConfig(), "cuda"))
 
 
-@pytest.mark.parametrize("field,value", [("render_warp", -1.0), ("render_warp", 100.0), ("render_blur", -0.5),
-                                         ("render_blur", 50.0)])
+@pytest.mark.parametrize("field,value", [("render_warp", -1.0), ("render_warp", 100.0)])
 def test_render_augmentation_must_be_in_range(field, value):
     with pytest.raises(InputError, match=field):
         TrainConfig(**{field: value}).validate()
@@ -161,18 +160,16 @@ def test_render_augmentation_must_be_in_range(field, value):
 def test_render_augmentation_is_planned_saved_and_resumed(scene, tmp_path):
     from roguenerf.training.config import describe_plan
 
-    config = TrainConfig(steps=1, render_warp=3.0, render_blur=1.5, **FAST)
+    config = TrainConfig(steps=1, render_warp=3.0, **FAST)
     plan = plan_training(scene, config, "cpu")
-    assert (plan.render_warp, plan.render_blur) == (3.0, 1.5)
-    assert "warped (up to 3 px)" in describe_plan(plan) and "blurred (sigma up to 1.5 px)" in describe_plan(plan)
-    pre = plan_training(scene, TrainConfig(), "cpu", kind="pretrain")
-    assert (pre.render_warp, pre.render_blur) == (0.0, 0.0)
+    assert plan.render_warp == 3.0 and "warped (up to 3 px)" in describe_plan(plan)
+    assert plan_training(scene, TrainConfig(), "cpu", kind="pretrain").render_warp == 0.0
     finetune(scene, tmp_path, config=config)
     # resumed with other wishes: the saved run keeps its own augmentation
     resumed = finetune(scene, tmp_path, config=TrainConfig(**{**FAST, "steps": 2}))
     assert resumed.steps == 2
     saved = load_state(tmp_path / STATE_FILE)["info"]["plan"]
-    assert (saved["render_warp"], saved["render_blur"]) == (3.0, 1.5)
+    assert saved["render_warp"] == 3.0
 
 
 def test_depth_noise_is_validated_planned_described_and_resumed(scene, tmp_path):
@@ -496,6 +493,6 @@ def test_the_plan_is_a_frozen_dataclass_saved_as_before():
     assert not plan.budget_done(7, 1e9) and plan.budget_done(8, 0.0)
     # A plan saved before a field existed: the default that run trained with.
     old = {k: v for k, v in saved.items() if k not in ("lr_schedule", "freeze_neighbour_encoder",
-                                                         "render_blur", "render_warp", "held_out_share")}
+                                                         "render_warp", "held_out_share")}
     restored = TrainPlan.from_dict(old)
     assert (restored.lr_schedule, restored.freeze_neighbour_encoder, restored.render_warp) == ("constant", False, 0.0)

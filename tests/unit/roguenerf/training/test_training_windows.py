@@ -304,7 +304,7 @@ def test_finetune_with_a_frozen_encoder_keeps_conv_H(tmp_path):
     assert any(not torch.equal(before[k], trained.state_dict()[k]) for k in before if k.startswith("conv_H"))
 
 
-# ----- fine-tuning targets that look like novel views (render_warp, render_blur) -----
+# ----- fine-tuning targets that look like novel views (render_warp) -----
 
 def test_displace_reads_each_pixel_at_its_shift():
     from roguenerf.training.batches import displace
@@ -361,20 +361,6 @@ def test_corrupt_depths_scales_a_share_of_crops_smoothly_within_the_bound():
     assert torch.equal(out[:, :, 0, 0], depth[:, :, 0, 0]) and torch.equal(out[:, :, 0, 1], depth[:, :, 0, 1])
     assert torch.equal(out, corrupt_depths(depth, 0.3, torch.Generator().manual_seed(0)))  # the generator decides
     assert corrupt_depths(depth, 0.0, torch.Generator()) is depth
-
-
-def test_blur_renders_blurs_a_share_and_keeps_flat_colour():
-    from roguenerf.training.batches import blur_renders
-
-    b, c = 64, 32
-    checks = ((torch.arange(c)[:, None] + torch.arange(c)[None, :]) % 2).float().expand(b, 3, c, c).contiguous()
-    blurred = blur_renders(checks, 2.0, torch.Generator().manual_seed(0))
-    changed = (blurred - checks).abs().flatten(1).amax(dim=1) > 0
-    assert 16 < int(changed.sum()) < 48
-    assert float(blurred[changed].std()) < 0.5 * float(checks[changed].std())
-    torch.testing.assert_close(blurred.mean(dim=(1, 2, 3)), checks.mean(dim=(1, 2, 3)), atol=0.02, rtol=0)
-    flat = torch.full((b, 3, c, c), 0.3)
-    torch.testing.assert_close(blur_renders(flat, 2.0, torch.Generator().manual_seed(1)), flat)
 
 
 def test_windows_bound_the_warped_depth(scene):
