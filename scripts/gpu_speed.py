@@ -15,7 +15,8 @@ Here, on the CPU alone (proves it runs; what the test does):
 
 The packed scene holds training views only: each view enhanced is a training view, which never
 uses its own photo as a neighbour (as a held-out view would not), and the path runs through the
-training cameras in order, each frame its render. Per size the scene is resampled once
+first ``--frames`` training cameras in order (dtu_scan37 has 42), each frame its render: far
+apart, so its flicker and gain say little; its frames per second are the point. Per size the scene is resampled once
 (``bench.sizes.sized_scene``). Per size and device, the first view warms up (kernels, the
 neighbours' encodings), the others are timed (CUDA synchronised) and their gain over the render
 measured; the float16 rows run the model under ``torch.autocast`` (pose fits, colour and trust as
