@@ -83,6 +83,9 @@ def parse_args(argv=None):
     p.add_argument("--finetune-depth-noise", type=float, default=0.0,
                    help="fine-tune with TrainConfig.depth_noise (log-depth error on half the target depths; "
                         "default 0, as shipped); cached apart")
+    p.add_argument("--finetune-render-warp", type=float, default=0.0,
+                   help="fine-tune with TrainConfig.render_warp (half the target renders and depths displaced by "
+                        "up to this many pixels, so they look like novel views; default 0, as shipped); cached apart")
     p.add_argument("--max-views", type=int, default=None)
     p.add_argument("--runs", type=Path, default=REPO / "runs" / "kinds", help="cache of photo sets, fits, fine-tunes")
     p.add_argument("--output", type=Path, default=None, help="default: bench/results/kinds_KIND")
@@ -293,7 +296,11 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
     # ("_colour": the first, view-wide offset only, before its local field).
     suffix = (("_align" if align else "") + (colour_cache_tag(ColourConfig()) if colour else "")
               + (trust_cache_tag(TrustConfig()) if trust else "") + near_cache_tag())
-    plan = f"_depth{args.finetune_depth_noise:g}" if args.finetune_depth_noise else ""  # the fine-tune's options
+    # the fine-tune's options, in the cache's names and the rows' stage
+    plan = ((f"_depth{args.finetune_depth_noise:g}" if args.finetune_depth_noise else "")
+            + (f"_warp{args.finetune_render_warp:g}" if args.finetune_render_warp else ""))
+    plan_label = ((f", depth noise {args.finetune_depth_noise:g}" if args.finetune_depth_noise else "")
+                  + (f", render warp {args.finetune_render_warp:g}" if args.finetune_render_warp else ""))
 
     def note(new: list[dict]) -> None:
         for x in new:  # rows cached before the neighbour sweep existed used the model's count
@@ -323,11 +330,12 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
     def tune(m: float) -> list[dict]:
         result = finetune(scene, args.runs / "finetune" / name / tag / checkpoint.stem / f"{m:g}min{plan}",
                           checkpoint=checkpoint,
-                          config=TrainConfig(minutes=m, evaluate=False, depth_noise=args.finetune_depth_noise))
+                          config=TrainConfig(minutes=m, evaluate=False, depth_noise=args.finetune_depth_noise,
+                                             render_warp=args.finetune_render_warp))
         tuned, _ = load_checkpoint(result.checkpoint)
         options = EnhanceOptions.from_flags(align=align, colour=colour, trust=trust)
         return view_rows(evaluate(scene, tuned, max_views=args.max_views, options=options), **common,
-                         stage=f"finetune {m:g} min" + (f", depth noise {args.finetune_depth_noise:g}" if plan else ""),
+                         stage=f"finetune {m:g} min{plan_label}",
                          minutes=m, noise_deg=0.0, noise_share=0.0, neighbours=default_n, steps=result.steps)
 
     for k, (deg, share) in enumerate(args.noise or [(0.0, 0.0)]):

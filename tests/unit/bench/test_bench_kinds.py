@@ -141,3 +141,40 @@ def test_colour_cache_tag_names_what_differs_from_the_cached_setting():
     assert kinds.colour_cache_tag(ColourConfig(local_sigma=8.0)) == "_colourfield"
     assert kinds.colour_cache_tag(ColourConfig(local_sigma=3.0)) == "_colourfield_local_sigma3"
     assert kinds.colour_cache_tag(ColourConfig(local_sigma=8.0, min_share=0.05)) == "_colourfield_min_share0.05"
+
+
+def test_the_fine_tune_options_reach_the_fine_tune_and_name_its_cache(tmp_path, monkeypatch):
+    """``--finetune-render-warp 4`` fine-tunes with ``TrainConfig.render_warp`` 4 into a folder and a
+    cache of its own (``10min_warp4``), so a run without it is never read back as one with it."""
+    import roguenerf.checkpoint
+    import roguenerf.data.readers
+    import roguenerf.training
+
+    class Model:
+        config = type("Config", (), {"num_neighbours": 2})()
+
+    seen = {}
+
+    def fake_finetune(scene, output, *, checkpoint, config):
+        seen.update(output=output, warp=config.render_warp, depth=config.depth_noise, minutes=config.minutes)
+        raise StopIteration  # stop before evaluating the tuned model
+
+    def fake_cached(path, measure):
+        seen.setdefault("caches", []).append(path.name)
+        return [{"gain_db": 0.0, "flip_change": 0.0, "stage": "zero-shot", "noise_deg": 0.0, "noise_share": 0.0}] \
+            if path.name.startswith("zero_shot") else measure()
+
+    monkeypatch.setattr(kinds, "downscaled_photo_set", lambda src, dst, scale: dst)
+    monkeypatch.setattr(kinds, "fit_pairs", lambda *a, **k: {"steps": 1, "fit_seconds": 0.0, "render_seconds": 0.0,
+                                                              "train": {"psnr": 20.0}, "test": None})
+    monkeypatch.setattr(kinds, "cached_rows", fake_cached)
+    monkeypatch.setattr(roguenerf.data.readers, "load_scene", lambda path: "scene")
+    monkeypatch.setattr(roguenerf.checkpoint, "load_checkpoint", lambda path: (Model(), {}))
+    monkeypatch.setattr(roguenerf.training, "finetune", fake_finetune)
+    args = kinds.parse_args(["--kind", "splat", "--scenes", "ollie", "--noise", "", "--finetune", "10",
+                             "--finetune-render-warp", "4", "--runs", str(tmp_path)])
+    with pytest.raises(StopIteration):
+        kinds.measure_scene(args, "ollie", tmp_path / "default.safetensors", {}, "splat_s1")
+    assert (seen["warp"], seen["depth"], seen["minutes"]) == (4.0, 0.0, 10.0)
+    assert seen["output"].name == "10min_warp4"
+    assert seen["caches"][-1].startswith("finetune_10min_warp4")
