@@ -297,10 +297,9 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
     suffix = (("_align" if align else "") + (colour_cache_tag(ColourConfig()) if colour else "")
               + (trust_cache_tag(TrustConfig()) if trust else "") + near_cache_tag())
     # the fine-tune's options, in the cache's names and the rows' stage
-    plan = ((f"_depth{args.finetune_depth_noise:g}" if args.finetune_depth_noise else "")
-            + (f"_warp{args.finetune_render_warp:g}" if args.finetune_render_warp else ""))
-    plan_label = ((f", depth noise {args.finetune_depth_noise:g}" if args.finetune_depth_noise else "")
-                  + (f", render warp {args.finetune_render_warp:g}" if args.finetune_render_warp else ""))
+    tuning = [(args.finetune_depth_noise, "depth", "depth noise"), (args.finetune_render_warp, "warp", "render warp")]
+    plan = "".join(f"_{tag}{value:g}" for value, tag, _ in tuning if value)
+    plan_label = "".join(f", {label} {value:g}" for value, _, label in tuning if value)
 
     def note(new: list[dict]) -> None:
         for x in new:  # rows cached before the neighbour sweep existed used the model's count
