@@ -39,6 +39,7 @@ from roguenerf.geometry.cameras import check_intrinsics, check_pose, relative_po
 from roguenerf.geometry.depth import known_depth_mask, median_known_depth
 from roguenerf.geometry.euler import rotation_angle
 from roguenerf.geometry.noise import axis_angle_to_matrix
+from roguenerf.ops.filters import gaussian_blur, spatial_gradient
 from roguenerf.reprojection import reproject
 
 
@@ -101,13 +102,11 @@ def _level_depth(depth: Tensor, to: tuple[int, int]) -> Tensor:
 
 
 def _blurred(image: Tensor, to: tuple[int, int], sigma: float) -> Tensor:
-    from kornia.filters import gaussian_blur2d
-
     small = _area(image, to)
     if sigma <= 0:
         return small
     radius = max(1, int(math.ceil(2.5 * sigma)))
-    return gaussian_blur2d(small, (2 * radius + 1, 2 * radius + 1), (sigma, sigma), border_type="replicate")
+    return gaussian_blur(small, 2 * radius + 1, sigma)
 
 
 def shrink(image: Tensor, depth: Tensor, K: Tensor, side: int) -> tuple[Tensor, Tensor, Tensor]:
@@ -169,10 +168,8 @@ class _Level:
         key = (to_s, sigma)
         if cache is None or key not in cache:  # the neighbour's part depends on it alone
             small = _blurred(photo.float()[None], to_s, sigma)
-            from kornia.filters import spatial_gradient
-
             # central differences, edges repeated; sampled together with the colour
-            grad = spatial_gradient(small, mode="diff", order=1, normalized=True)
+            grad = spatial_gradient(small)
             entry = (torch.cat([small, grad[:, :, 0], grad[:, :, 1]], dim=1),
                      _level_depth(photo_depth.float()[None], to_s))
             if cache is not None:

@@ -25,10 +25,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from kornia.filters import gaussian_blur2d
 from torch import Tensor
 
 from roguenerf.errors import InputError
+from roguenerf.ops.filters import gaussian_blur
 
 
 @dataclass(frozen=True)
@@ -83,7 +83,7 @@ class ColourMatch:
 def blur(x: Tensor, sigma: float) -> Tensor:
     """``(B, C, h, w)`` Gaussian blur of ``sigma`` pixels (kernel out to 3 sigma, edges replicated)."""
     k = 2 * int(3 * sigma) + 1
-    return gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="replicate")
+    return gaussian_blur(x, k, sigma)
 
 
 def neighbour_agreement(neighbours: list[tuple[Tensor, Tensor]], size, sigma: float,

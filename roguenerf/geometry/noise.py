@@ -29,12 +29,23 @@ def camera_spread(world_from_cam: Tensor) -> float:
 
 
 def axis_angle_to_matrix(rotvec: Tensor) -> Tensor:
-    """Axis-angle vectors ``(..., 3)`` (radians) -> proper rotations ``(..., 3, 3)``, in float64 (Rodrigues)."""
-    import kornia
-
-    shape = rotvec.shape[:-1]
-    R = kornia.geometry.conversions.axis_angle_to_rotation_matrix(rotvec.to(torch.float64).reshape(-1, 3))
-    return R.reshape(*shape, 3, 3)
+    """Axis-angle vectors ``(..., 3)`` (radians) -> proper rotations ``(..., 3, 3)``, in float64
+    (Rodrigues: ``I + sin(t)/t [w]x + (1 - cos(t))/t^2 [w]x^2``, the two factors by their Taylor
+    series below 1e-4 rad, where float64 is exact to their third term; kornia's
+    ``axis_angle_to_rotation_matrix`` is the tests' reference; plain torch here, because the pose
+    fits call it on every step and importing kornia costs a command 0.3 s)."""
+    w = rotvec.to(torch.float64)
+    x, y, z = w.unbind(-1)
+    zero = torch.zeros_like(x)
+    skew = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*w.shape[:-1], 3, 3)
+    t2 = w.square().sum(-1)
+    t = t2.sqrt()
+    small = t < 1e-4
+    safe_t = torch.where(small, torch.ones_like(t), t)
+    a = torch.where(small, 1.0 - t2 / 6.0, torch.sin(safe_t) / safe_t)
+    b = torch.where(small, 0.5 - t2 / 24.0, (1.0 - torch.cos(safe_t)) / safe_t.square())
+    eye = torch.eye(3, dtype=torch.float64, device=w.device)
+    return eye + a[..., None, None] * skew + b[..., None, None] * (skew @ skew)
 
 
 def perturb_poses(world_from_cam: Tensor, rotation_deg: float, translation: float,

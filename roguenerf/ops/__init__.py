@@ -21,6 +21,8 @@ flow                  :func:`warp`, :func:`upsample_warp`,          native, fast
 linear / conv + act   :func:`linear`, :func:`linear_add`,           fast (oneDNN), reference
                       :func:`conv2d`, :func:`conv_act`
 concatenation         :func:`cat_channels`, :func:`pack_channels`   channels-last, plain
+blur, image gradient  :func:`gaussian_blur`,                         torch, reference (kornia)
+                      :func:`spatial_gradient`
 ====================  ============================================  ==============================
 """
 
@@ -28,6 +30,7 @@ from roguenerf.ops import flow
 from roguenerf.ops.attention import attend_pool
 from roguenerf.ops.attention import pool as pool_neighbours
 from roguenerf.ops.backend import Body, pick
+from roguenerf.ops.filters import gaussian_blur, spatial_gradient
 from roguenerf.ops.flow import gru_gates, upsample_warp, warp
 from roguenerf.ops.flow import pool as pool_flow
 from roguenerf.ops.flow import upsample as upsample_flow
@@ -45,6 +48,6 @@ from roguenerf.ops.reproject import pack_channels, reproject, sample
 from roguenerf.ops.uformer import leff, lewin_block, window_attention
 
 __all__ = ["Body", "attend_pool", "cat_channels", "cat_channels_last", "channels_last", "conv2d", "conv3x3",
-           "conv_act", "flow", "gru_gates", "leff", "lewin_block", "linear", "linear_add", "pack_channels", "pick",
-           "pool_flow", "pool_neighbours", "reproject", "sample", "upsample_flow", "upsample_warp", "warp",
-           "window_attention"]
+           "conv_act", "flow", "gaussian_blur", "gru_gates", "leff", "lewin_block", "linear", "linear_add",
+           "pack_channels", "pick", "pool_flow", "pool_neighbours", "reproject", "sample", "spatial_gradient",
+           "upsample_flow", "upsample_warp", "warp", "window_attention"]

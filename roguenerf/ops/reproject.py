@@ -11,9 +11,6 @@ from __future__ import annotations
 import functools
 
 import torch
-from kornia.geometry.grid import create_meshgrid
-from kornia.geometry.linalg import transform_points
-from kornia.geometry.transform import remap
 from torch import Tensor
 
 from roguenerf import native
@@ -50,6 +47,8 @@ def sample(source: Tensor, x: Tensor, y: Tensor, *, padding: str = "border") -> 
     path; kornia's ``remap`` (``grid_sample``, align_corners=True) otherwise."""
     if pick(source).fast:
         return bilinear_sample(source, x, y, padding=padding)
+    from kornia.geometry.transform import remap  # not imported on the fast path (0.3 s of start-up)
+
     return remap(source, x, y, mode="bilinear", padding_mode=padding, align_corners=True)
 
 
@@ -63,6 +62,8 @@ def _pixel_centres(h: int, w: int, device, dtype) -> Tensor:
 
 @functools.lru_cache(maxsize=16)
 def _make_pixel_centres(h: int, w: int, device: str, dtype) -> Tensor:
+    from kornia.geometry.grid import create_meshgrid
+
     pix = create_meshgrid(h, w, normalized_coordinates=False, device=device, dtype=dtype) + 0.5
     return torch.cat([pix, torch.ones_like(pix[..., :1])], dim=-1)
 
@@ -72,6 +73,8 @@ def project_reference(dst_depth: Tensor, src_from_dst: Tensor, src_K: Tensor, ds
     """Target pixels into the neighbour: ``valid`` ``(B, H, W)`` bool (known target depth, in
     front, inside), ``coords`` ``(B, H, W, 2)``, ``sample_at`` (coords, 0 where not valid) and
     ``z_proj`` ``(B, H, W)`` (1 where not in front)."""
+    from kornia.geometry.linalg import transform_points
+
     B, H, W = dst_depth.shape[0], *dst_depth.shape[-2:]
     Hs, Ws = src_size
     device = dst_depth.device

@@ -146,6 +146,20 @@ def test_enhance_writes_the_png(scene_dir, checkpoint, tmp_path):
     assert bad.exit_code == 2 and "nope" in bad.stderr
 
 
+def test_enhance_never_imports_kornia(scene_dir, checkpoint, tmp_path):
+    """Issue 51: importing kornia imports all of it, 0.3 s of a one-view command on 2 cores; a
+    request (pose fits, reprojection, model, colour, trust) runs on roguenerf.ops' torch bodies."""
+    out = tmp_path / "enhanced.png"
+    code = ("import sys\nfrom roguecli import app\ntry:\n"
+            f"    app(['enhance', {str(scene_dir)!r}, '--view', 'test_001', '--checkpoint', {str(checkpoint)!r},"
+            f" '--output', {str(out)!r}])\nexcept SystemExit as exc:\n    assert not exc.code, exc.code\n"
+            "print('aligned' if 'roguenerf.enhance.align' in sys.modules else 'not aligned', "
+            "'kornia' in sys.modules)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and out.exists(), proc.stdout + proc.stderr
+    assert proc.stdout.strip().splitlines()[-1] == "aligned False", proc.stdout + proc.stderr
+
+
 def test_enhance_tile_is_the_libraries_tile(scene_dir, checkpoint, tmp_path):
     """``--tile`` (issue 51: larger tiles are faster at full HD, and take more memory) is
     EnhanceOptions.tile: the same image as the library's tiled enhancement; bad sizes are refused."""

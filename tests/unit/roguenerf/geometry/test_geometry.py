@@ -188,3 +188,29 @@ def test_angular_distance_sensible_at_gimbal_lock(pitch):
     assert near < 0.02
     assert far > 0.15
     assert angular_distance(locked, locked) == 0.0
+
+
+def test_axis_angle_to_matrix_is_kornias_and_exact_near_zero():
+    import kornia
+
+    from roguenerf.geometry.noise import axis_angle_to_matrix
+
+    g = torch.Generator().manual_seed(5)
+    axes = torch.nn.functional.normalize(torch.randn(64, 3, generator=g, dtype=torch.float64), dim=-1)
+    angles = torch.cat([torch.logspace(-9, -3, 16, dtype=torch.float64),
+                        torch.linspace(0.01, 3.1, 48, dtype=torch.float64)])
+    rotvec = axes * angles[:, None]
+    R = axis_angle_to_matrix(rotvec.reshape(8, 8, 3))
+    assert R.shape == (8, 8, 3, 3) and R.dtype == torch.float64
+    R = R.reshape(64, 3, 3)
+    expected = kornia.geometry.conversions.axis_angle_to_rotation_matrix(rotvec)
+    assert torch.allclose(R, expected, atol=1e-12, rtol=0)
+    eye = torch.eye(3, dtype=torch.float64).expand(64, 3, 3)
+    assert torch.allclose(R @ R.transpose(-1, -2), eye, atol=1e-14, rtol=0)  # proper rotations
+    assert torch.allclose(torch.linalg.det(R), torch.ones(64, dtype=torch.float64), atol=1e-14, rtol=0)
+    # the angle about z: a quarter turn takes x to y, and a rotation keeps its own axis
+    quarter = axis_angle_to_matrix(torch.tensor([0.0, 0.0, math.pi / 2], dtype=torch.float64))
+    assert torch.allclose(quarter @ torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64),
+                          torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), atol=1e-15)
+    assert torch.allclose((R @ axes[..., None])[..., 0], axes, atol=1e-14, rtol=0)
+    assert torch.equal(axis_angle_to_matrix(torch.zeros(3)), torch.eye(3, dtype=torch.float64))

@@ -1,0 +1,72 @@
+"""Small image filters of the pose fits and the colour stage, each with two bodies: plain torch
+convolutions (every body but the reference) and kornia's (the reference, inside
+:func:`~roguenerf.fastpath.reference_mode`; the ground truth of
+``tests/unit/roguenerf/test_filters.py``).
+
+The torch bodies exist for the start-up time, not the filtering: importing kornia imports all
+of it (augmentation, feature, contrib ...), 0.3 s of a one-view command's wall-clock on
+2 cores, and these two filters are all that a request needs of it.
+Legend: B batch, C channels, (H, W) image size.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from roguenerf.ops.backend import Body, pick
+
+
+@functools.lru_cache(maxsize=32)
+def _gaussian_taps(size: int, sigma: float) -> Tensor:
+    """``(size,)`` float64 normalised Gaussian taps centred on the middle one (kornia's kernel:
+    ``exp(-x^2 / (2 sigma^2))`` at integer offsets, divided by its sum)."""
+    x = torch.arange(size, dtype=torch.float64) - size // 2
+    taps = torch.exp(-x.square() / (2.0 * sigma * sigma))
+    return taps / taps.sum()
+
+
+def _separable(x: Tensor, taps_y: Tensor, taps_x: Tensor, border: str) -> Tensor:
+    """``x`` ``(B, C, H, W)`` filtered (cross-correlation, like ``conv2d``) by the outer product of
+    ``taps_y`` and ``taps_x``, each channel on its own, edges padded by ``border`` (torch's
+    ``F.pad`` mode: replicate, reflect)."""
+    b, c, h, w = x.shape
+    ky, kx = taps_y.numel(), taps_x.numel()
+    flat = x.reshape(b * c, 1, h, w)
+    padded = F.pad(flat, (kx // 2, kx // 2, ky // 2, ky // 2), mode=border)
+    out = F.conv2d(padded, taps_x.to(x.dtype).view(1, 1, 1, kx))
+    out = F.conv2d(out, taps_y.to(x.dtype).view(1, 1, ky, 1))
+    return out.reshape(b, c, h, w)
+
+
+def gaussian_blur(x: Tensor, size: int, sigma: float, *, border: str = "replicate") -> Tensor:
+    """``x`` ``(B, C, H, W)`` blurred by a ``size`` x ``size`` Gaussian of ``sigma`` pixels,
+    edges padded by ``border`` (``replicate`` or ``reflect``): kornia's
+    ``gaussian_blur2d(x, (size, size), (sigma, sigma), border_type=border)``, separably.
+    ``size`` odd."""
+    if size < 1 or size % 2 == 0:
+        raise ValueError(f"gaussian_blur: expected an odd size, got {size}")
+    if pick(x) is Body.REFERENCE:
+        from kornia.filters import gaussian_blur2d
+
+        return gaussian_blur2d(x, (size, size), (sigma, sigma), border_type=border)
+    taps = _gaussian_taps(int(size), float(sigma))
+    return _separable(x, taps, taps, border)
+
+
+def spatial_gradient(x: Tensor) -> Tensor:
+    """``(B, C, 2, H, W)``: the central differences ``(x[u + 1] - x[u - 1]) / 2`` along the width
+    (index 0) and the height (index 1), edges repeated: kornia's
+    ``spatial_gradient(x, mode="diff", order=1, normalized=True)``."""
+    if pick(x) is Body.REFERENCE:
+        from kornia.filters import spatial_gradient as kornia_gradient
+
+        return kornia_gradient(x, mode="diff", order=1, normalized=True)
+    b, c, h, w = x.shape
+    p = F.pad(x.reshape(b * c, 1, h, w), (1, 1, 1, 1), mode="replicate")[:, 0]
+    gx = (p[:, 1:-1, 2:] - p[:, 1:-1, :-2]) * 0.5
+    gy = (p[:, 2:, 1:-1] - p[:, :-2, 1:-1]) * 0.5
+    return torch.stack([gx, gy], dim=1).reshape(b, c, 2, h, w)

@@ -1,0 +1,66 @@
+"""The torch bodies of roguenerf.ops.filters against kornia's filters (the reference) and known answers."""
+
+import pytest
+import torch
+from kornia.filters import gaussian_blur2d
+from kornia.filters import spatial_gradient as kornia_gradient
+
+from roguenerf.fastpath import reference_mode
+from roguenerf.ops.filters import gaussian_blur, spatial_gradient
+
+
+@pytest.fixture
+def image():
+    g = torch.Generator().manual_seed(3)
+    return torch.rand(2, 3, 17, 23, generator=g)
+
+
+@pytest.mark.parametrize("size,sigma", [(3, 0.5), (7, 1.0), (13, 2.0), (5, 3.0)])
+@pytest.mark.parametrize("border", ["replicate", "reflect"])
+def test_blur_is_kornias(image, size, sigma, border):
+    expected = gaussian_blur2d(image, (size, size), (sigma, sigma), border_type=border)
+    with torch.no_grad():
+        got = gaussian_blur(image, size, sigma, border=border)
+    assert got.shape == image.shape
+    assert torch.allclose(got, expected, atol=2e-6)
+
+
+def test_blur_keeps_a_constant_and_the_mass_of_a_spike():
+    flat = torch.full((1, 2, 9, 11), 0.37)
+    assert torch.allclose(gaussian_blur(flat, 7, 1.5), flat, atol=1e-7)
+    spike = torch.zeros(1, 1, 15, 15)
+    spike[0, 0, 7, 7] = 1.0
+    out = gaussian_blur(spike, 5, 1.0)
+    assert out.sum().item() == pytest.approx(1.0, abs=1e-6)  # no mass reaches the edges
+    assert out[0, 0, 7, 7] == out.max()
+    assert torch.allclose(out[0, 0], out[0, 0].T, atol=1e-7)
+
+
+def test_blur_refuses_an_even_size(image):
+    with pytest.raises(ValueError, match="odd"):
+        gaussian_blur(image, 4, 1.0)
+
+
+def test_gradient_is_kornias(image):
+    with torch.no_grad():
+        got = spatial_gradient(image)
+    assert torch.allclose(got, kornia_gradient(image, mode="diff", order=1, normalized=True), atol=1e-7)
+
+
+def test_gradient_of_a_ramp():
+    # x = 2u + 5v: central differences give 2 and 5 inside, half that on the repeated edges
+    v, u = torch.meshgrid(torch.arange(6.0), torch.arange(8.0), indexing="ij")
+    g = spatial_gradient((2 * u + 5 * v)[None, None])[0, 0]
+    assert torch.equal(g[0, :, 1:-1], torch.full((6, 6), 2.0))
+    assert torch.equal(g[0, :, 0], torch.full((6,), 1.0))
+    assert torch.equal(g[1, 1:-1], torch.full((4, 8), 5.0))
+    assert torch.equal(g[1, -1], torch.full((8,), 2.5))
+
+
+def test_reference_mode_runs_kornia_and_gradients_flow(image):
+    with reference_mode():
+        ref = gaussian_blur(image, 7, 1.0)
+    assert torch.equal(ref, gaussian_blur2d(image, (7, 7), (1.0, 1.0), border_type="replicate"))
+    x = image.clone().requires_grad_(True)
+    spatial_gradient(gaussian_blur(x, 5, 1.0)).square().sum().backward()
+    assert x.grad is not None and torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
