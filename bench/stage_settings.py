@@ -7,10 +7,11 @@ columns. CSV + plot with date, machine and commit; ``colour`` and ``trust`` also
 per setting. A scene folder may name the checkpoint to use for it (``FOLDER=CHECKPOINT``: a
 fine-tuned model; labelled ``(fine-tuned)``), else ``--checkpoint``.
 
-``align`` (neighbour pose refinement; ``--settings off,on``): for each ``--noise`` level
+``align`` (neighbour pose refinement; ``--settings off,on[,earlyX]``): for each ``--noise`` level
 (Gaussian noise on the training views' poses only, as ``bench/kinds.py``) every test view is
 enhanced with pose refinement off and on, in alternation (so both see the same machine load):
-seconds per view and the share of neighbours whose fit was kept. ``--max-rotation`` and
+seconds per view and the share of neighbours whose fit was kept. ``earlyX`` (e.g.
+``early0.03``) is on with :attr:`~roguenerf.enhance.align.AlignConfig.early_refusal` = X. ``--max-rotation`` and
 ``--max-translation`` set the fit's trust region.
 
 ``colour`` (``--settings`` of :class:`~roguenerf.enhance.colour.ColourConfig`: ``off``,
@@ -65,14 +66,32 @@ def _specs(text: str) -> list[str]:
     return out
 
 
-def align_settings(text: str) -> list[bool]:
-    """``off`` and / or ``on``: pose refinement per view, in that order."""
+def align_settings(text: str) -> list[str]:
+    """``off``, ``on`` and / or ``earlyX`` (X a share in (0, 1)): pose refinement per view, in that order."""
     out = []
     for c in _specs(text):
-        if c not in ("off", "on"):
-            raise argparse.ArgumentTypeError(f"--settings: {c!r} is neither off nor on")
-        out.append(c == "on")
+        if c.startswith("early"):
+            try:
+                x = float(c[len("early"):])
+            except ValueError:
+                x = float("nan")
+            if not 0 < x < 1:
+                raise argparse.ArgumentTypeError(f"--settings: {c!r}: expected earlyX with X in (0, 1), e.g. early0.03")
+        elif c not in ("off", "on"):
+            raise argparse.ArgumentTypeError(f"--settings: {c!r} is none of off, on, earlyX")
+        out.append(c)
     return out
+
+
+def _align_config(setting: str, **trust):
+    """The AlignConfig of an ``align_settings`` entry (None: off). ``on`` is the shipped one."""
+    from roguenerf.enhance.align import AlignConfig
+
+    if setting == "off":
+        return None
+    if setting.startswith("early"):
+        return AlignConfig(early_refusal=float(setting[len("early"):]), **trust)
+    return AlignConfig(**trust)
 
 
 def colour_config(spec: str):
@@ -198,10 +217,11 @@ def _align_rows(args, clean, model, checkpoint: Path, head: dict) -> list[dict]:
     rows = []
     for k, (deg, share) in enumerate(args.noise):
         scene = clean if deg == 0 and share == 0 else noisy_scene(clean, deg, share, seed=1000 + k)
-        enhancers = {False: SceneEnhancer(scene, model, options=EnhanceOptions(align=None)),
-                     True: SceneEnhancer(scene, model, options=EnhanceOptions(align=config))}
+        enhancers = {a: SceneEnhancer(scene, model, options=EnhanceOptions(align=_align_config(a, **trust)))
+                     for a in args.settings}
         for i in _views(scene, args.max_views):
-            enhancers[False].enhance_view(i)  # warm both neighbour caches: time the request, not the cache
+            for enhancer in enhancers.values():  # warm each neighbour cache: time the request, not the cache
+                enhancer.enhance_view(i)
             view = _View(scene, i)
             for align in args.settings:
                 t0 = time.perf_counter()
@@ -212,7 +232,8 @@ def _align_rows(args, clean, model, checkpoint: Path, head: dict) -> list[dict]:
                              "aligned_share": (round(sum(result.aligned) / len(result.aligned), 3)
                                                if result.aligned else 0.0),
                              "checkpoint": checkpoint.name, "max_rotation_deg": config.max_rotation_deg,
-                             "max_translation": config.max_translation})
+                             "max_translation": config.max_translation,
+                             "early_refusal": float(align[len("early"):]) if align.startswith("early") else 0.0})
                 print(f"{head['scene']} {deg:g}/{share:g} {view.frame.name} align={align}: "
                       f"{seconds:.2f} s, gain {rows[-1]['gain_db']:+.3f} dB", flush=True)
     return rows
@@ -337,18 +358,21 @@ def _pyplot():
 
 def plot_align(rows: list[dict], path: Path) -> Path:
     plt = _pyplot()
-    groups: dict[tuple, dict[bool, list[dict]]] = {}
+    settings = list(dict.fromkeys(r["align"] for r in rows))
+    groups: dict[tuple, dict[str, list[dict]]] = {}
     for r in rows:
-        groups.setdefault((r["scene"], r["noise_deg"], r["noise_share"]), {False: [], True: []})[r["align"]].append(r)
+        groups.setdefault((r["scene"], r["noise_deg"], r["noise_share"]), {a: [] for a in settings})[r["align"]].append(r)
     labels = [f"{s}\n{d:g}°/{sh:.0%}" for s, d, sh in groups]
     fig, (gain, speed) = plt.subplots(1, 2, figsize=(max(8, 1.6 * len(labels) + 2), 4.2))
     x = range(len(labels))
-    for offset, align in ((-0.2, False), (0.2, True)):
+    width = 0.8 / len(settings)
+    for j, align in enumerate(settings):
+        offset = (j - (len(settings) - 1) / 2) * width
         mean = [sum(r["gain_db"] for r in g[align]) / max(1, len(g[align])) for g in groups.values()]
         secs = [sum(r["seconds"] for r in g[align]) / max(1, len(g[align])) for g in groups.values()]
-        name = "pose refinement on" if align else "off"
-        gain.bar([i + offset for i in x], mean, width=0.4, label=name)
-        speed.bar([i + offset for i in x], secs, width=0.4, label=name)
+        name = {"on": "pose refinement on", "off": "off"}.get(align, f"on, {align[len('early'):]} early refusal")
+        gain.bar([i + offset for i in x], mean, width=width, label=name)
+        speed.bar([i + offset for i in x], secs, width=width, label=name)
     gain.axhline(0, color="k", lw=0.8)
     gain.set_ylabel("mean PSNR gain over the render (dB)")
     speed.set_ylabel("seconds per view")

@@ -65,6 +65,10 @@ class AlignConfig:
     fits cost up to 0.7 dB on our own `coarse` look); a wrong pose's fit gains 10-75 %."""
     charbonnier: float = 0.01
     """Scale of the Charbonnier penalty ``sqrt(r^2 + c^2) - c`` on colour differences in [0, 1]."""
+    early_refusal: float = 0.0
+    """Pay for the finest level only where the fit may be kept: once the level before it has
+    lowered its own error by less than this share (judged like the final decision, on the
+    pixels both poses see), the fit stops there and is refused. 0 fits every level."""
 
 
 @dataclass
@@ -79,6 +83,11 @@ class Alignment:
     error_before: float
     """Photometric error at the finest level with the given pose (nan where nothing overlaps)."""
     error_after: float
+    coarse_gain: float = float("nan")
+    """Share by which the level before the finest lowered its error (on the pixels both poses
+    see there); nan with a single level."""
+    stopped_early: bool = False
+    """Refused by :attr:`AlignConfig.early_refusal` before the finest level was fitted."""
 
 
 def _area(x: Tensor, size: tuple[int, int]) -> Tensor:
@@ -287,7 +296,23 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
         if int(counted_finest.sum()) < 64:
             return unchanged()
         pose = start
-        for level in levels:
+        coarse_gain = float("nan")
+        for k, level in enumerate(levels):
+            if k == len(levels) - 1 and k > 0:
+                # The level before the finest, judged as the final decision is: its error with
+                # the dataset pose and with the fitted one, on the pixels both see.
+                coarse = levels[k - 1]
+                c_start, c_seen = coarse.sample(start)
+                c_now, c_seen_now = coarse.sample(pose)
+                both = c_seen & c_seen_now
+                c_before, c_after = coarse.error(c_start, both, both, c), coarse.error(c_now, both, both, c)
+                if math.isfinite(c_before) and c_before > 0 and math.isfinite(c_after):
+                    coarse_gain = 1.0 - c_after / c_before
+                if config.early_refusal > 0 and not coarse_gain >= config.early_refusal:
+                    before = finest.error(start_sampled, counted_finest, counted_finest, c)
+                    return Alignment(world_from_cam=world_from_photo, accepted=False, rotation_deg=0.0,
+                                     translation=0.0, error_before=before, error_after=before,
+                                     coarse_gain=coarse_gain, stopped_early=True)
             sampled, counted = level.sample(pose)
             if int(counted.sum()) < 16:
                 continue
@@ -336,9 +361,10 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
     if not ok:
         out = unchanged(before)
         out.rotation_deg, out.translation, out.error_after = rotation_deg, translation, after
+        out.coarse_gain = coarse_gain
         return out
     photo_from_cam = pose.clone()
     photo_from_cam[:3, 3] *= scale
     refined = world_from_cam.cpu() @ torch.linalg.inv(photo_from_cam)
     return Alignment(world_from_cam=refined.to(world_from_photo.device), accepted=True, rotation_deg=rotation_deg,
-                     translation=translation, error_before=before, error_after=after)
+                     translation=translation, error_before=before, error_after=after, coarse_gain=coarse_gain)

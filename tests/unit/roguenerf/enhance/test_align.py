@@ -186,3 +186,29 @@ def test_the_small_copies_are_a_bounded_cache(tmp_path, monkeypatch):
         enhancer.enhance_view(i)
         assert len(enhancer._small) <= 3
     assert len(enhancer._small) == 3
+
+
+# --- issue 51: the finest level is paid for only where the fit may be kept -------------------------
+
+
+@pytest.mark.parametrize("deg,share,seed", [(0.25, 0.02, 1), (0.5, 0.05, 2)])
+def test_early_refusal_keeps_every_fit_of_a_wrong_pose(views, deg, share, seed):
+    spread = float(views["poses"][:, :3, 3].std(dim=0).norm())
+    wrong = perturb_poses(views["neighbour"], deg, share * spread, torch.Generator().manual_seed(seed))
+    full, early = fit(views, wrong), fit(views, wrong, early_refusal=0.03)
+    assert full.accepted and early.accepted and not early.stopped_early
+    assert full.coarse_gain > 0.1  # the level before the finest already sees the wrong pose
+    assert torch.equal(early.world_from_cam, full.world_from_cam)  # the same fit, to the bit
+    assert early.coarse_gain == full.coarse_gain
+
+
+def test_early_refusal_stops_a_fit_with_nothing_to_find(views):
+    full = fit(views, views["neighbour"], levels=(32, 64, 128))
+    early = fit(views, views["neighbour"], levels=(32, 64, 128), early_refusal=0.5)
+    assert not full.stopped_early and math.isfinite(full.coarse_gain) and full.coarse_gain < 0.5
+    assert early.stopped_early and not early.accepted
+    assert torch.equal(early.world_from_cam, views["neighbour"])
+    assert early.error_after == early.error_before == pytest.approx(full.error_before, rel=1e-3)  # all it sees
+    assert early.coarse_gain == full.coarse_gain
+    one_level = fit(views, views["neighbour"], levels=(64,), early_refusal=0.5)  # no level before the finest
+    assert not one_level.stopped_early and math.isnan(one_level.coarse_gain)
