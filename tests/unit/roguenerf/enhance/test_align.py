@@ -195,7 +195,7 @@ def test_the_small_copies_are_a_bounded_cache(tmp_path, monkeypatch):
 def test_early_refusal_keeps_every_fit_of_a_wrong_pose(views, deg, share, seed):
     spread = float(views["poses"][:, :3, 3].std(dim=0).norm())
     wrong = perturb_poses(views["neighbour"], deg, share * spread, torch.Generator().manual_seed(seed))
-    full, early = fit(views, wrong), fit(views, wrong, early_refusal=0.03)
+    full, early = fit(views, wrong, early_refusal=0.0), fit(views, wrong)  # the default refuses early
     assert full.accepted and early.accepted and not early.stopped_early
     assert full.coarse_gain > 0.1  # the level before the finest already sees the wrong pose
     assert torch.equal(early.world_from_cam, full.world_from_cam)  # the same fit, to the bit
@@ -203,7 +203,7 @@ def test_early_refusal_keeps_every_fit_of_a_wrong_pose(views, deg, share, seed):
 
 
 def test_early_refusal_stops_a_fit_with_nothing_to_find(views):
-    full = fit(views, views["neighbour"], levels=(32, 64, 128))
+    full = fit(views, views["neighbour"], levels=(32, 64, 128), early_refusal=0.0)
     early = fit(views, views["neighbour"], levels=(32, 64, 128), early_refusal=0.5)
     assert not full.stopped_early and math.isfinite(full.coarse_gain) and full.coarse_gain < 0.5
     assert early.stopped_early and not early.accepted
