@@ -17,7 +17,8 @@ scene, checkpoint). With ``--cli`` the one-view command as a user runs it (``rog
 defaults) is timed too: its wall-clock beside the view time it prints.
 
 Settings: ``defaults``, ``no-align``, ``no-colour``, ``no-trust``, ``neighbours=N``, ``tile=PX`` (the
-tile size, ``EnhanceOptions.tile``), ``cache=MiB``
+tile size, ``EnhanceOptions.tile``), ``early=SHARE`` (the pose fits'
+``AlignConfig.early_refusal``; ``early=0`` fits every level), ``cache=MiB``
 (the neighbour cache's budget, ``SceneEnhancer(cache_bytes=)``); several switches joined by ``+``
 (``no-align+no-trust``).
 
@@ -53,6 +54,7 @@ import torch
 from roguenerf.checkpoint import default_checkpoint_path, load_checkpoint
 from roguenerf.data.readers import load_scene
 from roguenerf.enhance import EnhanceOptions
+from roguenerf.enhance.align import AlignConfig
 from roguenerf.inference import SceneEnhancer
 from roguenerf.metrics import psnr
 
@@ -98,11 +100,15 @@ def parse_setting(text: str) -> tuple[dict, dict]:
             flags["neighbours"] = int(part.split("=", 1)[1])
         elif part.startswith("tile="):
             flags["tile"] = int(part.split("=", 1)[1])
+        elif part.startswith("early="):
+            from roguenerf.enhance.align import AlignConfig
+
+            flags["align"] = AlignConfig(early_refusal=float(part.split("=", 1)[1]))
         elif part.startswith("cache="):
             extra["cache_bytes"] = int(float(part.split("=", 1)[1]) * 2**20)
         else:
             raise SystemExit(f"--settings: unknown switch {part!r} (defaults, no-align, no-colour, no-trust, "
-                             "neighbours=N, tile=PX, cache=MiB, joined by +)")
+                             "neighbours=N, tile=PX, cache=MiB, early=SHARE, joined by +)")
     return flags, extra
 
 

@@ -41,6 +41,11 @@ def test_settings_and_sizes_are_checked():
     assert sizes.parse_setting("defaults") == ({}, {})
     assert sizes.parse_setting("no-align+no-trust+neighbours=3+cache=0.5") == (
         {"align": False, "trust": False, "neighbours": 3}, {"cache_bytes": 2**19})
+    from roguenerf.enhance.align import AlignConfig
+
+    flags, _ = sizes.parse_setting("early=0")
+    assert flags == {"align": AlignConfig(early_refusal=0.0)}
+    assert eval(repr(flags), {"AlignConfig": AlignConfig}) == flags  # what the child process reads
     with pytest.raises(SystemExit, match="unknown switch 'no-model'"):
         sizes.parse_setting("no-model")
     assert sizes.parse_size("1920x1080") == (1920, 1080)
