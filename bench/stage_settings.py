@@ -361,7 +361,8 @@ def plot_align(rows: list[dict], path: Path) -> Path:
     settings = list(dict.fromkeys(r["align"] for r in rows))
     groups: dict[tuple, dict[str, list[dict]]] = {}
     for r in rows:
-        groups.setdefault((r["scene"], r["noise_deg"], r["noise_share"]), {a: [] for a in settings})[r["align"]].append(r)
+        group = groups.setdefault((r["scene"], r["noise_deg"], r["noise_share"]), {a: [] for a in settings})
+        group[r["align"]].append(r)
     labels = [f"{s}\n{d:g}°/{sh:.0%}" for s, d, sh in groups]
     fig, (gain, speed) = plt.subplots(1, 2, figsize=(max(8, 1.6 * len(labels) + 2), 4.2))
     x = range(len(labels))

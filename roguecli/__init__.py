@@ -39,4 +39,4 @@ app.command("serve")(serve.serve)
 
 def main() -> None:
     """Console-script entry point (``roguenerf``; ``python -m roguecli``)."""
-    run_app(app)
+    run_app(app, fast_exit=True)

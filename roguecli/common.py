@@ -13,12 +13,14 @@ quick, and the library's defaults read here come from torch-free modules.
 from __future__ import annotations
 
 import _thread
+import atexit
 import contextlib
 import dataclasses
 import functools
 import gc
 import inspect
 import logging
+import os
 import signal
 import sys
 import threading
@@ -167,10 +169,41 @@ def _on_interrupt(signum, frame) -> None:
     timer.start()
 
 
-def run_app(typer_app) -> None:
+_done: dict = {"exit_now": False}
+"""Whether the command that ran has closed everything it made (:func:`exit_when_done`)."""
+
+
+def exit_when_done() -> None:
+    """Called by a command once everything it makes is written and closed (a one-view
+    ``enhance``): the process may end without tearing the interpreter down (:func:`run_app`)."""
+    _done["exit_now"] = True
+
+
+def _exit_now() -> None:
+    """End the process with status 0 now: the atexit handlers run, logging and the standard
+    streams are flushed, then ``os._exit`` skips the interpreter's teardown (freeing torch's
+    modules and objects one by one: 0.13-0.17 s of a one-view command on 2 cores, issue 51)."""
+    atexit._run_exitfuncs()
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):  # a closed pipe: nothing more can be said
+            stream.flush()
+    os._exit(0)
+
+
+def _may_exit_now(code) -> bool:
+    """A command said it is done, it succeeded, and no other thread would be cut short."""
+    return (_done["exit_now"] and code in (0, None) and threading.current_thread() is threading.main_thread()
+            and all(t.daemon or t is threading.main_thread() for t in threading.enumerate()))
+
+
+def run_app(typer_app, *, fast_exit: bool = False) -> None:
     """Run ``typer_app``; Ctrl-C outside a command's error handling (typer exits 130 silently) gets
-    its one line too, and never lands inside an import (:func:`_on_interrupt`)."""
+    its one line too, and never lands inside an import (:func:`_on_interrupt`). With
+    ``fast_exit`` (the console script's process, never a caller that goes on), a command that
+    called :func:`exit_when_done` and succeeded ends the process at once (:func:`_exit_now`)."""
     _reported["interrupted"] = False
+    _done["exit_now"] = False
     handled = threading.current_thread() is threading.main_thread() and \
         signal.getsignal(signal.SIGINT) is signal.default_int_handler  # not where SIGINT is ignored
     if handled:
@@ -188,6 +221,8 @@ def run_app(typer_app) -> None:
     except SystemExit as exc:
         if exc.code == INTERRUPTED and not _reported["interrupted"]:
             typer.echo("error: interrupted", err=True)
+        if fast_exit and _may_exit_now(exc.code):
+            _exit_now()
         raise
     finally:
         _started()

@@ -11,6 +11,7 @@ import typer
 from roguecli.common import (
     CheckpointOpt,
     EnhanceFlags,
+    exit_when_done,
     handle_errors,
     load_model,
     open_scene,
@@ -102,3 +103,4 @@ def enhance(
         if result.note:
             typer.echo(f"note: {result.note}", err=True)
         typer.echo(str(output))
+        exit_when_done()  # the PNG is written and closed: no interpreter teardown (issue 51)

@@ -160,6 +160,52 @@ def test_enhance_never_imports_kornia(scene_dir, checkpoint, tmp_path):
     assert proc.stdout.strip().splitlines()[-1] == "aligned False", proc.stdout + proc.stderr
 
 
+EXIT_PROBE = r"""
+import atexit, sys, threading
+from pathlib import Path
+marks = Path(sys.argv[1])
+atexit.register(lambda: (marks / "atexit").write_text("ran"))
+# run by the interpreter's own shutdown (threading._shutdown, before it joins the threads),
+# which os._exit skips
+threading._register_atexit(lambda: (marks / "teardown").write_text("ran"))
+if sys.argv[2] == "thread":  # a non-daemon thread still at work when the command ends
+    shutdown = threading.Event()
+    threading._register_atexit(shutdown.set)
+    threading.Thread(target=lambda: (shutdown.wait(), (marks / "thread").write_text("done"))).start()
+from roguecli import main
+sys.argv = ["roguenerf", *sys.argv[3:]]
+main()
+"""
+
+
+@pytest.mark.parametrize("thread", ["none", "thread"])
+def test_enhance_ends_the_process_at_once_and_loses_nothing(scene_dir, checkpoint, tmp_path, thread):
+    """Issue 51: a one-view ``enhance`` skips the interpreter's teardown (``os._exit`` once its PNG
+    is written and closed): the atexit handlers still run, every line is printed, the PNG is
+    whole, and a non-daemon thread still running gets its normal exit instead."""
+    from roguenerf.imageio import read_image
+
+    out = tmp_path / "enhanced.png"
+    proc = subprocess.run([sys.executable, "-c", EXIT_PROBE, str(tmp_path), thread, "enhance", str(scene_dir),
+                           "--view", "test_001", "--checkpoint", str(checkpoint), "--output", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip().splitlines() == [str(out)] and "enhanced test_001 in" in proc.stderr
+    assert (tmp_path / "atexit").read_text() == "ran"
+    assert (tmp_path / "thread").exists() == (thread == "thread")  # never cut short
+    assert (tmp_path / "teardown").exists() == (thread == "thread")  # no teardown unless a thread runs
+    model, _ = load_checkpoint(checkpoint)
+    from roguenerf.data.readers import load_scene
+    from roguenerf.inference import SceneEnhancer
+
+    expected = SceneEnhancer(load_scene(scene_dir), model).enhance_view("test_001").image
+    assert float((read_image(out) - expected).abs().max()) <= 1 / 255 + 1e-6
+    bad = subprocess.run([sys.executable, "-c", EXIT_PROBE, str(tmp_path), "none", "enhance", str(scene_dir),
+                          "--view", "nope", "--checkpoint", str(checkpoint), "--output", str(out)],
+                         capture_output=True, text=True, timeout=300)
+    assert bad.returncode == 2 and "nope" in bad.stderr  # a failure exits as before
+
+
 def test_enhance_tile_is_the_libraries_tile(scene_dir, checkpoint, tmp_path):
     """``--tile`` (issue 51: larger tiles are faster at full HD, and take more memory) is
     EnhanceOptions.tile: the same image as the library's tiled enhancement; bad sizes are refused."""
