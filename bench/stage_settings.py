@@ -11,7 +11,8 @@ fine-tuned model; labelled ``(fine-tuned)``), else ``--checkpoint``.
 (Gaussian noise on the training views' poses only, as ``bench/kinds.py``) every test view is
 enhanced with pose refinement off and on, in alternation (so both see the same machine load):
 seconds per view and the share of neighbours whose fit was kept. ``earlyX`` (e.g.
-``early0.03``) is on with :attr:`~roguenerf.enhance.align.AlignConfig.early_refusal` = X. ``--max-rotation`` and
+``early0.03``; ``early0``: every level fitted) is on with
+:attr:`~roguenerf.enhance.align.AlignConfig.early_refusal` = X. ``--max-rotation`` and
 ``--max-translation`` set the fit's trust region.
 
 ``colour`` (``--settings`` of :class:`~roguenerf.enhance.colour.ColourConfig`: ``off``,
@@ -67,7 +68,8 @@ def _specs(text: str) -> list[str]:
 
 
 def align_settings(text: str) -> list[str]:
-    """``off``, ``on`` and / or ``earlyX`` (X a share in (0, 1)): pose refinement per view, in that order."""
+    """``off``, ``on`` and / or ``earlyX`` (X a share in [0, 1); ``early0`` fits every level): pose
+    refinement per view, in that order."""
     out = []
     for c in _specs(text):
         if c.startswith("early"):
@@ -75,8 +77,8 @@ def align_settings(text: str) -> list[str]:
                 x = float(c[len("early"):])
             except ValueError:
                 x = float("nan")
-            if not 0 < x < 1:
-                raise argparse.ArgumentTypeError(f"--settings: {c!r}: expected earlyX with X in (0, 1), e.g. early0.03")
+            if not 0 <= x < 1:
+                raise argparse.ArgumentTypeError(f"--settings: {c!r}: expected earlyX with X in [0, 1), e.g. early0.03")
         elif c not in ("off", "on"):
             raise argparse.ArgumentTypeError(f"--settings: {c!r} is none of off, on, earlyX")
         out.append(c)
@@ -233,7 +235,8 @@ def _align_rows(args, clean, model, checkpoint: Path, head: dict) -> list[dict]:
                                                if result.aligned else 0.0),
                              "checkpoint": checkpoint.name, "max_rotation_deg": config.max_rotation_deg,
                              "max_translation": config.max_translation,
-                             "early_refusal": float(align[len("early"):]) if align.startswith("early") else 0.0})
+                             "early_refusal": (enhancers[align].align.early_refusal
+                                               if enhancers[align].align is not None else None)})
                 print(f"{head['scene']} {deg:g}/{share:g} {view.frame.name} align={align}: "
                       f"{seconds:.2f} s, gain {rows[-1]['gain_db']:+.3f} dB", flush=True)
     return rows
