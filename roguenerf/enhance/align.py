@@ -72,8 +72,7 @@ class AlignConfig:
     level's gain follows the coarser one's to about 0.03 (dataset poses: 0.01-0.11 before,
     0.01-0.09 after), and a fit is kept only from :attr:`min_gain` = 0.10, so 0.05 was chosen on
     lego (6 views, no noise, 0.25° / 2 % and 0.5° / 5 %: every kept fit kept, 0.05 and 0.08
-    alike) and reported on ``ollie`` / fine (docs/results.md, *Pay for a pose fit only where it
-    may be kept*)."""
+    alike) and reported on ``ollie`` / fine (docs/results.md, *Speed at users' sizes*)."""
 
 
 @dataclass

@@ -4,8 +4,8 @@ convolutions (every body but the reference) and kornia's (the reference, inside
 ``tests/unit/roguenerf/test_filters.py``).
 
 The torch bodies exist for the start-up time, not the filtering: importing kornia imports all
-of it (augmentation, feature, contrib ...), 0.3 s of a one-view command's wall-clock on
-2 cores, and these two filters are all that a request needs of it.
+of it (augmentation, feature, contrib ...), 0.2-0.3 s of a one-view command's wall-clock on
+2 cores, and these two filters are all that a request needs of it. Any dtype and device.
 Legend: B batch, C channels, (H, W) image size.
 """
 
@@ -37,8 +37,8 @@ def _separable(x: Tensor, taps_y: Tensor, taps_x: Tensor, border: str) -> Tensor
     ky, kx = taps_y.numel(), taps_x.numel()
     flat = x.reshape(b * c, 1, h, w)
     padded = F.pad(flat, (kx // 2, kx // 2, ky // 2, ky // 2), mode=border)
-    out = F.conv2d(padded, taps_x.to(x.dtype).view(1, 1, 1, kx))
-    out = F.conv2d(out, taps_y.to(x.dtype).view(1, 1, ky, 1))
+    out = F.conv2d(padded, taps_x.to(x.device, x.dtype).view(1, 1, 1, kx))
+    out = F.conv2d(out, taps_y.to(x.device, x.dtype).view(1, 1, ky, 1))
     return out.reshape(b, c, h, w)
 
 

@@ -36,6 +36,14 @@ def test_blur_keeps_a_constant_and_the_mass_of_a_spike():
     assert torch.allclose(out[0, 0], out[0, 0].T, atol=1e-7)
 
 
+def test_float64_and_strided_inputs(image):
+    x = image.double().transpose(-1, -2)  # not contiguous
+    got = gaussian_blur(x, 5, 1.0)
+    assert got.dtype == torch.float64
+    assert torch.allclose(got, gaussian_blur2d(x, (5, 5), (1.0, 1.0), border_type="replicate"), atol=1e-12)
+    assert torch.allclose(spatial_gradient(x), kornia_gradient(x, mode="diff", order=1, normalized=True), atol=1e-12)
+
+
 def test_blur_refuses_an_even_size(image):
     with pytest.raises(ValueError, match="odd"):
         gaussian_blur(image, 4, 1.0)
