@@ -40,7 +40,7 @@ from roguenerf.geometry.depth import known_depth_mask, median_known_depth
 from roguenerf.geometry.euler import rotation_angle
 from roguenerf.geometry.noise import axis_angle_to_matrix
 from roguenerf.ops.filters import gaussian_blur, spatial_gradient
-from roguenerf.reprojection import reproject
+from roguenerf.reprojection import reproject, sampling_source
 
 
 @dataclass(frozen=True)
@@ -195,12 +195,15 @@ class _Level:
         self.photo_K = _scaled_K(photo_K, (Hs, Ws), to_s)
         # (h, w, 3) float32 target points (target frame, depth units): float64 rays first
         self.points = (_rays(self.K, to) * self.depth[0, 0, ..., None].to(torch.float64)).float()
+        # what every sample of this level reads from the neighbour (built once, not per sample)
+        self.source = sampling_source(self.stack, self.photo_depth)
 
     def sample(self, photo_from_cam: Tensor) -> tuple[Tensor, Tensor]:
         """``(9, h, w)`` photo colour and gradients reprojected with ``photo_from_cam`` (0 where not
         seen) and ``(h, w)`` bool: seen (target depth known, in front, inside, visible)."""
         rp = reproject(self.stack, self.photo_depth, self.depth, self.photo_K.float(), self.K.float(),
-                       torch.eye(4, dtype=torch.float64)[None], photo_from_cam[None], validated=True)
+                       torch.eye(4, dtype=torch.float64)[None], photo_from_cam[None], source=self.source,
+                       validated=True)
         return rp.features[0], rp.valid[0, 0] > 0
 
     def error(self, sampled: Tensor, seen: Tensor, counted: Tensor, c: float) -> float:
