@@ -310,13 +310,14 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
             return unchanged()
         pose = start
         coarse_gain = float("nan")
+        at_pose = None  # the last level's sample at ``pose`` and what it sees
         for k, level in enumerate(levels):
             if k == len(levels) - 1 and k > 0:
                 # The level before the finest, judged as the final decision is: its error with
                 # the dataset pose and with the fitted one, on the pixels both see.
                 coarse = levels[k - 1]
                 c_start, c_seen = coarse.sample(start)
-                c_now, c_seen_now = coarse.sample(pose)
+                c_now, c_seen_now = at_pose
                 both = c_seen & c_seen_now
                 c_before, c_after = coarse.error(c_start, both, both, c), coarse.error(c_now, both, both, c)
                 if math.isfinite(c_before) and c_before > 0 and math.isfinite(c_after):
@@ -327,6 +328,7 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
                                      translation=0.0, error_before=before, error_after=before,
                                      coarse_gain=coarse_gain, stopped_early=True)
             sampled, counted = level.sample(pose)
+            at_pose = (sampled, counted)
             if int(counted.sum()) < 16:
                 continue
             seen = counted
@@ -351,6 +353,7 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
                 if t_err < err:
                     converged = small or err - t_err < CONVERGED * err
                     pose, sampled, seen, err = trial, t_sampled, t_seen, t_err
+                    at_pose = (sampled, seen)
                     damping = max(damping / 10.0, 1e-6)
                     if converged:
                         break

@@ -29,16 +29,14 @@ def _gaussian_taps(size: int, sigma: float) -> Tensor:
     return taps / taps.sum()
 
 
-def _separable(x: Tensor, taps_y: Tensor, taps_x: Tensor, border: str) -> Tensor:
-    """``x`` ``(B, C, H, W)`` filtered (cross-correlation, like ``conv2d``) by the outer product of
-    ``taps_y`` and ``taps_x``, each channel on its own, edges padded by ``border`` (torch's
-    ``F.pad`` mode: replicate, reflect)."""
+def _separable(x: Tensor, taps: Tensor, border: str) -> Tensor:
+    """``x`` ``(B, C, H, W)`` filtered by the symmetric ``taps`` along the width, then the height,
+    each channel on its own, edges padded by ``border`` (torch's ``F.pad`` mode: replicate, reflect)."""
     b, c, h, w = x.shape
-    ky, kx = taps_y.numel(), taps_x.numel()
-    flat = x.reshape(b * c, 1, h, w)
-    padded = F.pad(flat, (kx // 2, kx // 2, ky // 2, ky // 2), mode=border)
-    out = F.conv2d(padded, taps_x.to(x.device, x.dtype).view(1, 1, 1, kx))
-    out = F.conv2d(out, taps_y.to(x.device, x.dtype).view(1, 1, ky, 1))
+    k = taps.numel()
+    taps = taps.to(x.device, x.dtype)
+    padded = F.pad(x.reshape(b * c, 1, h, w), (k // 2, k // 2, k // 2, k // 2), mode=border)
+    out = F.conv2d(F.conv2d(padded, taps.view(1, 1, 1, k)), taps.view(1, 1, k, 1))
     return out.reshape(b, c, h, w)
 
 
@@ -53,8 +51,7 @@ def gaussian_blur(x: Tensor, size: int, sigma: float, *, border: str = "replicat
         from kornia.filters import gaussian_blur2d
 
         return gaussian_blur2d(x, (size, size), (sigma, sigma), border_type=border)
-    taps = _gaussian_taps(int(size), float(sigma))
-    return _separable(x, taps, taps, border)
+    return _separable(x, _gaussian_taps(int(size), float(sigma)), border)
 
 
 def spatial_gradient(x: Tensor) -> Tensor:
