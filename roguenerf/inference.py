@@ -298,9 +298,10 @@ class SceneEnhancer:
                 continue
             if small is None:
                 small = shrink(render, depth, K, ALIGN_SIDE)
+                target = {}  # the view's levels, built by the first fit and read by the others
             photo, photo_depth, photo_K, levels = self._small_neighbour(p)
             fit = align_neighbour(photo, photo_depth, photo_K, poses[j], *small, world_from_cam, config=self.align,
-                                  cache=levels)
+                                  cache=levels, target_cache=target)
             poses[j] = fit.world_from_cam
             done.append(fit.accepted)
             if memory is not None:

@@ -170,14 +170,24 @@ class _Level:
     target's median depth, intrinsics scaled to the level."""
 
     def __init__(self, n: int, photo, photo_depth, photo_K, render, render_depth, K, scale: float, sigma: float,
-                 cache: dict | None = None):
+                 cache: dict | None = None, target_cache: dict | None = None):
         H, W = render.shape[-2:]
         Hs, Ws = photo.shape[-2:]
         f = n / max(H, W)
         to = (max(4, round(H * f)), max(4, round(W * f)))
         to_s = (max(4, round(Hs * f)), max(4, round(Ws * f)))
-        self.render = _blurred(render.float()[None], to, sigma)
-        self.depth = _level_depth(render_depth.float()[None], to) / scale
+        target_key = ("level", to, sigma)
+        if target_cache is None or target_key not in target_cache:  # the target's part: the same for every neighbour
+            depth = _level_depth(render_depth.float()[None], to) / scale
+            level_K = _scaled_K(K, (H, W), to)
+            # (h, w, 3) float32 target points (target frame, depth units): float64 rays first
+            points = (_rays(level_K, to) * depth[0, 0, ..., None].to(torch.float64)).float()
+            target = (_blurred(render.float()[None], to, sigma), depth, level_K, points)
+            if target_cache is not None:
+                target_cache[target_key] = target
+        else:
+            target = target_cache[target_key]
+        self.render, self.depth, self.K, self.points = target
         key = (to_s, sigma)
         if cache is None or key not in cache:  # the neighbour's part depends on it alone
             small = _blurred(photo.float()[None], to_s, sigma)
@@ -191,10 +201,7 @@ class _Level:
             entry = cache[key]
         self.stack = entry[0]
         self.photo_depth = entry[1] / scale
-        self.K = _scaled_K(K, (H, W), to)
         self.photo_K = _scaled_K(photo_K, (Hs, Ws), to_s)
-        # (h, w, 3) float32 target points (target frame, depth units): float64 rays first
-        self.points = (_rays(self.K, to) * self.depth[0, 0, ..., None].to(torch.float64)).float()
         # what every sample of this level reads from the neighbour (built once, not per sample)
         self.source = sampling_source(self.stack, self.photo_depth)
 
@@ -251,7 +258,8 @@ class _Level:
 
 def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_from_photo: Tensor,
                     render: Tensor, render_depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
-                    config: AlignConfig | None = None, cache: dict | None = None) -> Alignment:
+                    config: AlignConfig | None = None, cache: dict | None = None,
+                    target_cache: dict | None = None) -> Alignment:
     """Refine the pose of one neighbour photo so that it reprojects onto the render.
 
     Args:
@@ -264,6 +272,9 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
         config: the fit's settings (:class:`AlignConfig`).
         cache: a dict kept by the caller for this one neighbour photo (and its depth): the
             photo's blurred levels and gradients are stored there and reused by later fits.
+        target_cache: a dict kept by the caller for this one target (render, depth, K) and
+            ``config``: the target's median depth, blurred levels and points are stored there
+            and reused by the fits of its other neighbours.
     Returns:
         :class:`Alignment`. Never raises on image content: where the neighbour sees (almost)
         nothing of the target, or no fit lowers the error, the given pose comes back with
@@ -287,7 +298,12 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
         return Alignment(world_from_cam=world_from_photo, accepted=False, rotation_deg=0.0, translation=0.0,
                          error_before=before, error_after=before)
 
-    scale = float(median_known_depth(render_depth.float()[None])[0])
+    if target_cache is not None and "scale" in target_cache:
+        scale = target_cache["scale"]
+    else:
+        scale = float(median_known_depth(render_depth.float()[None])[0])
+        if target_cache is not None:
+            target_cache["scale"] = scale
     H, W = render.shape[-2:]
     sizes = sorted({min(int(n), max(H, W)) for n in config.levels if int(n) >= 8}) or [max(H, W)]
     # Relative pose in float64, in units of the target's median depth.
@@ -303,7 +319,7 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
 
     with torch.no_grad():
         levels = [_Level(n, photo, photo_depth, photo_K.cpu(), render, render_depth, K.cpu(), scale,
-                         config.blur_sigma, cache) for n in sizes]
+                         config.blur_sigma, cache, target_cache) for n in sizes]
         finest = levels[-1]
         start_sampled, counted_finest = finest.sample(start)
         if int(counted_finest.sum()) < 64:

@@ -212,3 +212,25 @@ def test_early_refusal_stops_a_fit_with_nothing_to_find(views):
     assert early.coarse_gain == full.coarse_gain
     one_level = fit(views, views["neighbour"], levels=(64,), early_refusal=0.5)  # no level before the finest
     assert not one_level.stopped_early and math.isnan(one_level.coarse_gain)
+
+
+def test_a_views_fits_share_its_levels_and_find_the_same_poses(views):
+    """The target's levels are built by its first neighbour's fit and read by the others', with the
+    same fits to the bit; a second target needs a cache of its own."""
+    spread = float(views["poses"][:, :3, 3].std(dim=0).norm())
+    starts = [perturb_poses(views["neighbour"], 0.5, 0.05 * spread, torch.Generator().manual_seed(s))
+              for s in range(3)] + [views["neighbour"]]
+    target: dict = {}
+    for start in starts:
+        alone = fit(views, start)
+        shared = align_neighbour(views["photo"], views["photo_depth"], views["K"], start, views["render"],
+                                 views["depth"], views["K"], views["target"], target_cache=target)
+        assert torch.equal(shared.world_from_cam, alone.world_from_cam)
+        assert (shared.accepted, shared.error_after, shared.coarse_gain) == (alone.accepted, alone.error_after,
+                                                                             alone.coarse_gain)
+    # the median depth and one entry per level (64 and 128 px: the target is 128 px wide)
+    assert sorted(k if isinstance(k, str) else k[0] for k in target) == ["level", "level", "scale"]
+    built = target.copy()
+    align_neighbour(views["photo"], views["photo_depth"], views["K"], starts[0], views["render"], views["depth"],
+                    views["K"], views["target"], target_cache=target)
+    assert all(target[k] is built[k] for k in built)  # read, not rebuilt
