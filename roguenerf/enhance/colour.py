@@ -104,18 +104,20 @@ def neighbour_agreement(neighbours: list[tuple[Tensor, Tensor]], size, sigma: fl
     if len(neighbours) < 2:
         raise InputError(f"neighbours: expected two or more to compare, got {len(neighbours)}")
     size = tuple(size)
-    blurred, valid = [], []
+    stack, valid = [], []
     for colour, mask in neighbours:
-        if tuple(colour.shape[-2:]) != size or tuple(mask.shape[-2:]) != size:
-            raise InputError(f"neighbours: expected images of size {size}, got "
-                             f"{tuple(colour.shape[-2:])} and {tuple(mask.shape[-2:])}")
+        if tuple(colour.shape) != (1, 3, *size) or tuple(mask.shape) != (1, 1, *size):
+            raise InputError(f"neighbours: expected colours of size (1, 3, *{size}) and masks (1, 1, *{size}), got "
+                             f"{tuple(colour.shape)} and {tuple(mask.shape)}")
         m = (mask.float() > 0.5).float()
         # Blur over the valid pixels only (normalised convolution): no colour bleeds in from
         # where the neighbour does not see; what is there is ignored, NaN included (NaN × 0 is NaN).
-        weight = blur(m, sigma)
-        seen = torch.where(m > 0, colour.float(), torch.zeros((), dtype=torch.float32))
-        blurred.append(blur(seen, sigma) / weight.clamp_min(1e-3))
+        stack += [torch.where(m > 0, colour.float(), torch.zeros((), dtype=torch.float32)), m]
         valid.append(m[:, 0] > 0.5)
+    # every neighbour's colour and mask in one blur (each channel on its own: the same values)
+    smooth = blur(torch.cat(stack, dim=1), sigma)
+    blurred = [smooth[:, 4 * j:4 * j + 3] / smooth[:, 4 * j + 3:4 * j + 4].clamp_min(1e-3)
+               for j in range(len(neighbours))]
     count = torch.stack(valid).sum(0)
     total = torch.zeros_like(blurred[0])
     for b, v in zip(blurred, valid, strict=True):
@@ -165,8 +167,9 @@ def colour_match(image: Tensor, neighbours: list[tuple[Tensor, Tensor]],
     field = offset.view(1, 3, 1, 1).expand_as(image).clone()
     if config.local_sigma > 0:
         a = agree[:, None].float()
-        support = blur(a, config.local_sigma)
-        local = blur(diff * a, config.local_sigma) / support.clamp_min(1e-3)
+        smooth = blur(torch.cat([diff * a, a], dim=1), config.local_sigma)  # one blur, 4 channels
+        support = smooth[:, 3:]
+        local = smooth[:, :3] / support.clamp_min(1e-3)
         w = (support / config.local_support).clamp(0, 1)
         field = w * local + (1 - w) * field
     return ColourMatch(offset=offset, field=field, share=share)

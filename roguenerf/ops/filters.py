@@ -31,12 +31,20 @@ def _gaussian_taps(size: int, sigma: float) -> Tensor:
 
 def _separable(x: Tensor, taps: Tensor, border: str) -> Tensor:
     """``x`` ``(B, C, H, W)`` filtered by the symmetric ``taps`` along the width, then the height,
-    each channel on its own, edges padded by ``border`` (torch's ``F.pad`` mode: replicate, reflect)."""
+    each channel on its own, edges padded by ``border`` (torch's ``F.pad`` mode: replicate, reflect).
+
+    All ``B * C`` channels of one depthwise convolution per axis, channels-last on the CPU:
+    oneDNN's depthwise kernel gives the bits of one single-channel convolution per channel and is
+    2-6x faster from 3 channels on (3 x 378 x 504, sigma 2: 6.6 -> 3.0 ms; 12 channels 42 -> 7 ms)."""
     b, c, h, w = x.shape
-    k = taps.numel()
+    n, k = b * c, taps.numel()
     taps = taps.to(x.device, x.dtype)
-    padded = F.pad(x.reshape(b * c, 1, h, w), (k // 2, k // 2, k // 2, k // 2), mode=border)
-    out = F.conv2d(F.conv2d(padded, taps.view(1, 1, 1, k)), taps.view(1, 1, k, 1))
+    padded = F.pad(x.reshape(1, n, h, w), (k // 2, k // 2, k // 2, k // 2), mode=border)
+    if n > 1 and padded.is_cpu:
+        padded = padded.contiguous(memory_format=torch.channels_last)
+    across = taps.view(1, 1, 1, k).expand(n, 1, 1, k).contiguous()
+    down = taps.view(1, 1, k, 1).expand(n, 1, k, 1).contiguous()
+    out = F.conv2d(F.conv2d(padded, across, groups=n), down, groups=n)
     return out.reshape(b, c, h, w)
 
 
