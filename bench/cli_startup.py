@@ -22,7 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench.common import REPO, RESULTS, beside, save_figure, stamp, write_csv, write_json
+from bench.common import REPO, RESULTS, beside, older_tree, save_figure, stamp, write_csv, write_json
 
 VIEW_LINE = re.compile(r"enhanced (\S+) in ([0-9.]+) s")
 
@@ -51,26 +51,18 @@ def main(argv: list[str] | None = None) -> int:
     if args.repeats < 1:
         raise SystemExit(f"--repeats: expected 1 or more, got {args.repeats}")
     scene = args.scene.resolve()
-    rev = subprocess.run(["git", "rev-parse", "--short", args.before], cwd=REPO, capture_output=True, text=True)
-    if rev.returncode != 0:
-        raise SystemExit(f"--before: {args.before!r} is not a revision of this repository")
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        old = Path(tmp) / "before"
-        subprocess.run(["git", "worktree", "add", "--detach", "--quiet", str(old), args.before], cwd=REPO, check=True)
-        try:
-            trees = {"before": old, "after": REPO}
-            for repeat in range(args.repeats):
-                for name, tree in trees.items():
-                    wall, view = run_enhance(tree, scene, args.view, Path(tmp) / f"{name}.png")
-                    rows.append({**stamp(), "tree": name, "revision": rev.stdout.strip() if name == "before" else "",
-                                 "repeat": repeat, "wall_s": round(wall, 3), "view_s": view,
-                                 "overhead_s": round(wall - view, 3)})
-                    print(f"{name}: wall {wall:.2f} s, view {view:.2f} s", flush=True)
-        finally:
-            subprocess.run(["git", "worktree", "remove", "--force", str(old)], cwd=REPO, check=False)
+    with older_tree(args.before) as (old, rev), tempfile.TemporaryDirectory() as tmp:
+        trees = {"before": old, "after": REPO}
+        for repeat in range(args.repeats):
+            for name, tree in trees.items():
+                wall, view = run_enhance(tree, scene, args.view, Path(tmp) / f"{name}.png")
+                rows.append({**stamp(), "tree": name, "revision": rev if name == "before" else "",
+                             "repeat": repeat, "wall_s": round(wall, 3), "view_s": view,
+                             "overhead_s": round(wall - view, 3)})
+                print(f"{name}: wall {wall:.2f} s, view {view:.2f} s", flush=True)
     summary = {**stamp(), "command": " ".join(["python -m bench.cli_startup", *(argv or sys.argv[1:])]),
-               "before": rev.stdout.strip(), "repeats": args.repeats,
+               "before": rev, "repeats": args.repeats,
                **{f"{name}_{key}": statistics.median(r[key] for r in rows if r["tree"] == name)
                   for name in ("before", "after") for key in ("wall_s", "view_s", "overhead_s")}}
     write_csv(beside(args.output, ".csv"), rows)

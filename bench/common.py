@@ -5,12 +5,14 @@ Every row a benchmark writes carries date, machine and commit, and speed next to
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import datetime as _dt
 import json
 import os
 import platform
 import subprocess
+import tempfile
 from pathlib import Path
 
 import torch
@@ -56,6 +58,22 @@ def commit() -> str:
         return head + ("-dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
+
+
+@contextlib.contextmanager
+def older_tree(revision: str, flag: str = "--before"):
+    """``revision`` checked out into a temporary git worktree: yields ``(path, short hash)``, and
+    removes the worktree after. Raises SystemExit naming ``flag`` when it is not a revision."""
+    rev = subprocess.run(["git", "rev-parse", "--short", revision], cwd=REPO, capture_output=True, text=True)
+    if rev.returncode != 0:
+        raise SystemExit(f"{flag}: {revision!r} is not a revision of this repository")
+    with tempfile.TemporaryDirectory() as tmp:
+        old = Path(tmp) / "before"
+        subprocess.run(["git", "worktree", "add", "--detach", "--quiet", str(old), revision], cwd=REPO, check=True)
+        try:
+            yield old, rev.stdout.strip()
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(old)], cwd=REPO, check=False)
 
 
 def scene_label(scene_dir: Path) -> str:

@@ -2,7 +2,7 @@
 
     python -m bench.sizes --scene runs/speed/dtu_scan37_fine \\
         [--sizes 504x378,1008x756,1920x1080,2016x1512] [--settings defaults,no-align,no-colour,no-trust]
-        [--views 3] [--cli/--no-cli] [--output bench/results/sizes/sizes]
+        [--views 3] [--cli/--no-cli] [--before REV] [--rounds 1] [--output bench/results/sizes/sizes]
 
 The scene (a scene folder with renders and depths, e.g. a ``make-pairs`` output) is brought to
 each size once (``runs/sizes/``): centre-cropped to the size's aspect ratio, photos and renders
@@ -22,6 +22,11 @@ tile size, ``EnhanceOptions.tile``), ``early=SHARE`` (the pose fits'
 (the neighbour cache's budget, ``SceneEnhancer(cache_bytes=)``); several switches joined by ``+``
 (``no-align+no-trust``).
 
+With ``--before REV`` every setting also runs with the code of an older revision (a temporary
+git worktree, this checkout's interpreter), labelled ``SETTING@REV``; the two trees' children
+alternate, ``--rounds`` times each, so a busy machine slows both alike (speeds compared side by
+side, never against an old file). Per setting, the first view of each child is its own column.
+
 Writes ``OUTPUT.csv`` (one row per view; date, machine, commit), ``OUTPUT.json`` (per size and
 setting: median seconds per view without the first, the first view, peak memory, mean gain) and
 ``OUTPUT.png``. Run it on a quiet machine: every figure is a wall-clock time.
@@ -30,6 +35,7 @@ setting: median seconds per view without the first, the first view, peak memory,
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import statistics
 import subprocess
@@ -37,7 +43,7 @@ import sys
 import time
 from pathlib import Path
 
-from bench.common import RESULTS, beside, save_figure, stamp, write_csv, write_json
+from bench.common import RESULTS, beside, older_tree, save_figure, stamp, write_csv, write_json
 
 ROOT = Path(__file__).resolve().parent.parent
 SIZES = "504x378,1008x756,1920x1080,2016x1512"
@@ -153,9 +159,10 @@ def sized_scene(scene_dir: Path, size: tuple[int, int], out: Path) -> Path:
     return out
 
 
-def run_child(scene: Path, setting: tuple[dict, dict], views: int) -> dict:
+def run_child(scene: Path, setting: tuple[dict, dict], views: int, repo: Path = ROOT) -> dict:
+    """One fresh process enhancing ``views`` test views of ``scene`` with the code of ``repo``."""
     flags, extra = setting
-    code = CHILD.format(repo=str(ROOT), scene=str(scene), flags=flags, extra=extra, views=views)
+    code = CHILD.format(repo=str(repo), scene=str(scene), flags=flags, extra=extra, views=views)
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"the child failed on {scene}:\n{proc.stderr[-3000:]}")
@@ -180,11 +187,13 @@ def summarise(rows: list[dict]) -> list[dict]:
     out = []
     for key in dict.fromkeys((r["size"], r["setting"]) for r in rows):
         mine = [r for r in rows if (r["size"], r["setting"]) == key]
-        later = mine[1:] or mine
-        item = {"size": key[0], "setting": key[1], "views": len(mine),
+        firsts = [r for r in mine if r.get("first", r is mine[0])]  # each child's first view
+        later = [r for r in mine if not r.get("first", r is mine[0])] or mine
+        item = {"size": key[0], "setting": key[1], "views": len(mine), "children": len(firsts),
                 "seconds_per_view": round(statistics.median(r["seconds"] for r in later), 3),
-                "first_view_s": round(mine[0]["seconds"], 3), "peak_mb": round(mine[0]["peak_mb"], 1),
-                "load_s": round(mine[0]["load_s"], 3),
+                "first_view_s": round(statistics.median(r["seconds"] for r in firsts), 3),
+                "peak_mb": round(statistics.median(r["peak_mb"] for r in firsts), 1),
+                "load_s": round(statistics.median(r["load_s"] for r in firsts), 3),
                 "gain_db": round(statistics.fmean(r["enhanced_psnr"] - r["render_psnr"] for r in mine), 3),
                 "worst_view_gain_db": round(min(r["enhanced_psnr"] - r["render_psnr"] for r in mine), 3)}
         for step in STEPS:
@@ -242,14 +251,41 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cli", action=argparse.BooleanOptionalAction, default=True,
                     help="Also time the one-view command (roguenerf enhance) per size.")
     ap.add_argument("--work", type=Path, default=ROOT / "runs" / "sizes", help="Where the resized scenes go.")
+    ap.add_argument("--before", default=None,
+                    help="An older revision to run beside this checkout (a temporary git worktree): every "
+                         "setting runs in both trees, alternated, the older's labelled SETTING@REV.")
+    ap.add_argument("--rounds", type=int, default=1,
+                    help="Children per size, setting and tree, alternated between the trees (default 1).")
     ap.add_argument("--output", type=Path, default=RESULTS / "sizes" / "sizes")
     args = ap.parse_args(argv)
     if not (args.scene / "transforms.json").is_file():
         raise SystemExit(f"--scene: {args.scene} is not a scene folder (no transforms.json)")
     if args.views < 1:
         raise SystemExit(f"--views: expected 1 or more, got {args.views}")
+    if args.rounds < 1:
+        raise SystemExit(f"--rounds: expected 1 or more, got {args.rounds}")
     sizes = [parse_size(s) for s in args.sizes.split(",")]
     settings = {s: parse_setting(s) for s in args.settings.split(",")}
+    with contextlib.ExitStack() as stack:
+        trees = [("", ROOT)]
+        if args.before:
+            old, rev = stack.enter_context(older_tree(args.before))
+            trees.insert(0, (f"@{rev}", old))
+        rows = measure(args, sizes, settings, trees)
+    summary = summarise(rows)
+    for s in summary:
+        s.update({k: rows[0][k] for k in ("date", "machine", "commit")})
+    csv_path = write_csv(beside(args.output, ".csv"), rows)
+    command = " ".join(["python -m bench.sizes", *(argv or sys.argv[1:])])
+    json_path = write_json(beside(args.output, ".json"),
+                           {"scene": str(args.scene), "command": command, "summary": summary})
+    png_path = plot(summary, beside(args.output, ".png"))
+    print(f"wrote {csv_path}, {json_path} and {png_path}")
+    return 0
+
+
+def measure(args, sizes: list[tuple[int, int]], settings: dict, trees: list[tuple[str, Path]]) -> list[dict]:
+    """Every size, setting, round and tree (alternated): a row per view."""
     rows = []
     for w, h in sizes:
         folder = sized_scene(args.scene, (w, h), args.work / f"{args.scene.resolve().name}_{w}x{h}")
@@ -261,24 +297,21 @@ def main(argv: list[str] | None = None) -> int:
             view = sized.frames[sized.indices("test")[0]].name
             cli = run_cli(folder, view, args.work)
         for setting, parsed in settings.items():
-            child = run_child(folder, parsed, args.views)
-            for k, r in enumerate(child["rows"]):
-                row = {**stamp(), "scene": args.scene.resolve().name, "size": f"{w}x{h}", "setting": setting,
-                       **r, "peak_mb": child["peak_mb"], "load_s": child["load_s"], "child_wall_s": child["wall_s"]}
-                if k == 0 and setting == next(iter(settings)):
-                    row.update(cli)
-                rows.append(row)
-            last = summarise([r for r in rows if r["size"] == f"{w}x{h}" and r["setting"] == setting])[0]
-            print(f"{w}x{h} {setting}: {last['seconds_per_view']:.2f} s/view (first {last['first_view_s']:.2f}), "
-                  f"peak {last['peak_mb']:.0f} MB, gain {last['gain_db']:+.2f} dB", flush=True)
-    summary = summarise(rows)
-    for s in summary:
-        s.update({k: rows[0][k] for k in ("date", "machine", "commit")})
-    csv_path = write_csv(beside(args.output, ".csv"), rows)
-    json_path = write_json(beside(args.output, ".json"), {"scene": str(args.scene), "summary": summary})
-    png_path = plot(summary, beside(args.output, ".png"))
-    print(f"wrote {csv_path}, {json_path} and {png_path}")
-    return 0
+            for round_ in range(args.rounds):
+                for tag, tree in trees:
+                    label = setting + tag
+                    child = run_child(folder, parsed, args.views, tree)
+                    for k, r in enumerate(child["rows"]):
+                        row = {**stamp(), "scene": args.scene.resolve().name, "size": f"{w}x{h}", "setting": label,
+                               "round": round_, "first": k == 0, **r, "peak_mb": child["peak_mb"],
+                               "load_s": child["load_s"], "child_wall_s": child["wall_s"]}
+                        if k == 0 and round_ == 0 and setting == next(iter(settings)) and not tag:
+                            row.update(cli)
+                        rows.append(row)
+                    last = summarise([r for r in rows if r["size"] == f"{w}x{h}" and r["setting"] == label])[0]
+                    print(f"{w}x{h} {label}: {last['seconds_per_view']:.2f} s/view (first {last['first_view_s']:.2f}), "
+                          f"peak {last['peak_mb']:.0f} MB, gain {last['gain_db']:+.2f} dB", flush=True)
+    return rows
 
 
 if __name__ == "__main__":

@@ -3,12 +3,15 @@ them) and the per-step timings of a real run on a toy scene."""
 
 from __future__ import annotations
 
+import csv
 import json
+import subprocess
 
 import pytest
 import torch
 
 from bench import sizes
+from bench.common import REPO
 from roguenerf.data.readers import load_scene
 from roguenerf.data.toy import make_toy_scene
 
@@ -68,3 +71,25 @@ def test_a_run_reports_every_step_and_the_memory(tmp_path):
     assert off["colour_s"] == off["trust_s"] == 0  # stages off: never run
     assert 100 < on["peak_mb"] < 4000 and on["cli_wall_s"] > on["cli_view_s"] > 0
     assert (tmp_path / "res" / "sizes.csv").is_file() and (tmp_path / "res" / "sizes.png").is_file()
+
+
+@pytest.mark.slow
+def test_an_older_revision_runs_beside_this_one_alternated(tmp_path):
+    make_toy_scene(tmp_path / "toy", seed=2, n_train=6, n_test=2, height=72, width=96)
+    out = tmp_path / "res" / "sizes"
+    assert sizes.main(["--scene", str(tmp_path / "toy"), "--sizes", "64x48", "--views", "2", "--no-cli",
+                       "--settings", "no-align", "--before", "HEAD", "--rounds", "2", "--work", str(tmp_path / "work"),
+                       "--output", str(out)]) == 0
+    report = json.loads((tmp_path / "res" / "sizes.json").read_text())
+    (older, newer) = report["summary"]
+    assert older["setting"].startswith("no-align@") and newer["setting"] == "no-align"
+    assert older["children"] == newer["children"] == 2 and older["views"] == newer["views"] == 4
+    assert "--before HEAD" in report["command"]
+    assert older["gain_db"] == pytest.approx(newer["gain_db"], abs=1e-6)  # HEAD's code against this checkout's
+    with open(tmp_path / "res" / "sizes.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    # children alternate: older, newer, older, newer; each child's first view marked
+    assert [r["setting"] for r in rows[::2]] == [older["setting"], "no-align"] * 2
+    assert [r["first"] for r in rows] == ["True", "False"] * 4
+    worktrees = subprocess.run(["git", "worktree", "list"], cwd=REPO, capture_output=True, text=True).stdout
+    assert not [line for line in worktrees.splitlines() if line.split()[0].endswith("/before")]  # removed after
