@@ -12,7 +12,8 @@ fine-tuned model; labelled ``(fine-tuned)``), else ``--checkpoint``.
 enhanced with pose refinement off and on, in alternation (so both see the same machine load):
 seconds per view and the share of neighbours whose fit was kept. ``earlyX`` (e.g.
 ``early0.03``; ``early0``: every level fitted) is on with
-:attr:`~roguenerf.enhance.align.AlignConfig.early_refusal` = X. ``--max-rotation`` and
+:attr:`~roguenerf.enhance.align.AlignConfig.early_refusal` = X; ``earlyX@L`` also judges level
+L (:attr:`~roguenerf.enhance.align.AlignConfig.early_level`; ``early0.05@0``: the first). ``--max-rotation`` and
 ``--max-translation`` set the fit's trust region.
 
 ``colour`` (``--settings`` of :class:`~roguenerf.enhance.colour.ColourConfig`: ``off``,
@@ -74,11 +75,10 @@ def align_settings(text: str) -> list[str]:
     for c in _specs(text):
         if c.startswith("early"):
             try:
-                x = float(c[len("early"):])
+                _early(c)
             except ValueError:
-                x = float("nan")
-            if not 0 <= x < 1:
-                raise argparse.ArgumentTypeError(f"--settings: {c!r}: expected earlyX with X in [0, 1), e.g. early0.03")
+                raise argparse.ArgumentTypeError(f"--settings: {c!r}: expected earlyX or earlyX@L with X in [0, 1) "
+                                                 "and L a level index, e.g. early0.03 or early0.05@0") from None
         elif c not in ("off", "on"):
             raise argparse.ArgumentTypeError(f"--settings: {c!r} is none of off, on, earlyX")
         out.append(c)
@@ -92,8 +92,19 @@ def _align_config(setting: str, **trust):
     if setting == "off":
         return None
     if setting.startswith("early"):
-        return AlignConfig(early_refusal=float(setting[len("early"):]), **trust)
+        share, level = _early(setting)
+        return AlignConfig(early_refusal=share, early_level=level, **trust)
     return AlignConfig(**trust)
+
+
+def _early(setting: str) -> tuple[float, int]:
+    """``earlyX[@L]``: the early-refusal share X and the judged level L (default: the one before
+    the finest, -2); ValueError when it is not that."""
+    share, _, level = setting[len("early"):].partition("@")
+    x, index = float(share), int(level) if level else -2
+    if not 0 <= x < 1:
+        raise ValueError(setting)
+    return x, index
 
 
 def colour_config(spec: str):
@@ -236,7 +247,9 @@ def _align_rows(args, clean, model, checkpoint: Path, head: dict) -> list[dict]:
                              "checkpoint": checkpoint.name, "max_rotation_deg": config.max_rotation_deg,
                              "max_translation": config.max_translation,
                              "early_refusal": (enhancers[align].align.early_refusal
-                                               if enhancers[align].align is not None else None)})
+                                               if enhancers[align].align is not None else None),
+                             "early_level": (enhancers[align].align.early_level
+                                             if enhancers[align].align is not None else None)})
                 print(f"{head['scene']} {deg:g}/{share:g} {view.frame.name} align={align}: "
                       f"{seconds:.2f} s, gain {rows[-1]['gain_db']:+.3f} dB", flush=True)
     return rows

@@ -234,3 +234,40 @@ def test_a_views_fits_share_its_levels_and_find_the_same_poses(views):
     align_neighbour(views["photo"], views["photo_depth"], views["K"], starts[0], views["render"], views["depth"],
                     views["K"], views["target"], target_cache=target)
     assert all(target[k] is built[k] for k in built)  # read, not rebuilt
+
+
+@pytest.mark.parametrize("deg,share,seed", [(0.25, 0.02, 1), (0.5, 0.05, 2)])
+def test_judging_the_first_level_keeps_every_fit_of_a_wrong_pose(views, deg, share, seed):
+    spread = float(views["poses"][:, :3, 3].std(dim=0).norm())
+    wrong = perturb_poses(views["neighbour"], deg, share * spread, torch.Generator().manual_seed(seed))
+    # three levels: the target is 128 px wide
+    full = fit(views, wrong, levels=(32, 64, 128), early_refusal=0.0)
+    first = fit(views, wrong, levels=(32, 64, 128), early_level=0)
+    assert first.accepted and not first.stopped_early
+    assert torch.equal(first.world_from_cam, full.world_from_cam)  # the same fit, to the bit
+    assert first.coarse_gain >= 0.05 and first.coarse_gain != full.coarse_gain  # another level judged
+
+
+def test_judging_the_first_level_stops_before_the_second(views, monkeypatch):
+    """With three levels, a fit with nothing to find stops after the first with ``early_level=0``
+    and after the second by default: it never samples the levels after the judged one."""
+    import roguenerf.enhance.align as align
+
+    sampled = []
+    real = align._Level.sample
+
+    def counting(self, pose):
+        sampled.append(self.points.shape[1])  # the level's width
+        return real(self, pose)
+
+    monkeypatch.setattr(align._Level, "sample", counting)
+    widths = {}
+    for level in (0, -2):
+        sampled.clear()
+        result = fit(views, views["neighbour"], levels=(32, 64, 128), early_refusal=0.5, early_level=level)
+        assert result.stopped_early and not result.accepted
+        assert torch.equal(result.world_from_cam, views["neighbour"])
+        widths[level] = set(sampled[1:])  # the first sample is the finest level's, at the dataset pose
+    assert widths[0] == {32} and widths[-2] == {32, 64}
+    with pytest.raises(InputError, match="early_level"):
+        AlignConfig(early_level=0.5)
