@@ -74,9 +74,10 @@ class AlignConfig:
     lego (6 views, no noise, 0.25° / 2 % and 0.5° / 5 %: every kept fit kept, 0.05 and 0.08
     alike) and reported on ``ollie`` / fine (docs/results.md, *Speed at users' sizes*)."""
     early_level: int = -2
-    """Which level's gain :attr:`early_refusal` reads, as an index into the levels fitted
-    (at most the one before the finest): -2, the level before the finest; 0, the first, so
-    that a refused fit also skips every level between."""
+    """The first level whose gain :attr:`early_refusal` reads, as an index into the levels
+    fitted: every level from it to the one before the finest is judged once fitted, and the fit
+    stops at the first that gains too little. -2: only the level before the finest; 0: every
+    level, so that a fit with nothing to find stops after the first."""
 
     def __post_init__(self):
         if isinstance(self.early_level, bool) or not isinstance(self.early_level, int):
@@ -96,9 +97,9 @@ class Alignment:
     """Photometric error at the finest level with the given pose (nan where nothing overlaps)."""
     error_after: float
     coarse_gain: float = float("nan")
-    """Share by which the judged level (:attr:`AlignConfig.early_level`; by default the one
-    before the finest) lowered its error (on the pixels both poses see there); nan with a
-    single level."""
+    """Share by which the last level judged (:attr:`AlignConfig.early_level`: the one before
+    the finest, unless the fit stopped earlier) lowered its error (on the pixels both poses see
+    there); nan with a single level."""
     stopped_early: bool = False
     """Refused by :attr:`AlignConfig.early_refusal` before the finest level was fitted."""
 
@@ -335,18 +336,20 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
             return unchanged()
         pose = start
         coarse_gain = float("nan")
-        # the level whose gain decides whether the finer ones are fitted (none with one level)
-        judged = min(config.early_level % len(levels), len(levels) - 2) if len(levels) > 1 else -2
+        # the first level whose gain decides whether the finer ones are fitted (none with one level)
+        judged = min(config.early_level % len(levels), len(levels) - 2) if len(levels) > 1 else len(levels)
         at_pose = None  # the last level's sample at ``pose`` and what it sees
         for k, level in enumerate(levels):
-            if k == judged + 1:
-                # The judged level (before the finest), judged as the final decision is: its
-                # error with the dataset pose and with the fitted one, on the pixels both see.
+            if judged < k <= len(levels) - 1:
+                # Each judged level (from ``early_level`` to the one before the finest), judged as
+                # the final decision is: its error with the dataset pose and with the fitted one,
+                # on the pixels both see.
                 coarse = levels[k - 1]
                 c_start, c_seen = coarse.sample(start)
                 c_now, c_seen_now = at_pose
                 both = c_seen & c_seen_now
                 c_before, c_after = coarse.error(c_start, both, both, c), coarse.error(c_now, both, both, c)
+                coarse_gain = float("nan")
                 if math.isfinite(c_before) and c_before > 0 and math.isfinite(c_after):
                     coarse_gain = 1.0 - c_after / c_before
                 if config.early_refusal > 0 and not coarse_gain >= config.early_refusal:
