@@ -72,3 +72,15 @@ def test_reference_mode_runs_kornia_and_gradients_flow(image):
     x = image.clone().requires_grad_(True)
     spatial_gradient(gaussian_blur(x, 5, 1.0)).square().sum().backward()
     assert x.grad is not None and torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+
+
+def test_channels_blurred_together_are_each_blurred_alone():
+    """What the agreement test relies on when it blurs every neighbour's colour and mask in one
+    call: no channel reaches another, at any batch size."""
+    g = torch.Generator().manual_seed(5)
+    x = torch.rand(2, 12, 40, 50, generator=g)
+    together = gaussian_blur(x, 13, 2.0)
+    alone = torch.cat([gaussian_blur(x[:, i:i + 1], 13, 2.0) for i in range(12)], dim=1)
+    assert torch.allclose(together, alone, atol=1e-7)
+    assert torch.allclose(together[1:], gaussian_blur(x[1:], 13, 2.0), atol=1e-7)
+    assert together.is_contiguous()
