@@ -80,7 +80,7 @@ def align_settings(text: str) -> list[str]:
                 raise argparse.ArgumentTypeError(f"--settings: {c!r}: expected earlyX or earlyX@L with X in [0, 1) "
                                                  "and L a level index, e.g. early0.03 or early0.05@0") from None
         elif c not in ("off", "on"):
-            raise argparse.ArgumentTypeError(f"--settings: {c!r} is none of off, on, earlyX")
+            raise argparse.ArgumentTypeError(f"--settings: {c!r} is none of off, on, earlyX, earlyX@L")
         out.append(c)
     return out
 

@@ -216,7 +216,7 @@ def test_early_refusal_stops_a_fit_with_nothing_to_find(views):
 
 def test_a_views_fits_share_its_levels_and_find_the_same_poses(views):
     """The target's levels are built by its first neighbour's fit and read by the others', with the
-    same fits to the bit; a second target needs a cache of its own."""
+    same fits to the bit as fits that build their own."""
     spread = float(views["poses"][:, :3, 3].std(dim=0).norm())
     starts = [perturb_poses(views["neighbour"], 0.5, 0.05 * spread, torch.Generator().manual_seed(s))
               for s in range(3)] + [views["neighbour"]]
