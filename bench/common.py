@@ -61,12 +61,12 @@ def commit() -> str:
 
 
 @contextlib.contextmanager
-def older_tree(revision: str, flag: str = "--before"):
+def older_tree(revision: str):
     """``revision`` checked out into a temporary git worktree: yields ``(path, short hash)``, and
-    removes the worktree after. Raises SystemExit naming ``flag`` when it is not a revision."""
+    removes the worktree after. Raises SystemExit (as ``--before``'s error) when it is not a revision."""
     rev = subprocess.run(["git", "rev-parse", "--short", revision], cwd=REPO, capture_output=True, text=True)
     if rev.returncode != 0:
-        raise SystemExit(f"{flag}: {revision!r} is not a revision of this repository")
+        raise SystemExit(f"--before: {revision!r} is not a revision of this repository")
     with tempfile.TemporaryDirectory() as tmp:
         old = Path(tmp) / "before"
         subprocess.run(["git", "worktree", "add", "--detach", "--quiet", str(old), revision], cwd=REPO, check=True)

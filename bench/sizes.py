@@ -187,8 +187,8 @@ def summarise(rows: list[dict]) -> list[dict]:
     out = []
     for key in dict.fromkeys((r["size"], r["setting"]) for r in rows):
         mine = [r for r in rows if (r["size"], r["setting"]) == key]
-        firsts = [r for r in mine if r.get("first", r is mine[0])]  # each child's first view
-        later = [r for r in mine if not r.get("first", r is mine[0])] or mine
+        firsts = [r for r in mine if r["first"]]  # each child's first view
+        later = [r for r in mine if not r["first"]] or mine
         item = {"size": key[0], "setting": key[1], "views": len(mine), "children": len(firsts),
                 "seconds_per_view": round(statistics.median(r["seconds"] for r in later), 3),
                 "first_view_s": round(statistics.median(r["seconds"] for r in firsts), 3),

@@ -340,7 +340,7 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
         judged = min(config.early_level % len(levels), len(levels) - 2) if len(levels) > 1 else len(levels)
         at_pose = None  # the last level's sample at ``pose`` and what it sees
         for k, level in enumerate(levels):
-            if judged < k <= len(levels) - 1:
+            if k > judged:
                 # Each judged level (from ``early_level`` to the one before the finest), judged as
                 # the final decision is: its error with the dataset pose and with the fitted one,
                 # on the pixels both see.
