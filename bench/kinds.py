@@ -83,6 +83,9 @@ def parse_args(argv=None):
     p.add_argument("--finetune-depth-noise", type=float, default=0.0,
                    help="fine-tune with TrainConfig.depth_noise (log-depth error on half the target depths; "
                         "default 0, as shipped); cached apart")
+    p.add_argument("--finetune-neighbour-renders", type=float, default=0.0,
+                   help="fine-tune with TrainConfig.neighbour_renders (this share of the crops' target renders "
+                        "drawn from the nearest training view's render; default 0, as shipped); cached apart")
     p.add_argument("--finetune-render-warp", type=float, default=0.0,
                    help="fine-tune with TrainConfig.render_warp (half the target renders and depths displaced by "
                         "up to this many pixels, so they look like novel views; default 0, as shipped); cached apart")
@@ -297,7 +300,8 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
     suffix = (("_align" if align else "") + (colour_cache_tag(ColourConfig()) if colour else "")
               + (trust_cache_tag(TrustConfig()) if trust else "") + near_cache_tag())
     # the fine-tune's options, in the cache's names and the rows' stage
-    tuning = [(args.finetune_depth_noise, "depth", "depth noise"), (args.finetune_render_warp, "warp", "render warp")]
+    tuning = [(args.finetune_depth_noise, "depth", "depth noise"), (args.finetune_render_warp, "warp", "render warp"),
+              (args.finetune_neighbour_renders, "drawn", "neighbour renders")]
     plan = "".join(f"_{tag}{value:g}" for value, tag, _ in tuning if value)
     plan_label = "".join(f", {label} {value:g}" for value, _, label in tuning if value)
 
@@ -330,7 +334,8 @@ def measure_scene(args, name: str, checkpoint: Path, base: dict, tag: str) -> tu
         result = finetune(scene, args.runs / "finetune" / name / tag / checkpoint.stem / f"{m:g}min{plan}",
                           checkpoint=checkpoint,
                           config=TrainConfig(minutes=m, evaluate=False, depth_noise=args.finetune_depth_noise,
-                                             render_warp=args.finetune_render_warp))
+                                             render_warp=args.finetune_render_warp,
+                                             neighbour_renders=args.finetune_neighbour_renders))
         tuned, _ = load_checkpoint(result.checkpoint)
         options = EnhanceOptions.from_flags(align=align, colour=colour, trust=trust)
         return view_rows(evaluate(scene, tuned, max_views=args.max_views, options=options), **common,

@@ -65,6 +65,11 @@ RenderWarpOpt = Annotated[float | None, typer.Option(
     "--render-warp", help="Pixels: displace the target render and depth of half the crops along a smooth random "
                           "shift up to this size, so the training views look like novel views (default: the plan's).")]
 
+NeighbourRendersOpt = Annotated[float | None, typer.Option(
+    "--neighbour-renders", help="Share of the crops (0-1) whose target render and depth are the nearest training "
+                                "view's render drawn into the view's camera, so the training views look like novel "
+                                "views (default: the plan's).")]
+
 
 @dataclass(frozen=True)
 class TrainFlags(Flags):
@@ -121,6 +126,7 @@ def finetune(
     train: TrainFlags,
     freeze_neighbour_encoder: FreezeOpt = None,
     render_warp: RenderWarpOpt = None,
+    neighbour_renders: NeighbourRendersOpt = None,
     depth_noise: DepthNoiseOpt = None,
     no_eval: Annotated[bool, typer.Option("--no-eval", help="Skip the before/after test evaluation.")] = False,
 ) -> None:
@@ -132,7 +138,8 @@ def finetune(
         if scratch and checkpoint is not None:
             raise InputError("give either --checkpoint or --scratch, not both")
         config = train.config(evaluate=not no_eval, freeze_neighbour_encoder=freeze_neighbour_encoder,
-                              render_warp=render_warp, depth_noise=depth_noise)
+                              render_warp=render_warp, depth_noise=depth_noise,
+                              neighbour_renders=neighbour_renders)
         from roguenerf.training.loop import check_training_output
 
         check_training_output(output)

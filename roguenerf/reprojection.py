@@ -174,3 +174,88 @@ def _check_images(src_features: Tensor, src_depth: Tensor | None, dst_depth: Ten
             got = tuple(src_depth.shape)
             raise InputError(f"src_depth: expected shape {(B, 1, Hs, Ws)} (as src_features), got {got}")
     return B, C, Hs, Ws
+
+
+SPLAT_SURFACE = 0.01
+"""Relative depth within which two points landing on one pixel count as the same surface in
+:func:`splat_view`: the one nearer the pixel's centre is drawn, not the one a hair nearer the
+camera."""
+
+
+def splat_view(image: Tensor, depth: Tensor, src_K: Tensor, dst_K: Tensor, world_from_src: Tensor,
+               world_from_dst: Tensor, size: tuple[int, int], *, eps: float = DEPTH_EPS,
+               surface: float = SPLAT_SURFACE) -> tuple[Tensor, Tensor, Tensor]:
+    """Draw one view's image into another camera through its own depth (a forward warp).
+
+    Each source pixel with known z-depth becomes a 3D point (through its pixel centre, float64);
+    seen from the destination camera it is drawn into the 2 x 2 pixels around where it lands
+    (so a view a little nearer the scene shows no cracks; a point exactly on a pixel centre
+    draws that pixel alone). Of the points on one pixel the
+    nearest surface wins (a z-buffer); within ``surface`` relative depth of the nearest, the
+    point nearest the pixel's centre (then the higher source index). Unlike :func:`reproject`,
+    which reads the source through the *destination's* depth, what sits in front in the source
+    view stays in front: a field's floaters, painted to look right from its own camera, land
+    where a new camera would see them.
+
+    Args:
+        image: ``(C, Hs, Ws)``; depth ``(1, Hs, Ws)`` its z-depth (unknown: NaN, inf, <= eps).
+        src_K, dst_K: ``(3, 3)`` pixel-centre convention; world_from_src, world_from_dst ``(4, 4)``
+            OpenCV camera-to-world.
+        size: ``(H, W)`` of the destination.
+    Returns:
+        ``image`` ``(C, H, W)`` (0 where no point lands), ``depth`` ``(1, H, W)`` z-depth in the
+        destination camera (0 there), ``hit`` ``(1, H, W)`` bool.
+    """
+    _check_image(image[None] if image.dim() == 3 else image, "image")
+    _check_image(depth[None] if depth.dim() == 3 else depth, "depth", 1)
+    if image.dim() != 3 or depth.dim() != 3 or depth.shape[1:] != image.shape[1:]:
+        raise InputError(f"image, depth: expected (C, Hs, Ws) and (1, Hs, Ws), got {tuple(image.shape)} "
+                         f"and {tuple(depth.shape)}")
+    h, w = (int(x) for x in size)
+    if h < 1 or w < 1:
+        raise InputError(f"size: expected a positive (H, W), got {size}")
+    src_K = check_intrinsics(src_K, "src_K").to(torch.float64)
+    dst_K = check_intrinsics(dst_K, "dst_K").to(torch.float64)
+    dst_from_src = relative_pose(check_pose(world_from_dst, "world_from_dst"),
+                                 check_pose(world_from_src, "world_from_src"))
+    c, hs, ws = image.shape
+    z = depth.reshape(-1).to(torch.float64)
+    known = known_depth_mask(z, eps=eps)
+    v, u = torch.meshgrid(torch.arange(hs, dtype=torch.float64) + 0.5,
+                          torch.arange(ws, dtype=torch.float64) + 0.5, indexing="ij")
+    pix = torch.stack([u.reshape(-1), v.reshape(-1), torch.ones(hs * ws, dtype=torch.float64)])
+    pts = (torch.linalg.inv(src_K) @ pix) * torch.where(known, z, 1.0)
+    pts = dst_from_src[:3, :3] @ pts + dst_from_src[:3, 3:]
+    uvw = dst_K @ pts
+    z_dst = pts[2]
+    front = known & (z_dst > eps) & torch.isfinite(uvw).all(dim=0)
+    x = uvw[0] / torch.where(front, z_dst, 1.0) - 0.5  # pixel centres at integers
+    y = uvw[1] / torch.where(front, z_dst, 1.0) - 0.5
+    source = torch.nonzero(front).squeeze(1)
+    x, y, z_dst = x[source], y[source], z_dst[source]
+    x0, y0 = torch.floor(x), torch.floor(y)
+    cand_x = torch.cat([x0, x0 + 1, x0, x0 + 1])
+    cand_y = torch.cat([y0, y0, y0 + 1, y0 + 1])
+    cand_z = z_dst.repeat(4)
+    cand_src = source.repeat(4)
+    dx, dy = (cand_x - x.repeat(4)).abs(), (cand_y - y.repeat(4)).abs()
+    near = dx ** 2 + dy ** 2
+    # a point on a pixel centre (to float64 rounding) draws only that pixel
+    reach = 1.0 - 1e-9
+    inside = (cand_x >= 0) & (cand_x <= w - 1) & (cand_y >= 0) & (cand_y <= h - 1) & (dx < reach) & (dy < reach)
+    cand_x, cand_y, cand_z, cand_src, near = (t[inside] for t in (cand_x, cand_y, cand_z, cand_src, near))
+    index = (cand_y * w + cand_x).long()
+    nearest = torch.full((h * w,), torch.inf, dtype=torch.float64).scatter_reduce(0, index, cand_z, "amin")
+    front_surface = cand_z <= nearest[index] * (1.0 + surface)
+    index, cand_src, near = index[front_surface], cand_src[front_surface], near[front_surface]
+    closest = torch.full((h * w,), torch.inf, dtype=torch.float64).scatter_reduce(0, index, near, "amin")
+    best = near <= closest[index]
+    owner = torch.full((h * w,), -1, dtype=torch.int64).scatter_reduce(0, index[best], cand_src[best], "amax")
+    hit = owner >= 0
+    taken = owner.clamp(min=0)
+    out = image.reshape(c, -1)[:, taken] * hit.to(image.dtype)
+    # the owner's own depth in the destination camera (the same point may land on several pixels)
+    z_of = torch.zeros(hs * ws, dtype=torch.float64)
+    z_of[source] = z_dst
+    out_depth = torch.where(hit, z_of[taken], 0.0).to(depth.dtype)
+    return out.reshape(c, h, w), out_depth.reshape(1, h, w), hit.reshape(1, h, w)

@@ -293,7 +293,8 @@ def corrupt_depths(depth: Tensor, max_log: float, generator: torch.Generator, sh
 def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding: str = "window",
                   margin: int = 0, use_neighbours: bool = True,
                   augment: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]] | None = None,
-                  pose_noise: Callable[[Tensor], Tensor] | None = None) -> StepBatch:
+                  pose_noise: Callable[[Tensor], Tensor] | None = None,
+                  drawn: Tensor | None = None) -> StepBatch:
     """Everything one step needs but the model: crops, and the neighbour photos or windows to encode.
 
     Args:
@@ -310,6 +311,9 @@ def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding
         pose_noise: ``(B, N, 4, 4) -> (B, N, 4, 4)`` float64, the neighbours' poses as the model
             gets them (``TrainConfig.neighbour_pose_noise``); the windows are bounded with these
             (what the model reads), the photos and depths are the neighbours' own.
+        drawn: ``(B,)`` bool: these targets (training views) take their render and depth crops
+            from ``data.drawn_renders`` / ``data.drawn_depths``
+            (:meth:`~roguenerf.training.loop.SceneData.draw_from_neighbours`) before ``augment``.
     """
     cached = getattr(data, "features", None)
     if cached is not None:
@@ -317,6 +321,11 @@ def prepare_batch(data, targets: Tensor, origins: Tensor, crop: int, *, encoding
     if encoding not in NEIGHBOUR_ENCODINGS:
         raise InputError(f"encoding: expected one of {', '.join(NEIGHBOUR_ENCODINGS)}, got {encoding!r}")
     render, depth, photo, K = crop_targets(data, targets, origins, crop)
+    if drawn is not None and bool(drawn.any()):
+        c_h, c_w = render.shape[-2:]
+        pick, y0, x0 = drawn.nonzero().squeeze(1), origins[drawn, 0], origins[drawn, 1]
+        render[pick] = _gather_windows(data.drawn_renders, targets[pick], y0, x0, c_h, c_w)
+        depth[pick] = _gather_windows(data.drawn_depths, targets[pick], y0, x0, c_h, c_w)
     if augment is not None:
         render, depth = augment(render, depth)
     batch = StepBatch(targets=targets, origins=origins, render=render, depth=depth, photo=photo, K=K,

@@ -53,6 +53,8 @@ RENDER_WARP = 0.0
 default: in one sitting, 3-minute fine-tunes with 4 px gained more on the four unseen real-scene
 fits (dtu_scan37 coarse +0.12 dB, fine +0.10; mary_rose +0.01, +0.02) but 0.17 dB less on lego,
 whose field renders its novel views about as well as its training views (docs/results.md)."""
+NEIGHBOUR_RENDERS = 0.0
+"""Fine-tuning's default for :attr:`TrainConfig.neighbour_renders` (0: every crop its own render)."""
 MAX_RENDER_WARP = 32.0
 MAX_DEPTH_NOISE = 2.0
 """Bound of :attr:`TrainConfig.depth_noise` (exp(2): depths off by a factor up to 7.4)."""
@@ -151,6 +153,14 @@ class TrainConfig:
     target render and depth of half of the crops (:func:`~roguenerf.training.batches.warp_renders`):
     the large-scale errors a field's novel views have and its training views lack. 0: none.
     None: the plan's (RENDER_WARP); pre-training: 0."""
+    neighbour_renders: float | None = None
+    """The share of training-view crops whose render and depth are the nearest other training
+    view's render and depth drawn into their camera
+    (:meth:`~roguenerf.training.loop.SceneData.draw_from_neighbours`, a forward warp), their own
+    where nothing lands. A field renders its training views better than any novel view; drawn
+    from another view, a training view carries what a novel view does (geometry errors and
+    floaters seen from a new camera, resampling blur, edges) while its photo stays the target.
+    0: none. None: the plan's (NEIGHBOUR_RENDERS for fine-tuning; pre-training 0)."""
     depth_noise: float | None = None
     """The largest log-depth error (e.g. 0.3: depths up to x1.35 or /1.35) put on the target depth
     of half of the crops as a smooth random field
@@ -187,6 +197,8 @@ class TrainConfig:
         if self.render_warp is not None and not 0.0 <= float(self.render_warp) <= MAX_RENDER_WARP:
             raise InputError(f"render_warp: expected a shift in [0, {MAX_RENDER_WARP:g}] pixels, "
                              f"got {self.render_warp}")
+        if self.neighbour_renders is not None and not 0.0 <= float(self.neighbour_renders) <= 1.0:
+            raise InputError(f"neighbour_renders: expected a share in [0, 1], got {self.neighbour_renders}")
         if self.num_neighbours is not None and int(self.num_neighbours) < 0:
             raise InputError(f"num_neighbours: expected >= 0, got {self.num_neighbours}")
         if self.lr_schedule is not None and self.lr_schedule not in LR_SCHEDULES:
@@ -272,12 +284,14 @@ class TrainPlan:
     """:attr:`TrainConfig.neighbour_pose_noise` (None: off)."""
     depth_noise: float = 0.0
     """:attr:`TrainConfig.depth_noise` (0: off)."""
+    neighbour_renders: float = 0.0
+    """:attr:`TrainConfig.neighbour_renders` (0: off)."""
 
     # The saved plan's key order (JSON in the state and the checkpoint's meta).
     _ORDER = ("device", "variant", "crop", "crop_used", "batch", "lr", "lr_schedule", "num_neighbours",
               "steps", "minutes", "without", "seed", "neighbour_encoding", "freeze_neighbour_encoder",
               "render_warp", "why", "threads", "held_out_share", "neighbour_pose_noise",
-              "depth_noise")
+              "depth_noise", "neighbour_renders")
 
     def to_dict(self) -> dict:
         """JSON-able, as saved (``without`` a list)."""
@@ -381,6 +395,8 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
         freeze = FREEZE_NEIGHBOUR_ENCODER if kind == "finetune" else False
     # Target augmentation: the caller's, else the fine-tuning default; pre-training none.
     warp = config.render_warp if config.render_warp is not None else (RENDER_WARP if kind == "finetune" else 0.0)
+    drawn = (config.neighbour_renders if config.neighbour_renders is not None
+             else (NEIGHBOUR_RENDERS if kind == "finetune" else 0.0))
     steps, minutes = config.steps, config.minutes
     if steps is None and minutes is None:
         minutes = GPU_MINUTES if on_gpu else CPU_MINUTES
@@ -404,6 +420,7 @@ def plan_training(scene, config: TrainConfig, device: str | torch.device | None 
         freeze_neighbour_encoder=bool(freeze),
         depth_noise=float(config.depth_noise or 0.0),
         render_warp=float(warp),
+        neighbour_renders=float(drawn),
         why=GPU_PLAN_WHY if on_gpu else CPU_PLAN_WHY,
         threads=torch.get_num_threads(),
     )
@@ -418,6 +435,8 @@ def describe_plan(plan: TrainPlan | Mapping) -> str:
     without = f", without {'+'.join(plan.without)}" if plan.without else ""
     if plan.render_warp:
         without += f", half the target renders warped (up to {plan.render_warp:g} px)"
+    if plan.neighbour_renders:
+        without += f", {plan.neighbour_renders:.0%} of the target renders drawn from the nearest training view's"
     if plan.neighbour_pose_noise:
         deg, share = plan.neighbour_pose_noise
         without += f", neighbour poses perturbed ({deg:g} deg, {share:.0%} of the camera spread RMS)"

@@ -111,6 +111,10 @@ class SceneData:
         self.features: Tensor | None = None
         """``(len(train), F, H, W)`` conv_H features of the training photos when conv_H is frozen
         (:meth:`cache_features`); batches then cut windows of these instead of photos."""
+        self.drawn_renders: Tensor | None = None
+        self.drawn_depths: Tensor | None = None
+        """``(len(train), 3 | 1, H, W)``: each training view as its nearest other training view's
+        render draws it (:meth:`draw_from_neighbours`), for ``TrainConfig.neighbour_renders``."""
 
     def feature_bytes(self, model) -> int:
         """Memory :meth:`cache_features` would take for ``model`` (float32)."""
@@ -123,6 +127,30 @@ class SceneData:
             self.features = torch.cat([
                 model.encode_neighbours(self.photos[k:k + 1].to(device)).to("cpu").contiguous()
                 for k in range(len(self.train))])
+
+    def draw_from_neighbours(self) -> float:
+        """Fill :attr:`drawn_renders` and :attr:`drawn_depths`: each training view's render and depth
+        as its nearest other training view's render and depth look from its camera
+        (:func:`~roguenerf.reprojection.splat_view`: a forward warp, so what is wrong in that
+        view's geometry lands where a new camera would see it, as in a novel view), its own
+        render and depth where nothing lands. Returns the mean share of pixels drawn."""
+        from roguenerf.geometry import select_neighbours
+        from roguenerf.reprojection import splat_view
+
+        m = len(self.train)
+        renders, depths, drawn = self.renders[:m].clone(), self.depths[:m].clone(), []
+        if m < 2:
+            self.drawn_renders, self.drawn_depths = renders, depths
+            return 0.0
+        for k in range(m):
+            s = int(select_neighbours(self.poses[k], self.poses[:m], 1, exclude=k)[0])
+            image, depth, hit = splat_view(self.renders[s], self.depths[s], self.K[s], self.K[k], self.poses[s],
+                                           self.poses[k], (self.height, self.width))
+            renders[k] = torch.where(hit, image, renders[k])
+            depths[k] = torch.where(hit, depth, depths[k])
+            drawn.append(float(hit.float().mean()))
+        self.drawn_renders, self.drawn_depths = renders, depths
+        return sum(drawn) / len(drawn)
 
     def __len__(self) -> int:
         return len(self.train)
@@ -315,7 +343,7 @@ def _initial_model(checkpoint, config: TrainConfig, plan_variant: str | None):
 
 RESUMED_KEYS = ("variant", "crop", "crop_used", "batch", "lr", "num_neighbours", "without", "seed",
                 "lr_schedule", "freeze_neighbour_encoder", "held_out_share", "render_warp",
-                "neighbour_pose_noise", "depth_noise")
+                "neighbour_pose_noise", "depth_noise", "neighbour_renders")
 """What a resumed run keeps of its saved plan whatever the new wishes (a run saved before a field
 existed keeps TrainPlan's default: no schedule, no freezing, no held-out views, no augmentation)."""
 
@@ -400,6 +428,9 @@ class _Run:
         d = self.datasets[index]
         targets = d.draw_targets(plan.batch, generator, plan.held_out_share)
         origins = sample_crops(d, plan.batch, plan.crop, generator)
+        drawn = None
+        if plan.neighbour_renders > 0:  # TrainConfig.neighbour_renders: training targets only
+            drawn = (torch.rand(plan.batch, generator=generator) < plan.neighbour_renders) & (targets < len(d))
         noise = plan.neighbour_pose_noise
 
         def noisy(poses: Tensor) -> Tensor:  # TrainConfig.neighbour_pose_noise: each (target, neighbour) its own
@@ -411,7 +442,7 @@ class _Run:
                               use_neighbours=self.model.config.use_neighbours,
                               augment=(self.augment if plan.render_warp or plan.depth_noise
                                        else None),
-                              pose_noise=noisy if noise else None)
+                              pose_noise=noisy if noise else None, drawn=drawn)
         batch.dataset, batch.sampler_state = index, generator.get_state()
         return batch
 
@@ -458,6 +489,12 @@ def _set_up(scenes: list, output_dir: Path, *, kind: str, config: TrainConfig, m
     held = set(held_out_scenes)
     datasets = [SceneData(s, plan.num_neighbours if model.config.use_neighbours else 0, held_out=k in held)
                 for k, s in enumerate(scenes)]
+    if plan.neighbour_renders > 0:
+        for d in datasets:
+            share = d.draw_from_neighbours()
+            log.info("%s: each training view drawn from its nearest training view's render (%.0f%% of its "
+                     "pixels on average); %.0f%% of the crops use them", d.scene.root, 100 * share,
+                     100 * plan.neighbour_renders)
     if kind == "finetune" and config.evaluate and saved is None and datasets[0].scene.indices("test"):
         _evaluating(progress, 0, plan)
         before = _summary(evaluate(datasets[0].scene, model))

@@ -145,7 +145,8 @@ def test_colour_cache_tag_names_what_differs_from_the_cached_setting():
 
 def test_the_fine_tune_options_reach_the_fine_tune_and_name_its_cache(tmp_path, monkeypatch):
     """``--finetune-render-warp 4`` fine-tunes with ``TrainConfig.render_warp`` 4 into a folder and a
-    cache of its own (``10min_warp4``), so a run without it is never read back as one with it."""
+    cache of its own (``10min_warp4``), so a run without it is never read back as one with it; the
+    same for ``--finetune-neighbour-renders`` (``10min_drawn0.5``)."""
     import roguenerf.checkpoint
     import roguenerf.data.readers
     import roguenerf.training
@@ -156,7 +157,8 @@ def test_the_fine_tune_options_reach_the_fine_tune_and_name_its_cache(tmp_path, 
     seen = {}
 
     def fake_finetune(scene, output, *, checkpoint, config):
-        seen.update(output=output, warp=config.render_warp, depth=config.depth_noise, minutes=config.minutes)
+        seen.update(output=output, warp=config.render_warp, depth=config.depth_noise, minutes=config.minutes,
+                    drawn=config.neighbour_renders)
         raise StopIteration  # stop before evaluating the tuned model
 
     def fake_cached(path, measure):
@@ -178,3 +180,9 @@ def test_the_fine_tune_options_reach_the_fine_tune_and_name_its_cache(tmp_path, 
     assert (seen["warp"], seen["depth"], seen["minutes"]) == (4.0, 0.0, 10.0)
     assert seen["output"].name == "10min_warp4"
     assert seen["caches"][-1].startswith("finetune_10min_warp4")
+    args = kinds.parse_args(["--kind", "splat", "--scenes", "ollie", "--noise", "", "--finetune", "10",
+                             "--finetune-neighbour-renders", "0.5", "--runs", str(tmp_path)])
+    with pytest.raises(StopIteration):
+        kinds.measure_scene(args, "ollie", tmp_path / "default.safetensors", {}, "splat_s1")
+    assert (seen["warp"], seen["drawn"], seen["output"].name) == (0.0, 0.5, "10min_drawn0.5")
+    assert seen["caches"][-1].startswith("finetune_10min_drawn0.5")

@@ -254,6 +254,10 @@ def test_finetune_from_scratch_then_resume_to_more_steps(scene_dir, tmp_path):
                   "--render-warp", "4", *FAST)
     assert warped.exit_code == 0 and "warped (up to 4 px)" in warped.stderr
     assert load_checkpoint(tmp_path / "w" / "model.safetensors")[1]["training"]["plan"]["render_warp"] == 4.0
+    drawn = _run("finetune", scene_dir, "--scratch", "--steps", "1", "--output", tmp_path / "d", "--no-eval",
+                 "--neighbour-renders", "0.5", *FAST)
+    assert drawn.exit_code == 0 and "50% of the target renders drawn" in drawn.stderr, drawn.output
+    assert load_checkpoint(tmp_path / "d" / "model.safetensors")[1]["training"]["plan"]["neighbour_renders"] == 0.5
     more = _run("finetune", scene_dir, "--scratch", "--steps", "3", "--output", out, "--no-eval", *FAST)
     assert more.exit_code == 0, more.output
     assert "resuming finetune from step 2" in more.stderr
@@ -309,6 +313,7 @@ def test_pretrain_held_out_from_adds_the_scene_and_its_held_out_views(scene_dir,
     (["--steps", "1", "--lr-schedule", "step"], "lr_schedule"),
     (["--steps", "1", "--render-warp", "100"], "render_warp"),
     (["--steps", "1", "--depth-noise", "-1"], "depth_noise"),
+    (["--steps", "1", "--neighbour-renders", "1.5"], "neighbour_renders"),
 ])
 def test_finetune_bad_flags_exit_2(scene_dir, tmp_path, args, message):
     result = _run("finetune", scene_dir, "--scratch", "--output", tmp_path / "x", *args)

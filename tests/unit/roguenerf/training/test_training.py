@@ -172,6 +172,59 @@ def test_render_augmentation_is_planned_saved_and_resumed(scene, tmp_path):
     assert saved["render_warp"] == 3.0
 
 
+def test_neighbour_renders_are_validated_planned_and_resumed(scene, tmp_path):
+    from roguenerf.training.config import describe_plan
+
+    for bad in (-0.1, 1.5):
+        with pytest.raises(InputError, match="neighbour_renders"):
+            TrainConfig(neighbour_renders=bad).validate()
+    config = TrainConfig(steps=1, neighbour_renders=0.5, **FAST)
+    plan = plan_training(scene, config, "cpu")
+    assert plan.neighbour_renders == 0.5 and "50% of the target renders drawn" in describe_plan(plan)
+    assert plan_training(scene, TrainConfig(), "cpu", kind="pretrain").neighbour_renders == 0.0
+    finetune(scene, tmp_path, config=config)
+    resumed = finetune(scene, tmp_path, config=TrainConfig(**{**FAST, "steps": 2}))
+    assert resumed.steps == 2
+    assert load_state(tmp_path / STATE_FILE)["info"]["plan"]["neighbour_renders"] == 0.5
+
+
+def test_training_views_drawn_from_their_nearest_view(scene):
+    """Each training view drawn from its nearest other training view's render (a forward warp
+    through that view's depth): on the toy scene, whose renders are its photos degraded, the
+    drawn views differ from the views' own renders but land on the same image (closer to the
+    view's photo than to any other training view's), and hold the view's own render where
+    nothing lands."""
+    from roguenerf.geometry import select_neighbours
+    from roguenerf.metrics import psnr
+
+    data = SceneData(scene, 2, held_out=True)
+    share = data.draw_from_neighbours()
+    m = len(data.train)
+    assert data.drawn_renders.shape == (m, 3, data.height, data.width) and data.drawn_depths.shape[1] == 1
+    assert 0.3 < share <= 1.0
+    for k in range(m):
+        s = int(select_neighbours(data.poses[k], data.poses[:m], 1, exclude=k)[0])
+        assert not torch.equal(data.drawn_renders[k], data.renders[k])
+        own = float(psnr(data.drawn_renders[k][None], data.photos[k][None]))
+        assert own > float(psnr(data.drawn_renders[k][None], data.photos[s][None]))  # the view's image, not s's
+
+
+def test_drawn_crops_come_from_the_drawn_renders(scene):
+    from roguenerf.training.batches import prepare_batch
+
+    data = SceneData(scene, 2)
+    data.draw_from_neighbours()
+    targets, origins = torch.tensor([0, 1, 2]), torch.tensor([[0, 0], [4, 8], [8, 16]])
+    drawn = torch.tensor([True, False, True])
+    batch = prepare_batch(data, targets, origins, 16, drawn=drawn)
+    plain = prepare_batch(data, targets, origins, 16)
+    for b, (t, (y, x)) in enumerate(zip(targets.tolist(), origins.tolist())):
+        source = (data.drawn_renders, data.drawn_depths) if drawn[b] else (data.renders, data.depths)
+        assert torch.equal(batch.render[b], source[0][t, :, y:y + 16, x:x + 16])
+        assert torch.equal(batch.depth[b], source[1][t, :, y:y + 16, x:x + 16])
+        assert torch.equal(batch.photo[b], plain.photo[b])  # the target stays the view's photo
+
+
 def test_depth_noise_is_validated_planned_described_and_resumed(scene, tmp_path):
     from roguenerf.training.config import describe_plan
 
