@@ -22,6 +22,8 @@ alternatives weighed for the CPU defaults; ``seed1`` and ``seed2`` are the defau
 another seed (crops, order), for the run-to-run spread of one plan; ``warp4``/``warp8`` warp
 the target render and depth of half the crops by up to 4/8 px (``render_warp``; blurring the
 target render instead, ``blur1``/``blur2``, was measured to hurt and removed: docs/results.md);
+``drawn50``/``drawn100`` take half or all of the crops' target renders from the nearest training
+view's render drawn into the view (``neighbour_renders``);
 ``bench/results/real_scenes.csv`` compared ``default`` when its lr was 1e-4 with ``lr5e-4``,
 after which 5e-4 became the default). Same data, seed and start.
 
@@ -56,6 +58,8 @@ PLANS = {
     "seed2": {"seed": 2},
     "warp4": {"render_warp": 4.0},
     "warp8": {"render_warp": 8.0},
+    "drawn50": {"neighbour_renders": 0.5},
+    "drawn100": {"neighbour_renders": 1.0},
 }
 """Fine-tuning plans as TrainConfig overrides of the shipped CPU plan (``--plans``)."""
 
