@@ -190,9 +190,9 @@ def splat_view(image: Tensor, depth: Tensor, src_K: Tensor, dst_K: Tensor, world
     Each source pixel with known z-depth becomes a 3D point (through its pixel centre, float64);
     seen from the destination camera it is drawn into the 2 x 2 pixels around where it lands
     (so a view a little nearer the scene shows no cracks; a point exactly on a pixel centre
-    draws that pixel alone). Of the points on one pixel the
-    nearest surface wins (a z-buffer); within ``surface`` relative depth of the nearest, the
-    point nearest the pixel's centre (then the higher source index). Unlike :func:`reproject`,
+    draws that pixel alone). Of the points on one pixel the nearest surface wins (a z-buffer);
+    within ``surface`` relative depth of the nearest, the point nearest the pixel's centre
+    (then the higher source index). Unlike :func:`reproject`,
     which reads the source through the *destination's* depth, what sits in front in the source
     view stays in front: a field's floaters, painted to look right from its own camera, land
     where a new camera would see them.
@@ -206,11 +206,15 @@ def splat_view(image: Tensor, depth: Tensor, src_K: Tensor, dst_K: Tensor, world
         ``image`` ``(C, H, W)`` (0 where no point lands), ``depth`` ``(1, H, W)`` z-depth in the
         destination camera (0 there), ``hit`` ``(1, H, W)`` bool.
     """
-    _check_image(image[None] if image.dim() == 3 else image, "image")
-    _check_image(depth[None] if depth.dim() == 3 else depth, "depth", 1)
-    if image.dim() != 3 or depth.dim() != 3 or depth.shape[1:] != image.shape[1:]:
-        raise InputError(f"image, depth: expected (C, Hs, Ws) and (1, Hs, Ws), got {tuple(image.shape)} "
-                         f"and {tuple(depth.shape)}")
+    if (not isinstance(image, Tensor) or not isinstance(depth, Tensor) or image.ndim != 3
+            or tuple(depth.shape) != (1, *image.shape[1:])):
+        def shape(x) -> str:
+            return str(tuple(x.shape)) if isinstance(x, Tensor) else type(x).__name__
+
+        raise InputError(f"image, depth: expected (C, Hs, Ws) and (1, Hs, Ws) tensors, got {shape(image)} "
+                         f"and {shape(depth)}")
+    _check_image(image[None], "image")
+    _check_image(depth[None], "depth", 1)
     h, w = (int(x) for x in size)
     if h < 1 or w < 1:
         raise InputError(f"size: expected a positive (H, W), got {size}")

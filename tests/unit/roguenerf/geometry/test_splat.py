@@ -86,6 +86,12 @@ def test_bad_inputs_are_refused():
     image, depth = torch.rand(3, H, W), torch.rand(1, H, W) + 1.0
     with pytest.raises(InputError, match="image, depth"):
         splat_view(image, depth[:, :5], K, K, EYE, EYE, (H, W))
+    with pytest.raises(InputError, match="image, depth"):
+        splat_view(image[None], depth, K, K, EYE, EYE, (H, W))
+    with pytest.raises(InputError, match="image, depth.*list"):
+        splat_view(image, [[1.0]], K, K, EYE, EYE, (H, W))
+    with pytest.raises(InputError, match="floating-point"):
+        splat_view(image.to(torch.uint8), depth, K, K, EYE, EYE, (H, W))
     with pytest.raises(InputError, match="size"):
         splat_view(image, depth, K, K, EYE, EYE, (0, W))
     with pytest.raises(InputError, match="dst_K"):
