@@ -18,7 +18,7 @@ from torch import Tensor
 
 from roguenerf import ops
 from roguenerf.errors import InputError
-from roguenerf.geometry.cameras import check_intrinsics, check_pose, relative_pose
+from roguenerf.geometry.cameras import check_intrinsics, check_pose, pixel_rays, relative_pose
 from roguenerf.geometry.depth import DEPTH_EPS, MAX_DEPTH, known_depth_mask  # noqa: F401 (re-exported)
 from roguenerf.ops.reproject import known_filled
 
@@ -225,10 +225,7 @@ def splat_view(image: Tensor, depth: Tensor, src_K: Tensor, dst_K: Tensor, world
     c, hs, ws = image.shape
     z = depth.reshape(-1).to(torch.float64)
     known = known_depth_mask(z, eps=eps)
-    v, u = torch.meshgrid(torch.arange(hs, dtype=torch.float64) + 0.5,
-                          torch.arange(ws, dtype=torch.float64) + 0.5, indexing="ij")
-    pix = torch.stack([u.reshape(-1), v.reshape(-1), torch.ones(hs * ws, dtype=torch.float64)])
-    pts = (torch.linalg.inv(src_K) @ pix) * torch.where(known, z, 1.0)
+    pts = pixel_rays(src_K, (hs, ws)).reshape(-1, 3).T * torch.where(known, z, 1.0)
     pts = dst_from_src[:3, :3] @ pts + dst_from_src[:3, 3:]
     uvw = dst_K @ pts
     z_dst = pts[2]

@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from roguenerf.errors import InputError
-from roguenerf.geometry.cameras import check_intrinsics, check_pose, relative_pose, scale_intrinsics
+from roguenerf.geometry.cameras import check_intrinsics, check_pose, pixel_rays, relative_pose, scale_intrinsics
 from roguenerf.geometry.depth import known_depth_mask, median_known_depth
 from roguenerf.geometry.euler import rotation_angle
 from roguenerf.geometry.noise import axis_angle_to_matrix
@@ -153,14 +153,6 @@ def _se3(delta: Tensor) -> Tensor:
     return out
 
 
-def _rays(K: Tensor, size: tuple[int, int]) -> Tensor:
-    """``(H, W, 3)`` float64 ``K^-1 [u + 0.5, v + 0.5, 1]`` (z = 1 for a K without a third-row twist)."""
-    h, w = size
-    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64) + 0.5, torch.arange(w, dtype=torch.float64) + 0.5,
-                          indexing="ij")
-    return torch.stack([u, v, torch.ones_like(u)], dim=-1) @ torch.linalg.inv(K.to(torch.float64)).T
-
-
 MIN_OVERLAP = 0.9
 """A moved neighbour camera must still see this share of the target pixels it saw before."""
 
@@ -191,7 +183,7 @@ class _Level:
             depth = _level_depth(render_depth.float()[None], to) / scale
             level_K = _scaled_K(K, (H, W), to)
             # (h, w, 3) float32 target points (target frame, depth units): float64 rays first
-            points = (_rays(level_K, to) * depth[0, 0, ..., None].to(torch.float64)).float()
+            points = (pixel_rays(level_K, to) * depth[0, 0, ..., None].to(torch.float64)).float()
             target = (_blurred(render.float()[None], to, sigma), depth, level_K, points)
             if target_cache is not None:
                 target_cache[target_key] = target

@@ -247,6 +247,15 @@ def relative_pose(world_from_a: Tensor, world_from_b: Tensor) -> Tensor:
     return out
 
 
+def pixel_rays(K: Tensor, size: tuple[int, int]) -> Tensor:
+    """``(H, W, 3)`` float64 ``K^-1 [u + 0.5, v + 0.5, 1]`` through every pixel centre (z = 1 for
+    a K without a third-row twist): times a z-depth map, each pixel's 3-D point in its camera."""
+    h, w = size
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64) + 0.5, torch.arange(w, dtype=torch.float64) + 0.5,
+                          indexing="ij")
+    return torch.stack([u, v, torch.ones_like(u)], dim=-1) @ torch.linalg.inv(K.to(torch.float64)).T
+
+
 def ray_to_z_depth(ray_depth: Tensor, K: Tensor) -> Tensor:
     """Convert distance along the ray to z-depth: ``z = d / ||K^-1 [u+0.5, v+0.5, 1]||``.
 

@@ -151,41 +151,28 @@ def test_the_printed_plan_says_why(scene):
     assert "the paper's" in describe_plan(plan_training(scene, TrainConfig(), "cuda"))
 
 
-@pytest.mark.parametrize("field,value", [("render_warp", -1.0), ("render_warp", 100.0)])
+@pytest.mark.parametrize("field,value", [("render_warp", -1.0), ("render_warp", 100.0),
+                                         ("neighbour_renders", -0.1), ("neighbour_renders", 1.5)])
 def test_render_augmentation_must_be_in_range(field, value):
     with pytest.raises(InputError, match=field):
         TrainConfig(**{field: value}).validate()
 
 
-def test_render_augmentation_is_planned_saved_and_resumed(scene, tmp_path):
+@pytest.mark.parametrize("field,value,described", [("render_warp", 3.0, "warped (up to 3 px)"),
+                                                   ("neighbour_renders", 0.5, "50% of the target renders drawn")])
+def test_render_augmentation_is_planned_saved_and_resumed(scene, tmp_path, field, value, described):
     from roguenerf.training.config import describe_plan
 
-    config = TrainConfig(steps=1, render_warp=3.0, **FAST)
+    config = TrainConfig(steps=1, **{field: value}, **FAST)
     plan = plan_training(scene, config, "cpu")
-    assert plan.render_warp == 3.0 and "warped (up to 3 px)" in describe_plan(plan)
-    assert plan_training(scene, TrainConfig(), "cpu", kind="pretrain").render_warp == 0.0
+    assert getattr(plan, field) == value and described in describe_plan(plan)
+    assert getattr(plan_training(scene, TrainConfig(), "cpu", kind="pretrain"), field) == 0.0
     finetune(scene, tmp_path, config=config)
     # resumed with other wishes: the saved run keeps its own augmentation
     resumed = finetune(scene, tmp_path, config=TrainConfig(**{**FAST, "steps": 2}))
     assert resumed.steps == 2
     saved = load_state(tmp_path / STATE_FILE)["info"]["plan"]
-    assert saved["render_warp"] == 3.0
-
-
-def test_neighbour_renders_are_validated_planned_and_resumed(scene, tmp_path):
-    from roguenerf.training.config import describe_plan
-
-    for bad in (-0.1, 1.5):
-        with pytest.raises(InputError, match="neighbour_renders"):
-            TrainConfig(neighbour_renders=bad).validate()
-    config = TrainConfig(steps=1, neighbour_renders=0.5, **FAST)
-    plan = plan_training(scene, config, "cpu")
-    assert plan.neighbour_renders == 0.5 and "50% of the target renders drawn" in describe_plan(plan)
-    assert plan_training(scene, TrainConfig(), "cpu", kind="pretrain").neighbour_renders == 0.0
-    finetune(scene, tmp_path, config=config)
-    resumed = finetune(scene, tmp_path, config=TrainConfig(**{**FAST, "steps": 2}))
-    assert resumed.steps == 2
-    assert load_state(tmp_path / STATE_FILE)["info"]["plan"]["neighbour_renders"] == 0.5
+    assert saved[field] == value
 
 
 def test_training_views_drawn_from_their_nearest_view(scene):
