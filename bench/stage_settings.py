@@ -7,10 +7,14 @@ columns. CSV + plot with date, machine and commit; ``colour`` and ``trust`` also
 per setting. A scene folder may name the checkpoint to use for it (``FOLDER=CHECKPOINT``: a
 fine-tuned model; labelled ``(fine-tuned)``), else ``--checkpoint``.
 
-``align`` (neighbour pose refinement; ``--settings off,on[,earlyX]``): for each ``--noise`` level
-(Gaussian noise on the training views' poses only, as ``bench/kinds.py``) every test view is
-enhanced with pose refinement off and on, in alternation (so both see the same machine load):
-seconds per view and the share of neighbours whose fit was kept. ``earlyX`` (e.g.
+``align`` (neighbour pose refinement; ``--settings off,on[,reuse,noreuse,earlyX]``): for each
+``--noise`` level (Gaussian noise on the training views' poses only, as ``bench/kinds.py``)
+every test view is enhanced with pose refinement off and on, in alternation (so both see the
+same machine load): seconds per view and the share of neighbours whose fit was kept. ``reuse``
+and ``noreuse`` are on with :attr:`~roguenerf.enhance.align.AlignConfig.reuse` True and False:
+one enhancer per setting and noise level enhances the views in order, so a reused judgement
+was made on an earlier view (the untimed call that warms the neighbour cache leaves
+``SceneEnhancer.settled`` as it was). ``earlyX`` (e.g.
 ``early0.03``; ``early0``: every level fitted) is on with
 :attr:`~roguenerf.enhance.align.AlignConfig.early_refusal` = X; ``earlyX@L`` also judges level
 L (:attr:`~roguenerf.enhance.align.AlignConfig.early_level`; ``early0.05@0``: the first). ``--max-rotation`` and
@@ -79,8 +83,8 @@ def align_settings(text: str) -> list[str]:
             except ValueError:
                 raise argparse.ArgumentTypeError(f"--settings: {c!r}: expected earlyX or earlyX@L with X in [0, 1) "
                                                  "and L a level index, e.g. early0.03 or early0.05@0") from None
-        elif c not in ("off", "on"):
-            raise argparse.ArgumentTypeError(f"--settings: {c!r} is none of off, on, earlyX, earlyX@L")
+        elif c not in ("off", "on", "reuse", "noreuse"):
+            raise argparse.ArgumentTypeError(f"--settings: {c!r} is none of off, on, reuse, noreuse, earlyX, earlyX@L")
         out.append(c)
     return out
 
@@ -94,6 +98,8 @@ def _align_config(setting: str, **trust):
     if setting.startswith("early"):
         share, level = _early(setting)
         return AlignConfig(early_refusal=share, early_level=level, **trust)
+    if setting in ("reuse", "noreuse"):
+        return AlignConfig(reuse=setting == "reuse", **trust)
     return AlignConfig(**trust)
 
 
@@ -234,7 +240,9 @@ def _align_rows(args, clean, model, checkpoint: Path, head: dict) -> list[dict]:
                      for a in args.settings}
         for i in _views(scene, args.max_views):
             for enhancer in enhancers.values():  # warm each neighbour cache: time the request, not the cache
+                settled = set(enhancer.settled)  # but leave what earlier views settled as it was
                 enhancer.enhance_view(i)
+                enhancer.settled = settled
             view = _View(scene, i)
             for align in args.settings:
                 t0 = time.perf_counter()

@@ -203,6 +203,9 @@ class SceneEnhancer:
         self._sources: OrderedDict[int, Tensor] = OrderedDict()
         self._depths: dict[int, Tensor] = {}
         self._lock = threading.Lock()
+        self.settled: set[int] = set()
+        """Training positions whose pose fit found nothing to gain on an earlier view
+        (:attr:`AlignConfig.reuse <roguenerf.enhance.align.AlignConfig.reuse>`)."""
 
     def _source_bytes(self, position: int) -> int:
         frame = self.scene.frames[self.train[position]]
@@ -283,12 +286,16 @@ class SceneEnhancer:
         refined against the render where :attr:`align` is on and the fit is accepted, else the
         dataset's; and, per neighbour, whether it was refined. With ``memory`` (a dict kept by
         the caller: a camera path) a neighbour's pose is fitted the first time it is used and
-        reused after: a photo's pose error does not depend on the view it is fitted against."""
+        reused after: a photo's pose error does not depend on the view it is fitted against.
+        Without it, where :attr:`AlignConfig.reuse <roguenerf.enhance.align.AlignConfig.reuse>`
+        is on, a neighbour whose fit found nothing to gain on an earlier view (:attr:`settled`)
+        keeps its dataset pose without a fit."""
         from roguenerf.enhance.align import align_neighbour, shrink
 
         poses = self.train_poses[positions].clone()
         if self.align is None:
             return poses, [False] * len(positions)
+        reuse = memory is None and self.align.reuse
         small = None
         done = []
         for j, p in enumerate(positions):
@@ -296,12 +303,17 @@ class SceneEnhancer:
                 poses[j], accepted = memory[p]
                 done.append(accepted)
                 continue
+            if reuse and p in self.settled:  # nothing to gain on an earlier view: the dataset pose
+                done.append(False)
+                continue
             if small is None:
                 small = shrink(render, depth, K, ALIGN_SIDE)
                 target = {}  # the view's levels, built by the first fit and read by the others
             photo, photo_depth, photo_K, levels = self._small_neighbour(p)
             fit = align_neighbour(photo, photo_depth, photo_K, poses[j], *small, world_from_cam, config=self.align,
                                   cache=levels, target_cache=target)
+            if reuse and fit.refusal in ("early", "gain"):
+                self.settled.add(p)
             poses[j] = fit.world_from_cam
             done.append(fit.accepted)
             if memory is not None:
