@@ -1,15 +1,17 @@
 """Frames per second along a camera path: frame by frame against the temporal filter, alternated.
 
     python -m bench.path_speed --fit runs/speed/dtu_scan37_fine --factor 1 --keys 4 --steps 16 \\
-        --work runs/paths [--repeats 2] [--output bench/results/path_speed_dtu_scan37_fine]
+        --work runs/paths [--repeats 2] [--model-every 1,2] [--output bench/results/path_speed_dtu_scan37_fine]
 
 The path and its frames are ``bench.paths``'s (same ``--fit``, ``--factor``, ``--keys``,
 ``--steps`` and ``--work``: rendered once, cached). In one process, ``enhance_path`` runs on them
 ``--repeats`` times with the temporal filter off and on, alternated (off, on, off, on ...), each
 into a fresh folder without videos: the frames per second of ``PathResult.frames_per_second``
 (reading, enhancing, smoothing and writing each frame), the flicker against the render's and the
-gain on the frames with photos. Writes ``OUTPUT.csv`` (a row per run; date, machine, commit),
-``OUTPUT.json`` (the medians, the ratio) and ``OUTPUT.png``.
+gain on the frames with photos. ``--model-every`` runs the filter once per value of
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.model_every` (labelled ``on`` for the shipped
+value, ``on/kK`` for the others), with the share of frames carried. Writes ``OUTPUT.csv`` (a row
+per run; date, machine, commit), ``OUTPUT.json`` (the medians, the ratios) and ``OUTPUT.png``.
 """
 
 from __future__ import annotations
@@ -33,6 +35,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=16)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--output", type=Path, default=None)
+    ap.add_argument("--model-every", default=None,
+                    help="comma-separated TemporalConfig.model_every values for the filter (default: the shipped one)")
     ap.add_argument("--force", action="store_true", help="enhance a path enhance_path's check refuses (as bench.paths)")
     args = ap.parse_args(argv)
     if args.repeats < 1:
@@ -44,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     from roguenerf import SceneEnhancer, load_checkpoint
     from roguenerf.checkpoint import default_checkpoint_path
     from roguenerf.enhance import EnhanceOptions
+    from roguenerf.enhance.temporal import TemporalConfig
     from roguenerf.trajectory import CameraPath, enhance_path
 
     roguenerf.runtime.configure()
@@ -51,12 +56,15 @@ def main(argv: list[str] | None = None) -> int:
     camera_path = CameraPath(world_from_cam=poses, K=K.expand(len(poses), 3, 3).clone(), width=width,
                              height=height, fps=24.0)
     model, _ = load_checkpoint(default_checkpoint_path())
+    shipped = TemporalConfig().model_every
+    every = [shipped] if args.model_every is None else [int(k) for k in args.model_every.split(",")]
+    modes = {"off": None, **{("on" if k == shipped else f"on/k{k}"): TemporalConfig(model_every=k) for k in every}}
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for repeat in range(args.repeats):
-            for mode in ("off", "on"):
-                enhancer = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(temporal=mode == "on"))
-                out = Path(tmp) / mode
+            for mode, config in modes.items():
+                enhancer = SceneEnhancer(scene, model, options=EnhanceOptions(temporal=config))
+                out = Path(tmp) / mode.replace("/", "_")
                 shutil.rmtree(out, ignore_errors=True)
                 result = enhance_path(scene, enhancer, camera_path, frames, out, video=False, force=args.force)
                 report = result.flicker
@@ -64,13 +72,16 @@ def main(argv: list[str] | None = None) -> int:
                              "repeat": repeat, "temporal": mode, "enhance_seconds": round(result.enhance_seconds, 3),
                              "frames_per_second": round(result.frames_per_second, 4),
                              "flicker_ratio": round(report["flicker"]["ratio"], 4),
-                             "gain_db": round(report["psnr"]["mean_gain_db"], 4)})
+                             "gain_db": round(report["psnr"]["mean_gain_db"], 4),
+                             "carried_share": round(sum(bool(f.get("carried")) for f in report["per_frame"])
+                                                    / len(report["per_frame"]), 4)})
                 print(f"temporal {mode}: {rows[-1]['frames_per_second']:.2f} frames/s, flicker x"
                       f"{rows[-1]['flicker_ratio']:.3f}, gain {rows[-1]['gain_db']:+.3f} dB", flush=True)
-    fps = {m: statistics.median(r["frames_per_second"] for r in rows if r["temporal"] == m) for m in ("off", "on")}
+    fps = {m: statistics.median(r["frames_per_second"] for r in rows if r["temporal"] == m) for m in modes}
     summary = {**stamp(), "command": " ".join(["python -m bench.path_speed", *(argv or sys.argv[1:])]),
                "scene": name, "size": f"{width}x{height}", "frames": len(poses), "repeats": args.repeats,
-               "frames_per_second": fps, "speed_ratio": fps["on"] / fps["off"],
+               "frames_per_second": fps,
+               "speed_ratio": {m: fps[m] / fps["off"] for m in modes if m != "off"},
                "flicker_ratio": {m: next(r["flicker_ratio"] for r in rows if r["temporal"] == m) for m in fps},
                "gain_db": {m: next(r["gain_db"] for r in rows if r["temporal"] == m) for m in fps}}
     output = args.output or RESULTS / f"path_speed_{name}_{args.fit.name}"
@@ -83,11 +94,13 @@ def main(argv: list[str] | None = None) -> int:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5, 3.5))
-    for i, mode in enumerate(("off", "on")):
+    for i, mode in enumerate(modes):
         ax.scatter([i] * args.repeats, [r["frames_per_second"] for r in rows if r["temporal"] == mode])
-    ax.set_xticks([0, 1], ["frame by frame", "temporal filter"])
+    ax.set_xticks(range(len(modes)), ["frame by frame" if m == "off" else f"filter {m[3:] or 'shipped'}"
+                                      for m in modes])
     ax.set_ylabel("frames per second")
-    ax.set_title(f"{name} {width}x{height}, {len(poses)} frames: x{summary['speed_ratio']:.2f}", fontsize=9)
+    ratios = ", ".join(f"{m}: x{r:.2f}" for m, r in summary["speed_ratio"].items())
+    ax.set_title(f"{name} {width}x{height}, {len(poses)} frames: {ratios}", fontsize=9)
     fig.suptitle(f"{summary['date']} {summary['machine']} {summary['commit']}", fontsize=6)
     save_figure(fig, beside(output, ".png"))
     print(f"wrote {beside(output, '.csv')}, {beside(output, '.json')} and {beside(output, '.png')}")

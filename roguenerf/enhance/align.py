@@ -79,14 +79,17 @@ class AlignConfig:
     stops at the first that gains too little. -2: only the level before the finest; 0: every
     level, so that a fit with nothing to find stops after the first."""
 
-    reuse: bool = False
+    reuse: bool = True
     """Judge each neighbour's dataset pose once per scene: a
     :class:`~roguenerf.inference.SceneEnhancer` remembers each neighbour whose fit was refused
     for having nothing to gain (:attr:`Alignment.refusal` ``early`` or ``gain``: the dataset
     pose is as good as any near it), and that neighbour keeps its dataset pose on the later
     views without a fit. Every other neighbour is fitted on every view, as without reuse: a fit
     kept on one view and read on another lost up to 0.19 dB on lego at 0.5° / 5 % pose noise,
-    and a fit that ran to the trust region's edge on one view was kept on the next."""
+    and a fit that ran to the trust region's edge on one view was kept on the next. The same
+    images as without reuse on lego and the report half at three noise levels (docs/results.md,
+    *Speed at users' sizes*); it saves time where views share neighbours (lego's orbit, paths,
+    a service's nearby requests), not on held-out views that each have their own."""
 
     def __post_init__(self):
         if not isinstance(self.reuse, bool):

@@ -21,6 +21,15 @@ so on. Blending the image smooths the render's own flicker too (a field's floate
 go); blending only the residual carries those back in, and flickered more on a hash field's path
 than no blending at all (docs/broad.md, *Videos that do not flicker*). A cut (a pose far from the
 last) needs no special case: the warp then sees nothing of it, and the frame keeps its own.
+
+With :attr:`TemporalConfig.model_every` = k > 1 the model runs on one frame in k; a frame
+between is *carried* (:meth:`TemporalFilter.carry`): the previous frame's result reprojected
+into it, which is what the blend would give that frame with ``w = 1``::
+
+    out_t = warp(out_{t-1})   where the previous frame sees the pixel, render_t elsewhere
+
+and the model runs on it after all where the previous frame sees less than
+:attr:`TemporalConfig.min_seen` of it (a cut, a fast turn, a disocclusion).
 """
 
 from __future__ import annotations
@@ -54,7 +63,20 @@ class TemporalConfig:
     rest; 0: every frame takes the rule's choice. Along a path the rule's choice changes every
     few frames, and each change makes the enhanced frame jump (:func:`sticky_neighbours`)."""
 
+    model_every: int = 1
+    """Run the model on one frame in this many (the first, then every ``model_every``-th; and
+    every frame whose neighbours changed); carry the previous frame's result into the frames
+    between (:meth:`TemporalFilter.carry`). 1: the model on every frame. A carried frame costs
+    a reprojection instead of the model, its pose fits, colour and trust."""
+    min_seen: float = 0.95
+    """A frame is carried only where the previous frame sees at least this share of its
+    pixels; otherwise the model runs on it."""
+
     def __post_init__(self):
+        if isinstance(self.model_every, bool) or not isinstance(self.model_every, int) or self.model_every < 1:
+            raise InputError(f"TemporalConfig.model_every: expected an integer >= 1, got {self.model_every!r}")
+        if not (isinstance(self.min_seen, (int, float)) and 0 <= self.min_seen <= 1):
+            raise InputError(f"TemporalConfig.min_seen: expected a share in [0, 1], got {self.min_seen!r}")
         for name in ("weight", "change_weight"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and 0 <= value < 1):
@@ -100,6 +122,37 @@ class TemporalFilter:
         carried = enhanced.float() - render.float() if self.config.blend == "residual" else enhanced.float()
         self._previous = (carried, depth.float(), torch.as_tensor(K).to(torch.float32),
                           torch.as_tensor(world_from_cam).to(torch.float64))
+
+    def model_due(self, t: int, *, changed: bool = False) -> bool:
+        """Whether frame ``t`` of the path (from 0) is one the model runs on by
+        :attr:`TemporalConfig.model_every` (before :meth:`carry` is tried)."""
+        return self._previous is None or changed or t % self.config.model_every == 0
+
+    def carry(self, render: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor) -> Tensor | None:
+        """The previous frame's result reprojected into this frame (``render`` ``(3, H, W)``, its
+        z-depth ``(1, H, W)``, ``K``, camera-to-world ``(4, 4)``), the render where the previous
+        frame does not see; kept as the last frame's result. None (nothing kept) where there is
+        no previous frame or it sees less than :attr:`TemporalConfig.min_seen` of this one:
+        the model must run on it."""
+        from roguenerf.reprojection import reproject
+
+        self.last_share = 0.0
+        if self._previous is None:
+            return None
+        render, depth = render.float(), depth.float()
+        pose = torch.as_tensor(world_from_cam).to(torch.float64)
+        K = torch.as_tensor(K).to(torch.float32)
+        prev, prev_depth, prev_K, prev_pose = self._previous
+        with torch.inference_mode():
+            warped = reproject(prev[None], prev_depth[None], depth[None], prev_K, K, prev_pose, pose)
+        valid = warped.valid[0] > 0.5
+        self.last_share = float(valid.float().mean())
+        if self.last_share < self.config.min_seen:
+            return None
+        carried = warped.features[0] if self.config.blend == "image" else render + warped.features[0]
+        out = torch.where(valid, carried, render).clamp(0, 1)
+        self._previous = (out if self.config.blend == "image" else out - render, depth, K, pose)
+        return out
 
     def __call__(self, render: Tensor, enhanced: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
                  changed: bool = False) -> Tensor:

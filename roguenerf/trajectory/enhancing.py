@@ -224,18 +224,26 @@ def enhance_path(
             neighbours = sticky_neighbours(last_neighbours, chosen, nearest)
             changed = last_neighbours is not None and set(neighbours) != set(last_neighbours)
             last_neighbours = neighbours
+        # Along a path with model_every > 1, a frame between the model's is the last one carried
+        # into it (where the last frame sees enough of it); decided the same way on a resume.
+        carried = None
+        if temporal is not None and not temporal.model_due(t, changed=changed):
+            carried = temporal.carry(render, depth, *camera)
         if out_png.is_file():
             enhanced = read_image(out_png)
-            if poses is not None:  # a resumed path fits its neighbours' poses where it first did
+            if poses is not None and carried is None:  # a resumed path fits its neighbours' poses where it first did
                 chosen = neighbours if neighbours is not None else enhancer.select(
                     camera[1], exclude=exclude, view=(render, depth, camera[0]))
                 enhancer.neighbour_poses([enhancer.train.index(i) for i in chosen], render, depth, *camera,
                                          memory=poses)
         else:
-            image = enhancer.enhance(render, depth, *camera, exclude=exclude, neighbours=neighbours,
-                                     pose_memory=poses).image
-            if temporal is not None:
-                image = temporal(render, image, depth, *camera, changed=changed)
+            if carried is not None:
+                image = carried
+            else:
+                image = enhancer.enhance(render, depth, *camera, exclude=exclude, neighbours=neighbours,
+                                         pose_memory=poses).image
+                if temporal is not None:
+                    image = temporal(render, image, depth, *camera, changed=changed)
             write_png(out_png, image, strategy="rle")  # the same pixels in a quarter of zlib's time
             enhanced = _quantise(image)
             done_now += 1
@@ -246,6 +254,8 @@ def enhance_path(
         row = {"frame": t, "view": scene.frames[matches[t]].name if matches[t] is not None else None}
         if neighbours is not None:
             row["neighbours"] = [scene.frames[i].name for i in neighbours]
+        if temporal is not None and temporal.config.model_every > 1:
+            row["carried"] = carried is not None
         if photo is not None:
             row["render_psnr"] = float(psnr(render[None], photo[None])[0])
             row["enhanced_psnr"] = float(psnr(enhanced[None], photo[None])[0])

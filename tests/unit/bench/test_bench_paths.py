@@ -72,15 +72,19 @@ def test_path_speed_alternates_frame_by_frame_and_the_temporal_filter(tmp_path):
     make_pairs(root, tmp_path / "pairs", CONFIGS["grid"])
     out = tmp_path / "res" / "speed"
     assert path_speed.main(["--fit", str(tmp_path / "pairs"), "--work", str(tmp_path / "work"), "--keys", "2",
-                            "--steps", "2", "--repeats", "2", "--force", "--output", str(out)]) == 0
+                            "--steps", "2", "--repeats", "2", "--model-every", "1,3", "--force",
+                            "--output", str(out)]) == 0
     summary = json.loads((tmp_path / "res" / "speed.json").read_text())
     assert summary["frames"] == 3 and summary["repeats"] == 2
     fps = summary["frames_per_second"]
-    assert fps["off"] > 0 and fps["on"] > 0 and summary["speed_ratio"] == pytest.approx(fps["on"] / fps["off"])
+    assert fps["off"] > 0 and fps["on"] > 0 and fps["on/k3"] > 0
+    assert summary["speed_ratio"] == pytest.approx({m: fps[m] / fps["off"] for m in ("on", "on/k3")})
     import csv
 
     rows = list(csv.DictReader(open(tmp_path / "res" / "speed.csv")))
-    assert [r["temporal"] for r in rows] == ["off", "on", "off", "on"]
+    assert [r["temporal"] for r in rows] == ["off", "on", "on/k3"] * 2
+    # the model on frame 0 only; frames 1 and 2 carried where frame 0 sees enough of them
+    assert {r["carried_share"] for r in rows if r["temporal"] != "on/k3"} == {"0.0"}
     assert {r["flicker_ratio"] for r in rows if r["temporal"] == "off"} != {r["flicker_ratio"] for r in rows
                                                                            if r["temporal"] == "on"}
     assert (tmp_path / "res" / "speed.png").is_file()

@@ -53,7 +53,7 @@ def test_a_wrong_pose_is_found_again(views, deg, share, seed):
     before = pixel_error(views, wrong)
     assert before > 0.2  # the noise moves the reprojection by a fair share of a pixel, or more
     result = fit(views, wrong)
-    assert result.accepted
+    assert result.accepted and result.refusal == ""
     assert result.error_after < 0.95 * result.error_before
     # Every fit ends within a tenth of a pixel of the truth (a small bias: the render is blurred).
     assert pixel_error(views, result.world_from_cam) < 0.1
@@ -92,7 +92,7 @@ def test_nothing_to_fit_keeps_the_dataset_pose(views):
     away[:3, :3] = away[:3, :3] @ torch.diag(torch.tensor([-1.0, 1.0, -1.0], dtype=torch.float64))
     result = fit(views, away)
     assert not result.accepted and torch.equal(result.world_from_cam, away)
-    assert math.isnan(result.error_before)
+    assert math.isnan(result.error_before) and result.refusal == "overlap"
     # A featureless photo and render: no gradient to follow.
     wrong = perturb_poses(views["neighbour"], 0.5, 0.05, torch.Generator().manual_seed(1))
     flat = align_neighbour(torch.full_like(views["photo"], 0.5), views["photo_depth"], views["K"], wrong,
@@ -109,6 +109,7 @@ def test_the_trust_region_bounds_the_fit(views):
     result = fit(views, wrong, max_rotation_deg=3.0)
     assert result.rotation_deg <= 3.0 + 1e-6
     assert not result.accepted and torch.equal(result.world_from_cam, wrong)
+    assert result.refusal == "edge"  # no minimum near the dataset pose, not "nothing to gain"
 
 
 def test_bad_inputs_are_refused(views):
@@ -206,7 +207,8 @@ def test_early_refusal_stops_a_fit_with_nothing_to_find(views):
     full = fit(views, views["neighbour"], levels=(32, 64, 128), early_refusal=0.0)
     early = fit(views, views["neighbour"], levels=(32, 64, 128), early_refusal=0.5)
     assert not full.stopped_early and math.isfinite(full.coarse_gain) and full.coarse_gain < 0.5
-    assert early.stopped_early and not early.accepted
+    assert not full.accepted and full.refusal == "gain"  # the right pose: nothing to gain
+    assert early.stopped_early and not early.accepted and early.refusal == "early"
     assert torch.equal(early.world_from_cam, views["neighbour"])
     assert early.error_after == early.error_before == pytest.approx(full.error_before, rel=1e-3)  # all it sees
     assert early.coarse_gain == full.coarse_gain
@@ -271,3 +273,80 @@ def test_judging_the_first_level_stops_before_the_second(views, monkeypatch):
     assert widths[0] == {32} and widths[-2] == {32, 64}
     with pytest.raises(InputError, match="early_level"):
         AlignConfig(early_level=0.5)
+
+
+# --- issue 51: a neighbour with nothing to gain is judged once per scene ---------------------------
+
+
+def _counting_fits(monkeypatch) -> list:
+    """Each call of align_neighbour as the scene enhancer makes it, recorded."""
+    import roguenerf.enhance.align as align
+
+    calls, real = [], align.align_neighbour
+
+    def counting(*args, **kwargs):
+        out = real(*args, **kwargs)
+        calls.append(out)
+        return out
+
+    monkeypatch.setattr(align, "align_neighbour", counting)
+    return calls
+
+
+def test_a_neighbour_with_nothing_to_gain_is_fitted_once_per_scene(tmp_path, monkeypatch):
+    """With the dataset's poses right, reuse fits each neighbour on the first view that judges it
+    and never again, and gives the images of an enhancer that fits on every view."""
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.inference import SceneEnhancer
+    from roguenerf.models import Enhancer, make_config
+
+    scene = make_toy_scene(tmp_path / "scene", n_train=6, n_test=3, height=48, width=64)
+    model = Enhancer(make_config("nano", num_neighbours=2))
+    each = SceneEnhancer(scene, model, options=EnhanceOptions(align=AlignConfig(reuse=False)))
+    once = SceneEnhancer(scene, model, options=EnhanceOptions(align=AlignConfig(reuse=True)))
+    calls = _counting_fits(monkeypatch)
+    views = scene.indices("test") + scene.indices("test")  # every view twice
+    fitted, used = {"each": [], "once": []}, 0
+    for i in views:
+        for name, enhancer in (("each", each), ("once", once)):
+            calls.clear()
+            result = enhancer.enhance_view(i)
+            fitted[name] += calls
+            assert result.aligned == [False] * len(result.neighbours)
+            if name == "each":
+                image, used = result.image, used + len(result.neighbours)
+            else:
+                assert torch.equal(result.image, image)
+    assert len(fitted["each"]) == used  # every neighbour of every view fitted
+    assert not each.settled and once.settled
+    # each settled neighbour was fitted exactly once; only the others were fitted again
+    settling = [c for c in fitted["once"] if c.refusal in ("early", "gain")]
+    assert len(settling) == len(once.settled)
+    assert len(fitted["once"]) < len(fitted["each"]) / 2
+
+
+def test_a_wrong_pose_is_fitted_on_every_view_with_reuse(tmp_path, monkeypatch):
+    """A neighbour whose fit was kept is fitted again on each view (a fit is never carried to
+    another view), so reuse changes nothing where the poses are wrong."""
+    from roguenerf.enhance import EnhanceOptions, NeighbourRule
+    from roguenerf.inference import SceneEnhancer
+    from roguenerf.models import Enhancer, make_config
+
+    scene = make_toy_scene(tmp_path / "scene", n_train=6, n_test=2, height=72, width=96)
+    model = Enhancer(make_config("nano", num_neighbours=2))
+    enhancers = [SceneEnhancer(scene, model, options=EnhanceOptions(neighbours=NeighbourRule(count=2),
+                                                                    align=AlignConfig(reuse=r))) for r in (False, True)]
+    for enhancer in enhancers:
+        enhancer.train_poses = perturb_poses(enhancer.train_poses, 0.5, 0.05, torch.Generator().manual_seed(0))
+    calls = _counting_fits(monkeypatch)
+    for i in scene.indices("test") * 2:
+        results = []
+        for enhancer in enhancers:
+            calls.clear()
+            results.append(enhancer.enhance_view(i))
+            assert len(calls) == 2 and all(c.accepted for c in calls)
+        assert results[0].aligned == results[1].aligned == [True, True]
+        assert torch.equal(results[0].image, results[1].image)
+    assert not enhancers[1].settled
+    with pytest.raises(InputError, match="reuse"):
+        AlignConfig(reuse=1)

@@ -112,3 +112,50 @@ def test_blending_the_image_averages_the_frames_themselves():
     assert torch.allclose(f(r2, e2, DEPTH, K, POSE), 0.5 * e2 + 0.5 * e1, atol=1e-5)
     with pytest.raises(InputError, match="blend"):
         TemporalConfig(blend="pixels")
+
+
+# --- issue 51: frames between the model's carry the last one -----------------------------------
+
+
+@pytest.mark.parametrize("blend", ["image", "residual"])
+def test_a_carried_frame_is_the_last_result_moved_and_the_render_where_it_is_not_seen(blend):
+    """A camera moved sideways by one pixel (z = 3, f = 30): the last frame's result lands one
+    pixel to the left; the last column, which the last frame does not see, is the render's."""
+    f = TemporalFilter(TemporalConfig(blend=blend, model_every=2, min_seen=0.9))
+    r1, e1 = _frame(1)
+    f(r1, e1, DEPTH, K, POSE)
+    assert not f.model_due(1) and f.model_due(2) and f.model_due(1, changed=True)
+    moved = POSE.clone()
+    moved[0, 3] = 0.1
+    r2, _ = _frame(2)
+    out = f.carry(r2, DEPTH, K, moved)
+    carried = e1[:, :, 1:] if blend == "image" else r2[:, :, :-1] + (e1 - r1)[:, :, 1:]
+    assert torch.allclose(out[:, :, :-1], carried.clamp(0, 1), atol=1e-5)
+    assert torch.equal(out[:, :, -1], r2[:, :, -1])
+    assert f.last_share == pytest.approx(1 - 1 / W)
+    # the carried frame is the last one now: carried again, it moves on by another pixel
+    further = POSE.clone()
+    further[0, 3] = 0.2
+    again = f.carry(r2, DEPTH, K, further)
+    assert torch.allclose(again[:, :, :-2], out[:, :, 1:-1] if blend == "image"
+                          else (r2[:, :, :-2] + (out - r2)[:, :, 1:-1]).clamp(0, 1), atol=1e-5)
+
+
+def test_a_frame_the_last_one_barely_sees_is_not_carried():
+    f = TemporalFilter(TemporalConfig(model_every=3))
+    r1, e1 = _frame(1)
+    assert f.model_due(1) and f.carry(r1, DEPTH, K, POSE) is None  # no last frame yet
+    f(r1, e1, DEPTH, K, POSE)
+    assert f.carry(r1, DEPTH, K, turned(POSE, 180.0)) is None and f.last_share == 0.0  # a cut
+    moved = POSE.clone()
+    moved[0, 3] = 0.5  # five pixels: 5 / 24 of the frame unseen, more than 1 - min_seen
+    assert f.carry(r1, DEPTH, K, moved) is None
+    assert f.last_share == pytest.approx(1 - 5 / W)
+    assert torch.allclose(f.carry(r1, DEPTH, K, POSE), e1, atol=1e-6)  # nothing kept by the refusals: frame 1
+
+
+@pytest.mark.parametrize("field,value", [("model_every", 0), ("model_every", 1.5), ("model_every", True),
+                                         ("min_seen", 1.5), ("min_seen", -0.1)])
+def test_bad_carry_settings_are_refused(field, value):
+    with pytest.raises(InputError, match=field):
+        TemporalConfig(**{field: value})

@@ -199,6 +199,37 @@ def test_the_temporal_filter_lowers_flicker_and_leaves_the_first_frame(toy_path,
         enhance_path(scene, alone, cp, root / "frames", tmp_path / "on", depth_type="ray", video=False)
 
 
+def test_frames_between_the_models_are_carried_and_resume_the_same(toy_path, enhancer, tmp_path, monkeypatch):
+    """model_every=2: the model runs on the even frames only; an odd frame is the last one
+    carried into it (marked in the report); a resumed path makes the same frames."""
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.enhance.temporal import TemporalConfig
+
+    root, scene = toy_path["root"], toy_path["scene"]
+    cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
+    every = SceneEnhancer(scene, enhancer.model,
+                          options=EnhanceOptions(temporal=TemporalConfig(model_every=2, min_seen=0.0)))
+    ran = []
+    real = every.enhance
+    monkeypatch.setattr(every, "enhance", lambda *a, **k: ran.append(1) or real(*a, **k))
+    out = tmp_path / "every2"
+    result = enhance_path(scene, every, cp, root / "frames", out, depth_type="ray", video=False)
+    T = len(cp)
+    assert [f["carried"] for f in result.flicker["per_frame"]] == [t % 2 == 1 for t in range(T)]
+    assert len(ran) == (T + 1) // 2 and result.enhanced_now == T
+    shipped = enhance_path(scene, enhancer, cp, root / "frames", tmp_path / "shipped", depth_type="ray", video=False)
+    assert "carried" not in shipped.flicker["per_frame"][0]
+    frame = lambda folder, t: (tmp_path / folder / "frames" / f"{t:05d}.png").read_bytes()  # noqa: E731
+    assert frame("every2", 0) == frame("shipped", 0) and frame("every2", 1) != frame("shipped", 1)
+    made = {t: frame("every2", t) for t in range(T)}
+    for t in (1, 2, 5):
+        (out / "frames" / f"{t:05d}.png").unlink()
+    ran.clear()
+    again = enhance_path(scene, every, cp, root / "frames", out, depth_type="ray", video=False)
+    assert again.enhanced_now == 3 and len(ran) == 1  # frame 2 by the model; 1 and 5 carried
+    assert all(frame("every2", t) == made[t] for t in range(T))
+
+
 def test_enhance_path_cli(toy_path, tmp_path):
     root = toy_path["root"]
     runner = CliRunner()
