@@ -123,8 +123,21 @@ class PathEnhanceFlags(EnhanceFlags):
         "each neighbour's pose once: less flicker, faster; --no-temporal enhances every frame on its own. "
         "Default on."))] = True
 
+    model_every: Annotated[int | None, typer.Option("--model-every", help=(
+        "With --temporal, run the model on one frame in this many and carry the last frame's result, "
+        "reprojected, into the frames between (where it sees at least 95 %% of them): faster, and the video "
+        "flickers less; 1: the model on every frame. Default: the shipped TemporalConfig's "
+        "(docs/results.md, Speed at users' sizes)."))] = None
+
     def options(self):
-        return super().options(temporal=self.temporal)
+        temporal = self.temporal
+        if self.model_every is not None:
+            from roguenerf.enhance.temporal import TemporalConfig
+
+            if not self.temporal:
+                raise InputError("--model-every: frames are carried by the temporal filter; drop --no-temporal")
+            temporal = TemporalConfig(model_every=self.model_every)
+        return super().options(temporal=temporal)
 
 
 INTERRUPTED = 130

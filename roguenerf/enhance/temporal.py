@@ -68,6 +68,9 @@ class TemporalConfig:
     every frame whose neighbours changed); carry the previous frame's result into the frames
     between (:meth:`TemporalFilter.carry`). 1: the model on every frame. A carried frame costs
     a reprojection instead of the model, its pose fits, colour and trust."""
+    resample: str = "bilinear"
+    """How the last frame is sampled where its points land: ``"bilinear"`` (the reprojection's
+    own sampling) or ``"bicubic"`` (sharper: a bilinear sample between pixels averages them)."""
     min_seen: float = 0.95
     """A frame is carried only where the previous frame sees at least this share of its
     pixels; otherwise the model runs on it."""
@@ -75,6 +78,8 @@ class TemporalConfig:
     def __post_init__(self):
         if isinstance(self.model_every, bool) or not isinstance(self.model_every, int) or self.model_every < 1:
             raise InputError(f"TemporalConfig.model_every: expected an integer >= 1, got {self.model_every!r}")
+        if self.resample not in ("bilinear", "bicubic"):
+            raise InputError(f"TemporalConfig.resample: expected 'bilinear' or 'bicubic', got {self.resample!r}")
         if not (isinstance(self.min_seen, (int, float)) and 0 <= self.min_seen <= 1):
             raise InputError(f"TemporalConfig.min_seen: expected a share in [0, 1], got {self.min_seen!r}")
         for name in ("weight", "change_weight"):
@@ -123,6 +128,26 @@ class TemporalFilter:
         self._previous = (carried, depth.float(), torch.as_tensor(K).to(torch.float32),
                           torch.as_tensor(world_from_cam).to(torch.float64))
 
+    def _warp(self, depth: Tensor, K: Tensor, pose: Tensor) -> tuple[Tensor, Tensor]:
+        """The kept last frame moved into this one: ``(3, H, W)`` (0 where not seen) and
+        ``(1, H, W)`` bool: seen."""
+        import torch.nn.functional as F
+
+        from roguenerf.reprojection import reproject
+
+        prev, prev_depth, prev_K, prev_pose = self._previous
+        with torch.inference_mode():
+            warped = reproject(prev[None], prev_depth[None], depth[None], prev_K, K, prev_pose, pose)
+            valid = warped.valid[0] > 0.5
+            if self.config.resample == "bilinear":
+                return warped.features[0], valid
+            h, w = prev.shape[-2:]
+            xy = warped.coords  # (1, H, W, 2) pixel coordinates in the last frame, centres at integers
+            grid = torch.stack([(xy[..., 0] + 0.5) / w * 2 - 1, (xy[..., 1] + 0.5) / h * 2 - 1], dim=-1)
+            sampled = F.grid_sample(prev[None], grid.to(prev.dtype), mode="bicubic", padding_mode="border",
+                                    align_corners=False)[0]
+            return torch.where(valid, sampled, 0.0), valid
+
     def model_due(self, t: int, *, changed: bool = False) -> bool:
         """Whether frame ``t`` of the path (from 0) is one the model runs on by
         :attr:`TemporalConfig.model_every` (before :meth:`carry` is tried)."""
@@ -134,22 +159,17 @@ class TemporalFilter:
         frame does not see; kept as the last frame's result. None (nothing kept) where there is
         no previous frame or it sees less than :attr:`TemporalConfig.min_seen` of this one:
         the model must run on it."""
-        from roguenerf.reprojection import reproject
-
         self.last_share = 0.0
         if self._previous is None:
             return None
         render, depth = render.float(), depth.float()
         pose = torch.as_tensor(world_from_cam).to(torch.float64)
         K = torch.as_tensor(K).to(torch.float32)
-        prev, prev_depth, prev_K, prev_pose = self._previous
-        with torch.inference_mode():
-            warped = reproject(prev[None], prev_depth[None], depth[None], prev_K, K, prev_pose, pose)
-        valid = warped.valid[0] > 0.5
+        warped, valid = self._warp(depth, K, pose)
         self.last_share = float(valid.float().mean())
         if self.last_share < self.config.min_seen:
             return None
-        carried = warped.features[0] if self.config.blend == "image" else render + warped.features[0]
+        carried = warped if self.config.blend == "image" else render + warped
         out = torch.where(valid, carried, render).clamp(0, 1)
         self._previous = (out if self.config.blend == "image" else out - render, depth, K, pose)
         return out
@@ -160,8 +180,6 @@ class TemporalFilter:
         camera-to-world ``(4, 4)``) with the previous frame's residual blended in (with
         ``change_weight`` where ``changed``: its neighbours differ from the last frame's); the
         frame's blended residual is kept for the next."""
-        from roguenerf.reprojection import reproject
-
         if render.shape != enhanced.shape or render.ndim != 3 or render.shape[0] != 3:
             raise InputError(f"render, enhanced: expected the same (3, H, W) shape, got {tuple(render.shape)} "
                              f"and {tuple(enhanced.shape)}")
@@ -175,12 +193,9 @@ class TemporalFilter:
         self.last_share = 0.0
         w = float(self.config.change_weight if changed else self.config.weight)
         if self._previous is not None and w > 0:
-            prev_residual, prev_depth, prev_K, prev_pose = self._previous
-            with torch.inference_mode():
-                warped = reproject(prev_residual[None], prev_depth[None], depth[None], prev_K, K, prev_pose, pose)
-            valid = warped.valid[0] > 0.5
+            warped, valid = self._warp(depth, K, pose)
             self.last_share = float(valid.float().mean())
-            residual = torch.where(valid, (1 - w) * residual + w * warped.features[0], residual)
+            residual = torch.where(valid, (1 - w) * residual + w * warped, residual)
         out = (residual if image else render + residual).clamp(0, 1)
         self._previous = (out if image else out - render, depth, K, pose)
         return out

@@ -159,3 +159,22 @@ def test_a_frame_the_last_one_barely_sees_is_not_carried():
 def test_bad_carry_settings_are_refused(field, value):
     with pytest.raises(InputError, match=field):
         TemporalConfig(**{field: value})
+
+
+def test_bicubic_resampling_keeps_the_detail_a_half_pixel_move_blurs():
+    """A sine of period 4 pixels moved by half a pixel: bilinear sampling averages neighbouring
+    pixels (amplitude x0.71); bicubic lands within a fifth of its error of the true moved sine."""
+    x = torch.arange(W, dtype=torch.float32)
+    wave = lambda shift: (0.5 + 0.3 * torch.sin(2 * torch.pi * (x + shift) / 4)).expand(3, H, W)  # noqa: E731
+    moved = POSE.clone()
+    moved[0, 3] = 0.05  # half a pixel: the points land half a pixel further right in the last frame
+    errors = {}
+    for resample in ("bilinear", "bicubic"):
+        f = TemporalFilter(TemporalConfig(model_every=2, min_seen=0.5, resample=resample))
+        f(wave(0.0), wave(0.0), DEPTH, K, POSE)
+        out = f.carry(torch.zeros(3, H, W), DEPTH, K, moved)
+        errors[resample] = float((out - wave(0.5))[:, :, 2:-2].abs().max())  # away from the edges
+    assert errors["bilinear"] > 0.06  # 0.3 * 0.71 * (1 - 0.71): the samples sit at 0.71 of the peak
+    assert errors["bicubic"] < errors["bilinear"] / 5
+    with pytest.raises(InputError, match="resample"):
+        TemporalConfig(resample="nearest")

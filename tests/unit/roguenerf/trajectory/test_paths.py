@@ -245,6 +245,15 @@ def test_enhance_path_cli(toy_path, tmp_path):
     (tmp_path / "empty").mkdir()
     wrong = runner.invoke(app, [*args[:3], str(tmp_path / "empty"), *args[4:]])
     assert wrong.exit_code == 2 and "no frames found" in wrong.output
+    every = args[:7] + [str(tmp_path / "every"), *args[8:], "--model-every", "2"]
+    result = runner.invoke(app, every)
+    assert result.exit_code == 0, result.output
+    carried = [f["carried"] for f in json.loads((tmp_path / "every" / FLICKER_FILE).read_text())["per_frame"]]
+    assert not carried[0] and any(carried) and not any(carried[t] for t in range(0, len(carried), 2))
+    for flags, message in ((["--model-every", "0"], "model_every"), (["--no-temporal", "--model-every", "2"],
+                                                                     "drop --no-temporal")):
+        bad = runner.invoke(app, args[:7] + [str(tmp_path / "bad"), *args[8:], *flags])
+        assert bad.exit_code == 2 and message in bad.output and "Traceback" not in bad.output
 
 
 def test_bad_camera_paths_are_named(tmp_path):
