@@ -1,16 +1,19 @@
 """Frames per second along a camera path: frame by frame against the temporal filter, alternated.
 
     python -m bench.path_speed --fit runs/speed/dtu_scan37_fine --factor 1 --keys 4 --steps 16 \\
-        --work runs/paths [--repeats 2] [--model-every 1,2] [--output bench/results/path_speed_dtu_scan37_fine]
+        --work runs/paths [--repeats 2] [--model-every 1,2] [--resample bicubic,bilinear] \
+        [--output bench/results/path_speed_dtu_scan37_fine]
 
 The path and its frames are ``bench.paths``'s (same ``--fit``, ``--factor``, ``--keys``,
 ``--steps`` and ``--work``: rendered once, cached). In one process, ``enhance_path`` runs on them
 ``--repeats`` times with the temporal filter off and on, alternated (off, on, off, on ...), each
 into a fresh folder without videos: the frames per second of ``PathResult.frames_per_second``
 (reading, enhancing, smoothing and writing each frame), the flicker against the render's and the
-gain on the frames with photos. ``--model-every`` runs the filter once per value of
-:attr:`~roguenerf.enhance.temporal.TemporalConfig.model_every` (labelled ``on`` for the shipped
-value, ``on/kK`` for the others), with the share of frames carried. Writes ``OUTPUT.csv`` (a row
+gain on the frames with photos. ``--model-every`` and ``--resample`` run the filter once per
+pair of values of :attr:`~roguenerf.enhance.temporal.TemporalConfig.model_every` and
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.resample` (labelled ``on`` for the shipped
+values, ``on/kK`` and ``on/RESAMPLE`` for others), with the share of frames carried; the CSV
+also keeps each frame with a photo's gain (``gains``: frame, gain, carried). Writes ``OUTPUT.csv`` (a row
 per run; date, machine, commit), ``OUTPUT.json`` (the medians, the ratios) and ``OUTPUT.png``.
 """
 
@@ -37,6 +40,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--output", type=Path, default=None)
     ap.add_argument("--model-every", default=None,
                     help="comma-separated TemporalConfig.model_every values for the filter (default: the shipped one)")
+    ap.add_argument("--resample", default=None,
+                    help="comma-separated TemporalConfig.resample values for the filter (default: the shipped one)")
     ap.add_argument("--force", action="store_true", help="enhance a path enhance_path's check refuses (as bench.paths)")
     args = ap.parse_args(argv)
     if args.repeats < 1:
@@ -56,9 +61,15 @@ def main(argv: list[str] | None = None) -> int:
     camera_path = CameraPath(world_from_cam=poses, K=K.expand(len(poses), 3, 3).clone(), width=width,
                              height=height, fps=24.0)
     model, _ = load_checkpoint(default_checkpoint_path())
-    shipped = TemporalConfig().model_every
-    every = [shipped] if args.model_every is None else [int(k) for k in args.model_every.split(",")]
-    modes = {"off": None, **{("on" if k == shipped else f"on/k{k}"): TemporalConfig(model_every=k) for k in every}}
+    shipped = TemporalConfig()
+    every = [shipped.model_every] if args.model_every is None else [int(k) for k in args.model_every.split(",")]
+    resample = [shipped.resample] if args.resample is None else args.resample.split(",")
+    modes = {"off": None}
+    for k in every:
+        for r in resample:
+            label = "/".join(["on", *([f"k{k}"] if k != shipped.model_every else []),
+                              *([r] if r != shipped.resample else [])])
+            modes[label] = TemporalConfig(model_every=k, resample=r)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for repeat in range(args.repeats):
@@ -74,7 +85,9 @@ def main(argv: list[str] | None = None) -> int:
                              "flicker_ratio": round(report["flicker"]["ratio"], 4),
                              "gain_db": round(report["psnr"]["mean_gain_db"], 4),
                              "carried_share": round(sum(bool(f.get("carried")) for f in report["per_frame"])
-                                                    / len(report["per_frame"]), 4)})
+                                                    / len(report["per_frame"]), 4),
+                             "gains": " ".join(f"{f['frame']}:{f['gain_db']:+.3f}" + ("c" if f.get("carried") else "")
+                                               for f in report["per_frame"] if "gain_db" in f)})
                 print(f"temporal {mode}: {rows[-1]['frames_per_second']:.2f} frames/s, flicker x"
                       f"{rows[-1]['flicker_ratio']:.3f}, gain {rows[-1]['gain_db']:+.3f} dB", flush=True)
     fps = {m: statistics.median(r["frames_per_second"] for r in rows if r["temporal"] == m) for m in modes}

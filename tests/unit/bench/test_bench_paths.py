@@ -72,19 +72,21 @@ def test_path_speed_alternates_frame_by_frame_and_the_temporal_filter(tmp_path):
     make_pairs(root, tmp_path / "pairs", CONFIGS["grid"])
     out = tmp_path / "res" / "speed"
     assert path_speed.main(["--fit", str(tmp_path / "pairs"), "--work", str(tmp_path / "work"), "--keys", "2",
-                            "--steps", "2", "--repeats", "2", "--model-every", "1,3", "--force",
-                            "--output", str(out)]) == 0
+                            "--steps", "2", "--repeats", "2", "--model-every", "1,3", "--resample", "bicubic,bilinear",
+                            "--force", "--output", str(out)]) == 0
     summary = json.loads((tmp_path / "res" / "speed.json").read_text())
     assert summary["frames"] == 3 and summary["repeats"] == 2
     fps = summary["frames_per_second"]
-    assert fps["off"] > 0 and fps["on"] > 0 and fps["on/k3"] > 0
-    assert summary["speed_ratio"] == pytest.approx({m: fps[m] / fps["off"] for m in ("on", "on/k3")})
+    modes = ["on", "on/bilinear", "on/k3", "on/k3/bilinear"]  # the shipped values are not named
+    assert list(fps) == ["off", *modes] and all(v > 0 for v in fps.values())
+    assert summary["speed_ratio"] == pytest.approx({m: fps[m] / fps["off"] for m in modes})
     import csv
 
     rows = list(csv.DictReader(open(tmp_path / "res" / "speed.csv")))
-    assert [r["temporal"] for r in rows] == ["off", "on", "on/k3"] * 2
-    # the model on frame 0 only; frames 1 and 2 carried where frame 0 sees enough of them
-    assert {r["carried_share"] for r in rows if r["temporal"] != "on/k3"} == {"0.0"}
+    assert [r["temporal"] for r in rows] == ["off", *modes] * 2
+    assert all(r["gains"] for r in rows)  # frames 0 and 2 sit on views with photos
+    # model_every 1 carries nothing (k3: frames 1 and 2 carried where frame 0 sees enough of them)
+    assert {r["carried_share"] for r in rows if "k3" not in r["temporal"]} == {"0.0"}
     assert {r["flicker_ratio"] for r in rows if r["temporal"] == "off"} != {r["flicker_ratio"] for r in rows
                                                                            if r["temporal"] == "on"}
     assert (tmp_path / "res" / "speed.png").is_file()
