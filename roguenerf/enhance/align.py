@@ -40,6 +40,7 @@ from roguenerf.geometry.depth import known_depth_mask, median_known_depth
 from roguenerf.geometry.euler import rotation_angle
 from roguenerf.geometry.noise import axis_angle_to_matrix
 from roguenerf.ops.filters import gaussian_blur, spatial_gradient
+from roguenerf.ops.gauss_newton import normal_equations
 from roguenerf.reprojection import reproject, sampling_source
 
 
@@ -249,31 +250,11 @@ class _Level:
     def step(self, photo_from_cam: Tensor, sampled: Tensor, seen: Tensor, counted: Tensor, c: float,
              damping: float) -> Tensor:
         """One damped Gauss-Newton step (IRLS weights of the Charbonnier penalty): the 6 numbers
-        of the motion, in the neighbour's frame, that best reduce the error to first order.
-
-        Over every pixel of the level, with weight 0 where a pixel is not used (no gather of the
-        used ones), and the normal equations summed per pixel before the colour channels are:
-        with ``J_c = gx_c ju + gy_c jv`` (a row per pixel and channel), ``sum_c J_c^T w J_c =
-        ju^T (w sum_c gx_c^2) ju + ju^T (w sum_c gx_c gy_c) jv + jv^T (...) ju + jv^T (w sum_c gy_c^2) jv``."""
+        of the motion, in the neighbour's frame, that best reduce the error to first order
+        (the normal equations: :func:`roguenerf.ops.gauss_newton.normal_equations`)."""
         use = (seen & counted).reshape(-1)
-        R, t = photo_from_cam[:3, :3].float(), photo_from_cam[:3, 3].float()
-        P = torch.addmm(t, self.points.reshape(-1, 3), R.T)  # (h w, 3) target points in the neighbour camera
-        Kp = self.photo_K.float()
-        q = P @ Kp.T
-        inv_z = torch.where(use, 1.0 / q[:, 2], 0.0)[:, None]  # 0 where not used: finite everywhere
-        du = (Kp[0] - q[:, 0:1] * inv_z * Kp[2]) * inv_z  # (h w, 3) d(u)/dP
-        dv = (Kp[1] - q[:, 1:2] * inv_z * Kp[2]) * inv_z
-        # dP/d(rotation j) = e_j x P, and a . (e_j x P) = (P x a)_j; dP/d(move) = identity.
-        ju = torch.cat([torch.linalg.cross(P, du), du], dim=1)  # (h w, 6)
-        jv = torch.cat([torch.linalg.cross(P, dv), dv], dim=1)
-        s = sampled.reshape(9, -1)
-        gx, gy = s[3:6], s[6:9]
-        r = s[:3] - self.render[0].reshape(3, -1)  # (3, h w)
-        weight = torch.where(use, 1.0 / (r.square().sum(0) + c * c).sqrt(), 0.0)  # (h w,)
-        xx, xy, yy = ((gx * gx).sum(0) * weight, (gx * gy).sum(0) * weight, (gy * gy).sum(0) * weight)
-        A = ju.T @ (xx[:, None] * ju + xy[:, None] * jv) + jv.T @ (xy[:, None] * ju + yy[:, None] * jv)
-        b = ju.T @ ((r * gx).sum(0) * weight) + jv.T @ ((r * gy).sum(0) * weight)
-        A, b = A.double(), b.double()
+        A, b = normal_equations(self.points.reshape(-1, 3), sampled.reshape(9, -1), self.render[0].reshape(3, -1),
+                                use, photo_from_cam, self.photo_K, c)
         A = A + damping * torch.diag(torch.diagonal(A).clamp_min(1e-12))
         return -torch.linalg.solve(A, b)
 

@@ -93,6 +93,7 @@ _SIGNATURES = {
     "rg_vector_width": (_int, []),
     "rg_conv3x3": (None, [_p, _p, _p, _p, _i64, _i64, _i64, _i64, _i64, _i64, _int]),
     "rg_leff": (_int, [_p, _p, _p, _p, _p, _p, _p, _p, _p, _i64, _i64, _i64, _i64, _i64, _int]),
+    "rg_gauss_newton": (None, [_p, _p, _p, _p, _p, _p, _f32, _i64, _p, _int]),
     "rg_lewin_attention": (_int, [_p, _p, _p, _p, _p, _f32, _p, _p, _p, _p, _p, _p, _p, _p, _f32,
                                   _i64, _i64, _i64, _i64, _i64, _i64, _f32, _int]),
 }
@@ -465,6 +466,21 @@ def lewin_attention(x: Tensor, norm1: torch.nn.LayerNorm, attn: torch.nn.Module,
     _account("lewin_attention", x, x_out, normed)
     profiling.add_flops(b * h * w * (8 * c * c + 4 * 16 * c))  # the two linears (3C + C outputs) and the attention
     return x_out, normed
+
+
+def gauss_newton(points: Tensor, sampled: Tensor, render: Tensor, use: Tensor, pose: Tensor, K: Tensor,
+                 c: float) -> tuple[Tensor, Tensor]:
+    """The summed normal equations of a pose fit's Gauss-Newton step
+    (:func:`roguenerf.ops.gauss_newton.normal_equations`): ``points`` ``(N, 3)``, ``sampled``
+    ``(9, N)``, ``render`` ``(3, N)``, ``use`` ``(N,)`` (0 or 1), ``pose`` ``(3, 4)``, ``K``
+    ``(3, 3)`` -> ``A`` ``(6, 6)`` and ``b`` ``(6,)`` float64 (summed in double)."""
+    n = points.shape[0]
+    out = torch.empty(42)
+    _call("rg_gauss_newton", _arg("points", points, (n, 3)), _arg("sampled", sampled, (9, n)),
+          _arg("render", render, (3, n)), _arg("use", use, (n,)), _arg("pose", pose, (3, 4)), _arg("K", K, (3, 3)),
+          float(c), n, _arg("out", out, (42,)), _threads())
+    _account("gauss_newton", points, sampled, render, use)
+    return out[:36].reshape(6, 6).double(), out[36:].double()
 
 
 def vector_width() -> int:

@@ -1071,3 +1071,67 @@ RG_API void rg_conv3x3(const float *x, const float *w, const float *bias, float 
         }
     }
 }
+
+/* The normal equations of one damped Gauss-Newton step of the neighbour pose fit
+ * (roguenerf.enhance.align, IRLS weights of the Charbonnier penalty), summed over the pixels:
+ *   P = R p + t, (u, v) its projection by K, du = dP(u), dv = dP(v) (3-vectors),
+ *   ju = [P x du, du], jv = [P x dv, dv],  r_c = s_c - render_c,  w = 1 / sqrt(sum_c r_c^2 + c^2),
+ *   A += w (sum gx^2 ju ju^T + sum gx gy (ju jv^T + jv ju^T) + sum gy^2 jv jv^T),
+ *   b += w (sum r gx ju + sum r gy jv)                          over the pixels with use > 0.
+ * points (N, 3); sampled (9, N): colour, x gradient, y gradient; render (3, N); use (N);
+ * pose (3, 4) row-major: [R | t]; K (3, 3) row-major; out (42): A (6 x 6) row-major, then b (6).
+ * Summed in double, per thread, then together.
+ */
+RG_API void rg_gauss_newton(const float *points, const float *sampled, const float *render, const float *use,
+                            const float *pose, const float *K, float c, int64_t N, float *out, int nthreads) {
+    double A[36] = {0}, b[6] = {0};
+#pragma omp parallel num_threads(nthreads)
+    {
+        double a[36] = {0}, bb[6] = {0};
+#pragma omp for schedule(static)
+        for (int64_t i = 0; i < N; ++i) {
+            if (!(use[i] > 0.0f)) continue;
+            const float *p = points + 3 * i;
+            double P[3], q[3];
+            for (int k = 0; k < 3; ++k)
+                P[k] = (double)pose[4 * k] * p[0] + (double)pose[4 * k + 1] * p[1] + (double)pose[4 * k + 2] * p[2]
+                       + pose[4 * k + 3];
+            for (int k = 0; k < 3; ++k) q[k] = K[3 * k] * P[0] + K[3 * k + 1] * P[1] + K[3 * k + 2] * P[2];
+            const double iz = 1.0 / q[2], u = q[0] * iz, v = q[1] * iz;
+            double du[3], dv[3];
+            for (int k = 0; k < 3; ++k) {
+                du[k] = (K[k] - u * K[6 + k]) * iz;
+                dv[k] = (K[3 + k] - v * K[6 + k]) * iz;
+            }
+            const double ju[6] = {P[1] * du[2] - P[2] * du[1], P[2] * du[0] - P[0] * du[2], P[0] * du[1] - P[1] * du[0],
+                                  du[0], du[1], du[2]};
+            const double jv[6] = {P[1] * dv[2] - P[2] * dv[1], P[2] * dv[0] - P[0] * dv[2], P[0] * dv[1] - P[1] * dv[0],
+                                  dv[0], dv[1], dv[2]};
+            double rr = 0, gxx = 0, gxy = 0, gyy = 0, rgx = 0, rgy = 0;
+            for (int ch = 0; ch < 3; ++ch) {
+                const double r = (double)sampled[ch * N + i] - render[ch * N + i];
+                const double gx = sampled[(3 + ch) * N + i], gy = sampled[(6 + ch) * N + i];
+                rr += r * r;
+                gxx += gx * gx;
+                gxy += gx * gy;
+                gyy += gy * gy;
+                rgx += r * gx;
+                rgy += r * gy;
+            }
+            const double w = 1.0 / sqrt(rr + (double)c * c);
+            gxx *= w; gxy *= w; gyy *= w; rgx *= w; rgy *= w;
+            for (int m = 0; m < 6; ++m) {
+                const double xu = gxx * ju[m] + gxy * jv[m], xv = gxy * ju[m] + gyy * jv[m];
+                for (int n = 0; n < 6; ++n) a[6 * m + n] += xu * ju[n] + xv * jv[n];
+                bb[m] += rgx * ju[m] + rgy * jv[m];
+            }
+        }
+#pragma omp critical
+        {
+            for (int k = 0; k < 36; ++k) A[k] += a[k];
+            for (int k = 0; k < 6; ++k) b[k] += bb[k];
+        }
+    }
+    for (int k = 0; k < 36; ++k) out[k] = (float)A[k];
+    for (int k = 0; k < 6; ++k) out[36 + k] = (float)b[k];
+}

@@ -23,10 +23,11 @@ linear / conv + act   :func:`linear`, :func:`linear_add`,           fast (oneDNN
 concatenation         :func:`cat_channels`, :func:`pack_channels`   channels-last, plain
 blur, image gradient  :func:`gaussian_blur`,                         torch, reference (kornia)
                       :func:`spatial_gradient`
+pose fit step         ``gauss_newton.normal_equations``             native, reference
 ====================  ============================================  ==============================
 """
 
-from roguenerf.ops import flow
+from roguenerf.ops import flow, gauss_newton
 from roguenerf.ops.attention import attend_pool
 from roguenerf.ops.attention import pool as pool_neighbours
 from roguenerf.ops.backend import Body, pick
@@ -48,6 +49,6 @@ from roguenerf.ops.reproject import pack_channels, reproject, sample
 from roguenerf.ops.uformer import leff, lewin_block, window_attention
 
 __all__ = ["Body", "attend_pool", "cat_channels", "cat_channels_last", "channels_last", "conv2d", "conv3x3",
-           "conv_act", "flow", "gaussian_blur", "gru_gates", "leff", "lewin_block", "linear", "linear_add",
-           "pack_channels", "pick", "pool_flow", "pool_neighbours", "reproject", "sample", "spatial_gradient",
-           "upsample_flow", "upsample_warp", "warp", "window_attention"]
+           "conv_act", "flow", "gauss_newton", "gaussian_blur", "gru_gates", "leff", "lewin_block", "linear",
+           "linear_add", "pack_channels", "pick", "pool_flow", "pool_neighbours", "reproject", "sample",
+           "spatial_gradient", "upsample_flow", "upsample_warp", "warp", "window_attention"]

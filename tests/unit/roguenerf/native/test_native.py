@@ -130,6 +130,37 @@ def test_pool_kernel_equals_padded_average_pool(size):
     torch.testing.assert_close(got, want, atol=1e-6, rtol=1e-6)
 
 
+@pytest.mark.parametrize("n", [1, 7, 49152])
+def test_gauss_newton_kernel_equals_the_torch_normal_equations(n):
+    """The pose fit's normal equations: unused pixels (a point at z = 0 among them: skipped, as
+    the reference zeroes them), a turned and moved pose."""
+    from roguenerf.geometry.noise import axis_angle_to_matrix
+    from roguenerf.ops import gauss_newton
+
+    g = torch.Generator().manual_seed(n)
+    points = torch.randn(n, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, 3.0])
+    sampled, render = torch.rand(9, n, generator=g) - 0.5, torch.rand(3, n, generator=g)
+    use = torch.rand(n, generator=g) > 0.2
+    use[0] = True
+    if n > 2:
+        use[1], points[1] = False, torch.tensor([0.0, 0.0, 0.0])
+    pose = torch.eye(4, dtype=torch.float64)
+    pose[:3, :3] = axis_angle_to_matrix(torch.tensor([0.01, -0.02, 0.005], dtype=torch.float64))
+    pose[:3, 3] = torch.tensor([0.05, -0.02, 0.1])
+    K = torch.tensor([[200.0, 0, 128], [0, 210, 96], [0, 0, 1]], dtype=torch.float64)
+    with torch.inference_mode():
+        with KernelCalls() as calls:
+            A, b = gauss_newton.normal_equations(points, sampled, render, use, pose, K, 0.01)
+        with native.disabled():
+            A_ref, b_ref = gauss_newton.normal_equations(points, sampled, render, use, pose, K, 0.01)
+    assert calls.names == ["gauss_newton"] and A.dtype == b.dtype == torch.float64
+    assert torch.isfinite(A).all() and torch.isfinite(b).all()
+    torch.testing.assert_close(A, A.T, rtol=1e-6, atol=0)
+    # float32 sums against double ones: relative to the largest entry
+    torch.testing.assert_close(A, A_ref, atol=1e-5 * float(A_ref.abs().max()), rtol=0)
+    torch.testing.assert_close(b, b_ref, atol=1e-5 * float(b_ref.abs().max()), rtol=0)
+
+
 @pytest.mark.parametrize("spread, hidden, size", [(False, 8, (19, 23)), (True, 8, (19, 23)), (True, 32, (3, 6001))])
 def test_attention_and_pooling_kernel_equals_the_torch_composition(spread, hidden, size):
     """Also rows 6001 pixels wide with 32 hidden channels: the row buffers (2.3 MB) live on the
