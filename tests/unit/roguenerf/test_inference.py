@@ -113,6 +113,24 @@ def test_features_are_encoded_once_and_reused(scene):
     assert torch.equal(first.image, again.image)
 
 
+def test_the_neighbour_depths_kept_are_bounded_and_give_the_same_images(scene, monkeypatch):
+    """A budget of two depths: enhancing every view keeps the last two used, and the images are
+    those of an enhancer that keeps them all."""
+    from roguenerf import inference
+
+    model = perturbed_micro()
+    unbounded = SceneEnhancer(scene, model, num_neighbours=2)
+    views = list(range(len(scene)))  # training views too: each uses other neighbours
+    images = [unbounded.enhance_view(i).image for i in views]
+    one = scene.depth(scene.indices("train")[0])
+    monkeypatch.setattr(inference, "DEPTH_CACHE_BYTES", 2 * one.numel() * one.element_size())
+    bounded = SceneEnhancer(scene, model, num_neighbours=2)
+    for i, image in zip(views, images, strict=True):
+        assert torch.equal(bounded.enhance_view(i).image, image)
+        assert len(bounded._depths) <= 2
+    assert len(unbounded._depths) > 2 and len(bounded._depths) == 2  # the unbounded one keeps every one read
+
+
 def test_cached_result_equals_direct_model_call(scene):
     from roguenerf.models import NeighbourBatch
 
