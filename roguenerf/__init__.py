@@ -53,6 +53,7 @@ _LAZY = {
     "SceneEnhancer": "roguenerf.inference",
     "EnhanceOptions": "roguenerf.enhance",
     "NeighbourRule": "roguenerf.enhance",
+    "TemporalConfig": "roguenerf.enhance",
     "EnhanceResult": "roguenerf.inference",
     "TrainConfig": "roguenerf.training",
     "TrainProgress": "roguenerf.training",

@@ -38,6 +38,7 @@ def run_path_job(run: JobRun) -> str:
         EnhanceOptions,
         PathCancelled,
         SceneEnhancer,
+        TemporalConfig,
         enhance_path,
         find_camera_file,
         load_checkpoint,
@@ -68,7 +69,10 @@ def run_path_job(run: JobRun) -> str:
     parser = DataparserTransform.read(parser_file) if parser_file.is_file() else None
     inputs = job_dir / "input"
     camera_path = read_camera_path(find_camera_file(inputs), dataparser=parser)
-    enhancer = SceneEnhancer(scene, model, options=EnhanceOptions())  # the shipped defaults
+    # the shipped defaults, but for the request's carried frames
+    every = int(request.get("model_every", 1))
+    options = EnhanceOptions() if every == 1 else EnhanceOptions(temporal=TemporalConfig(model_every=every))
+    enhancer = SceneEnhancer(scene, model, options=options)
     stat = Path(checkpoint).stat()
     try:
         result = enhance_path(
@@ -88,6 +92,7 @@ def run_path_job(run: JobRun) -> str:
         "kind": "path", "frames": result.frames, "seconds": result.seconds, "cached_views": result.cached_views,
         "flicker": {k: v for k, v in result.flicker["flicker"].items()},
         "psnr": result.flicker["psnr"],
+        "carried": sum(bool(f.get("carried")) for f in result.flicker["per_frame"]),
         "files": {"video": "GET /jobs/{id}/result", "side_by_side": "?what=side_by_side",
                   "frames": "?what=frames", "flicker": "?what=flicker"},
     }

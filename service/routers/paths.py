@@ -80,6 +80,9 @@ def create_path_job(
     depth_scale: Annotated[float, Form(gt=0, lt=1e9, description="multiplies the stored depth")] = 1.0,
     background: Annotated[Literal["zero", "max"], Form(description="what no-surface pixels hold")] = "zero",
     quality: Annotated[int, Form(ge=0, le=51, description="x264 CRF (lower is better)")] = 20,
+    model_every: Annotated[int, Form(ge=1, le=16, description=(
+        "run the model on one frame in this many and carry the last frame's result into the frames between "
+        "(faster, less flicker, less detail on the carried frames); 1: every frame"))] = 1,
     force: Annotated[bool, Form(description=(
         "enhance the path even when its cameras do not fit the scene (far from its cameras or seeing none of its "
         "training photos: OpenGL vs OpenCV, another unit or world, z vs ray depth; a 422 otherwise)"))] = False,
@@ -94,7 +97,7 @@ def create_path_job(
                                       depth_type=depth_type, depth_scale=depth_scale, background=background,
                                       force=force)
         request = {"kind": "path", "frames": frames, "depth_type": depth_type, "depth_scale": depth_scale,
-                   "background": background, "quality": quality, "force": force}
+                   "background": background, "quality": quality, "force": force, "model_every": model_every}
         try:
             job, _ = services.store.create_job(scene_id, request, base_version=row["active_version"],
                                                max_queued=settings.max_queued_jobs)

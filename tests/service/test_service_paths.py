@@ -93,6 +93,26 @@ def test_path_job_round_trip(setup, tmp_path):
     assert client.get(f"/jobs/{job['id']}/result", params={"what": "nope"}).status_code == 422
 
 
+def test_a_path_job_with_model_every_carries_the_frames_between(setup):
+    """model_every=2: the worker runs the model on the even frames and carries the others
+    (counted in the result); a value out of range is a 422 before anything is stored."""
+    client, scene_id = setup["client"], setup["scene_id"]
+    archive, frames = path_zip(setup["scene"], seed=SEED)
+    r = post_path(client, scene_id, archive, model_every=2)
+    assert r.status_code == 202, r.text
+    job = r.json()
+    assert job["request"]["model_every"] == 2
+    assert run_job(setup["ctx"], job["id"]) == "succeeded"
+    result = client.get(f"/jobs/{job['id']}").json()["result"]
+    report = client.get(f"/jobs/{job['id']}/result", params={"what": "flicker"}).json()
+    carried = [f["frame"] for f in report["per_frame"] if f.get("carried")]
+    assert result["carried"] == len(carried) > 0 and all(t % 2 == 1 for t in carried)
+    before = stored(setup["data"])
+    bad = post_path(client, scene_id, path_zip(setup["scene"], seed=SEED)[0], model_every=0)
+    assert bad.status_code == 422 and "model_every" in bad.json()["error"]["message"]
+    assert stored(setup["data"]) == before
+
+
 def test_a_path_in_the_wrong_axes_is_refused_at_upload_saying_why(setup):
     """The library's camera-path check runs in the router, before anything is stored (issue 49:
     it answered 202 and the job failed 2 s later, advising a --force the API did not have);
