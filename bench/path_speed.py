@@ -1,7 +1,7 @@
 """Frames per second along a camera path: frame by frame against the temporal filter, alternated.
 
     python -m bench.path_speed --fit runs/speed/dtu_scan37_fine --factor 1 --keys 4 --steps 16 \\
-        --work runs/paths [--repeats 2] [--model-every 1,2] [--resample bicubic,bilinear] \
+        --work runs/paths [--repeats 2] [--model-every 1,2] [--resample bicubic,bilinear] \\
         [--output bench/results/path_speed_dtu_scan37_fine]
 
 The path and its frames are ``bench.paths``'s (same ``--fit``, ``--factor``, ``--keys``,

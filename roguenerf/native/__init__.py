@@ -473,7 +473,8 @@ def gauss_newton(points: Tensor, sampled: Tensor, render: Tensor, use: Tensor, p
     """The summed normal equations of a pose fit's Gauss-Newton step
     (:func:`roguenerf.ops.gauss_newton.normal_equations`): ``points`` ``(N, 3)``, ``sampled``
     ``(9, N)``, ``render`` ``(3, N)``, ``use`` ``(N,)`` (0 or 1), ``pose`` ``(3, 4)``, ``K``
-    ``(3, 3)`` -> ``A`` ``(6, 6)`` and ``b`` ``(6,)`` float64 (summed in double)."""
+    ``(3, 3)`` -> ``A`` ``(6, 6)`` and ``b`` ``(6,)`` float64 (summed in double, handed back
+    through float32)."""
     n = points.shape[0]
     out = torch.empty(42)
     _call("rg_gauss_newton", _arg("points", points, (n, 3)), _arg("sampled", sampled, (9, n)),

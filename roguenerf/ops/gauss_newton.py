@@ -21,7 +21,8 @@ def normal_equations(points: Tensor, sampled: Tensor, render: Tensor, use: Tenso
     projections; ``render`` ``(3, N)``. With ``J_c = gx_c ju + gy_c jv`` (a row per pixel and
     channel; ``ju``, ``jv`` the derivatives of the projection by the motion's 6 numbers: a
     rotation, then a move, in the neighbour's frame), ``A = sum_c J_c^T w J_c`` and
-    ``b = sum_c J_c^T w r_c``. The kernel sums in double; the reference in float32 matmuls."""
+    ``b = sum_c J_c^T w r_c``. The kernel sums in double (handed back through float32); the
+    reference in float32 matmuls."""
     R, t = photo_from_cam[:3, :3].float(), photo_from_cam[:3, 3].float()
     Kp = K.float()
     if pick(points, sampled, render) is Body.NATIVE:
