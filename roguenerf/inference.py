@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from roguenerf.data.scene import ByteLRU
 from roguenerf.enhance.options import DEFAULT_TILE, NEAR_DEGREES, NEAR_EXTRA, EnhanceOptions  # noqa: F401 (re-exported)
 from roguenerf.errors import InputError, NonFiniteOutputError
 from roguenerf.images import check_float_image
@@ -58,8 +59,8 @@ ALIGN_CACHE = 32
 
 DEPTH_CACHE_BYTES = 128 * 1024 * 1024
 """Budget of the neighbours' full-size depths a :class:`SceneEnhancer` keeps (least recently
-used first out; the last one always): 12 MB each at 2016 x 1512, so a long-running process
-(the service) no longer keeps every neighbour's depth it ever read."""
+used first out; :class:`~roguenerf.data.scene.ByteLRU`): 12 MB each at 2016 x 1512, so a
+long-running process (the service) no longer keeps every neighbour's depth it ever read."""
 
 
 @dataclass
@@ -206,8 +207,7 @@ class SceneEnhancer:
         self._tiny: OrderedDict[int, tuple[Tensor, Tensor, Tensor]] = OrderedDict()
         self.cache_bytes = int(cache_bytes)
         self._sources: OrderedDict[int, Tensor] = OrderedDict()
-        self._depths: OrderedDict[int, Tensor] = OrderedDict()
-        self._depth_lock = threading.Lock()  # not _lock: _cached_sources reads depths while holding it
+        self._depths = ByteLRU(DEPTH_CACHE_BYTES)
         self._lock = threading.Lock()
         self.settled: set[int] = set()
         """Training positions whose pose fit found nothing to gain on an earlier view
@@ -225,17 +225,11 @@ class SceneEnhancer:
     def _depth(self, position: int) -> Tensor:
         """``(1, Hs, Ws)`` rendered depth of a training position (kept within
         :data:`DEPTH_CACHE_BYTES`: 4 bytes a pixel)."""
-        with self._depth_lock:
-            depth = self._depths.get(position)
-            if depth is None:
-                depth = self.scene.depth(self.train[position]).to(self.device, torch.float32)
-                self._depths[position] = depth
-                used = sum(d.numel() * d.element_size() for d in self._depths.values())
-                while used > DEPTH_CACHE_BYTES and len(self._depths) > 1:
-                    _, old = self._depths.popitem(last=False)
-                    used -= old.numel() * old.element_size()
-            self._depths.move_to_end(position)
-            return depth
+        depth = self._depths.get((position,))
+        if depth is None:
+            depth = self.scene.depth(self.train[position]).to(self.device, torch.float32)
+            self._depths.put((position,), depth)
+        return depth
 
     def _encode(self, photo: Tensor) -> Tensor:
         """``model.encode_neighbours(photo)`` for one ``(1, 3, H, W)`` photo, in strips of rows of

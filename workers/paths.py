@@ -70,8 +70,7 @@ def run_path_job(run: JobRun) -> str:
     inputs = job_dir / "input"
     camera_path = read_camera_path(find_camera_file(inputs), dataparser=parser)
     # the shipped defaults, but for the request's carried frames
-    every = int(request.get("model_every", 1))
-    options = EnhanceOptions() if every == 1 else EnhanceOptions(temporal=TemporalConfig(model_every=every))
+    options = EnhanceOptions(temporal=TemporalConfig(model_every=int(request.get("model_every", 1))))
     enhancer = SceneEnhancer(scene, model, options=options)
     stat = Path(checkpoint).stat()
     try:

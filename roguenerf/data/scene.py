@@ -49,8 +49,9 @@ class Frame:
     """"z" or "ray" (converted to z on load)."""
 
 
-class _ByteLRU:
-    """Thread-safe LRU of tensors bounded by their total size in bytes."""
+class ByteLRU:
+    """Thread-safe LRU of tensors bounded by their total size in bytes (a tensor larger than the
+    budget is not kept). The scene's read cache; also the enhancer's neighbour depths."""
 
     def __init__(self, max_bytes: int):
         self.max_bytes = max_bytes
@@ -120,7 +121,7 @@ class Scene:
                     f"{frame.depth_type!r}, expected 'z' or 'ray'"
                 )
         self._index = {name: i for i, name in enumerate(names)}
-        self._cache = _ByteLRU(self.cache_bytes)
+        self._cache = ByteLRU(self.cache_bytes)
 
     # -- lookup ---------------------------------------------------------------------------
 

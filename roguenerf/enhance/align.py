@@ -115,14 +115,17 @@ class Alignment:
     """Share by which the last level judged (:attr:`AlignConfig.early_level`: the one before
     the finest, unless the fit stopped earlier) lowered its error (on the pixels both poses see
     there); nan with a single level."""
-    stopped_early: bool = False
-    """Refused by :attr:`AlignConfig.early_refusal` before the finest level was fitted."""
     refusal: str = ""
     """Why the fit was refused ("" where it was kept): ``overlap`` (the neighbour sees too
     little of the view to be fitted), ``early`` (:attr:`stopped_early`), ``gain`` (it ended
     inside the trust region but gained less than :attr:`AlignConfig.min_gain`: nothing to gain)
     or ``edge`` (it ran to the trust region's edge, or its error is not finite: no minimum near
     the dataset pose)."""
+
+    @property
+    def stopped_early(self) -> bool:
+        """Refused by :attr:`AlignConfig.early_refusal` before the finest level was fitted."""
+        return self.refusal == "early"
 
 
 def _area(x: Tensor, size: tuple[int, int]) -> Tensor:
@@ -351,7 +354,7 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
                     before = finest.error(start_sampled, counted_finest, counted_finest, c)
                     return Alignment(world_from_cam=world_from_photo, accepted=False, rotation_deg=0.0,
                                      translation=0.0, error_before=before, error_after=before,
-                                     coarse_gain=coarse_gain, stopped_early=True, refusal="early")
+                                     coarse_gain=coarse_gain, refusal="early")
             sampled, counted = level.sample(pose)
             at_pose = (sampled, counted)
             if int(counted.sum()) < 16:
