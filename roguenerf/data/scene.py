@@ -296,7 +296,9 @@ def unusable_views(scene: Scene, *, min_known_depth: float = MIN_KNOWN_DEPTH, in
     zeros, NaN, negative ...), a blank photo or render (one value everywhere), a file that cannot
     be read. Training views among them are useless as neighbours and as training targets; test
     views cannot be enhanced or measured. Reads every view's files once (not cached); with
-    ``indices``, only those views' (what a one-view command reads).
+    ``indices``, only those views', through the scene's read cache: what a one-view command
+    checks is what it reads next, and each file is then decoded once (at 2016 x 1512 a photo
+    takes about 0.2 s).
 
     Returns them in view order (empty when every view is usable); ``progress(done, total)``.
     """
@@ -311,7 +313,10 @@ def unusable_views(scene: Scene, *, min_known_depth: float = MIN_KNOWN_DEPTH, in
             if path is None:
                 continue
             try:
-                value = (Scene._load_depth if kind == "depth" else Scene._load_image)(frame, path)
+                if indices is None:  # the whole scene: not kept (it would only evict what is)
+                    value = (Scene._load_depth if kind == "depth" else Scene._load_image)(frame, path)
+                else:
+                    value = getattr(scene, kind)(i)
             except InputError as exc:
                 reasons.append(f"{kind} {path.name} cannot be read ({_problem(exc, path)})")
                 continue

@@ -110,3 +110,31 @@ def test_invalid_frames_rejected(tmp_path):
     bad = Frame("x", torch.eye(4, dtype=torch.float64), torch.eye(3, dtype=torch.float64), W, H, "val")
     with pytest.raises(InputError, match="split 'val'"):
         Scene(tmp_path, [bad])
+
+
+def test_unusable_views_of_some_views_fill_the_read_cache_the_whole_scene_does_not(tmp_path):
+    """A one-view command checks the views it then reads: checked through the scene's cache, each
+    file is decoded once (issue 51); a whole-scene check keeps nothing (it would evict what is)."""
+    from roguenerf.data.scene import unusable_views
+
+    scene = _scene(tmp_path)
+    ramp = torch.linspace(0, 1, W).expand(3, H, W)  # not blank
+    for i in range(4):
+        write_png(tmp_path / f"img{i}.png", ramp)
+        write_png(tmp_path / f"ren{i}.png", ramp.flip(-1))
+    np.save(tmp_path / "d2.npy", np.zeros((H, W), dtype=np.float32))
+    assert [v.name for v in unusable_views(scene)] == ["view2"]
+    assert len(scene._cache) == 0
+    bad = unusable_views(scene, indices=[2, 1, 2])
+    assert [(v.name, v.reason.split(" (")[0]) for v in bad] == [("view2", "depth has no usable values")]
+    assert len(scene._cache) == 6  # photo, render and depth of views 1 and 2
+    for name in ("img1.png", "ren1.png", "d1.npy"):
+        (tmp_path / name).unlink()  # what the command reads next comes from the cache
+    assert torch.equal(scene.depth(1), torch.full((1, H, W), 2.0))
+    assert torch.allclose(scene.photo(1), ramp, atol=0.5 / 255)
+    assert torch.allclose(scene.render(1), ramp.flip(-1), atol=0.5 / 255)
+    # a file that cannot be read is named, and nothing of it is kept
+    (tmp_path / "img3.png").write_bytes(b"not a png")
+    [broken] = unusable_views(scene, indices=[3])
+    assert broken.name == "view3" and "photo img3.png cannot be read" in broken.reason
+    assert scene._cache.get(("photo", 3)) is None
