@@ -25,38 +25,23 @@ from torch import Tensor
 from roguenerf.errors import InputError
 
 
-def tile_layout(size: int, tile: int, overlap: int, align: int = 1) -> tuple[list[int], int]:
-    """``(starts, length)`` of the tiles along one axis: tile j covers
-    ``[starts[j], min(starts[j] + length, size))``, with ``length <= tile``.
+def tile_starts(size: int, tile: int, overlap: int, align: int = 1) -> list[int]:
+    """Start offsets of the tiles along one axis; tile j covers ``[s_j, min(s_j + tile, size))``.
 
-    As few tiles as a stride of ``tile - overlap`` rounded down to a multiple of ``align``
-    needs (falling back to smaller alignments 8 and 1 when that leaves nothing), then spread
-    evenly: of the strides that are multiples of the alignment and still reach ``size``, the
-    one that covers the fewest pixels in all (ties: the shorter tiles), and tiles just long
-    enough to reach ``size`` and overlap by at least ``overlap``. A 1920-pixel axis in 512-pixel
-    tiles aligned to 64 is five tiles of 416 (2048 pixels in all), not four of 512 and one of
-    128 (2176); every tile's working memory is that of its length, at most ``tile``'s.
+    The stride is ``tile - overlap`` rounded down to a multiple of ``align`` (falling back to
+    smaller alignments 8 and 1 when that leaves nothing), and the last tile reaches ``size``.
     """
     if size <= tile:
-        return [0], size
+        return [0]
+    stride = 0
     for a in (align, 8, 1):
-        longest = (tile - overlap) // a * a
-        if longest > 0:
+        stride = (tile - overlap) // a * a
+        if stride > 0:
             break
-    count = 1 + -(-(size - tile) // longest)
-    best = None
-    for stride in range(-(-(size - tile) // ((count - 1) * a)) * a, longest + 1, a):
-        length = max(stride + overlap, size - (count - 1) * stride)
-        covered = (count - 1) * length + min(length, size - (count - 1) * stride)
-        if best is None or (covered, length) < best[:2]:
-            best = (covered, length, stride)
-    _, length, stride = best
-    return [j * stride for j in range(count)], length
-
-
-def tile_starts(size: int, tile: int, overlap: int, align: int = 1) -> list[int]:
-    """Start offsets of the tiles along one axis (:func:`tile_layout`)."""
-    return tile_layout(size, tile, overlap, align)[0]
+    starts = [0]
+    while starts[-1] + tile < size:
+        starts.append(starts[-1] + stride)
+    return starts
 
 
 def _ramp(n: int, device, dtype) -> Tensor:
@@ -111,9 +96,9 @@ def enhance_tiled(model, render: Tensor, depth: Tensor, K: Tensor, world_from_ca
     if h <= tile and w <= tile:
         return model(render, depth, K, world_from_cam, provider(depth, K))
     align = getattr(model, "tile_alignment", 1)
-    (ys, th), (xs, tw) = tile_layout(h, tile, overlap, align), tile_layout(w, tile, overlap, align)
-    wy = axis_weights(ys, th, h, render.device, render.dtype)
-    wx = axis_weights(xs, tw, w, render.device, render.dtype)
+    ys, xs = tile_starts(h, tile, overlap, align), tile_starts(w, tile, overlap, align)
+    wy = axis_weights(ys, tile, h, render.device, render.dtype)
+    wx = axis_weights(xs, tile, w, render.device, render.dtype)
     K = K.expand(b, 3, 3) if K.ndim == 2 else K
     scale = model.depth_scale(depth)
     out = torch.zeros_like(render)

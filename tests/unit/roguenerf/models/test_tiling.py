@@ -7,7 +7,7 @@ import torch
 
 from roguenerf.errors import InputError
 from roguenerf.models import build_enhancer
-from roguenerf.models.tiling import axis_weights, enhance_tiled, tile_layout, tile_starts
+from roguenerf.models.tiling import axis_weights, enhance_tiled, tile_starts
 from tests.model_helpers import make_views, randomise
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -21,40 +21,10 @@ def test_tile_starts_known_answers():
     assert tile_starts(300, 128, 32, align=128) == [0, 96, 192]
 
 
-def test_tile_layout_spreads_the_tiles_evenly():
-    """Full-HD in 512-pixel tiles aligned to 64: five columns of 416 and three rows of 416 (the
-    last ones clipped), 2048 x 1144 pixels through the model, not 2176 x 1208 (issue 51)."""
-    assert tile_layout(1920, 512, 32, 64) == ([0, 384, 768, 1152, 1536], 416)
-    assert tile_layout(1080, 512, 32, 64) == ([0, 384, 768], 416)
-    assert tile_layout(2016, 512, 32, 64) == ([0, 448, 896, 1344, 1792], 480)
-    assert tile_layout(500, 512, 32, 64) == ([0], 500)
-
-
-@pytest.mark.parametrize("align", [1, 8, 64])
-@pytest.mark.parametrize("tile", [64, 192, 512])
-def test_tile_layout_covers_with_the_fewest_tiles_and_pixels(align, tile):
-    """Against the fixed-length layout (stride ``tile - overlap`` rounded down to the alignment,
-    tiles of ``tile``) over many sizes: the same number of tiles, never more pixels, every
-    tile at most ``tile`` long, strides on the alignment, overlaps of at least ``overlap``."""
-    overlap = 32 if tile > 64 else 16
-    for size in range(tile + 1, 6 * tile, 7):
-        starts, length = tile_layout(size, tile, overlap, align)
-        a = next(a for a in (align, 8, 1) if (tile - overlap) // a * a > 0)
-        stride = (tile - overlap) // a * a
-        fixed = [0]
-        while fixed[-1] + tile < size:
-            fixed.append(fixed[-1] + stride)
-        ends = [min(s + length, size) for s in starts]
-        assert len(starts) == len(fixed) and length <= tile
-        assert starts[0] == 0 and ends[-1] == size and all(s % a == 0 for s in starts)
-        assert all(ends[j] - starts[j + 1] >= overlap for j in range(len(starts) - 1))
-        assert sum(e - s for s, e in zip(starts, ends)) <= sum(min(s + tile, size) - s for s in fixed)
-
-
 @pytest.mark.parametrize(("size", "tile", "overlap"), [(400, 160, 32), (300, 128, 96), (97, 40, 17)])
 def test_weights_are_a_partition_of_unity_and_zero_near_inner_borders(size, tile, overlap):
-    starts, length = tile_layout(size, tile, overlap, align=8)
-    weights = axis_weights(starts, length, size, "cpu", torch.float64)
+    starts = tile_starts(size, tile, overlap, align=8)
+    weights = axis_weights(starts, tile, size, "cpu", torch.float64)
     total = torch.zeros(size, dtype=torch.float64)
     for s, wgt in zip(starts, weights):
         total[s:s + wgt.numel()] += wgt
