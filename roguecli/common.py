@@ -312,15 +312,16 @@ def open_scene(scene_dir: Path, *, check: bool = True):
     return scene
 
 
-def warn_unusable(scene, indices=None) -> None:
+def warn_unusable(scene, reads=None) -> None:
     """One warning line listing the views that cannot serve (e.g. a depth map of zeros): all of
-    the scene's, or those of ``indices`` (the views a command reads)."""
+    the scene's, or, with ``reads`` (``{view index: files}``), the files a one-view command reads
+    (:func:`~roguenerf.data.scene.unusable_views`: through the scene's read cache)."""
     from roguenerf.data.scene import unusable_views
 
-    bad = unusable_views(scene, indices=indices)
+    bad = unusable_views(scene, reads=reads)
     if bad:
-        among = (f"of {len(scene.frames)} views of {scene.root}" if indices is None
-                 else f"of the {len(set(indices))} views of {scene.root} this command reads")
+        among = (f"of {len(scene.frames)} views of {scene.root}" if reads is None
+                 else f"of the {len(reads)} views of {scene.root} this command reads")
         typer.echo(f"warning: {len(bad)} {among} are unusable and "
                    f"contribute nothing: {'; '.join(str(v) for v in bad)}", err=True)
 

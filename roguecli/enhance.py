@@ -89,7 +89,8 @@ def enhance(
         enhancer = SceneEnhancer(scene, model, options=flags.options())
         frame = scene.frames[index]
         chosen = enhancer.select(frame.world_from_cam, exclude=index if frame.split == "train" else None)
-        warn_unusable(scene, [index, *chosen])
+        # what the command reads: the view's render and depth, its neighbours' photos and depths
+        warn_unusable(scene, {index: ("render", "depth"), **{i: ("photo", "depth") for i in chosen}})
         with progress_bar(f"enhancing {view}", "tile") as progress:
             result = enhancer.enhance_view(index, progress=progress)
         write_png(output, result.image, strategy="rle")  # the same pixels in a quarter of zlib's time

@@ -290,30 +290,44 @@ class UnusableView:
         return f"{self.name} ({self.split}): {self.reason}"
 
 
-def unusable_views(scene: Scene, *, min_known_depth: float = MIN_KNOWN_DEPTH, indices=None,
+def unusable_views(scene: Scene, *, min_known_depth: float = MIN_KNOWN_DEPTH, indices=None, reads=None,
                    progress=None) -> list[UnusableView]:
     """The views of ``scene`` that cannot serve: a depth map with (almost) no known pixel (all
     zeros, NaN, negative ...), a blank photo or render (one value everywhere), a file that cannot
     be read. Training views among them are useless as neighbours and as training targets; test
     views cannot be enhanced or measured. Reads every view's files once (not cached); with
-    ``indices``, only those views', through the scene's read cache: what a one-view command
-    checks is what it reads next, and each file is then decoded once (at 2016 x 1512 a photo
-    takes about 0.2 s).
+    ``indices``, only those views'.
+
+    ``reads`` (instead of ``indices``): ``{view index: files}``, the files (``"depth"``,
+    ``"photo"``, ``"render"``) a one-view command reads of each view (the view's render and
+    depth, its neighbours' photos and depths). Only those are checked, through the scene's read
+    cache: the command then reads them from there, and each file is decoded once (at 2016 x 1512
+    a PNG takes about 0.15 s).
 
     Returns them in view order (empty when every view is usable); ``progress(done, total)``.
     """
     from roguenerf.geometry.depth import known_depth_mask
 
+    kinds = ("depth", "photo", "render")
+    if reads is not None:
+        if indices is not None:
+            raise InputError("unusable_views: pass indices or reads, not both")
+        reads = {scene._resolve(i): tuple(files) for i, files in reads.items()}
+        for files in reads.values():
+            if not files or set(files) - set(kinds):
+                raise InputError(f"unusable_views: reads: expected files among {kinds}, got {files!r}")
+        which = sorted(reads)
+    else:
+        which = range(len(scene.frames)) if indices is None else sorted({int(i) for i in indices})
     out = []
-    which = range(len(scene.frames)) if indices is None else sorted({int(i) for i in indices})
     for n, i in enumerate(which):
         frame = scene.frames[i]
         reasons = []
         for kind, path in (("depth", frame.depth_path), ("photo", frame.image_path), ("render", frame.render_path)):
-            if path is None:
+            if path is None or (reads is not None and kind not in reads[i]):
                 continue
             try:
-                if indices is None:  # the whole scene: not kept (it would only evict what is)
+                if reads is None:  # not kept: a whole scene would only evict what the cache holds
                     value = (Scene._load_depth if kind == "depth" else Scene._load_image)(frame, path)
                 else:
                     value = getattr(scene, kind)(i)

@@ -703,8 +703,9 @@ def test_a_view_with_unusable_depth_is_loaded_with_a_warning_naming_it(scene_dir
 
 
 def test_enhance_checks_only_the_views_it_reads(scene_dir, checkpoint, tmp_path):
-    """A one-view enhance reads the view and its neighbours, not every file of the scene (issue 51:
-    start-up time): an unusable view among them is named, one elsewhere is not read at all."""
+    """A one-view enhance reads the view's render and depth and its neighbours' photos and depths,
+    not every file of the scene (issue 51: start-up time): an unusable one among them is named,
+    one elsewhere is not read at all."""
     import shutil
 
     import numpy as np
@@ -722,6 +723,9 @@ def test_enhance_checks_only_the_views_it_reads(scene_dir, checkpoint, tmp_path)
     assert used and unused
     blank = scene.frames[unused[0]]  # a blank photo, never read by this command
     write_png(blank.image_path, torch.full((3, blank.height, blank.width), 0.5))
+    # nor are a neighbour's render and the view's photo: the command reads neither
+    for path in (scene.frames[used[0]].render_path, scene.frames[test].image_path):
+        write_png(path, torch.full((3, blank.height, blank.width), 0.5))
     args = ["enhance", copy, "--view", scene.frames[test].name, "--checkpoint", checkpoint,
             "--output", tmp_path / "out.png"]
     result = _run(*args)
@@ -734,7 +738,7 @@ def test_enhance_checks_only_the_views_it_reads(scene_dir, checkpoint, tmp_path)
     assert (f"warning: 1 of the {1 + len(used)} views of {copy} this command reads are unusable and contribute "
             f"nothing: {neighbour.name} (train): depth has no usable values (all zeros") in result.stderr
     evaluate = _run("evaluate", copy, "--checkpoint", checkpoint)  # a whole-scene command reads them all
-    assert f"warning: 2 of {len(scene.frames)} views of {copy} are unusable" in evaluate.stderr
+    assert f"warning: 3 of {len(scene.frames)} views of {copy} are unusable" in evaluate.stderr
 
 
 INTERRUPT_PROBE = """

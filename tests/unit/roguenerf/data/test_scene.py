@@ -112,9 +112,10 @@ def test_invalid_frames_rejected(tmp_path):
         Scene(tmp_path, [bad])
 
 
-def test_unusable_views_of_some_views_fill_the_read_cache_the_whole_scene_does_not(tmp_path):
-    """A one-view command checks the views it then reads: checked through the scene's cache, each
-    file is decoded once (issue 51); a whole-scene check keeps nothing (it would evict what is)."""
+def test_unusable_views_of_the_files_a_command_reads_fill_the_read_cache(tmp_path):
+    """A one-view command checks the files it then reads (``reads``): through the scene's cache,
+    so each is decoded once (issue 51), and no other file is read or kept; a check of the whole
+    scene or of some views keeps nothing (it would evict what the cache holds)."""
     from roguenerf.data.scene import unusable_views
 
     scene = _scene(tmp_path)
@@ -123,18 +124,25 @@ def test_unusable_views_of_some_views_fill_the_read_cache_the_whole_scene_does_n
         write_png(tmp_path / f"img{i}.png", ramp)
         write_png(tmp_path / f"ren{i}.png", ramp.flip(-1))
     np.save(tmp_path / "d2.npy", np.zeros((H, W), dtype=np.float32))
+    write_png(tmp_path / "ren2.png", torch.full((3, H, W), 0.5))  # blank, but not read below
     assert [v.name for v in unusable_views(scene)] == ["view2"]
+    assert [v.name for v in unusable_views(scene, indices=[1, 2])] == ["view2"]
     assert len(scene._cache) == 0
-    bad = unusable_views(scene, indices=[2, 1, 2])
-    assert [(v.name, v.reason.split(" (")[0]) for v in bad] == [("view2", "depth has no usable values")]
-    assert len(scene._cache) == 6  # photo, render and depth of views 1 and 2
-    for name in ("img1.png", "ren1.png", "d1.npy"):
+    bad = unusable_views(scene, reads={1: ("render", "depth"), "view2": ("photo", "depth")})
+    assert [(v.name, v.reason) for v in bad] == [
+        ("view2", "depth has no usable values (all zeros; known: finite, > 1e-6 and < 1e10)")]
+    assert len(scene._cache) == 4  # view 1's render and depth, view 2's photo and depth
+    for name in ("ren1.png", "d1.npy", "img2.png"):
         (tmp_path / name).unlink()  # what the command reads next comes from the cache
     assert torch.equal(scene.depth(1), torch.full((1, H, W), 2.0))
-    assert torch.allclose(scene.photo(1), ramp, atol=0.5 / 255)
     assert torch.allclose(scene.render(1), ramp.flip(-1), atol=0.5 / 255)
+    assert torch.allclose(scene.photo(2), ramp, atol=0.5 / 255)
     # a file that cannot be read is named, and nothing of it is kept
     (tmp_path / "img3.png").write_bytes(b"not a png")
-    [broken] = unusable_views(scene, indices=[3])
+    [broken] = unusable_views(scene, reads={3: ("photo",)})
     assert broken.name == "view3" and "photo img3.png cannot be read" in broken.reason
     assert scene._cache.get(("photo", 3)) is None
+    with pytest.raises(InputError, match="expected files among"):
+        unusable_views(scene, reads={0: ("photos",)})
+    with pytest.raises(InputError, match="indices or reads, not both"):
+        unusable_views(scene, indices=[0], reads={0: ("photo",)})
