@@ -200,7 +200,9 @@ class Scene:
     def clear_cache(self) -> None:
         self._cache.clear()
 
-    def _cached(self, kind: str, i: int, path: Path | None, load) -> Tensor:
+    def _cached(self, kind: str, i: int, path: Path | None, load, *, copy: bool = True) -> Tensor:
+        """The file's tensor from the read cache (read and kept on a miss); a copy unless
+        ``copy`` is False (then the caller must not modify it)."""
         if path is None:
             frame = self.frames[i]
             what = {"photo": "photo", "render": "radiance-field render", "depth": "depth map"}[kind]
@@ -215,7 +217,7 @@ class Scene:
         if value is None:
             value = load(self.frames[i], path)
             self._cache.put(key, value)
-        return value.clone()
+        return value.clone() if copy else value
 
     @staticmethod
     def _load_image(frame: Frame, path: Path) -> Tensor:
@@ -329,8 +331,9 @@ def unusable_views(scene: Scene, *, min_known_depth: float = MIN_KNOWN_DEPTH, in
             try:
                 if reads is None:  # not kept: a whole scene would only evict what the cache holds
                     value = (Scene._load_depth if kind == "depth" else Scene._load_image)(frame, path)
-                else:
-                    value = getattr(scene, kind)(i)
+                else:  # read only: the cached tensor itself, no copy
+                    value = scene._cached(kind, i, path, Scene._load_depth if kind == "depth" else Scene._load_image,
+                                          copy=False)
             except InputError as exc:
                 reasons.append(f"{kind} {path.name} cannot be read ({_problem(exc, path)})")
                 continue

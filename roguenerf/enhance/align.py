@@ -138,11 +138,17 @@ def _scaled_K(K: Tensor, size: tuple[int, int], to: tuple[int, int]) -> Tensor:
     return scale_intrinsics(K.to(torch.float64), to[1] / size[1], to[0] / size[0])
 
 
-def _level_depth(depth: Tensor, to: tuple[int, int]) -> Tensor:
-    """``(1, 1, h, w)`` mean of the known depth over each cell; 0 (unknown) where less than
-    half the cell is known."""
+def _known_filled(depth: Tensor) -> tuple[Tensor, Tensor]:
+    """``(known, z)`` of a ``(1, 1, H, W)`` depth: 1 where known, and the depth there (0 elsewhere)."""
     known = known_depth_mask(depth).to(depth.dtype)
-    z = torch.where(known > 0, torch.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+    return known, torch.where(known > 0, torch.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+
+
+def _level_depth(depth: Tensor, to: tuple[int, int], filled: tuple[Tensor, Tensor] | None = None) -> Tensor:
+    """``(1, 1, h, w)`` mean of the known depth over each cell; 0 (unknown) where less than
+    half the cell is known. ``filled``: :func:`_known_filled` of ``depth`` when the caller has it
+    (one image's levels share it)."""
+    known, z = _known_filled(depth) if filled is None else filled
     weight = _area(known, to)
     mean = _area(z, to) / weight.clamp_min(1e-6)
     return torch.where(weight >= 0.5, mean, 0.0)
@@ -191,6 +197,16 @@ INTERIOR = 0.8
 """A fit is kept only when it ends inside this share of the trust region (both limits)."""
 
 
+def _filled(cache: dict | None, depth: Tensor) -> tuple[Tensor, Tensor] | None:
+    """:func:`_known_filled` of a ``(1, H, W)`` depth, computed once per cache (an image's
+    levels); None without a cache (each level computes it)."""
+    if cache is None:
+        return None
+    if "filled" not in cache:
+        cache["filled"] = _known_filled(depth.float()[None])
+    return cache["filled"]
+
+
 class _Level:
     """One level of the coarse-to-fine fit: blurred small images, depths in units of the
     target's median depth, intrinsics scaled to the level."""
@@ -204,7 +220,7 @@ class _Level:
         to_s = (max(4, round(Hs * f)), max(4, round(Ws * f)))
         target_key = ("level", to, sigma)
         if target_cache is None or target_key not in target_cache:  # the target's part: the same for every neighbour
-            depth = _level_depth(render_depth.float()[None], to) / scale
+            depth = _level_depth(render_depth.float()[None], to, _filled(target_cache, render_depth)) / scale
             level_K = _scaled_K(K, (H, W), to)
             # (h, w, 3) float32 target points (target frame, depth units): float64 rays first
             points = (pixel_rays(level_K, to) * depth[0, 0, ..., None].to(torch.float64)).float()
@@ -220,7 +236,7 @@ class _Level:
             # central differences, edges repeated; sampled together with the colour
             grad = spatial_gradient(small)
             entry = (torch.cat([small, grad[:, :, 0], grad[:, :, 1]], dim=1),
-                     _level_depth(photo_depth.float()[None], to_s))
+                     _level_depth(photo_depth.float()[None], to_s, _filled(cache, photo_depth)))
             if cache is not None:
                 cache[key] = entry
         else:
@@ -323,9 +339,13 @@ def align_neighbour(photo: Tensor, photo_depth: Tensor, photo_K: Tensor, world_f
         return (float(rotation_angle(motion[:3, :3])) <= config.max_rotation_deg
                 and float(motion[:3, 3].norm()) <= config.max_translation)
 
+    cache = {} if cache is None else cache  # without the caller's: this fit's levels share it
+    target_cache = {} if target_cache is None else target_cache
     with torch.no_grad():
         levels = [_Level(n, photo, photo_depth, photo_K.cpu(), render, render_depth, K.cpu(), scale,
                          config.blur_sigma, cache, target_cache) for n in sizes]
+        cache.pop("filled", None)  # every level is built (and kept): not needed again
+        target_cache.pop("filled", None)
         finest = levels[-1]
         start_sampled, counted_finest = finest.sample(start)
         if int(counted_finest.sum()) < 64:

@@ -230,7 +230,8 @@ def test_a_views_fits_share_its_levels_and_find_the_same_poses(views):
         assert torch.equal(shared.world_from_cam, alone.world_from_cam)
         assert (shared.accepted, shared.error_after, shared.coarse_gain) == (alone.accepted, alone.error_after,
                                                                              alone.coarse_gain)
-    # the median depth and one entry per level (64 and 128 px: the target is 128 px wide)
+    # the median depth and one entry per level (64 and 128 px: the target is 128 px wide); the
+    # known-depth mask the levels were built from is not kept
     assert sorted(k if isinstance(k, str) else k[0] for k in target) == ["level", "level", "scale"]
     built = target.copy()
     align_neighbour(views["photo"], views["photo_depth"], views["K"], starts[0], views["render"], views["depth"],
@@ -350,3 +351,28 @@ def test_a_wrong_pose_is_fitted_on_every_view_with_reuse(tmp_path, monkeypatch):
     assert not enhancers[1].settled
     with pytest.raises(InputError, match="reuse"):
         AlignConfig(reuse=1)
+
+
+def test_levels_built_from_one_known_depth_mask_equal_levels_built_alone(views):
+    """An image's levels share one known-depth mask and filled depth (computed once, issue 51):
+    each level's depth is the one computed from the depth alone, to the bit, and a neighbour's
+    cache keeps the levels, not the mask."""
+    from roguenerf.enhance.align import _known_filled, _Level, _level_depth
+
+    depth = views["photo_depth"][None].clone()
+    depth[..., :5, :7] = float("nan")
+    depth[..., 9, :] = 0.0
+    filled = _known_filled(depth)
+    for to in [(48, 64), (24, 32), (13, 17)]:
+        assert torch.equal(_level_depth(depth, to, filled), _level_depth(depth, to))
+    cache: dict = {}
+    spread = float(views["poses"][:, :3, 3].std(dim=0).norm())
+    start = perturb_poses(views["neighbour"], 0.5, 0.05 * spread, torch.Generator().manual_seed(3))
+    for _ in range(2):
+        cached = align_neighbour(views["photo"], views["photo_depth"], views["K"], start, views["render"],
+                                 views["depth"], views["K"], views["target"], cache=cache)
+        assert torch.equal(cached.world_from_cam, fit(views, start).world_from_cam)
+    assert "filled" not in cache and all(isinstance(k, tuple) for k in cache)
+    level = _Level(64, views["photo"], views["photo_depth"], views["K"], views["render"], views["depth"],
+                   views["K"], 1.0, 1.0)  # no caches: the level computes its own mask
+    assert torch.equal(level.depth, _level_depth(views["depth"][None], tuple(level.depth.shape[-2:])))
