@@ -25,7 +25,7 @@ from roguenerf.enhance.options import DEFAULT_TILE, NEAR_DEGREES, NEAR_EXTRA, En
 from roguenerf.errors import InputError, NonFiniteOutputError
 from roguenerf.images import check_float_image
 from roguenerf.models.layers import receptive_radius
-from roguenerf.runtime import release_freed_memory
+from roguenerf.runtime import FreedMemoryGuard, release_freed_memory
 
 DEFAULT_CACHE_BYTES = 512 << 20
 """Budget of the per-scene neighbour cache (features + depth, float32), least recently used
@@ -345,11 +345,13 @@ class SceneEnhancer:
             depth_sources = [sampling_source(d[None], d[None]) for d in depths]
 
         halo = receptive_radius(self.model.conv_H) if self.model.conv_H is not None else 0
+        trim = FreedMemoryGuard()
 
         def provider(depth_tile: Tensor, K_tile: Tensor):
-            # Crop sizes differ from tile to tile: return the last tile's freed blocks to the
-            # OS, or the kept-freed heap fragments and the RSS grows tile after tile.
-            release_freed_memory()
+            # Crop sizes differ from tile to tile: the kept-freed heap fragments and the RSS
+            # would grow tile after tile. Return the freed blocks to the OS once it has grown
+            # by TRIM_MARGIN (not every tile: each trim's pages are faulted in again).
+            trim()
             sources, crop_K = [], []
             for photo, depth, depth_source, K_j, pose_j in zip(photos, depths, depth_sources, Ks, poses):
                 hs, ws = depth.shape[-2:]

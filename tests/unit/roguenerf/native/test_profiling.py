@@ -99,3 +99,22 @@ def test_release_freed_memory_returns_kept_blocks_to_the_os():
     assert r["released"] is True
     assert r["kept"] - r["base"] > 200  # freed, yet still resident: kept for reuse
     assert r["kept"] - r["after"] > 200  # handed back
+
+
+def test_freed_memory_guard_trims_once_the_process_grew_by_its_margin():
+    """Known answers with a scripted RSS: the first call trims; later ones only once the RSS is
+    more than ``margin`` above what it was after the last trim (issue 51: trimming between every
+    tile of a 2016 x 1512 view doubled its system time)."""
+    readings = iter([500, 480,   # first call: trims, base 480
+                     700,        # +220: kept
+                     980,        # +500 > 300: trims ...
+                     600,        # ... base 600
+                     899,        # +299: kept
+                     901, 610])  # +301: trims, base 610
+    trims = []
+    guard = runtime.FreedMemoryGuard(300, rss=lambda: next(readings), trim=lambda: trims.append(1))
+    assert [guard() for _ in range(5)] == [True, False, True, False, True]
+    assert guard.trims == len(trims) == 3
+    unknown = runtime.FreedMemoryGuard(300, rss=lambda: None, trim=lambda: trims.append(1))
+    assert [unknown(), unknown()] == [True, True]  # no RSS to read: trims every time, as before
+    assert runtime.resident_bytes() > 10 << 20  # this process, read from /proc
