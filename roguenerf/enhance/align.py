@@ -140,8 +140,8 @@ def _scaled_K(K: Tensor, size: tuple[int, int], to: tuple[int, int]) -> Tensor:
 
 def _known_filled(depth: Tensor) -> tuple[Tensor, Tensor]:
     """``(known, z)`` of a ``(1, 1, H, W)`` depth: 1 where known, and the depth there (0 elsewhere)."""
-    known = known_depth_mask(depth).to(depth.dtype)
-    return known, torch.where(known > 0, torch.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+    known = known_depth_mask(depth)
+    return known.to(depth.dtype), torch.where(known, depth, 0.0)  # known depth is finite
 
 
 def _level_depth(depth: Tensor, to: tuple[int, int], filled: tuple[Tensor, Tensor] | None = None) -> Tensor:

@@ -33,7 +33,8 @@ def known_depth_mask(depth, *, eps: float = DEPTH_EPS):
     if isinstance(depth, Tensor):
         if depth.dtype == torch.bool:  # a mask is not a depth map
             return torch.zeros(depth.shape, dtype=torch.bool, device=depth.device)
-        return torch.isfinite(depth) & (depth > eps) & (depth < MAX_DEPTH)
+        # NaN fails both comparisons and +-inf one of them: no isfinite pass needed
+        return (depth > eps) & (depth < MAX_DEPTH)
     import numpy as np
 
     values = np.asarray(depth)

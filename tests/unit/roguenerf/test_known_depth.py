@@ -36,10 +36,14 @@ KNOWN = [True, False, False, False, False, False, False, False, False, False, Tr
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16])
 def test_known_depth_mask_table(dtype):
     depth = torch.tensor(VALUES, dtype=dtype)
     assert known_depth_mask(depth).tolist() == KNOWN
+    # the rule as written (finite, eps < z < MAX_DEPTH), which the mask computes without isfinite
+    assert torch.equal(known_depth_mask(depth), torch.isfinite(depth) & (depth > DEPTH_EPS) & (depth < MAX_DEPTH))
+    if dtype == torch.bfloat16:
+        return  # NumPy has no bfloat16
     # the NumPy form (the service's coverage check) gives the same answer
     assert known_depth_mask(depth.numpy()).tolist() == KNOWN
     filled = known_depth(depth)
