@@ -72,6 +72,7 @@ def enhance(
     flags: EnhanceFlags,
 ) -> None:
     """Enhance one view's render (a training view never uses its own photo)."""
+    from roguenerf.enhance import settled
     from roguenerf.imageio import write_png
     from roguenerf.inference import SceneEnhancer
 
@@ -86,7 +87,8 @@ def enhance(
         scene = open_scene(scene_dir, check=False)  # the views read are checked below, not all
         index = scene.index(view)
         model = load_model(checkpoint)
-        enhancer = SceneEnhancer(scene, model, options=flags.options())
+        # a neighbour's pose judged by an earlier run on this scene is not fitted again
+        enhancer = SceneEnhancer(scene, model, options=flags.options(), settled_file=settled.default_path(scene.root))
         with progress_bar(f"enhancing {view}", "tile") as progress:
             result = enhancer.enhance_view(index, progress=progress)
         # What the command read (the view's render and depth, its neighbours' photos and depths),

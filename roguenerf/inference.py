@@ -11,11 +11,13 @@ same photo twice or see a half-filled cache.
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -159,11 +161,14 @@ class SceneEnhancer:
             False or its config).
         device: where the model runs.
         cache_bytes: budget of the neighbour cache (:data:`DEFAULT_CACHE_BYTES`).
+        settled_file: where the pose judgements (:attr:`settled`) are kept between processes
+            (:mod:`roguenerf.enhance.settled`; e.g. :func:`~roguenerf.enhance.settled.default_path`
+            of the scene's folder): read here, written as they grow. None: this object only.
     """
 
     def __init__(self, scene, model, *, options: EnhanceOptions | None = None, num_neighbours: int | None = None,
                  tile: int | None = None, device: str | torch.device = "cpu", cache_bytes: int = DEFAULT_CACHE_BYTES,
-                 align=None, colour=None, trust=None):
+                 align=None, colour=None, trust=None, settled_file: str | os.PathLike | None = None):
         shortcuts = {"num_neighbours": num_neighbours, "tile": tile, "align": align, "colour": colour, "trust": trust}
         given = [name for name, value in shortcuts.items() if value is not None]
         if options is None:
@@ -211,7 +216,15 @@ class SceneEnhancer:
         self._lock = threading.Lock()
         self.settled: set[int] = set()
         """Training positions whose pose fit found nothing to gain on an earlier view
-        (:attr:`AlignConfig.reuse <roguenerf.enhance.align.AlignConfig.reuse>`)."""
+        (:attr:`AlignConfig.reuse <roguenerf.enhance.align.AlignConfig.reuse>`), or in an
+        earlier process (``settled_file``)."""
+        self.settled_file = None
+        if settled_file is not None and self.align is not None and self.align.reuse:
+            from roguenerf.enhance import settled
+
+            self.settled_file = Path(settled_file)
+            known = settled.load(self.settled_file, scene, self.train_names, self.align)
+            self.settled = {p for p, name in enumerate(self.train_names) if name in known}
 
     def _source_bytes(self, position: int) -> int:
         frame = self.scene.frames[self.train[position]]
@@ -307,6 +320,7 @@ class SceneEnhancer:
         reuse = memory is None and self.align.reuse
         small = None
         done = []
+        grown = False
         for j, p in enumerate(positions):
             if memory is not None and p in memory:
                 poses[j], accepted = memory[p]
@@ -323,10 +337,15 @@ class SceneEnhancer:
                                   cache=levels, target_cache=target)
             if reuse and fit.refusal in ("early", "gain"):
                 self.settled.add(p)
+                grown = True
             poses[j] = fit.world_from_cam
             done.append(fit.accepted)
             if memory is not None:
                 memory[p] = (fit.world_from_cam.clone(), fit.accepted)
+        if grown and self.settled_file is not None:
+            from roguenerf.enhance import settled
+
+            settled.save(self.settled_file, self.scene, [self.train_names[p] for p in sorted(self.settled)], self.align)
         return poses, done
 
     def _crop_provider(self, positions: list[int], world_from_cam: Tensor, poses: Tensor):

@@ -146,6 +146,30 @@ def test_enhance_writes_the_png(scene_dir, checkpoint, tmp_path):
     assert bad.exit_code == 2 and "nope" in bad.stderr
 
 
+def test_enhance_keeps_its_pose_judgements_for_the_next_run(scene_dir, checkpoint, tmp_path, monkeypatch):
+    """A second one-view command on the scene starts from the first one's pose judgements
+    (roguenerf.enhance.settled, in the user's cache) and writes the same PNG."""
+    import shutil
+
+    from roguenerf.data.readers import load_scene
+    from roguenerf.enhance import settled
+
+    monkeypatch.setenv("ROGUENERF_SETTLED_CACHE", str(tmp_path / "cache"))
+    copy = tmp_path / "scene"
+    shutil.copytree(scene_dir, copy)
+    kept = settled.default_path(copy)
+    outputs = []
+    for n in range(2):
+        outputs.append(tmp_path / f"run{n}.png")
+        result = _run("enhance", copy, "--view", "test_001", "--checkpoint", checkpoint, "--output", outputs[-1])
+        assert result.exit_code == 0, result.output
+        if n == 0:
+            assert kept.is_file()
+            names = set(json.loads(kept.read_text())["views"])
+            assert names and names <= {f.name for f in load_scene(copy).frames if f.split == "train"}
+    assert outputs[0].read_bytes() == outputs[1].read_bytes()
+
+
 def test_enhance_never_imports_kornia(scene_dir, checkpoint, tmp_path):
     """Issue 51: importing kornia imports all of it, 0.3 s of a one-view command on 2 cores; a
     request (pose fits, reprojection, model, colour, trust) runs on roguenerf.ops' torch bodies."""
