@@ -19,8 +19,11 @@ defaults) is timed too: its wall-clock beside the view time it prints.
 Settings: ``defaults``, ``no-align``, ``no-colour``, ``no-trust``, ``neighbours=N``, ``tile=PX`` (the
 tile size, ``EnhanceOptions.tile``), ``early=SHARE`` (the pose fits'
 ``AlignConfig.early_refusal``; ``early=0`` fits every level), ``cache=MiB``
-(the neighbour cache's budget, ``SceneEnhancer(cache_bytes=)``); several switches joined by ``+``
-(``no-align+no-trust``).
+(the neighbour cache's budget, ``SceneEnhancer(cache_bytes=)``), ``judged`` (the views are first
+enhanced once by an enhancer keeping its pose judgements in a file, as an earlier process would,
+then timed by a new enhancer reading that file, the scene's read cache emptied between: what a
+later one-view command on the scene runs; needs a tree with ``SceneEnhancer(settled_file=)``);
+several switches joined by ``+`` (``no-align+no-trust``).
 
 With ``--before REV`` every setting also runs with the code of an older revision (a temporary
 git worktree, this checkout's interpreter), labelled ``SETTING@REV``; the two trees' children
@@ -66,7 +69,17 @@ from roguenerf.metrics import psnr
 
 scene = load_scene({scene!r})
 model, _ = load_checkpoint(default_checkpoint_path())
-enhancer = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(**{flags!r}), **{extra!r})
+extra = {extra!r}
+judged = extra.pop("judged", False)
+if judged:  # an earlier process judged the neighbours' poses (its file is read by the enhancer below)
+    import tempfile
+    extra["settled_file"] = tempfile.mkdtemp() + "/settled.json"
+    earlier = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(**{flags!r}), **extra)
+    for view in scene.indices("test")[:{views}]:
+        earlier.enhance_view(view)
+    del earlier
+    scene.clear_cache()
+enhancer = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(**{flags!r}), **extra)
 loaded = time.perf_counter() - t0
 rows = []
 for view in scene.indices("test")[:{views}]:
@@ -112,9 +125,11 @@ def parse_setting(text: str) -> tuple[dict, dict]:
             flags["align"] = AlignConfig(early_refusal=float(part.split("=", 1)[1]))
         elif part.startswith("cache="):
             extra["cache_bytes"] = int(float(part.split("=", 1)[1]) * 2**20)
+        elif part == "judged":
+            extra["judged"] = True
         else:
             raise SystemExit(f"--settings: unknown switch {part!r} (defaults, no-align, no-colour, no-trust, "
-                             "neighbours=N, tile=PX, cache=MiB, early=SHARE, joined by +)")
+                             "neighbours=N, tile=PX, cache=MiB, early=SHARE, judged, joined by +)")
     return flags, extra
 
 

@@ -78,7 +78,9 @@ class EnhancerCache:
                 )
             model, _ = load_checkpoint(path)
         log.info("SceneEnhancer built for scene %s, checkpoint v%s", scene_id, version)
-        return SceneEnhancer(scene, model, options=EnhanceOptions())  # the shipped defaults
+        # the shipped defaults; the scene's pose judgements kept beside it, across restarts
+        return SceneEnhancer(scene, model, options=EnhanceOptions(),
+                             settled_file=self.layout.scene_dir(scene_id) / "settled.json")
 
     def evict(self, scene_id: str) -> None:
         with self._lock:

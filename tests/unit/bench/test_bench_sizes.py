@@ -49,6 +49,7 @@ def test_settings_and_sizes_are_checked():
     flags, _ = sizes.parse_setting("early=0")
     assert flags == {"align": AlignConfig(early_refusal=0.0)}
     assert eval(repr(flags), {"AlignConfig": AlignConfig}) == flags  # what the child process reads
+    assert sizes.parse_setting("judged") == ({}, {"judged": True})
     with pytest.raises(SystemExit, match="unknown switch 'no-model'"):
         sizes.parse_setting("no-model")
     assert sizes.parse_size("1920x1080") == (1920, 1080)
@@ -61,12 +62,15 @@ def test_a_run_reports_every_step_and_the_memory(tmp_path):
     make_toy_scene(tmp_path / "toy", seed=2, n_train=6, n_test=2, height=72, width=96)
     out = tmp_path / "res" / "sizes"
     assert sizes.main(["--scene", str(tmp_path / "toy"), "--sizes", "64x48", "--views", "2",
-                       "--settings", "defaults,no-align+no-colour+no-trust+cache=0", "--work", str(tmp_path / "work"),
-                       "--output", str(out)]) == 0
+                       "--settings", "defaults,no-align+no-colour+no-trust+cache=0,judged",
+                       "--work", str(tmp_path / "work"), "--output", str(out)]) == 0
     summary = json.loads((tmp_path / "res" / "sizes.json").read_text())["summary"]
     assert [(s["size"], s["setting"]) for s in summary] == [("64x48", "defaults"),
-                                                            ("64x48", "no-align+no-colour+no-trust+cache=0")]
-    on, off = summary
+                                                            ("64x48", "no-align+no-colour+no-trust+cache=0"),
+                                                            ("64x48", "judged")]
+    on, off, judged = summary
+    # the poses judged by an earlier enhancer: the same images, fits only where one was kept
+    assert judged["gain_db"] == pytest.approx(on["gain_db"], abs=1e-6) and judged["align_s"] < 0.5 * on["align_s"]
     assert on["align_s"] > 0 and off["align_s"] < on["align_s"]
     assert off["colour_s"] == off["trust_s"] == 0  # stages off: never run
     assert 100 < on["peak_mb"] < 4000 and on["cli_wall_s"] > on["cli_view_s"] > 0

@@ -54,3 +54,7 @@ def test_library_cli_and_service_default_to_the_checkpoints_count(scene, tmp_pat
     shutil.copytree(scene.root, layout.scene_files("a" * 32))
     served = EnhancerCache(settings, layout, model).get("a" * 32, 0)
     assert len(served.enhance_view("test_000").neighbours) == n
+    # its pose judgements are kept in the scene's folder (a restarted service starts from them)
+    assert served.settled_file == layout.scene_dir("a" * 32) / "settled.json"
+    restarted = EnhancerCache(settings, layout, model).get("a" * 32, 0)
+    assert served.settled and restarted.settled == served.settled
