@@ -19,10 +19,10 @@ defaults) is timed too: its wall-clock beside the view time it prints.
 Settings: ``defaults``, ``no-align``, ``no-colour``, ``no-trust``, ``neighbours=N``, ``tile=PX`` (the
 tile size, ``EnhanceOptions.tile``), ``early=SHARE`` (the pose fits'
 ``AlignConfig.early_refusal``; ``early=0`` fits every level), ``cache=MiB``
-(the neighbour cache's budget, ``SceneEnhancer(cache_bytes=)``), ``judged`` (the views are first
-enhanced once by an enhancer keeping its pose judgements in a file, as an earlier process would,
-then timed by a new enhancer reading that file, the scene's read cache emptied between: what a
-later one-view command on the scene runs; needs a tree with ``SceneEnhancer(settled_file=)``);
+(the neighbour cache's budget, ``SceneEnhancer(cache_bytes=)``), ``judged`` (an untimed child first
+enhances the views keeping its pose judgements in a file, as an earlier command would; the timed
+child's enhancer reads that file: what a later one-view command on the scene runs; needs a tree
+with ``SceneEnhancer(settled_file=)``);
 several switches joined by ``+`` (``no-align+no-trust``).
 
 With ``--before REV`` every setting also runs with the code of an older revision (a temporary
@@ -69,17 +69,7 @@ from roguenerf.metrics import psnr
 
 scene = load_scene({scene!r})
 model, _ = load_checkpoint(default_checkpoint_path())
-extra = {extra!r}
-judged = extra.pop("judged", False)
-if judged:  # an earlier process judged the neighbours' poses (its file is read by the enhancer below)
-    import tempfile
-    extra["settled_file"] = tempfile.mkdtemp() + "/settled.json"
-    earlier = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(**{flags!r}), **extra)
-    for view in scene.indices("test")[:{views}]:
-        earlier.enhance_view(view)
-    del earlier
-    scene.clear_cache()
-enhancer = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(**{flags!r}), **extra)
+enhancer = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(**{flags!r}), **{extra!r})
 loaded = time.perf_counter() - t0
 rows = []
 for view in scene.indices("test")[:{views}]:
@@ -175,8 +165,16 @@ def sized_scene(scene_dir: Path, size: tuple[int, int], out: Path) -> Path:
 
 
 def run_child(scene: Path, setting: tuple[dict, dict], views: int, repo: Path = ROOT) -> dict:
-    """One fresh process enhancing ``views`` test views of ``scene`` with the code of ``repo``."""
+    """One fresh process enhancing ``views`` test views of ``scene`` with the code of ``repo``;
+    with ``judged``, after an untimed one that judged their neighbours' poses into a file."""
     flags, extra = setting
+    if extra.get("judged"):
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            extra = {k: v for k, v in extra.items() if k != "judged"} | {"settled_file": f"{tmp}/settled.json"}
+            run_child(scene, (flags, extra), views, repo)  # the earlier process
+            return run_child(scene, (flags, extra), views, repo)
     code = CHILD.format(repo=str(repo), scene=str(scene), flags=flags, extra=extra, views=views)
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     if proc.returncode != 0:
