@@ -35,10 +35,16 @@ VERSION = 1
 def default_path(scene_root: str | os.PathLike) -> Path:
     """Where the judgements of the scene at ``scene_root`` are kept:
     ``$XDG_CACHE_HOME/roguenerf/settled/<hash of the resolved folder>.json`` (``~/.cache`` by
-    default; ``$ROGUENERF_SETTLED_CACHE`` instead of the folder when set)."""
+    default; ``$ROGUENERF_SETTLED_CACHE`` instead of the folder when set). The folder is made
+    here where it can be (:func:`save` makes none: a file whose folder went away, a deleted
+    scene's, is not written)."""
     base = os.environ.get("ROGUENERF_SETTLED_CACHE")
     if not base:
         base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "roguenerf" / "settled"
+    try:
+        Path(base).mkdir(parents=True, exist_ok=True)
+    except OSError:
+        pass  # save() then reports it
     key = hashlib.sha256(str(Path(scene_root).resolve()).encode()).hexdigest()[:24]
     return Path(base) / f"{key}.json"
 
@@ -110,7 +116,7 @@ def save(path: str | os.PathLike, scene, names, config: AlignConfig) -> bool:
             views[name] = entry
     data = {"version": VERSION, "align": settings(config), "views": dict(sorted(views.items()))}
     try:
-        atomic_write(path, json.dumps(data).encode(), make_parents=True)
+        atomic_write(path, json.dumps(data).encode())
     except OSError as exc:
         log.warning("pose judgements not kept in %s (%s)", path, exc)
         return False

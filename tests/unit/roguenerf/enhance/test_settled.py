@@ -94,12 +94,17 @@ def test_a_broken_or_unwritable_file_costs_only_the_fits(scene_and_model, tmp_pa
     blocked.write_text("")
     assert settled.save(blocked / "settled.json", scene, [enhancer.train_names[0]], AlignConfig()) is False
     SceneEnhancer(scene, model, settled_file=blocked / "settled.json").enhance_view(scene.indices("test")[0])
+    # a folder that went away (a scene deleted while a request ran) is not made again
+    gone = tmp_path / "deleted_scene" / "settled.json"
+    assert settled.save(gone, scene, [enhancer.train_names[0]], AlignConfig()) is False
+    assert not gone.parent.exists()
 
 
 def test_default_path_is_one_file_per_scene_folder(tmp_path, monkeypatch):
     monkeypatch.setenv("ROGUENERF_SETTLED_CACHE", str(tmp_path / "store"))
     a, b = settled.default_path(tmp_path / "a"), settled.default_path(tmp_path / "b")
     assert a.parent == tmp_path / "store" and a.suffix == ".json" and a != b
+    assert a.parent.is_dir()  # made here, where save() will write
     assert settled.default_path(tmp_path / "x" / ".." / "a") == a  # the resolved folder
     monkeypatch.delenv("ROGUENERF_SETTLED_CACHE")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
