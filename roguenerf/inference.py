@@ -163,7 +163,8 @@ class SceneEnhancer:
         cache_bytes: budget of the neighbour cache (:data:`DEFAULT_CACHE_BYTES`).
         settled_file: where the pose judgements (:attr:`settled`) are kept between processes
             (:mod:`roguenerf.enhance.settled`; e.g. :func:`~roguenerf.enhance.settled.default_path`
-            of the scene's folder): read here, written as they grow. None: this object only.
+            of the scene's folder): read here, written as they grow (its folder must exist).
+            None: this object only.
     """
 
     def __init__(self, scene, model, *, options: EnhanceOptions | None = None, num_neighbours: int | None = None,

@@ -30,7 +30,7 @@ def test_a_later_process_starts_from_the_judgements_of_an_earlier_one(scene_and_
     from roguenerf.inference import SceneEnhancer
 
     scene, model = scene_and_model
-    path = tmp_path / "cache" / "settled.json"
+    path = tmp_path / "settled.json"
     first = SceneEnhancer(scene, model, settled_file=path)
     images = [first.enhance_view(i).image for i in scene.indices("test")]
     assert first.settled and path.is_file()
