@@ -5,6 +5,10 @@ writing, exit).
     python -m bench.cli_startup --scene runs/sizes/dtu_scan37_fine_504x378 --view 000 \\
         --before ee6db0e [--repeats 6] [--output bench/results/cli_startup]
 
+Every run starts without pose judgements of earlier runs (a first command on the scene; each
+its own ``ROGUENERF_SETTLED_CACHE``); ``--keep-judgements`` lets a tree's runs share them, as a
+user's later commands on the scene do (trees older than ``roguenerf.enhance.settled`` ignore it).
+
 ``--before`` is checked out into a temporary git worktree (removed after); both trees run with
 this checkout's interpreter and packages, alternated (before, after, before, after ...), so a
 busy machine slows both alike. Writes ``OUTPUT.csv`` (a row per run; date, machine, commit),
@@ -27,12 +31,14 @@ from bench.common import REPO, RESULTS, beside, older_tree, save_figure, stamp, 
 VIEW_LINE = re.compile(r"enhanced (\S+) in ([0-9.]+) s")
 
 
-def run_enhance(tree: Path, scene: Path, view: str, output: Path) -> tuple[float, float]:
-    """Wall-clock of ``python -m roguecli enhance`` run from ``tree``, and the view time it prints."""
+def run_enhance(tree: Path, scene: Path, view: str, output: Path, judgements: Path) -> tuple[float, float]:
+    """Wall-clock of ``python -m roguecli enhance`` run from ``tree``, and the view time it prints;
+    the command keeps its pose judgements in ``judgements`` (``ROGUENERF_SETTLED_CACHE``)."""
     start = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "roguecli", "enhance", str(scene), "--view", view,
                            "--output", str(output)], cwd=tree, capture_output=True, text=True,
-                          env={"PYTHONPATH": str(tree), "PATH": "/usr/bin:/bin"})
+                          env={"PYTHONPATH": str(tree), "PATH": "/usr/bin:/bin",
+                               "ROGUENERF_SETTLED_CACHE": str(judgements)})
     wall = time.perf_counter() - start
     found = VIEW_LINE.search(proc.stdout + proc.stderr)
     if proc.returncode != 0 or found is None:
@@ -47,6 +53,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--before", required=True, help="the older commit (any git revision)")
     ap.add_argument("--repeats", type=int, default=6)
     ap.add_argument("--output", type=Path, default=RESULTS / "cli_startup")
+    ap.add_argument("--keep-judgements", action="store_true",
+                    help="let each tree's runs share their pose judgements (roguenerf.enhance.settled), as "
+                         "a user's later commands on the scene do; by default every run starts without any, "
+                         "as a first command on the scene")
     args = ap.parse_args(argv)
     if args.repeats < 1:
         raise SystemExit(f"--repeats: expected 1 or more, got {args.repeats}")
@@ -56,7 +66,8 @@ def main(argv: list[str] | None = None) -> int:
         trees = {"before": old, "after": REPO}
         for repeat in range(args.repeats):
             for name, tree in trees.items():
-                wall, view = run_enhance(tree, scene, args.view, Path(tmp) / f"{name}.png")
+                judgements = Path(tmp) / (f"{name}-judgements" if args.keep_judgements else f"{name}-{repeat}")
+                wall, view = run_enhance(tree, scene, args.view, Path(tmp) / f"{name}.png", judgements)
                 rows.append({**stamp(), "tree": name, "revision": rev if name == "before" else "",
                              "repeat": repeat, "wall_s": round(wall, 3), "view_s": view,
                              "overhead_s": round(wall - view, 3)})

@@ -34,3 +34,15 @@ def test_both_trees_run_alternated_and_the_worktree_goes(tmp_path):
 def test_a_bad_revision_is_refused(tmp_path):
     with pytest.raises(SystemExit, match="--before: 'no-such-rev' is not a revision"):
         cli_startup.main(["--scene", str(tmp_path), "--view", "x", "--before", "no-such-rev"])
+
+
+@pytest.mark.slow
+def test_each_run_keeps_its_pose_judgements_where_it_is_told(tmp_path):
+    """The command's judgements go to the folder the bench gives it (a fresh one per run unless
+    --keep-judgements), never to the user's cache: a first command on the scene is timed."""
+    make_toy_scene(tmp_path / "toy", seed=2, n_train=6, n_test=2, height=48, width=64)
+    judgements = tmp_path / "judged"
+    wall, view = cli_startup.run_enhance(REPO, tmp_path / "toy", "test_000", tmp_path / "out.png", judgements)
+    assert wall > view > 0
+    [kept] = judgements.glob("*.json")
+    assert json.loads(kept.read_text())["views"]  # the toy scene's neighbours were judged
