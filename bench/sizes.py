@@ -19,11 +19,11 @@ defaults) is timed too: its wall-clock beside the view time it prints.
 Settings: ``defaults``, ``no-align``, ``no-colour``, ``no-trust``, ``neighbours=N``, ``tile=PX`` (the
 tile size, ``EnhanceOptions.tile``), ``early=SHARE`` (the pose fits'
 ``AlignConfig.early_refusal``; ``early=0`` fits every level), ``cache=MiB``
-(the neighbour cache's budget, ``SceneEnhancer(cache_bytes=)``), ``judged`` (an untimed child first
-enhances the views keeping its pose judgements in a file, as an earlier command would; the timed
-child's enhancer reads that file: what a later one-view command on the scene runs; needs a tree
-with ``SceneEnhancer(settled_file=)``);
-several switches joined by ``+`` (``no-align+no-trust``).
+(the neighbour cache's budget, ``SceneEnhancer(cache_bytes=)``), ``judged`` (an untimed child
+first enhances the views keeping its pose judgements in a file, as an earlier command would; the
+timed child's enhancer reads that file: what a later one-view command on the scene runs; needs a
+tree with ``SceneEnhancer(settled_file=)``); several switches joined by ``+``
+(``no-align+no-trust``). The one-view command (``--cli``) starts without earlier judgements.
 
 With ``--before REV`` every setting also runs with the code of an older revision (a temporary
 git worktree, this checkout's interpreter), labelled ``SETTING@REV``; the two trees' children

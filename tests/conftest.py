@@ -38,9 +38,12 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 # The one-view command keeps its pose judgements per scene in the user's cache
 # (roguenerf.enhance.settled): a test session keeps them in a folder of its own.
 if "ROGUENERF_SETTLED_CACHE" not in os.environ:
+    import atexit
+    import shutil
     import tempfile
 
     os.environ["ROGUENERF_SETTLED_CACHE"] = tempfile.mkdtemp(prefix="roguenerf-settled-")
+    atexit.register(shutil.rmtree, os.environ["ROGUENERF_SETTLED_CACHE"], True)
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("ROGUENERF_SHARED_DATA", REPO.parent / "shared" / "data"))
