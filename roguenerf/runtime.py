@@ -29,6 +29,7 @@ import ctypes.util
 import functools
 import os
 import sys
+from pathlib import Path
 
 M_TRIM_THRESHOLD = -1
 M_MMAP_THRESHOLD = -3
@@ -107,6 +108,15 @@ def release_freed_memory() -> bool:
         return False
     trim.argtypes = [ctypes.c_size_t]
     return bool(trim(0))
+
+
+def user_cache_dir(name: str, override: str) -> Path:
+    """The folder where the library keeps its ``name`` files for this user: ``$<override>`` when
+    set, else ``$XDG_CACHE_HOME/roguenerf/<name>`` (``~/.cache`` by default)."""
+    env = os.environ.get(override)
+    if env:
+        return Path(env)
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "roguenerf" / name
 
 
 def resident_bytes() -> int | None:

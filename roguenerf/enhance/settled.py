@@ -38,15 +38,15 @@ def default_path(scene_root: str | os.PathLike) -> Path:
     default; ``$ROGUENERF_SETTLED_CACHE`` instead of the folder when set). The folder is made
     here where it can be (:func:`save` makes none: a file whose folder went away, a deleted
     scene's, is not written)."""
-    base = os.environ.get("ROGUENERF_SETTLED_CACHE")
-    if not base:
-        base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "roguenerf" / "settled"
+    from roguenerf.runtime import user_cache_dir
+
+    base = user_cache_dir("settled", "ROGUENERF_SETTLED_CACHE")
     try:
-        Path(base).mkdir(parents=True, exist_ok=True)
+        base.mkdir(parents=True, exist_ok=True)
     except OSError:
         pass  # save() then reports it
     key = hashlib.sha256(str(Path(scene_root).resolve()).encode()).hexdigest()[:24]
-    return Path(base) / f"{key}.json"
+    return base / f"{key}.json"
 
 
 def _file(path) -> list[int] | None:

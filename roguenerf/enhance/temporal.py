@@ -140,10 +140,13 @@ class TemporalFilter:
         from roguenerf.reprojection import reproject
 
         prev, prev_depth, prev_K, prev_pose = self._previous
+        bilinear = self.config.resample == "bilinear"
         with torch.inference_mode():
-            warped = reproject(prev[None], prev_depth[None], depth[None], prev_K, K, prev_pose, pose)
+            # bicubic: only the points and what sees is needed of it (the depth: one channel sampled, not three)
+            warped = reproject(prev[None] if bilinear else prev_depth[None], prev_depth[None], depth[None],
+                               prev_K, K, prev_pose, pose)
             valid = warped.valid[0] > 0.5
-            if self.config.resample == "bilinear":
+            if bilinear:
                 return warped.features[0], valid
             h, w = prev.shape[-2:]
             xy = warped.coords  # (1, H, W, 2) pixel coordinates in the last frame, centres at integers

@@ -100,11 +100,9 @@ _SIGNATURES = {
 
 
 def cache_dir() -> Path:
-    env = os.environ.get("ROGUENERF_NATIVE_CACHE")
-    if env:
-        return Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "roguenerf" / "native"
+    from roguenerf.runtime import user_cache_dir
+
+    return user_cache_dir("native", "ROGUENERF_NATIVE_CACHE")
 
 
 def compiler() -> str | None:
