@@ -58,6 +58,14 @@
 #   STAGE=pretrain START=/tmp/sixth.safetensors STEPS=1500 LR=2.5e-4 SEED=7 NOISE=0.5,0.05 BLEND=0.5 \
 #     FITS=cup/coarse_x3,dtu_scan24/coarse_x3,coke_can/coarse_x3,beer/coarse_x3,bird_figurine/coarse_x3,blowtorch/coarse_x3,dancing_robot/coarse_x3,doraemon/coarse_x3 \
 #     OUT=runs/pretrain_E8 scripts/pretrain_real.sh   # 369 s on 2 cores (shared); ships SIXTH + 0.5 (trained - SIXTH)
+# The rotation (2026-11-29, issue 48: two more scenes kept out, to measure the recipe on six; not
+# shipped, docs/broad.md "Two more held-out scenes"): the eighth's recipe without blowtorch and
+# dancing_robot (held out) and cup (left out for time; its blur, coarse and fine fits are in SIXTH):
+#   FOLDS=3 PRESETS=coarse SCENES=dtu_scan24,beer,doraemon,coke_can,bird_figurine STAGE=pairs scripts/pretrain_real.sh
+#   HOLDOUT=dtu_scan37,mary_rose,can_clip,ollie,blowtorch,dancing_robot STAGE=pretrain START=/tmp/sixth.safetensors \
+#     STEPS=1500 LR=2.5e-4 SEED=7 NOISE=0.5,0.05 BLEND=0.5 \
+#     FITS=dtu_scan24/coarse_x3,coke_can/coarse_x3,beer/coarse_x3,bird_figurine/coarse_x3,doraemon/coarse_x3 \
+#     OUT=runs/rotation/pretrain_R DEST=runs/rotation/rotated.safetensors scripts/pretrain_real.sh
 # (/tmp/sixth.safetensors is `git show b611814:roguenerf/weights/default.safetensors`.)
 # (/tmp/fifth.safetensors is `git show b24f519:roguenerf/weights/default.safetensors`.)
 # (/tmp/looks.safetensors is `git show 70e5329:roguenerf/weights/default.safetensors`.)
