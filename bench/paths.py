@@ -332,6 +332,7 @@ def main() -> None:
                           checkpoint_id=f"{checkpoint}:align={args.align}:colour={args.colour}:trust={args.trust}"
                                         f":temporal={args.temporal}",
                           progress=lambda d, n: print(f"enhanced {d}/{n}", flush=True), force=args.force)
+    from roguenerf.geometry.euler import rotation_angle
     from roguenerf.video import read_video_info
 
     info = read_video_info(result.video)
@@ -340,11 +341,14 @@ def main() -> None:
     report = result.flicker
     base = stamp()
     rows = []
+    # how far the camera turns from one frame to the next
+    turns = [None] + [round(float(rotation_angle(a[:3, :3].double(), b[:3, :3].double())), 3)
+                      for a, b in zip(poses, poses[1:])]
     pairs = {p["to"]: p for p in report["per_pair"]}
     for f in report["per_frame"]:
         pair = pairs.get(f["frame"], {})
         rows.append({**base, "scene": name, "size": f"{width}x{height}", "frame": f["frame"],
-                     "view": f["view"] or "", "render_flicker": pair.get("render"),
+                     "view": f["view"] or "", "turn_deg": turns[f["frame"]], "render_flicker": pair.get("render"),
                      "enhanced_flicker": pair.get("enhanced"), "photo_flicker": pair.get("photo"),
                      "valid_fraction": pair.get("valid_fraction"), "render_psnr": f.get("render_psnr"),
                      "enhanced_psnr": f.get("enhanced_psnr"), "gain_db": f.get("gain_db")})
@@ -352,6 +356,8 @@ def main() -> None:
     summary = {**base, "command": " ".join(["python -m bench.paths", *sys.argv[1:]]),
                "scene": "toy (exact geometry, Degradation per frame)" if args.toy else str(args.fit),
                "size": f"{width}x{height}", "frames": len(poses), "key_views": [scene.frames[i].name for i in keys],
+               "turn_deg": {"mean": round(sum(turns[1:]) / max(len(turns) - 1, 1), 3),
+                            "max": max(turns[1:], default=0.0)},
                "checkpoint": str(checkpoint), "align": args.align, "colour": args.colour,
                "trust": args.trust, "temporal": args.temporal, "flicker": fl, "psnr": ps_,
                "flicker_ratio_ok": fl["ratio"] is not None and fl["ratio"] <= 1.05,
@@ -362,8 +368,12 @@ def main() -> None:
                "cached_views": result.cached_views, "warnings": list(result.warnings),
                "video": {"enhanced": info, "side_by_side": side},
                "video_path": str(result.video)}
+    # The path's shape in the name from 2026-11-29 on (results before it: paths of 4 x 8 unless their
+    # docs say otherwise), so a path with other --keys / --steps does not overwrite another's.
     variant = (("_toy" if args.toy else "")
-               + (f"_{args.fit.parent.name}_{args.fit.name}" if not args.toy and args.fit != DEFAULT_FIT else "")
+               + (f"_{args.fit.parent.name}_{args.fit.name}_{args.keys}x{args.steps}"
+                  if not args.toy and args.fit != DEFAULT_FIT and not args.photo_path else "")
+               + (f"_{args.fit.parent.name}_{args.fit.name}" if args.photo_path and args.fit != DEFAULT_FIT else "")
                + ("_photos" if args.photo_path else "")
                + ("_noalign" if args.align == "off" else "") + colour_tag)
     stem = "paths" + variant + ("_quick" if args.quick else "")

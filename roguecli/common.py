@@ -119,7 +119,8 @@ class PathEnhanceFlags(EnhanceFlags):
     """enhance-path's: those of :class:`EnhanceFlags` and ``--temporal``."""
 
     temporal: Annotated[bool, typer.Option("--temporal/--no-temporal", help=(
-        "Along the path, blend each frame's change with the last frame's (reprojected through the depth) and fit "
+        "Along the path, blend each frame with the last one (reprojected through the depth; less where the two "
+        "renders disagree) and fit "
         "each neighbour's pose once: less flicker, faster; --no-temporal enhances every frame on its own. "
         "Default on."))] = True
 

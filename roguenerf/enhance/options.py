@@ -136,8 +136,8 @@ class EnhanceOptions:
             (:mod:`roguenerf.enhance.trust`); None: off.
         tile: images larger than this (height or width) are enhanced tile by tile.
         temporal: along a camera path (:func:`~roguenerf.trajectory.enhance_path`), blend each
-            frame's change with the previous frame's, reprojected (:mod:`roguenerf.enhance.temporal`);
-            None: every frame on its own. Single views ignore it.
+            frame with the previous one, reprojected, less where their renders disagree
+            (:mod:`roguenerf.enhance.temporal`); None: every frame on its own. Single views ignore it.
     """
 
     neighbours: NeighbourRule = field(default_factory=NeighbourRule)

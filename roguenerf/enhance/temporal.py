@@ -15,12 +15,24 @@ neighbours, with its visibility test), and blends, wherever the previous frame s
     out_t = render_t + (1 - w) * (enhanced_t - render_t) + w * warp(out_{t-1} - render_{t-1})
                                                                      blend="residual"
 
+The weight falls where the two frames' *renders* disagree after the same warp
+(:attr:`TemporalConfig.reject`, :func:`render_disagreement`): ``w = weight * 0.5 ** (d / reject)
+** 2``. There the warp is wrong (the field's depth is off) or the point looks different from the
+two cameras, and blending the last frame in would ghost: on ``dtu_scan37``'s hash field the blend
+without it left the frames with photos up to 1 dB below their renders (docs/broad.md).
+
+With :attr:`TemporalConfig.fade_deg` (off by default: on the paths it was chosen on it added
+flicker and no gain on top of the rejection) the weight falls with the parallax at each pixel,
+the angle at its 3-D point between the two frames' rays: ``w = weight * 0.5 ** (angle /
+fade_deg)``.
+
 Because the carried frame is the blended one, the filter is an exponential moving average along
 the path: with ``w = 0.5`` a frame weighs the one before by 1/2, the one before that by 1/4, and
 so on. Blending the image smooths the render's own flicker too (a field's floaters that come and
-go); blending only the residual carries those back in, and flickered more on a hash field's path
-than no blending at all (docs/broad.md, *Videos that do not flicker*). A cut (a pose far from the
-last) needs no special case: the warp then sees nothing of it, and the frame keeps its own.
+go; the rejection keeps each frame's own where they differ much); blending only the residual
+carries those back in, and flickered more on a hash field's path than no blending at all
+(docs/broad.md, *Videos that do not flicker*). A cut (a pose far from the last) needs no
+special case: the warp then sees nothing of it, and the frame keeps its own.
 
 With :attr:`TemporalConfig.model_every` = k > 1 the model runs on one frame in k; a frame
 between is *carried* (:meth:`TemporalFilter.carry`): the previous frame's result reprojected
@@ -28,12 +40,14 @@ into it, which is what the blend would give that frame with ``w = 1``::
 
     out_t = warp(out_{t-1})   where the previous frame sees the pixel, render_t elsewhere
 
+(with :attr:`TemporalConfig.reject`, drawn toward ``render_t`` where the two renders disagree),
 and the model runs on it after all where the previous frame sees less than
 :attr:`TemporalConfig.min_seen` of it (a cut, a fast turn, a disocclusion).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -78,6 +92,23 @@ class TemporalConfig:
     min_seen: float = 0.95
     """A frame is carried only where the previous frame sees at least this share of its
     pixels; otherwise the model runs on it."""
+    reject: float = 0.04
+    """The blend's weight halves where the last frame's *render*, reprojected into this one,
+    differs from this frame's render by ``reject`` (mean absolute difference over the colour
+    channels, a 3 x 3 mean; :func:`render_disagreement`), falls to 1/16 at twice that
+    (``0.5 ** (d / reject) ** 2``). The renders disagree where the reprojection is wrong (the
+    field's depth is off, a disocclusion the visibility test missed) or the point looks
+    different from the two frames: there the last frame's result is not this frame's, and
+    blending it in ghosts. 0: no rejection. Chosen on the paths of the figure's choice half
+    (``dtu_scan37``'s and ``can_clip``'s hash fields: the least flicker of the settings that
+    cost no path more than 0.1 dB against frame by frame), reported on the report half's
+    (docs/broad.md, *Videos that do not flicker*)."""
+    fade_deg: float = 0.0
+    """The blend's weight halves for every ``fade_deg`` degrees of parallax at a pixel: the
+    angle, at the pixel's 3-D point, between the rays of this frame's camera and the last
+    frame's (:func:`parallax_deg`). Two frames far apart around the object see a point from
+    different sides (its view-dependent colour, the resampling's blur), and the last frame's
+    result is then a worse guess of this one. 0: the weight does not depend on it."""
 
     def __post_init__(self):
         if isinstance(self.model_every, bool) or not isinstance(self.model_every, int) or self.model_every < 1:
@@ -86,6 +117,10 @@ class TemporalConfig:
             raise InputError(f"TemporalConfig.resample: expected 'bilinear' or 'bicubic', got {self.resample!r}")
         if not (isinstance(self.min_seen, (int, float)) and 0 <= self.min_seen <= 1):
             raise InputError(f"TemporalConfig.min_seen: expected a share in [0, 1], got {self.min_seen!r}")
+        if not (isinstance(self.reject, (int, float)) and math.isfinite(self.reject) and self.reject >= 0):
+            raise InputError(f"TemporalConfig.reject: expected a colour difference >= 0 (0: off), got {self.reject!r}")
+        if not (isinstance(self.fade_deg, (int, float)) and math.isfinite(self.fade_deg) and self.fade_deg >= 0):
+            raise InputError(f"TemporalConfig.fade_deg: expected degrees >= 0 (0: no fade), got {self.fade_deg!r}")
         for name in ("weight", "change_weight"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and 0 <= value < 1):
@@ -96,6 +131,36 @@ class TemporalConfig:
             raise InputError(f"TemporalConfig.reuse_poses: expected True or False, got {self.reuse_poses!r}")
         if isinstance(self.keep_within, bool) or not isinstance(self.keep_within, int) or self.keep_within < 0:
             raise InputError(f"TemporalConfig.keep_within: expected an integer >= 0, got {self.keep_within!r}")
+
+
+def render_disagreement(warped_render: Tensor, render: Tensor, valid: Tensor) -> Tensor:
+    """Per pixel, how much the last frame's render reprojected into this frame (``(3, H, W)``, seen
+    where ``valid`` ``(1, H, W)``) differs from this frame's ``render``: the mean absolute
+    difference over the channels, averaged over the 3 x 3 pixels around it that are seen;
+    ``(1, H, W)``, 0 where nothing around is seen."""
+    from roguenerf.ops import box_sum3
+
+    seen = valid.float()
+    diff = (warped_render - render).abs().mean(0, keepdim=True) * seen
+    total, count = box_sum3(torch.cat([diff, seen])[None])[0]
+    return torch.where(count > 0, total / count.clamp_min(1e-12), 0.0)[None]
+
+
+def parallax_deg(depth: Tensor, K: Tensor, world_from_cam: Tensor, other_centre: Tensor) -> Tensor:
+    """Per pixel, the angle in degrees at its 3-D point (``depth`` ``(1, H, W)`` z-depth through
+    ``K`` and camera-to-world ``world_from_cam``) between the ray from this camera and the ray from
+    a camera centred at ``other_centre`` ``(3,)``: ``(1, H, W)``; 0 where the depth is unknown."""
+    from roguenerf.geometry import known_depth_mask
+    from roguenerf.geometry.cameras import pixel_rays
+
+    pose = torch.as_tensor(world_from_cam).to(torch.float64)
+    known = known_depth_mask(depth)[0]
+    z = torch.where(known, depth[0].double(), 0.0)
+    here = (pixel_rays(K, depth.shape[-2:]) * z[..., None]) @ pose[:3, :3].T  # point minus this camera's centre
+    there = here + (pose[:3, 3] - torch.as_tensor(other_centre).to(torch.float64))
+    # atan2 of the sine and cosine (not acos of the cosine): exact at 0 and stable near it
+    angle = torch.atan2(torch.linalg.cross(here, there).norm(dim=-1), (here * there).sum(-1))
+    return torch.where(known, torch.rad2deg(angle), 0.0).float()[None]
 
 
 def sticky_neighbours(previous: list[int] | None, chosen: list[int], nearest: list[int]) -> list[int]:
@@ -110,12 +175,13 @@ def sticky_neighbours(previous: list[int] | None, chosen: list[int], nearest: li
 
 
 class TemporalFilter:
-    """The residual carried along one camera path (see the module docstring); one per path,
-    frames given in order."""
+    """The last frame's result carried along one camera path (see the module docstring); one per
+    path, frames given in order."""
 
     def __init__(self, config: TemporalConfig | None = None):
         self.config = config or TemporalConfig()
-        self._previous: tuple[Tensor, Tensor, Tensor, Tensor] | None = None
+        # (carried: the image or its residual, depth, K, pose, the render it was made from)
+        self._previous: tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None = None
         self.last_share: float = 0.0
         """Share of the last frame's pixels that took the previous frame's residual."""
 
@@ -130,30 +196,41 @@ class TemporalFilter:
         come out the same as without the stop)."""
         carried = enhanced.float() - render.float() if self.config.blend == "residual" else enhanced.float()
         self._previous = (carried, depth.float(), torch.as_tensor(K).to(torch.float32),
-                          torch.as_tensor(world_from_cam).to(torch.float64))
+                          torch.as_tensor(world_from_cam).to(torch.float64), render.float())
 
-    def _warp(self, depth: Tensor, K: Tensor, pose: Tensor) -> tuple[Tensor, Tensor]:
-        """The kept last frame moved into this one: ``(3, H, W)`` (0 where not seen) and
-        ``(1, H, W)`` bool: seen."""
+    def _warp(self, depth: Tensor, K: Tensor, pose: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        """The kept last frame moved into this one: ``(3, H, W)`` (0 where not seen), ``(1, H, W)``
+        bool: seen, and with :attr:`TemporalConfig.reject` its render moved the same way
+        (``(3, H, W)``, sampled bilinear: it only decides the weight), else None."""
         import torch.nn.functional as F
 
         from roguenerf.reprojection import reproject
 
-        prev, prev_depth, prev_K, prev_pose = self._previous
+        prev, prev_depth, prev_K, prev_pose, prev_render = self._previous
         bilinear = self.config.resample == "bilinear"
+        reject = self.config.reject > 0
         with torch.inference_mode():
-            # bicubic: only the points and what sees is needed of it (the depth: one channel sampled, not three)
-            warped = reproject(prev[None] if bilinear else prev_depth[None], prev_depth[None], depth[None],
-                               prev_K, K, prev_pose, pose)
+            # bicubic: only the points and what sees is needed of the reprojection (the depth: one
+            # channel sampled, not three), and the render where it is compared
+            source = prev if bilinear else prev_depth
+            warped = reproject((torch.cat([source, prev_render]) if reject else source)[None], prev_depth[None],
+                               depth[None], prev_K, K, prev_pose, pose)
             valid = warped.valid[0] > 0.5
+            features = warped.features[0]
+            warped_render = features[-3:] if reject else None
             if bilinear:
-                return warped.features[0], valid
+                return features[:3], valid, warped_render
             h, w = prev.shape[-2:]
             xy = warped.coords  # (1, H, W, 2) pixel coordinates in the last frame, centres at integers
             grid = torch.stack([(xy[..., 0] + 0.5) / w * 2 - 1, (xy[..., 1] + 0.5) / h * 2 - 1], dim=-1)
             sampled = F.grid_sample(prev[None], grid.to(prev.dtype), mode="bicubic", padding_mode="border",
                                     align_corners=False)[0]
-            return torch.where(valid, sampled, 0.0), valid
+            return torch.where(valid, sampled, 0.0), valid, warped_render
+
+    def _agreement(self, warped_render: Tensor, render: Tensor, valid: Tensor) -> Tensor:
+        """``0.5 ** (d / reject) ** 2`` of the renders' disagreement ``d`` (:attr:`TemporalConfig.reject`)."""
+        d = render_disagreement(warped_render, render, valid)
+        return torch.exp2(-(d / self.config.reject).square())
 
     def model_due(self, t: int, *, changed: bool = False) -> bool:
         """Whether frame ``t`` of the path (from 0) is one the model runs on by
@@ -172,13 +249,16 @@ class TemporalFilter:
         render, depth = render.float(), depth.float()
         pose = torch.as_tensor(world_from_cam).to(torch.float64)
         K = torch.as_tensor(K).to(torch.float32)
-        warped, valid = self._warp(depth, K, pose)
+        warped, valid, warped_render = self._warp(depth, K, pose)
         self.last_share = float(valid.float().mean())
         if self.last_share < self.config.min_seen:
             return None
-        carried = warped if self.config.blend == "image" else render + warped
+        keep = 1.0
+        if warped_render is not None:  # where the renders disagree, the render rather than the last result
+            keep = self._agreement(warped_render, render, valid)
+        carried = render + keep * (warped - render) if self.config.blend == "image" else render + keep * warped
         out = torch.where(valid, carried, render).clamp(0, 1)
-        self._previous = (out if self.config.blend == "image" else out - render, depth, K, pose)
+        self._previous = (out if self.config.blend == "image" else out - render, depth, K, pose, render)
         return out
 
     def __call__(self, render: Tensor, enhanced: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
@@ -200,9 +280,13 @@ class TemporalFilter:
         self.last_share = 0.0
         w = float(self.config.change_weight if changed else self.config.weight)
         if self._previous is not None and w > 0:
-            warped, valid = self._warp(depth, K, pose)
+            warped, valid, warped_render = self._warp(depth, K, pose)
             self.last_share = float(valid.float().mean())
+            if self.config.fade_deg > 0:
+                w = w * 0.5 ** (parallax_deg(depth, K, pose, self._previous[3][:3, 3]) / self.config.fade_deg)
+            if warped_render is not None:
+                w = w * self._agreement(warped_render, render, valid)
             residual = torch.where(valid, (1 - w) * residual + w * warped, residual)
         out = (residual if image else render + residual).clamp(0, 1)
-        self._previous = (out if image else out - render, depth, K, pose)
+        self._previous = (out if image else out - render, depth, K, pose, render)
         return out

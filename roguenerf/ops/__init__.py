@@ -31,7 +31,7 @@ from roguenerf.ops import flow, gauss_newton
 from roguenerf.ops.attention import attend_pool
 from roguenerf.ops.attention import pool as pool_neighbours
 from roguenerf.ops.backend import Body, pick
-from roguenerf.ops.filters import gaussian_blur, spatial_gradient
+from roguenerf.ops.filters import box_sum3, gaussian_blur, spatial_gradient
 from roguenerf.ops.flow import gru_gates, upsample_warp, warp
 from roguenerf.ops.flow import pool as pool_flow
 from roguenerf.ops.flow import upsample as upsample_flow
@@ -48,7 +48,7 @@ from roguenerf.ops.fused import (
 from roguenerf.ops.reproject import pack_channels, reproject, sample
 from roguenerf.ops.uformer import leff, lewin_block, window_attention
 
-__all__ = ["Body", "attend_pool", "cat_channels", "cat_channels_last", "channels_last", "conv2d", "conv3x3",
+__all__ = ["Body", "attend_pool", "box_sum3", "cat_channels", "cat_channels_last", "channels_last", "conv2d", "conv3x3",
            "conv_act", "flow", "gauss_newton", "gaussian_blur", "gru_gates", "leff", "lewin_block", "linear",
            "linear_add", "pack_channels", "pick", "pool_flow", "pool_neighbours", "reproject", "sample",
            "spatial_gradient", "upsample_flow", "upsample_warp", "warp", "window_attention"]

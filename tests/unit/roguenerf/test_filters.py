@@ -84,3 +84,14 @@ def test_channels_blurred_together_are_each_blurred_alone():
     assert torch.allclose(together, alone, atol=1e-7)
     assert torch.allclose(together[1:], gaussian_blur(x[1:], 13, 2.0), atol=1e-7)
     assert together.is_contiguous()
+
+
+def test_box_sum_is_the_pooling_and_sums_nine_pixels(image):
+    from roguenerf.ops.filters import box_sum3
+
+    expected = torch.nn.functional.avg_pool2d(image, 3, stride=1, padding=1) * 9
+    assert torch.allclose(box_sum3(image), expected, atol=1e-5)
+    with reference_mode():
+        assert torch.allclose(box_sum3(image), expected, atol=1e-6)
+    ones = box_sum3(torch.ones(1, 1, 4, 5))[0, 0]
+    assert ones[1, 1] == pytest.approx(9.0) and ones[0, 0] == pytest.approx(4.0) and ones[0, 2] == pytest.approx(6.0)

@@ -23,7 +23,7 @@ def _frame(seed: int):
 
 
 def test_first_frame_is_its_own_and_a_still_camera_averages_the_residuals():
-    f = TemporalFilter(TemporalConfig(weight=0.5, blend="residual"))
+    f = TemporalFilter(TemporalConfig(weight=0.5, blend="residual", reject=0.0))  # the blend alone
     r1, e1 = _frame(1)
     assert torch.equal(f(r1, e1, DEPTH, K, POSE), e1)
     assert f.last_share == 0.0
@@ -105,7 +105,7 @@ def test_bad_keep_within_is_refused(keep):
 
 def test_blending_the_image_averages_the_frames_themselves():
     """blend="image": the enhanced frames are averaged (a render's own flicker too), not the change."""
-    f = TemporalFilter(TemporalConfig(weight=0.5, blend="image"))
+    f = TemporalFilter(TemporalConfig(weight=0.5, blend="image", reject=0.0))
     r1, e1 = _frame(1)
     assert torch.equal(f(r1, e1, DEPTH, K, POSE), e1)
     r2, e2 = _frame(2)
@@ -121,7 +121,7 @@ def test_blending_the_image_averages_the_frames_themselves():
 def test_a_carried_frame_is_the_last_result_moved_and_the_render_where_it_is_not_seen(blend):
     """A camera moved sideways by one pixel (z = 3, f = 30): the last frame's result lands one
     pixel to the left; the last column, which the last frame does not see, is the render's."""
-    f = TemporalFilter(TemporalConfig(blend=blend, model_every=2, min_seen=0.9))
+    f = TemporalFilter(TemporalConfig(blend=blend, model_every=2, min_seen=0.9, reject=0.0))
     r1, e1 = _frame(1)
     f(r1, e1, DEPTH, K, POSE)
     assert not f.model_due(1) and f.model_due(2) and f.model_due(1, changed=True)
@@ -170,7 +170,7 @@ def test_bicubic_resampling_keeps_the_detail_a_half_pixel_move_blurs():
     moved[0, 3] = 0.05  # half a pixel: the points land half a pixel further right in the last frame
     errors = {}
     for resample in ("bilinear", "bicubic"):
-        f = TemporalFilter(TemporalConfig(model_every=2, min_seen=0.5, resample=resample))
+        f = TemporalFilter(TemporalConfig(model_every=2, min_seen=0.5, resample=resample, reject=0.0))
         f(wave(0.0), wave(0.0), DEPTH, K, POSE)
         out = f.carry(torch.zeros(3, H, W), DEPTH, K, moved)
         errors[resample] = float((out - wave(0.5))[:, :, 2:-2].abs().max())  # away from the edges
@@ -178,3 +178,94 @@ def test_bicubic_resampling_keeps_the_detail_a_half_pixel_move_blurs():
     assert errors["bicubic"] < errors["bilinear"] / 5
     with pytest.raises(InputError, match="resample"):
         TemporalConfig(resample="nearest")
+
+
+def _angle(a, b) -> float:
+    import math
+
+    dot = sum(x * y for x, y in zip(a, b))
+    return math.degrees(math.acos(dot / (math.dist(a, (0, 0, 0)) * math.dist(b, (0, 0, 0)))))
+
+
+def test_parallax_is_the_angle_between_the_two_rays_at_the_point():
+    from roguenerf.enhance.temporal import parallax_deg
+
+    depth = DEPTH.clone()
+    depth[0, 0, 0] = 0.0  # unknown
+    angles = parallax_deg(depth, K, POSE, torch.tensor([3.0, 0.0, 0.0]))
+    # pixel (row 10, column 12): its centre (12.5, 10.5) is the point (0.05, 0.05, 3) at z = 3
+    assert float(angles[0, 10, 12]) == pytest.approx(_angle((0.05, 0.05, 3), (-2.95, 0.05, 3)), abs=1e-4)
+    assert float(angles[0, 0, 0]) == 0.0
+    assert float(parallax_deg(DEPTH, K, POSE, torch.zeros(3)).abs().max()) < 1e-9  # the same centre
+
+
+def test_the_blend_fades_with_parallax():
+    """The spike of the moving-camera test, with ``fade_deg`` set to the parallax at the pixel it
+    lands on: half the blend's weight there (0.25 of the last frame instead of 0.5)."""
+    moved = POSE.clone()
+    moved[0, 3] = 0.1
+    # pixel (10, 7) of the moved camera: the point (-0.45, 0.05, 3) in it, (-0.35, 0.05, 3) in the world
+    fade = _angle((-0.45, 0.05, 3), (-0.35, 0.05, 3))
+    render = torch.full((3, H, W), 0.5)
+    spike = render.clone()
+    spike[:, 10, 8] = 0.9
+    outs = []
+    for fade_deg in (0.0, fade):
+        f = TemporalFilter(TemporalConfig(weight=0.5, fade_deg=fade_deg))
+        f(render, spike, DEPTH, K, POSE)
+        outs.append(f(render, render, DEPTH, K, moved))
+    assert float(outs[0][0, 10, 7]) == pytest.approx(0.5 + 0.5 * 0.4, abs=1e-4)
+    assert float(outs[1][0, 10, 7]) == pytest.approx(0.5 + 0.25 * 0.4, abs=1e-4)
+    # a still camera has no parallax: the fade changes nothing
+    still = [TemporalFilter(TemporalConfig(fade_deg=d)) for d in (0.0, 1.0)]
+    r1, e1 = _frame(1)
+    r2, e2 = _frame(2)
+    for f in still:
+        f(r1, e1, DEPTH, K, POSE)
+    assert torch.equal(still[0](r2, e2, DEPTH, K, POSE), still[1](r2, e2, DEPTH, K, POSE))
+
+
+@pytest.mark.parametrize("fade", [-1.0, float("nan"), float("inf"), "2"])
+def test_bad_fades_are_refused(fade):
+    with pytest.raises(InputError, match="fade_deg"):
+        TemporalConfig(fade_deg=fade)
+
+
+def test_the_blend_rejects_the_last_frame_where_the_renders_disagree():
+    """A still camera: where the two renders differ by ``reject`` the blend weight halves (0.25
+    of the last frame), where they agree it stays 0.5; the disagreement is a 3 x 3 mean."""
+    f = TemporalFilter(TemporalConfig(weight=0.5, reject=0.1))
+    r1, e1 = _frame(1)
+    _, e2 = _frame(2)
+    r2 = r1.clone()
+    r2[:, :, 12:] += 0.1  # the right half's render changed by 0.1
+    f(r1, e1, DEPTH, K, POSE)
+    out = f(r2, e2, DEPTH, K, POSE)
+    assert torch.allclose(out[:, :, :11], (0.5 * e2 + 0.5 * e1)[:, :, :11], atol=1e-5)
+    assert torch.allclose(out[:, :, 13:], (0.75 * e2 + 0.25 * e1)[:, :, 13:], atol=1e-5)
+    # at the edge the 3 x 3 mean sees a third changed: 0.5 * 0.5 ** (1 / 3) ** 2
+    w = 0.5 * 0.5 ** (1 / 9)
+    assert torch.allclose(out[:, 1:-1, 11], ((1 - w) * e2 + w * e1)[:, 1:-1, 11], atol=1e-5)
+    # no rejection: the weight is the same everywhere
+    plain = TemporalFilter(TemporalConfig(weight=0.5, reject=0.0))
+    plain(r1, e1, DEPTH, K, POSE)
+    assert torch.allclose(plain(r2, e2, DEPTH, K, POSE), 0.5 * e2 + 0.5 * e1, atol=1e-5)
+
+
+@pytest.mark.parametrize("reject", [-0.1, float("nan"), float("inf"), "0.1"])
+def test_bad_rejections_are_refused(reject):
+    with pytest.raises(InputError, match="reject"):
+        TemporalConfig(reject=reject)
+
+
+def test_a_carried_frame_takes_the_render_where_the_renders_disagree():
+    """``carry`` with ``reject``: the last result where the renders agree, half of it and half
+    the render where they differ by ``reject``."""
+    f = TemporalFilter(TemporalConfig(model_every=2, reject=0.1))
+    r1, e1 = _frame(1)
+    r2 = r1.clone()
+    r2[:, :, 12:] += 0.1
+    f.remember(r1, e1, DEPTH, K, POSE)
+    out = f.carry(r2, DEPTH, K, POSE)
+    assert torch.allclose(out[:, :, :11], e1[:, :, :11], atol=1e-5)
+    assert torch.allclose(out[:, :, 13:], (0.5 * e1 + 0.5 * r2)[:, :, 13:].clamp(0, 1), atol=1e-5)
