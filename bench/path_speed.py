@@ -1,7 +1,7 @@
 """Frames per second along a camera path: frame by frame against the temporal filter, alternated.
 
     python -m bench.path_speed --fit runs/speed/dtu_scan37_fine --factor 1 --keys 4 --steps 16 \\
-        --work runs/paths [--repeats 2] [--model-every 1,2] [--resample bicubic,bilinear] \\
+        --work runs/paths [--repeats 2] [--model-every 1,2] [--resample bicubic,bilinear] [--reject 0,0.04] \\
         [--output bench/results/path_speed_dtu_scan37_fine]
 
 The path and its frames are ``bench.paths``'s (same ``--fit``, ``--factor``, ``--keys``,
@@ -9,10 +9,12 @@ The path and its frames are ``bench.paths``'s (same ``--fit``, ``--factor``, ``-
 ``--repeats`` times with the temporal filter off and on, alternated (off, on, off, on ...), each
 into a fresh folder without videos: the frames per second of ``PathResult.frames_per_second``
 (reading, enhancing, smoothing and writing each frame), the flicker against the render's and the
-gain on the frames with photos. ``--model-every`` and ``--resample`` run the filter once per
-pair of values of :attr:`~roguenerf.enhance.temporal.TemporalConfig.model_every` and
-:attr:`~roguenerf.enhance.temporal.TemporalConfig.resample` (labelled ``on`` for the shipped
-values, ``on/kK`` and ``on/RESAMPLE`` for others), with the share of frames carried; the CSV
+gain on the frames with photos. ``--model-every``, ``--resample`` and ``--reject`` run the filter
+once per combination of values of
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.model_every`,
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.resample` and
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.reject` (labelled ``on`` for the shipped
+values, ``on/kK``, ``on/RESAMPLE`` and ``on/rejectX`` for others), with the share of frames carried; the CSV
 also keeps each frame with a photo's gain (``gains``: frame, gain, carried). Writes ``OUTPUT.csv`` (a row
 per run; date, machine, commit), ``OUTPUT.json`` (the medians, the ratios) and ``OUTPUT.png``.
 """
@@ -42,6 +44,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="comma-separated TemporalConfig.model_every values for the filter (default: the shipped one)")
     ap.add_argument("--resample", default=None,
                     help="comma-separated TemporalConfig.resample values for the filter (default: the shipped one)")
+    ap.add_argument("--reject", default=None,
+                    help="comma-separated TemporalConfig.reject values for the filter (default: the shipped one)")
     ap.add_argument("--force", action="store_true", help="enhance a path enhance_path's check refuses (as bench.paths)")
     args = ap.parse_args(argv)
     if args.repeats < 1:
@@ -64,12 +68,15 @@ def main(argv: list[str] | None = None) -> int:
     shipped = TemporalConfig()
     every = [shipped.model_every] if args.model_every is None else [int(k) for k in args.model_every.split(",")]
     resample = [shipped.resample] if args.resample is None else args.resample.split(",")
+    reject = [shipped.reject] if args.reject is None else [float(x) for x in args.reject.split(",")]
     modes = {"off": None}
     for k in every:
         for r in resample:
-            label = "/".join(["on", *([f"k{k}"] if k != shipped.model_every else []),
-                              *([r] if r != shipped.resample else [])])
-            modes[label] = TemporalConfig(model_every=k, resample=r)
+            for j in reject:
+                label = "/".join(["on", *([f"k{k}"] if k != shipped.model_every else []),
+                                  *([r] if r != shipped.resample else []),
+                                  *([f"reject{j:g}"] if j != shipped.reject else [])])
+                modes[label] = TemporalConfig(model_every=k, resample=r, reject=j)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for repeat in range(args.repeats):

@@ -90,3 +90,9 @@ def test_path_speed_alternates_frame_by_frame_and_the_temporal_filter(tmp_path):
     assert {r["flicker_ratio"] for r in rows if r["temporal"] == "off"} != {r["flicker_ratio"] for r in rows
                                                                            if r["temporal"] == "on"}
     assert (tmp_path / "res" / "speed.png").is_file()
+    # the rejection of the last frame where the renders disagree, off beside the shipped one
+    assert path_speed.main(["--fit", str(tmp_path / "pairs"), "--work", str(tmp_path / "work"), "--keys", "2",
+                            "--steps", "2", "--repeats", "1", "--reject", "0.04,0", "--force", "--output",
+                            str(tmp_path / "res" / "reject")]) == 0
+    summary = json.loads((tmp_path / "res" / "reject.json").read_text())
+    assert list(summary["frames_per_second"]) == ["off", "on", "on/reject0"]
