@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from roguenerf.data.scene import ByteLRU
-from roguenerf.enhance.options import DEFAULT_TILE, NEAR_DEGREES, NEAR_EXTRA, EnhanceOptions  # noqa: F401 (re-exported)
+from roguenerf.enhance.options import DEFAULT_TILE, NEAR_DEGREES, NEAR_EXTRA, EnhanceOptions, tile_for  # noqa: F401 (re-exported)
 from roguenerf.errors import InputError, NonFiniteOutputError
 from roguenerf.images import check_float_image
 from roguenerf.models.layers import receptive_radius
@@ -188,7 +188,7 @@ class SceneEnhancer:
         default_n = getattr(config, "num_neighbours", 5) if config is not None else 5
         self.use_neighbours = bool(getattr(config, "use_neighbours", True)) if config is not None else True
         self.num_neighbours, self.near_extra = options.neighbours.counts(int(default_n))
-        self.tile = options.tile
+        self.tile = tile_for(options.tile, self.device)
         self.train = list(scene.indices("train"))
         self.train_names = [scene.frames[i].name for i in self.train]
         poses = scene.poses()

@@ -10,6 +10,9 @@ the kornia wheels of scripts/gpu_pretrain.sh in .whl/:
 There (device tool: carry .gpu and .whl), from the repository root:
     python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl
     PYTHONPATH=/tmp/site:$PWD ROGUENERF_THREADS=8 python3 scripts/gpu_speed.py .gpu/speed/dtu_scan37 --out $OUT
+    ... --devices cuda --tiles 1024,2048 --no-path      # tile sizes (with and without pose fits) beside the default
+(Run on an H200 on 2026-11-29 with ``runs/kinds/pairs/mary_rose/fine_s1_600steps`` packed:
+``bench/results/gpu/``, docs/results.md, *fifth session*.)
 Here, on the CPU alone (proves it runs; what the test does):
     python scripts/gpu_speed.py SCENE --devices cpu --sizes 64x48 --views 2 --frames 4 --out /tmp/g
 
@@ -64,24 +67,28 @@ def _half_model(enhancer: SceneEnhancer, device: str) -> None:
     enhancer.model.forward = half
 
 
-def views_row(scene, views: list[int], device: str, half: bool, reference: dict | None) -> tuple[dict, dict]:
+def views_row(scene, views: list[int], device: str, half: bool, reference: dict | None,
+              options: EnhanceOptions | None = None) -> tuple[dict, dict]:
     model, _ = load_checkpoint(default_checkpoint_path())
-    enhancer = SceneEnhancer(scene, model, device=device)
+    enhancer = SceneEnhancer(scene, model, device=device, options=options)
     if half:
         _half_model(enhancer, device)
     enhancer.enhance_view(views[0])  # warm-up
-    seconds, gains, images = [], [], {}
+    seconds, gains, images, stages = [], [], {}, {}
     for i in views[1:]:
         _sync(device)
         start = time.perf_counter()
         result = enhancer.enhance_view(i)
         _sync(device)
         seconds.append(time.perf_counter() - start)
+        for name, value in result.timings.items():
+            stages.setdefault(name, []).append(value)
         photo, render = scene.photo(i), scene.render(i)
         gains.append(float(psnr(result.image[None], photo[None])[0] - psnr(render[None], photo[None])[0]))
         images[i] = result.image
     row = {"device": device, "precision": "float16 model" if half else "float32", "views": len(seconds),
-           "seconds_per_view": statistics.median(seconds), "gain_db": statistics.mean(gains)}
+           "seconds_per_view": statistics.median(seconds), "gain_db": statistics.mean(gains),
+           "stage_seconds": {k: round(statistics.median(v), 4) for k, v in stages.items()}}
     if reference is not None:
         row["max_abs_diff_vs_float32"] = max(float((images[i] - reference[i]).abs().max()) for i in images)
     return row, images
@@ -123,6 +130,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", default="512x512,1920x1080")
     ap.add_argument("--views", type=int, default=4, help="views per size and device, the first a warm-up")
     ap.add_argument("--frames", type=int, default=48, help="cameras of the path (the first views in order)")
+    ap.add_argument("--tiles", default="", help=(
+        "comma-separated tile sizes (EnhanceOptions.tile) to time on the non-CPU devices beside the shipped one, "
+        "e.g. 1024,2048; each also without pose refinement"))
+    ap.add_argument("--no-path", action="store_true", help="skip the path rows")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     devices = [d for d in args.devices.split(",") if d]
@@ -148,6 +159,14 @@ def main(argv: list[str] | None = None) -> int:
                         row = {"device": device, "precision": "float16 model", "error": f"{type(exc).__name__}: {exc}"}
                     rows.append({"size": text, **row})
                     print(json.dumps(rows[-1]), flush=True)
+                    for tile in [int(t) for t in args.tiles.split(",") if t]:
+                        for align in (True, False):
+                            options = EnhanceOptions.from_flags(tile=tile, align=align)
+                            row, _ = views_row(scene, views, device, False, reference, options)
+                            rows.append({"size": text, "tile": tile, "align": align, **row})
+                            print(json.dumps(rows[-1]), flush=True)
+        if args.no_path:
+            devices = []
         scene = load_scene(scene_dir)
         views = scene.indices("train")[:args.frames]
         for device in devices:

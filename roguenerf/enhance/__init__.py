@@ -7,11 +7,11 @@
   stage in :class:`~roguenerf.inference.EnhanceResult`.
 """
 
-from roguenerf.enhance.options import DEFAULT_TILE, NEAR_DEGREES, NEAR_EXTRA, EnhanceOptions, NeighbourRule
+from roguenerf.enhance.options import DEFAULT_TILE, DEVICE_TILE, NEAR_DEGREES, NEAR_EXTRA, EnhanceOptions, NeighbourRule
 from roguenerf.enhance.stages import ColourStage, Stage, StageRecord, TrustStage, ViewState, stages_for
 from roguenerf.enhance.temporal import TemporalConfig
 
 __all__ = [
-    "DEFAULT_TILE", "NEAR_DEGREES", "NEAR_EXTRA", "ColourStage", "EnhanceOptions", "NeighbourRule", "Stage",
-    "StageRecord", "TemporalConfig", "TrustStage", "ViewState", "stages_for",
+    "DEFAULT_TILE", "DEVICE_TILE", "NEAR_DEGREES", "NEAR_EXTRA", "ColourStage", "EnhanceOptions", "NeighbourRule",
+    "Stage", "StageRecord", "TemporalConfig", "TrustStage", "ViewState", "stages_for",
 ]

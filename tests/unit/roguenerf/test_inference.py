@@ -239,7 +239,9 @@ def test_concurrent_calls_match_sequential_and_encode_once(scene):
 
 def test_large_images_are_tiled(scene):
     model = perturbed_micro(use_uformer=False)
-    whole = SceneEnhancer(scene, model, num_neighbours=2).enhance_view("test_000")
+    on_cpu = SceneEnhancer(scene, model, num_neighbours=2)
+    assert on_cpu.tile == 512  # the CPU's default (2048 on an accelerator: tile_for)
+    whole = on_cpu.enhance_view("test_000")
     tiled = SceneEnhancer(scene, model, num_neighbours=2, tile=16).enhance_view("test_000")
     assert tiled.image.shape == whole.image.shape
     assert tiled.neighbours == whole.neighbours

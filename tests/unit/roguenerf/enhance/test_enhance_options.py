@@ -32,6 +32,17 @@ def test_the_defaults_are_every_stage_on_and_the_models_count_plus_a_near_one():
     assert EnhanceOptions(trust=False).trust is None and EnhanceOptions(colour=True).colour == ColourConfig()
 
 
+def test_the_tile_is_chosen_by_the_device_unless_given():
+    from roguenerf.enhance.options import DEFAULT_TILE, DEVICE_TILE, tile_for
+
+    assert EnhanceOptions().tile is None and EnhanceOptions.from_flags().tile is None
+    assert tile_for(None, "cpu") == DEFAULT_TILE == 512
+    assert tile_for(None, torch.device("cuda", 0)) == tile_for(None, "mps") == DEVICE_TILE == 2048
+    assert tile_for(96, "cuda") == 96 and tile_for(4096, torch.device("cpu")) == 4096
+    with pytest.raises(InputError, match="tile"):
+        EnhanceOptions(tile=8)
+
+
 @pytest.mark.parametrize(("make", "message"), [
     (lambda: EnhanceOptions.from_flags(neighbours=-1), "num_neighbours: expected >= 0, got -1"),
     (lambda: EnhanceOptions.from_flags(neighbours=2.5), "num_neighbours: expected >= 0, got 2.5"),
