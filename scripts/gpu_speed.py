@@ -165,11 +165,9 @@ def main(argv: list[str] | None = None) -> int:
                             row, _ = views_row(scene, views, device, False, reference, options)
                             rows.append({"size": text, "tile": tile, "align": align, **row})
                             print(json.dumps(rows[-1]), flush=True)
-        if args.no_path:
-            devices = []
         scene = load_scene(scene_dir)
         views = scene.indices("train")[:args.frames]
-        for device in devices:
+        for device in [] if args.no_path else devices:
             for row in path_rows(scene, views, device, Path(tmp)):
                 rows.append(row)
                 print(json.dumps(row), flush=True)

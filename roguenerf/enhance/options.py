@@ -33,7 +33,6 @@ sequence of small kernel launches: on an H200, 1920 x 1080 views took 0.26 s wit
 (``scripts/gpu_speed.py --tiles``; docs/results.md)."""
 
 
-
 def tile_for(tile: int | None, device) -> int:
     """The tile size a view is enhanced in: ``tile`` where given, else by the ``device``
     (a ``torch.device`` or its name): :data:`DEFAULT_TILE` on the CPU, :data:`DEVICE_TILE` elsewhere."""
