@@ -371,9 +371,9 @@ def main() -> None:
     # The path's shape in the name from 2026-11-29 on (results before it: paths of 4 x 8 unless their
     # docs say otherwise), so a path with other --keys / --steps does not overwrite another's.
     variant = (("_toy" if args.toy else "")
-               + (f"_{args.fit.parent.name}_{args.fit.name}_{args.keys}x{args.steps}"
-                  if not args.toy and args.fit != DEFAULT_FIT and not args.photo_path else "")
-               + (f"_{args.fit.parent.name}_{args.fit.name}" if args.photo_path and args.fit != DEFAULT_FIT else "")
+               + (f"_{args.fit.parent.name}_{args.fit.name}" if not args.toy and args.fit != DEFAULT_FIT else "")
+               + (f"_{args.keys}x{args.steps}" if not args.toy and args.fit != DEFAULT_FIT and not args.photo_path
+                  else "")
                + ("_photos" if args.photo_path else "")
                + ("_noalign" if args.align == "off" else "") + colour_tag)
     stem = "paths" + variant + ("_quick" if args.quick else "")

@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -174,14 +175,26 @@ def sticky_neighbours(previous: list[int] | None, chosen: list[int], nearest: li
     return kept + [i for i in chosen if i not in kept][: len(chosen) - len(kept)]
 
 
+class _LastFrame(NamedTuple):
+    """What :class:`TemporalFilter` keeps of the last frame."""
+
+    carried: Tensor
+    """``(3, H, W)``: the frame as written (``blend="image"``) or its change over the render."""
+    depth: Tensor
+    K: Tensor
+    pose: Tensor
+    """Camera-to-world, float64."""
+    render: Tensor
+    """The render it was made from (compared with the next frame's by ``reject``)."""
+
+
 class TemporalFilter:
     """The last frame's result carried along one camera path (see the module docstring); one per
     path, frames given in order."""
 
     def __init__(self, config: TemporalConfig | None = None):
         self.config = config or TemporalConfig()
-        # (carried: the image or its residual, depth, K, pose, the render it was made from)
-        self._previous: tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None = None
+        self._previous: _LastFrame | None = None
         self.last_share: float = 0.0
         """Share of the last frame's pixels that took the previous frame's residual."""
 
@@ -195,8 +208,8 @@ class TemporalFilter:
         as written (a resumed path reads its finished frames back, so the frames after them
         come out the same as without the stop)."""
         carried = enhanced.float() - render.float() if self.config.blend == "residual" else enhanced.float()
-        self._previous = (carried, depth.float(), torch.as_tensor(K).to(torch.float32),
-                          torch.as_tensor(world_from_cam).to(torch.float64), render.float())
+        self._previous = _LastFrame(carried, depth.float(), torch.as_tensor(K).to(torch.float32),
+                                    torch.as_tensor(world_from_cam).to(torch.float64), render.float())
 
     def _warp(self, depth: Tensor, K: Tensor, pose: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
         """The kept last frame moved into this one: ``(3, H, W)`` (0 where not seen), ``(1, H, W)``
@@ -258,7 +271,7 @@ class TemporalFilter:
             keep = self._agreement(warped_render, render, valid)
         carried = render + keep * (warped - render) if self.config.blend == "image" else render + keep * warped
         out = torch.where(valid, carried, render).clamp(0, 1)
-        self._previous = (out if self.config.blend == "image" else out - render, depth, K, pose, render)
+        self._previous = _LastFrame(out if self.config.blend == "image" else out - render, depth, K, pose, render)
         return out
 
     def __call__(self, render: Tensor, enhanced: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
@@ -283,10 +296,10 @@ class TemporalFilter:
             warped, valid, warped_render = self._warp(depth, K, pose)
             self.last_share = float(valid.float().mean())
             if self.config.fade_deg > 0:
-                w = w * 0.5 ** (parallax_deg(depth, K, pose, self._previous[3][:3, 3]) / self.config.fade_deg)
+                w = w * 0.5 ** (parallax_deg(depth, K, pose, self._previous.pose[:3, 3]) / self.config.fade_deg)
             if warped_render is not None:
                 w = w * self._agreement(warped_render, render, valid)
             residual = torch.where(valid, (1 - w) * residual + w * warped, residual)
         out = (residual if image else render + residual).clamp(0, 1)
-        self._previous = (out if image else out - render, depth, K, pose, render)
+        self._previous = _LastFrame(out if image else out - render, depth, K, pose, render)
         return out
