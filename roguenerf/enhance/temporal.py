@@ -197,17 +197,25 @@ class TemporalFilter:
         self._previous: _LastFrame | None = None
         self.last_share: float = 0.0
         """Share of the last frame's pixels that took the previous frame's residual."""
+        self.last_warp: tuple[Tensor, Tensor] | None = None
+        """``(coords, valid)`` of the reprojection that moved the kept frame into the last one
+        given to :meth:`__call__` or :meth:`carry` (``(1, H, W, 2)``, ``(1, 1, H, W)``:
+        :class:`~roguenerf.reprojection.Reprojection`), for a caller that measures the same
+        pair (:func:`~roguenerf.trajectory.pair_flicker`'s ``warp``); None where no frame was
+        moved, and again after :meth:`remember` and :meth:`reset`."""
 
     def reset(self) -> None:
         """Forget the previous frame (a new path, or a frame not enhanced here)."""
         self._previous = None
         self.last_share = 0.0
+        self.last_warp = None
 
     def remember(self, render: Tensor, enhanced: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor) -> None:
         """Take ``enhanced`` (of ``render``) as the last frame's result without blending: the frame
         as written (a resumed path reads its finished frames back, so the frames after them
         come out the same as without the stop)."""
         carried = enhanced.float() - render.float() if self.config.blend == "residual" else enhanced.float()
+        self.last_warp = None
         self._previous = _LastFrame(carried, depth.float(), torch.as_tensor(K).to(torch.float32),
                                     torch.as_tensor(world_from_cam).to(torch.float64), render.float())
 
@@ -228,6 +236,7 @@ class TemporalFilter:
             source = prev if bilinear else prev_depth
             warped = reproject((torch.cat([source, prev_render]) if reject else source)[None], prev_depth[None],
                                depth[None], prev_K, K, prev_pose, pose)
+            self.last_warp = (warped.coords, warped.valid)
             valid = warped.valid[0] > 0.5
             features = warped.features[0]
             warped_render = features[-3:] if reject else None
@@ -257,6 +266,7 @@ class TemporalFilter:
         no previous frame or it sees less than :attr:`TemporalConfig.min_seen` of this one:
         the model must run on it."""
         self.last_share = 0.0
+        self.last_warp = None
         if self._previous is None:
             return None
         render, depth = render.float(), depth.float()
@@ -291,6 +301,7 @@ class TemporalFilter:
         image = self.config.blend == "image"
         residual = enhanced if image else enhanced - render
         self.last_share = 0.0
+        self.last_warp = None
         w = float(self.config.change_weight if changed else self.config.weight)
         if self._previous is not None and w > 0:
             warped, valid, warped_render = self._warp(depth, K, pose)

@@ -11,6 +11,12 @@ enhanced frame atomically as it is done (an interrupted run resumes after the la
 frame), then encodes ``enhanced.mp4`` and ``side_by_side.mp4`` (render | enhanced, each half
 labelled) frame by frame. The flicker report is :mod:`roguenerf.trajectory.flicker`'s, on two
 frames held at a time.
+
+One background thread reads the next frame's render and depth and encodes and writes the last
+enhanced frame while the present one is enhanced (the PNG encoder and the decoders release the
+interpreter), at most :data:`WRITES_PENDING` frames behind; a write that fails stops the path
+with its error, and every frame handed to it is written before :func:`enhance_path` returns or
+raises (a cancelled or failed path resumes after the last frame written).
 """
 
 from __future__ import annotations
@@ -19,6 +25,8 @@ import hashlib
 import json
 import math
 import time
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,6 +43,9 @@ STATE_FILE = "path_state.json"
 FLICKER_FILE = "flicker.json"
 VIDEO_FILE = "enhanced.mp4"
 SIDE_BY_SIDE_FILE = "side_by_side.mp4"
+WRITES_PENDING = 2
+"""Enhanced frames handed to the background thread and not yet written, at most (memory: a
+1920 x 1080 frame is 25 MB as float32)."""
 POSE_MATCH_TOL = 1e-5
 """A path camera "is" a scene view (and has its photo) when rotation and position agree to this
 (position relative to the scene's extent)."""
@@ -55,8 +66,9 @@ class PathResult:
     warnings: list[str] = field(default_factory=list)
     """What went on with ``force=True`` (:func:`~roguenerf.trajectory.check_camera_path`'s message)."""
     enhance_seconds: float = 0.0
-    """Seconds spent making the frames enhanced by this call (reading, enhancing, smoothing and
-    writing each frame; not the checks before nor the videos after)."""
+    """Seconds spent making the frames enhanced by this call: each such frame's whole turn of
+    the loop (reading, enhancing, smoothing, writing, its flicker and PSNR), and the wait for
+    the last writes; not the checks before, the frames read back, nor the videos after."""
 
     @property
     def frames_per_second(self) -> float | None:
@@ -140,7 +152,7 @@ def enhance_path(
     """
     from roguenerf.data.exports import background_to_unknown
     from roguenerf.geometry.cameras import ray_to_z_depth
-    from roguenerf.imageio import atomic_write, finite_for_json, read_depth, read_image, write_png
+    from roguenerf.imageio import atomic_write, finite_for_json, read_depth, read_image
     from roguenerf.metrics import psnr
     from roguenerf.video import Mp4Writer, check_quality, require_av, side_by_side
 
@@ -206,70 +218,83 @@ def enhance_path(
     temporal = None if enhancer.options.temporal is None else TemporalFilter(enhancer.options.temporal)
     last_neighbours = None
     poses = {} if temporal is not None and temporal.config.reuse_poses and enhancer.align is not None else None
-    for t in range(total):
-        if should_stop is not None and should_stop():
-            raise PathCancelled(t)
-        began = time.perf_counter()
-        render, depth = load_frame(t)
-        out_png = frame_dir / f"{t:05d}.png"
-        camera = (camera_path.K[t], camera_path.world_from_cam[t])
-        match = matches[t]
-        exclude = match if match is not None and scene.frames[match].split == "train" else None
-        neighbours, changed = None, False
-        if temporal is not None and temporal.config.keep_within > 0:
-            # Chosen for every frame, read back or not: a resumed path keeps the same chain.
-            chosen = enhancer.select(camera[1], exclude=exclude, view=(render, depth, camera[0]))
-            nearest = [enhancer.train[p] for p in enhancer.candidates(camera[1], temporal.config.keep_within,
-                                                                      exclude=exclude)]
-            neighbours = sticky_neighbours(last_neighbours, chosen, nearest)
-            changed = last_neighbours is not None and set(neighbours) != set(last_neighbours)
-            last_neighbours = neighbours
-        # Along a path with model_every > 1, a frame between the model's is the last one carried
-        # into it (where the last frame sees enough of it); decided the same way on a resume.
-        carried = None
-        if temporal is not None and not temporal.model_due(t, changed=changed):
-            carried = temporal.carry(render, depth, *camera)
-        if out_png.is_file():
-            enhanced = read_image(out_png)
-            if poses is not None and carried is None:  # a resumed path fits its neighbours' poses where it first did
-                chosen = neighbours if neighbours is not None else enhancer.select(
-                    camera[1], exclude=exclude, view=(render, depth, camera[0]))
-                enhancer.neighbour_poses([enhancer.train.index(i) for i in chosen], render, depth, *camera,
-                                         memory=poses)
-        else:
-            if carried is not None:
-                image = carried
+    behind = _Background()
+    try:
+        ahead = None
+        for t in range(total):
+            if should_stop is not None and should_stop():
+                raise PathCancelled(t)
+            began = time.perf_counter()
+            render, depth = load_frame(t) if ahead is None else ahead.result()
+            ahead = behind.submit(load_frame, t + 1) if t + 1 < total else None
+            out_png = frame_dir / f"{t:05d}.png"
+            camera = (camera_path.K[t], camera_path.world_from_cam[t])
+            match = matches[t]
+            exclude = match if match is not None and scene.frames[match].split == "train" else None
+            neighbours, changed = None, False
+            if temporal is not None and temporal.config.keep_within > 0:
+                # Chosen for every frame, read back or not: a resumed path keeps the same chain.
+                chosen = enhancer.select(camera[1], exclude=exclude, view=(render, depth, camera[0]))
+                nearest = [enhancer.train[p] for p in enhancer.candidates(camera[1], temporal.config.keep_within,
+                                                                          exclude=exclude)]
+                neighbours = sticky_neighbours(last_neighbours, chosen, nearest)
+                changed = last_neighbours is not None and set(neighbours) != set(last_neighbours)
+                last_neighbours = neighbours
+            # Along a path with model_every > 1, a frame between the model's is the last one carried
+            # into it (where the last frame sees enough of it); decided the same way on a resume.
+            carried = None
+            if temporal is not None and not temporal.model_due(t, changed=changed):
+                carried = temporal.carry(render, depth, *camera)
+            out_png_existed = out_png.is_file()
+            if out_png_existed:
+                enhanced = read_image(out_png)
+                if poses is not None and carried is None:  # a resumed path fits its neighbours' poses as it did
+                    chosen = neighbours if neighbours is not None else enhancer.select(
+                        camera[1], exclude=exclude, view=(render, depth, camera[0]))
+                    enhancer.neighbour_poses([enhancer.train.index(i) for i in chosen], render, depth, *camera,
+                                             memory=poses)
             else:
-                image = enhancer.enhance(render, depth, *camera, exclude=exclude, neighbours=neighbours,
-                                         pose_memory=poses).image
-                if temporal is not None:
-                    image = temporal(render, image, depth, *camera, changed=changed)
-            write_png(out_png, image, strategy="rle")  # the same pixels in a quarter of zlib's time
-            enhanced = _quantise(image)
-            done_now += 1
-            making += time.perf_counter() - began
-        if temporal is not None:  # the frame as written, whether made now or read back
-            temporal.remember(render, enhanced, depth, *camera)
-        photo = scene.photo(matches[t]) if matches[t] is not None else None
-        row = {"frame": t, "view": scene.frames[matches[t]].name if matches[t] is not None else None}
-        if neighbours is not None:
-            row["neighbours"] = [scene.frames[i].name for i in neighbours]
-        if temporal is not None and temporal.config.model_every > 1:
-            row["carried"] = carried is not None
-        if photo is not None:
-            row["render_psnr"] = float(psnr(render[None], photo[None])[0])
-            row["enhanced_psnr"] = float(psnr(enhanced[None], photo[None])[0])
-            row["gain_db"] = row["enhanced_psnr"] - row["render_psnr"]
-        per_frame.append(row)
-        current = (render, enhanced, photo, depth, camera_path.K[t], camera_path.world_from_cam[t])
-        if prev is not None:
-            errors, fraction = pair_flicker(list(prev[:3]), list(current[:3]), prev[3], depth, prev[4], current[4],
-                                            prev[5], current[5])
-            per_pair.append({"from": t - 1, "to": t, "render": errors[0], "enhanced": errors[1],
-                             "photo": errors[2], "valid_fraction": fraction})
-        prev = current
-        if progress is not None:
-            progress(t + 1, total)
+                if carried is not None:
+                    image = carried
+                else:
+                    image = enhancer.enhance(render, depth, *camera, exclude=exclude, neighbours=neighbours,
+                                             pose_memory=poses).image
+                    if temporal is not None:
+                        image = temporal(render, image, depth, *camera, changed=changed)
+                behind.write(out_png, image)
+                enhanced = _quantise(image)
+                done_now += 1
+            photo = scene.photo(matches[t]) if matches[t] is not None else None
+            row = {"frame": t, "view": scene.frames[matches[t]].name if matches[t] is not None else None}
+            if neighbours is not None:
+                row["neighbours"] = [scene.frames[i].name for i in neighbours]
+            if temporal is not None and temporal.config.model_every > 1:
+                row["carried"] = carried is not None
+            if photo is not None:
+                row["render_psnr"] = float(psnr(render[None], photo[None])[0])
+                row["enhanced_psnr"] = float(psnr(enhanced[None], photo[None])[0])
+                row["gain_db"] = row["enhanced_psnr"] - row["render_psnr"]
+            per_frame.append(row)
+            current = (render, enhanced, photo, depth, camera_path.K[t], camera_path.world_from_cam[t])
+            if prev is not None:
+                moved = None if temporal is None else temporal.last_warp  # the filter's move of the last frame
+                errors, fraction = pair_flicker(list(prev[:3]), list(current[:3]), prev[3], depth, prev[4], current[4],
+                                                prev[5], current[5], warp=moved)
+                per_pair.append({"from": t - 1, "to": t, "render": errors[0], "enhanced": errors[1],
+                                 "photo": errors[2], "valid_fraction": fraction})
+            prev = current
+            if temporal is not None:  # the frame as written, whether made now or read back
+                temporal.remember(render, enhanced, depth, *camera)
+            if progress is not None:
+                progress(t + 1, total)
+            if not out_png_existed:
+                making += time.perf_counter() - began
+        waited = time.perf_counter()
+        behind.drain()  # the last frames' writes: part of making them
+        if done_now:
+            making += time.perf_counter() - waited
+    finally:
+        behind.close()
     report = summarise_flicker(per_pair, per_frame)
     report["frames"] = total
     report["enhanced_now"] = done_now
@@ -289,6 +314,45 @@ def enhance_path(
     return PathResult(output=output, frames=total, enhanced_now=done_now, seconds=time.perf_counter() - start,
                       video=video_path, side_by_side=sbs_path, flicker=report, cached_views=enhancer.cached_views(),
                       warnings=warnings, enhance_seconds=making)
+
+
+class _Background:
+    """The one thread that reads frames ahead and writes enhanced ones behind (the module docstring)."""
+
+    def __init__(self):
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="roguenerf-path")
+        self._writes: deque[Future] = deque()
+        self._failed = False  # set by the thread: the writes after a failed one are not made
+
+    def submit(self, fn, *args) -> Future:
+        return self._pool.submit(fn, *args)
+
+    def _write(self, path: Path, image: Tensor) -> None:
+        from roguenerf.imageio import write_png
+
+        if self._failed:  # frames stay in order on disk: none after one that was not written
+            return
+        try:
+            write_png(path, image, strategy="rle")  # rle: the same pixels in a quarter of zlib's time
+        except BaseException:
+            self._failed = True
+            raise
+
+    def write(self, path: Path, image: Tensor) -> None:
+        """Write ``image`` to ``path`` as an 8-bit PNG, atomically, behind; wait while more than
+        :data:`WRITES_PENDING` are, and raise the error of a write that failed."""
+        self._writes.append(self._pool.submit(self._write, path, image))
+        while len(self._writes) > WRITES_PENDING or (self._writes and self._writes[0].done()):
+            self._writes.popleft().result()
+
+    def drain(self) -> None:
+        """Wait for every write handed over; raise the first error."""
+        while self._writes:
+            self._writes.popleft().result()
+
+    def close(self) -> None:
+        """Wait for everything handed over (errors are :meth:`drain`'s to raise) and stop the thread."""
+        self._pool.shutdown(wait=True)
 
 
 def _quantise(image: Tensor) -> Tensor:

@@ -16,7 +16,8 @@ from torch import Tensor
 
 
 def pair_flicker(images_t: list[Tensor | None], images_t1: list[Tensor | None], depth_t: Tensor, depth_t1: Tensor,
-                 K_t: Tensor, K_t1: Tensor, pose_t: Tensor, pose_t1: Tensor) -> tuple[list[float | None], float]:
+                 K_t: Tensor, K_t1: Tensor, pose_t: Tensor, pose_t1: Tensor, *,
+                 warp: tuple[Tensor, Tensor] | None = None) -> tuple[list[float | None], float]:
     """Mean absolute error of each image of frame t reprojected into frame t+1, on valid pixels.
 
     Args:
@@ -24,6 +25,10 @@ def pair_flicker(images_t: list[Tensor | None], images_t1: list[Tensor | None], 
             paired by position (e.g. [render, enhanced, photo]).
         depth_t, depth_t1: ``(1, H, W)`` z-depth of the two frames.
         K_t, K_t1: ``(3, 3)``; pose_t, pose_t1: ``(4, 4)`` OpenCV camera-to-world.
+        warp: ``(coords, valid)`` of :func:`~roguenerf.reprojection.reproject` from frame t into
+            t+1 with these depths, intrinsics and poses (``(1, H, W, 2)``, ``(1, 1, H, W)``),
+            when the caller has made it already (the temporal filter along a path): the images
+            are then sampled there, bilinearly as ``reproject`` samples, instead of reprojected again.
     Returns:
         ``(errors, valid_fraction)``; an error is None when its images are missing or no pixel is valid.
     """
@@ -35,16 +40,32 @@ def pair_flicker(images_t: list[Tensor | None], images_t1: list[Tensor | None], 
         return out, 0.0
     src = torch.cat([images_t[i] for i in present])[None].float()
     with torch.inference_mode():
-        rp = reproject(src, depth_t[None].float(), depth_t1[None].float(), K_t.float(), K_t1.float(),
-                       pose_t.double(), pose_t1.double())
-    valid = rp.valid[0, 0] > 0
+        if warp is None:
+            rp = reproject(src, depth_t[None].float(), depth_t1[None].float(), K_t.float(), K_t1.float(),
+                           pose_t.double(), pose_t1.double())
+            features, valid = rp.features[0], rp.valid[0, 0] > 0
+        else:
+            features, valid = sample_at(src, warp[0])[0], warp[1][0, 0] > 0
     fraction = float(valid.float().mean())
     if not bool(valid.any()):
         return out, fraction
     for k, i in enumerate(present):
-        diff = (rp.features[0, 3 * k:3 * k + 3] - images_t1[i].float()).abs().mean(0)
+        diff = (features[3 * k:3 * k + 3] - images_t1[i].float()).abs().mean(0)
         out[i] = float(diff[valid].mean())
     return out, fraction
+
+
+def sample_at(images: Tensor, coords: Tensor) -> Tensor:
+    """``images`` ``(B, C, Hs, Ws)`` sampled bilinearly at ``coords`` ``(B, H, W, 2)`` (pixel
+    units, centres at integers: :attr:`Reprojection.coords <roguenerf.reprojection.Reprojection.coords>`),
+    the edge pixel repeated beyond the centres (as :func:`~roguenerf.reprojection.reproject`
+    samples inside the image's pixel area); ``(B, C, H, W)``, to be read where the reprojection
+    is valid."""
+    import torch.nn.functional as F
+
+    h, w = images.shape[-2:]
+    grid = torch.stack([(coords[..., 0] + 0.5) / w * 2 - 1, (coords[..., 1] + 0.5) / h * 2 - 1], dim=-1)
+    return F.grid_sample(images, grid.to(images.dtype), mode="bilinear", padding_mode="border", align_corners=False)
 
 
 def summarise_flicker(per_pair: list[dict], per_frame: list[dict]) -> dict:

@@ -112,6 +112,26 @@ def test_flicker_is_zero_for_a_static_world_and_positive_for_noise(toy_path):
     assert none is None
 
 
+def test_flicker_on_the_filters_move_is_the_flicker_reprojected_again(toy_path):
+    """pair_flicker sampling at a reprojection it is given (the temporal filter's) measures what
+    it measures reprojecting itself: the same valid pixels, the same errors to float rounding."""
+    from roguenerf.reprojection import reproject
+
+    scene = toy_path["scene"]
+    a, b = scene.indices("train")[:2]
+    noise = torch.rand(3, H, W, generator=torch.Generator().manual_seed(1))
+    images_a = [scene.photo(a), noise, None]
+    images_b = [scene.photo(b), scene.photo(b), scene.photo(b)]
+    args = (scene.depth(a), scene.depth(b), scene.frames[a].K, scene.frames[b].K,
+            scene.frames[a].world_from_cam, scene.frames[b].world_from_cam)
+    rp = reproject(scene.depth(a)[None], scene.depth(a)[None], scene.depth(b)[None], args[2].float(),
+                   args[3].float(), args[4].double(), args[5].double())
+    again, fraction = pair_flicker(images_a, images_b, *args)
+    shared, shared_fraction = pair_flicker(images_a, images_b, *args, warp=(rp.coords, rp.valid))
+    assert 0.3 < fraction == shared_fraction and shared[2] is None is again[2]
+    assert shared[:2] == pytest.approx(again[:2], rel=1e-5) and again[1] > again[0] + 0.1
+
+
 def test_enhance_path_writes_video_flicker_and_resumes(toy_path, enhancer, tmp_path):
     root, scene = toy_path["root"], toy_path["scene"]
     cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
@@ -165,6 +185,35 @@ def test_enhance_path_writes_video_flicker_and_resumes(toy_path, enhancer, tmp_p
                   SceneEnhancer(scene, enhancer.model, align=False)):
         with pytest.raises(InputError, match="another path"):
             enhance_path(scene, other, cp, root / "frames", out, depth_type="ray", video=False)
+
+
+def test_a_frame_write_that_fails_stops_the_path_in_order_and_the_rerun_makes_the_same_frames(
+        toy_path, enhancer, tmp_path, monkeypatch):
+    """Frames are written by a background thread: its error reaches the caller, no frame after
+    the failed one is written, and the rerun resumes into the frames of a run that never failed."""
+    import roguenerf.imageio
+
+    root, scene = toy_path["root"], toy_path["scene"]
+    cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
+    clean = tmp_path / "clean"
+    enhance_path(scene, enhancer, cp, root / "frames", clean, depth_type="ray", video=False)
+    real = roguenerf.imageio.write_png
+
+    def full_disk(path, image, **kw):
+        if path is not None and path.name == "00004.png":
+            raise OSError(28, "No space left on device")
+        return real(path, image, **kw)
+
+    monkeypatch.setattr(roguenerf.imageio, "write_png", full_disk)
+    out = tmp_path / "out"
+    with pytest.raises(OSError, match="No space left"):
+        enhance_path(scene, enhancer, cp, root / "frames", out, depth_type="ray", video=False)
+    assert sorted(p.name for p in (out / "frames").iterdir()) == [f"{t:05d}.png" for t in range(4)]
+    monkeypatch.setattr(roguenerf.imageio, "write_png", real)
+    again = enhance_path(scene, enhancer, cp, root / "frames", out, depth_type="ray", video=False)
+    assert again.enhanced_now == len(cp) - 4
+    for t in range(len(cp)):
+        assert (out / "frames" / f"{t:05d}.png").read_bytes() == (clean / "frames" / f"{t:05d}.png").read_bytes()
 
 
 def test_the_temporal_filter_lowers_flicker_and_leaves_the_first_frame(toy_path, enhancer, tmp_path):
