@@ -8,7 +8,8 @@ The path and its frames are ``bench.paths``'s (same ``--fit``, ``--factor``, ``-
 ``--steps`` and ``--work``: rendered once, cached). In one process, ``enhance_path`` runs on them
 ``--repeats`` times with the temporal filter off and on, alternated (off, on, off, on ...), each
 into a fresh folder without videos: the frames per second of ``PathResult.frames_per_second``
-(reading, enhancing, smoothing and writing each frame), the flicker against the render's and the
+(each made frame's whole turn: reading, enhancing, smoothing, writing, its flicker and PSNR; before
+2026-11-30 without the flicker and PSNR), the flicker against the render's and the
 gain on the frames with photos. ``--model-every``, ``--resample`` and ``--reject`` run the filter
 once per combination of values of
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.model_every`,
