@@ -167,7 +167,7 @@ def run(args, save=None) -> list[dict]:
                         f"lr {c['lr']:g} {c['lr_schedule']}")
                 record("finetune", minutes, result.steps, result.seconds,
                        measure(scene, model), checkpoint=str(new), plan_name=plan_name,
-                       plan=plan)
+                       plan=plan, **guard_columns(result.guard))
                 if args.blends:
                     tuned = {k: v.clone() for k, v in model.state_dict().items()}
                     for a in args.blends:
@@ -176,6 +176,15 @@ def run(args, save=None) -> list[dict]:
                                measure(scene, model), checkpoint=str(new),
                                plan_name=f"{plan_name}+blend{a:g}", plan=f"{plan}, blend {a:g}")
     return rows
+
+
+def guard_columns(guard: dict | None) -> dict:
+    """A fine-tune's guard report (``TrainResult.guard``) as row columns: kept or not, and the
+    mean gains of the fine-tuned and starting weights on the drawn training views."""
+    if not guard or not guard.get("views"):
+        return {"guard_kept": None if guard is None else True}
+    return {"guard_kept": guard["kept"], "guard_tuned_db": round(guard["tuned_mean_db"], 4),
+            "guard_start_db": round(guard["start_mean_db"], 4), "guard_seconds": round(guard["seconds"], 1)}
 
 
 def _save(fig, ax, rows: list[dict], path: Path) -> Path:

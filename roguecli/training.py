@@ -110,6 +110,12 @@ def _report_training(result) -> None:
                    f"{', '.join(transfer['dropped']) or 'nothing'}; fresh: {', '.join(transfer['fresh']) or 'nothing'}"
                    f"; widened (new inputs at zero weight): {', '.join(transfer.get('widened', [])) or 'nothing'}",
                    err=True)
+    guard = getattr(result, "guard", None)
+    if guard and guard.get("views"):
+        verdict = "kept" if guard["kept"] else "not kept: the checkpoint holds the starting weights"
+        typer.echo(f"fine-tuned weights {verdict}; on {len(guard['views'])} training views drawn like novel views "
+                   f"they gain {guard['tuned_mean_db']:+.2f} dB, the starting weights {guard['start_mean_db']:+.2f} dB",
+                   err=True)
     if result.before and result.after:
         b, a = result.before, result.after
         typer.echo(f"test PSNR: render {b['render']['psnr']:.2f} dB, enhanced before {b['enhanced']['psnr']:.2f} dB, "
@@ -129,6 +135,10 @@ def finetune(
     neighbour_renders: NeighbourRendersOpt = None,
     depth_noise: DepthNoiseOpt = None,
     no_eval: Annotated[bool, typer.Option("--no-eval", help="Skip the before/after test evaluation.")] = False,
+    guard: Annotated[bool, typer.Option(
+        "--guard", help="Keep the fine-tuned weights only where they enhance training views drawn like novel "
+                        "views better than the starting weights (off by default: it refused lego's fine-tune, "
+                        "which helps there).")] = False,
 ) -> None:
     """Fine-tune the enhancer on one scene's training views; resumes from OUTPUT when interrupted."""
     from roguenerf.training import finetune as run_finetune
@@ -139,7 +149,7 @@ def finetune(
             raise InputError("give either --checkpoint or --scratch, not both")
         config = train.config(evaluate=not no_eval, freeze_neighbour_encoder=freeze_neighbour_encoder,
                               render_warp=render_warp, depth_noise=depth_noise,
-                              neighbour_renders=neighbour_renders)
+                              neighbour_renders=neighbour_renders, guard=guard)
         from roguenerf.training.loop import check_training_output
 
         check_training_output(output)

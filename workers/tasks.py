@@ -86,6 +86,7 @@ def run_finetune_job(run: JobRun) -> str:
         "before": result.before,
         "after": result.after,
         "config": result.config,
+        "guard": result.guard,
     }
     outcome = run.succeed(summary, checkpoint_path=str(destination), checkpoint_version=version)
     if outcome == "succeeded":

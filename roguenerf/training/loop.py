@@ -58,6 +58,9 @@ from roguenerf.training.state import load_state, save_state
 log = logging.getLogger("roguenerf.training")
 
 STATE_FILE = TRAIN_STATE_FILE
+START_FILE = "start.safetensors"
+"""A fine-tune's starting weights, in its output folder: what :mod:`roguenerf.training.guard`
+compares the fine-tuned ones with (a resumed run reads them back)."""
 TOY_FOLDER = "toy"
 """Where ``roguenerf pretrain --toy N`` writes its generated scenes, inside the output folder."""
 PREFETCH = 2
@@ -131,26 +134,36 @@ class SceneData:
     def draw_from_neighbours(self) -> float:
         """Fill :attr:`drawn_renders` and :attr:`drawn_depths`: each training view's render and depth
         as its nearest other training view's render and depth look from its camera
-        (:func:`~roguenerf.reprojection.splat_view`: a forward warp, so what is wrong in that
-        view's geometry lands where a new camera would see it, as in a novel view), its own
-        render and depth where nothing lands. Returns the mean share of pixels drawn."""
-        from roguenerf.geometry import select_neighbours
-        from roguenerf.reprojection import splat_view
-
+        (:meth:`drawn_view`, :func:`~roguenerf.reprojection.splat_view`: a forward warp, so what is
+        wrong in that view's geometry lands where a new camera would see it, as in a novel view),
+        its own render and depth where nothing lands. Returns the mean share of pixels drawn."""
         m = len(self.train)
         renders, depths, drawn = self.renders[:m].clone(), self.depths[:m].clone(), []
         if m < 2:
             self.drawn_renders, self.drawn_depths = renders, depths
             return 0.0
         for k in range(m):
-            s = int(select_neighbours(self.poses[k], self.poses[:m], 1, exclude=k)[0])
-            image, depth, hit = splat_view(self.renders[s], self.depths[s], self.K[s], self.K[k], self.poses[s],
-                                           self.poses[k], (self.height, self.width))
-            renders[k] = torch.where(hit, image, renders[k])
-            depths[k] = torch.where(hit, depth, depths[k])
-            drawn.append(float(hit.float().mean()))
+            renders[k], depths[k], share = self.drawn_view(k)
+            drawn.append(share)
         self.drawn_renders, self.drawn_depths = renders, depths
         return sum(drawn) / len(drawn)
+
+    def drawn_view(self, k: int) -> tuple[Tensor, Tensor, float]:
+        """Training view ``k``'s render ``(3, H, W)`` and depth ``(1, H, W)`` as its nearest other
+        training view's render and depth draw them into its camera
+        (:func:`~roguenerf.reprojection.splat_view`), its own where nothing lands, and the share
+        of its pixels drawn (0 with a single training view)."""
+        from roguenerf.geometry import select_neighbours
+        from roguenerf.reprojection import splat_view
+
+        m = len(self.train)
+        if m < 2:
+            return self.renders[k].clone(), self.depths[k].clone(), 0.0
+        s = int(select_neighbours(self.poses[k], self.poses[:m], 1, exclude=k)[0])
+        image, depth, hit = splat_view(self.renders[s], self.depths[s], self.K[s], self.K[k], self.poses[s],
+                                       self.poses[k], (self.height, self.width))
+        return (torch.where(hit, image, self.renders[k]), torch.where(hit, depth, self.depths[k]),
+                float(hit.float().mean()))
 
     def __len__(self) -> int:
         return len(self.train)
@@ -451,7 +464,11 @@ class _Run:
         return {"kind": self.kind, "plan": self.plan.to_dict(), "loss_kind": self.loss_fn.kind,
                 "transfer": self.transfer, "scenes": [str(d.scene.root) for d in self.datasets]}
 
-    def save(self, step: int, elapsed: float, loss_value: float | None) -> None:
+    def save(self, step: int, elapsed: float, loss_value: float | None, *, result=None,
+             guard: dict | None = None) -> None:
+        """Write the resumable state (this model's weights) and the output checkpoint: ``result``'s
+        weights where given (the starting ones the guard kept), else this model's; ``guard``
+        (its report) in the checkpoint's meta."""
         from roguenerf.checkpoint import save_checkpoint
 
         if loss_value is not None and not math.isfinite(loss_value):
@@ -462,9 +479,10 @@ class _Run:
         consumed.set_state(self.sampler_state)
         save_state(self.state_path, model=self.model, optimizer=self.optimizer, generator=consumed, step=step,
                    elapsed_s=elapsed, info=info)
-        save_checkpoint(self.model_path, self.model, meta={"training": {**meta, "steps": step,
-                                                                        "seconds": round(elapsed, 3),
-                                                                        "final_loss": loss_value}})
+        training = {**meta, "steps": step, "seconds": round(elapsed, 3), "final_loss": loss_value}
+        if guard is not None:
+            training["guard"] = guard
+        save_checkpoint(self.model_path, self.model if result is None else result, meta={"training": training})
 
 
 def _set_up(scenes: list, output_dir: Path, *, kind: str, config: TrainConfig, model, plan: TrainPlan,
@@ -632,11 +650,15 @@ def check_training_output(output_dir: str | Path) -> None:
         return
     if not output_dir.is_dir():
         raise InputError(f"output: {output_dir} exists and is not a folder; choose a new folder")
-    try:
-        ours = json.loads(output_dir.joinpath(MODEL_FILE).with_suffix(".json").read_text()).get("format") == FORMAT
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
-        ours = False
-    if any(output_dir.iterdir()) and not (ours or (output_dir / STATE_FILE).is_file()
+
+    def ours(name: str) -> bool:
+        try:
+            return json.loads(output_dir.joinpath(name).with_suffix(".json").read_text()).get("format") == FORMAT
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
+            return False
+
+    # a fine-tune stopped before its first save holds only its starting weights (START_FILE)
+    if any(output_dir.iterdir()) and not (ours(MODEL_FILE) or ours(START_FILE) or (output_dir / STATE_FILE).is_file()
                                          or (output_dir / TOY_FOLDER).is_dir()):
         raise InputError(f"output: {output_dir} exists and is not empty: it holds other files, not an earlier "
                          "training run (which would be resumed); choose a new folder")
@@ -652,24 +674,48 @@ def _fit(scenes: list, output_dir: Path, *, kind: str, checkpoint, config: Train
     output_dir.mkdir(parents=True, exist_ok=True)
     state_path = output_dir / STATE_FILE
     saved = load_state(state_path) if resume and state_path.is_file() else None
+    start_path = output_dir / START_FILE
     if saved is not None:
         model, plan, transfer, before = _resume(saved, scenes, config, kind, output_dir)
     else:
         model, plan, transfer = _plan(scenes, config, kind, checkpoint, held_out_scenes)
         before = None
+        if kind == "finetune":  # what the guard compares the fine-tune with, kept for a resumed run
+            from roguenerf.checkpoint import save_checkpoint
+
+            save_checkpoint(start_path, model, meta={"training": {"kind": kind, "start": True}})
     run = _set_up(scenes, output_dir, kind=kind, config=config, model=model, plan=plan, transfer=transfer,
                   before=before, saved=saved, progress=progress, held_out_scenes=held_out_scenes)
 
     step, elapsed, loss_value = _loop(run, progress, should_stop)
     run.save(step, elapsed, loss_value)
+    result_model, guard = model, None
+    if kind == "finetune" and config.guard:
+        if start_path.is_file():
+            from roguenerf.checkpoint import load_checkpoint
+            from roguenerf.training.guard import judge
+
+            _evaluating(progress, step, plan, loss=loss_value, elapsed=elapsed)
+            start, _ = load_checkpoint(start_path, device=run.device)
+            report = judge(run.datasets[0], start, model, device=run.device)
+            guard = report.to_dict()
+            if not report.kept:
+                result_model = start
+                log.info("the fine-tuned weights enhance training views drawn like novel views by %+.3f dB, the "
+                         "starting weights by %+.3f dB: %s holds the starting weights", report.tuned_mean,
+                         report.start_mean, run.model_path)
+            run.save(step, elapsed, loss_value, result=result_model, guard=guard)
+        else:
+            log.info("%s has no starting weights (%s; a run begun before the guard): the fine-tune is not judged",
+                     output_dir, START_FILE)
     after = None
     if kind == "finetune" and config.evaluate and run.datasets[0].scene.indices("test"):
         _evaluating(progress, step, plan, loss=loss_value, elapsed=elapsed)
-        after = _summary(evaluate(run.datasets[0].scene, model))
+        after = _summary(evaluate(run.datasets[0].scene, result_model))
     plan_out = {**plan.to_dict(), "loss_kind": run.loss_fn.kind, "model": model.config.to_dict(),
                 "transfer": transfer}
     return TrainResult(checkpoint=run.model_path, steps=step, seconds=elapsed, final_loss=loss_value,
-                       loss_kind=run.loss_fn.kind, before=run.before, after=after, config=plan_out)
+                       loss_kind=run.loss_fn.kind, before=run.before, after=after, config=plan_out, guard=guard)
 
 
 def _evaluating(progress, step: int, plan: TrainPlan, *, loss: float = float("nan"), elapsed: float = 0.0) -> None:
