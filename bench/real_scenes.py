@@ -23,7 +23,9 @@ another seed (crops, order), for the run-to-run spread of one plan; ``warp4``/``
 the target render and depth of half the crops by up to 4/8 px (``render_warp``; blurring the
 target render instead, ``blur1``/``blur2``, was measured to hurt and removed: docs/results.md);
 ``drawn50``/``drawn100`` take half or all of the crops' target renders from the nearest training
-view's render drawn into the view (``neighbour_renders``);
+view's render drawn into the view (``neighbour_renders``); ``guard`` judges the finished
+fine-tune (``TrainConfig.guard``; where it keeps the starting weights, the fine-tuned ones are
+evaluated too, as ``guard (refused weights)``);
 ``bench/results/real_scenes.csv`` compared ``default`` when its lr was 1e-4 with ``lr5e-4``,
 after which 5e-4 became the default). Same data, seed and start.
 
@@ -60,6 +62,7 @@ PLANS = {
     "warp8": {"render_warp": 8.0},
     "drawn50": {"neighbour_renders": 0.5},
     "drawn100": {"neighbour_renders": 1.0},
+    "guard": {"guard": True},
 }
 """Fine-tuning plans as TrainConfig overrides of the shipped CPU plan (``--plans``)."""
 
@@ -168,6 +171,10 @@ def run(args, save=None) -> list[dict]:
                 record("finetune", minutes, result.steps, result.seconds,
                        measure(scene, model), checkpoint=str(new), plan_name=plan_name,
                        plan=plan, **guard_columns(result.guard))
+                if result.guard and not result.guard["kept"]:  # what the guard refused, measured
+                    record("finetune", minutes, result.steps, result.seconds,
+                           measure(scene, refused_weights(run_dir)), checkpoint=str(new),
+                           plan_name=f"{plan_name} (refused weights)", plan=plan, **guard_columns(result.guard))
                 if args.blends:
                     tuned = {k: v.clone() for k, v in model.state_dict().items()}
                     for a in args.blends:
@@ -176,6 +183,18 @@ def run(args, save=None) -> list[dict]:
                                measure(scene, model), checkpoint=str(new),
                                plan_name=f"{plan_name}+blend{a:g}", plan=f"{plan}, blend {a:g}")
     return rows
+
+
+def refused_weights(run_dir: Path):
+    """The fine-tuned weights of a run whose guard kept the starting ones: its resumable state's."""
+    from roguenerf.models import EnhancerConfig, build_enhancer
+    from roguenerf.training.loop import STATE_FILE
+    from roguenerf.training.state import load_state
+
+    saved = load_state(run_dir / STATE_FILE)
+    model = build_enhancer(EnhancerConfig.from_dict(saved["info"]["model_config"]))
+    model.load_state_dict(saved["model"])
+    return model.eval()
 
 
 def guard_columns(guard: dict | None) -> dict:

@@ -138,7 +138,7 @@ class TrainConfig:
     like novel views better than the starting weights (:mod:`roguenerf.training.guard`); where
     they do not, the output checkpoint holds the starting weights (the resumable state keeps the
     fine-tuned ones). ``TrainResult.guard`` says what was measured. Off by default: it refused
-    lego's 10-minute fine-tune, which gains 0.5 dB on lego's held-out views (docs/broad.md,
+    lego's 10-minute fine-tune, which gains 0.57 dB on lego's held-out views (docs/broad.md,
     *A fine-tune kept only where it helps*)."""
     progress_bar: bool = True
     """Show a tqdm bar on stderr (loss, steps/s, ETA)."""

@@ -15,7 +15,7 @@ over the drawn render. The fine-tuned weights are kept only where their mean gai
 ``TrainConfig.guard``, off by default (docs/broad.md, *A fine-tune kept only where it helps*): on
 the broad figure's fine-tunes the sign of the difference on drawn views was the sign on the
 held-out views, where the training views' own renders missed `ollie` / hash's loss; but lego's
-drawn views (3.5 dB worse than its novel views) refused a 10-minute fine-tune that gains 0.5 dB
+drawn views (3.5 dB worse than its novel views) refused a 10-minute fine-tune that gains 0.57 dB
 on its held-out views.
 """
 
