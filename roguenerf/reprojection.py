@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from roguenerf import ops
@@ -159,6 +160,17 @@ def reproject(
         dst_depth, source, src_from_dst64, src_K, dst_K, channels=C, with_depth=src_depth is not None,
         out_dtype=src_features.dtype, eps=eps, leniency=leniency)
     return Reprojection(features=features, valid=valid, depth=depth, coords=coords, packed=packed)
+
+
+def sample_at(images: Tensor, coords: Tensor, *, mode: str = "bilinear") -> Tensor:
+    """``images`` ``(B, C, Hs, Ws)`` sampled at ``coords`` ``(B, H, W, 2)`` (pixel units, centres
+    at integers: :attr:`Reprojection.coords`), the edge pixel repeated beyond the centres (as
+    :func:`reproject` samples inside the image's pixel area); ``mode`` ``bilinear`` (what
+    :func:`reproject` gives) or ``bicubic``. ``(B, C, H, W)``, to be read where the reprojection
+    is valid."""
+    h, w = images.shape[-2:]
+    grid = torch.stack([(coords[..., 0] + 0.5) / w * 2 - 1, (coords[..., 1] + 0.5) / h * 2 - 1], dim=-1)
+    return F.grid_sample(images, grid.to(images.dtype), mode=mode, padding_mode="border", align_corners=False)
 
 
 def _check_images(src_features: Tensor, src_depth: Tensor | None, dst_depth: Tensor) -> tuple[int, int, int, int]:

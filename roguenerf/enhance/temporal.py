@@ -223,9 +223,7 @@ class TemporalFilter:
         """The kept last frame moved into this one: ``(3, H, W)`` (0 where not seen), ``(1, H, W)``
         bool: seen, and with :attr:`TemporalConfig.reject` its render moved the same way
         (``(3, H, W)``, sampled bilinear: it only decides the weight), else None."""
-        import torch.nn.functional as F
-
-        from roguenerf.reprojection import reproject
+        from roguenerf.reprojection import reproject, sample_at
 
         prev, prev_depth, prev_K, prev_pose, prev_render = self._previous
         bilinear = self.config.resample == "bilinear"
@@ -242,11 +240,7 @@ class TemporalFilter:
             warped_render = features[-3:] if reject else None
             if bilinear:
                 return features[:3], valid, warped_render
-            h, w = prev.shape[-2:]
-            xy = warped.coords  # (1, H, W, 2) pixel coordinates in the last frame, centres at integers
-            grid = torch.stack([(xy[..., 0] + 0.5) / w * 2 - 1, (xy[..., 1] + 0.5) / h * 2 - 1], dim=-1)
-            sampled = F.grid_sample(prev[None], grid.to(prev.dtype), mode="bicubic", padding_mode="border",
-                                    align_corners=False)[0]
+            sampled = sample_at(prev[None], warped.coords, mode="bicubic")[0]  # at the last frame's pixels
             return torch.where(valid, sampled, 0.0), valid, warped_render
 
     def _agreement(self, warped_render: Tensor, render: Tensor, valid: Tensor) -> Tensor:

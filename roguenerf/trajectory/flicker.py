@@ -28,11 +28,12 @@ def pair_flicker(images_t: list[Tensor | None], images_t1: list[Tensor | None], 
         warp: ``(coords, valid)`` of :func:`~roguenerf.reprojection.reproject` from frame t into
             t+1 with these depths, intrinsics and poses (``(1, H, W, 2)``, ``(1, 1, H, W)``),
             when the caller has made it already (the temporal filter along a path): the images
-            are then sampled there, bilinearly as ``reproject`` samples, instead of reprojected again.
+            are then sampled there (:func:`~roguenerf.reprojection.sample_at`, bilinearly as ``reproject``
+            samples) instead of reprojected again.
     Returns:
         ``(errors, valid_fraction)``; an error is None when its images are missing or no pixel is valid.
     """
-    from roguenerf.reprojection import reproject
+    from roguenerf.reprojection import reproject, sample_at
 
     present = [i for i, (a, b) in enumerate(zip(images_t, images_t1)) if a is not None and b is not None]
     out: list[float | None] = [None] * len(images_t)
@@ -53,19 +54,6 @@ def pair_flicker(images_t: list[Tensor | None], images_t1: list[Tensor | None], 
         diff = (features[3 * k:3 * k + 3] - images_t1[i].float()).abs().mean(0)
         out[i] = float(diff[valid].mean())
     return out, fraction
-
-
-def sample_at(images: Tensor, coords: Tensor) -> Tensor:
-    """``images`` ``(B, C, Hs, Ws)`` sampled bilinearly at ``coords`` ``(B, H, W, 2)`` (pixel
-    units, centres at integers: :attr:`Reprojection.coords <roguenerf.reprojection.Reprojection.coords>`),
-    the edge pixel repeated beyond the centres (as :func:`~roguenerf.reprojection.reproject`
-    samples inside the image's pixel area); ``(B, C, H, W)``, to be read where the reprojection
-    is valid."""
-    import torch.nn.functional as F
-
-    h, w = images.shape[-2:]
-    grid = torch.stack([(coords[..., 0] + 0.5) / w * 2 - 1, (coords[..., 1] + 0.5) / h * 2 - 1], dim=-1)
-    return F.grid_sample(images, grid.to(images.dtype), mode="bilinear", padding_mode="border", align_corners=False)
 
 
 def summarise_flicker(per_pair: list[dict], per_frame: list[dict]) -> dict:
