@@ -26,6 +26,7 @@ from bench.common import RESULTS, beside, caption_line, save_figure, scene_label
 def measure(pair: Path, tuned_path: Path, start_path: Path) -> dict:
     """One pair's row."""
     from roguenerf import load_checkpoint, load_scene
+    from roguenerf.training import evaluate
     from roguenerf.training.guard import drawn_view_gains, guard_positions, judge
     from roguenerf.training.loop import SceneData
 
@@ -41,31 +42,18 @@ def measure(pair: Path, tuned_path: Path, start_path: Path) -> dict:
     own = [(data.renders[k], data.depths[k]) for k in positions]
     own_start = drawn_view_gains(data, start, positions, own)
     own_tuned = drawn_view_gains(data, tuned, positions, own)
-    held = SceneData(scene, 0, held_out=True)
-    test = list(range(len(held.train), len(held.train) + len(held.held_out)))
+    def held_out_gain(model) -> tuple[float, int]:  # what `roguenerf evaluate` reports
+        report = evaluate(scene, model)
+        return report["enhanced"]["psnr"] - report["render"]["psnr"], len(report["views"])
 
-    def held_out_gain(model) -> float:
-        from roguenerf.inference import SceneEnhancer
-        from roguenerf.metrics import psnr
-
-        enhancer = SceneEnhancer(scene, model)
-        gains = []
-        for k in test:
-            i = held.held_out[k - len(held.train)]
-            frame = scene.frames[i]
-            image = enhancer.enhance(held.renders[k], held.depths[k], frame.K, frame.world_from_cam).image
-            photo = held.photos[k][None]
-            gains.append(float(psnr(image[None], photo)[0] - psnr(held.renders[k].clamp(0, 1)[None], photo)[0]))
-        return sum(gains) / len(gains)
-
-    test_start, test_tuned = held_out_gain(start), held_out_gain(tuned)
+    (test_start, views), (test_tuned, _) = held_out_gain(start), held_out_gain(tuned)
     mean = lambda xs: sum(xs) / len(xs)  # noqa: E731
     row = {**stamp(), "pair": scene_label(pair), "tuned": str(tuned_path), "start": str(start_path),
            "guard_views": len(report.views), "drawn_share": round(report.drawn_share, 3),
            "drawn_start_db": round(report.start_mean, 4), "drawn_tuned_db": round(report.tuned_mean, 4),
            "kept": report.kept, "guard_seconds": round(report.seconds, 1),
            "own_start_db": round(mean(own_start), 4), "own_tuned_db": round(mean(own_tuned), 4),
-           "held_out_views": len(test), "held_out_start_db": round(test_start, 4),
+           "held_out_views": views, "held_out_start_db": round(test_start, 4),
            "held_out_tuned_db": round(test_tuned, 4),
            "held_out_guarded_db": round(test_tuned if report.kept else test_start, 4),
            "seconds": round(time.perf_counter() - began, 1)}
