@@ -10,19 +10,24 @@ The path and its frames are ``bench.paths``'s (same ``--fit``, ``--factor``, ``-
 into a fresh folder without videos: the frames per second of ``PathResult.frames_per_second``
 (each made frame's whole turn: reading, enhancing, smoothing, writing, its flicker and PSNR; before
 2026-11-30 without the flicker and PSNR), the flicker against the render's and the
-gain on the frames with photos. ``--model-every``, ``--resample`` and ``--reject`` run the filter
-once per combination of values of
+gain on the frames with photos. ``--model-every``, ``--resample``, ``--reject``, ``--carry-from``,
+``--blend`` and ``--carry-agreement`` run the filter once per combination of values of
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.model_every`,
-:attr:`~roguenerf.enhance.temporal.TemporalConfig.resample` and
-:attr:`~roguenerf.enhance.temporal.TemporalConfig.reject` (labelled ``on`` for the shipped
-values, ``on/kK``, ``on/RESAMPLE`` and ``on/rejectX`` for others), with the share of frames carried; the CSV
-also keeps each frame with a photo's gain (``gains``: frame, gain, carried). Writes ``OUTPUT.csv`` (a row
-per run; date, machine, commit), ``OUTPUT.json`` (the medians, the ratios) and ``OUTPUT.png``.
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.resample`,
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.reject`,
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_from`,
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.blend` and
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_agreement` (labelled ``on`` for the
+shipped values, ``on/kK``, ``on/RESAMPLE``, ``on/rejectX``, ``on/from-C``, ``on/BLEND`` and
+``on/agreeDB`` for others), with the share of frames carried; the CSV also keeps each frame
+with a photo's gain (``gains``: frame, gain, carried). Writes ``OUTPUT.csv`` (a row per run;
+date, machine, commit), ``OUTPUT.json`` (the medians, the ratios) and ``OUTPUT.png``.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import shutil
 import statistics
 import sys
@@ -47,6 +52,13 @@ def main(argv: list[str] | None = None) -> int:
                     help="comma-separated TemporalConfig.resample values for the filter (default: the shipped one)")
     ap.add_argument("--reject", default=None,
                     help="comma-separated TemporalConfig.reject values for the filter (default: the shipped one)")
+    ap.add_argument("--carry-agreement", default=None,
+                    help="comma-separated TemporalConfig.carry_agreement values (dB) for the filter "
+                         "(default: the shipped one)")
+    ap.add_argument("--blend", default=None,
+                    help="comma-separated TemporalConfig.blend values for the filter (default: the shipped one)")
+    ap.add_argument("--carry-from", default=None,
+                    help="comma-separated TemporalConfig.carry_from values for the filter (default: the shipped one)")
     ap.add_argument("--force", action="store_true", help="enhance a path enhance_path's check refuses (as bench.paths)")
     args = ap.parse_args(argv)
     if args.repeats < 1:
@@ -70,14 +82,20 @@ def main(argv: list[str] | None = None) -> int:
     every = [shipped.model_every] if args.model_every is None else [int(k) for k in args.model_every.split(",")]
     resample = [shipped.resample] if args.resample is None else args.resample.split(",")
     reject = [shipped.reject] if args.reject is None else [float(x) for x in args.reject.split(",")]
+    carry = [shipped.carry_from] if args.carry_from is None else args.carry_from.split(",")
+    blend = [shipped.blend] if args.blend is None else args.blend.split(",")
+    gates = ([shipped.carry_agreement] if args.carry_agreement is None
+             else [float(x) for x in args.carry_agreement.split(",")])
     modes = {"off": None}
-    for k in every:
-        for r in resample:
-            for j in reject:
-                label = "/".join(["on", *([f"k{k}"] if k != shipped.model_every else []),
-                                  *([r] if r != shipped.resample else []),
-                                  *([f"reject{j:g}"] if j != shipped.reject else [])])
-                modes[label] = TemporalConfig(model_every=k, resample=r, reject=j)
+    for k, r, j, c, b, g in itertools.product(every, resample, reject, carry, blend, gates):
+        label = "/".join(["on", *([f"k{k}"] if k != shipped.model_every else []),
+                          *([r] if r != shipped.resample else []),
+                          *([f"reject{j:g}"] if j != shipped.reject else []),
+                          *([f"from-{c}"] if c != shipped.carry_from else []),
+                          *([b] if b != shipped.blend else []),
+                          *([f"agree{g:g}"] if g != shipped.carry_agreement else [])])
+        modes[label] = TemporalConfig(model_every=k, resample=r, reject=j, carry_from=c, blend=b,
+                                      carry_agreement=g)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for repeat in range(args.repeats):

@@ -42,7 +42,13 @@ into it, which is what the blend would give that frame with ``w = 1``::
 
 (with :attr:`TemporalConfig.reject`, drawn toward ``render_t`` where the two renders disagree),
 and the model runs on it after all where the previous frame sees less than
-:attr:`TemporalConfig.min_seen` of it (a cut, a fast turn, a disocclusion).
+:attr:`TemporalConfig.min_seen` of it (a cut, a fast turn, a disocclusion), or, with
+:attr:`TemporalConfig.carry_agreement`, where its render moved the same way does not predict
+this frame's render (the field's depth is off, or the move long: the moved frame would put
+detail in the wrong place). With
+:attr:`TemporalConfig.carry_from` ``"model"`` the frame moved is the last one the model ran on
+rather than the one before (``warp`` then moves ``out_m``, m the model's frame: resampled once,
+not once per carried frame).
 """
 
 from __future__ import annotations
@@ -90,6 +96,19 @@ class TemporalConfig:
     ``ollie``'s grid field (a 46-frame path each): +0.04 dB on the frames with photos on both,
     flicker 0.440 -> 0.451 and 0.506 -> 0.512 of the render's (docs/results.md, *Speed at users'
     sizes*)."""
+    carry_from: str = "last"
+    """Which frame a carried frame is moved from: ``"last"`` (the frame before it, itself
+    perhaps carried: with ``model_every`` >= 3 a frame is resampled once per carried frame
+    before it) or ``"model"`` (the last frame the model ran on: one resampling, over a longer
+    move). The same at ``model_every`` <= 2."""
+    carry_agreement: float = 0.0
+    """A frame is carried only where the frame it would be moved from predicts its render: that
+    frame's render, moved the same way, matches this frame's render to at least this PSNR (dB)
+    on the pixels it sees (:attr:`TemporalFilter.last_agreement`); otherwise the model runs on
+    it. Where the field's depth is off, or the move is long, the moved frame puts detail in the
+    wrong place, and the renders say so: along ``ollie``'s path a carried frame came within
+    about 1-3 dB of this PSNR to the model's own output (docs/results.md, *Speed at users'
+    sizes*). 0: no such test (only :attr:`min_seen`)."""
     min_seen: float = 0.95
     """A frame is carried only where the previous frame sees at least this share of its
     pixels; otherwise the model runs on it."""
@@ -114,8 +133,14 @@ class TemporalConfig:
     def __post_init__(self):
         if isinstance(self.model_every, bool) or not isinstance(self.model_every, int) or self.model_every < 1:
             raise InputError(f"TemporalConfig.model_every: expected an integer >= 1, got {self.model_every!r}")
+        if self.carry_from not in ("last", "model"):
+            raise InputError(f"TemporalConfig.carry_from: expected 'last' or 'model', got {self.carry_from!r}")
         if self.resample not in ("bilinear", "bicubic"):
             raise InputError(f"TemporalConfig.resample: expected 'bilinear' or 'bicubic', got {self.resample!r}")
+        if not (isinstance(self.carry_agreement, (int, float)) and not isinstance(self.carry_agreement, bool)
+                and math.isfinite(self.carry_agreement) and self.carry_agreement >= 0):
+            raise InputError(f"TemporalConfig.carry_agreement: expected a PSNR in dB >= 0 (0: off), "
+                             f"got {self.carry_agreement!r}")
         if not (isinstance(self.min_seen, (int, float)) and 0 <= self.min_seen <= 1):
             raise InputError(f"TemporalConfig.min_seen: expected a share in [0, 1], got {self.min_seen!r}")
         if not (isinstance(self.reject, (int, float)) and math.isfinite(self.reject) and self.reject >= 0):
@@ -195,8 +220,15 @@ class TemporalFilter:
     def __init__(self, config: TemporalConfig | None = None):
         self.config = config or TemporalConfig()
         self._previous: _LastFrame | None = None
+        self._anchor: _LastFrame | None = None
+        """The last frame the model ran on (:attr:`TemporalConfig.carry_from` ``"model"``)."""
         self.last_share: float = 0.0
         """Share of the last frame's pixels that took the previous frame's residual."""
+        self.last_agreement: float | None = None
+        """PSNR (dB) of the render of the frame the last :meth:`carry` moved, moved into that
+        frame, against its own render, on the pixels seen (:attr:`TemporalConfig.carry_agreement`);
+        None where it was not measured, and again after :meth:`__call__`, :meth:`remember` and
+        :meth:`reset`."""
         self.last_warp: tuple[Tensor, Tensor] | None = None
         """``(coords, valid)`` of the reprojection that moved the kept frame into the last one
         given to :meth:`__call__` or :meth:`carry` (``(1, H, W, 2)``, ``(1, 1, H, W)``:
@@ -207,34 +239,45 @@ class TemporalFilter:
     def reset(self) -> None:
         """Forget the previous frame (a new path, or a frame not enhanced here)."""
         self._previous = None
+        self._anchor = None
         self.last_share = 0.0
+        self.last_agreement = None
         self.last_warp = None
 
-    def remember(self, render: Tensor, enhanced: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor) -> None:
+    def remember(self, render: Tensor, enhanced: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
+                 model: bool = True) -> None:
         """Take ``enhanced`` (of ``render``) as the last frame's result without blending: the frame
         as written (a resumed path reads its finished frames back, so the frames after them
-        come out the same as without the stop)."""
+        come out the same as without the stop). ``model``: the model ran on it (not carried),
+        so later frames may be carried from it (:attr:`TemporalConfig.carry_from`)."""
         carried = enhanced.float() - render.float() if self.config.blend == "residual" else enhanced.float()
         self.last_warp = None
+        self.last_agreement = None
         self._previous = _LastFrame(carried, depth.float(), torch.as_tensor(K).to(torch.float32),
                                     torch.as_tensor(world_from_cam).to(torch.float64), render.float())
+        if model:
+            self._anchor = self._previous
 
-    def _warp(self, depth: Tensor, K: Tensor, pose: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
-        """The kept last frame moved into this one: ``(3, H, W)`` (0 where not seen), ``(1, H, W)``
-        bool: seen, and with :attr:`TemporalConfig.reject` its render moved the same way
-        (``(3, H, W)``, sampled bilinear: it only decides the weight), else None."""
+    def _warp(self, depth: Tensor, K: Tensor, pose: Tensor, source: _LastFrame | None = None, *,
+              with_render: bool = False) -> tuple[Tensor, Tensor, Tensor | None]:
+        """The kept last frame (or ``source``) moved into this one: ``(3, H, W)`` (0 where not
+        seen), ``(1, H, W)`` bool: seen, and with :attr:`TemporalConfig.reject` (or
+        ``with_render``) its render moved the same way (``(3, H, W)``, sampled bilinear: it only
+        decides the weight), else None. :attr:`last_warp` keeps the move only when it is the
+        last frame's."""
         from roguenerf.reprojection import reproject, sample_at
 
-        prev, prev_depth, prev_K, prev_pose, prev_render = self._previous
+        last = source is None or source is self._previous
+        prev, prev_depth, prev_K, prev_pose, prev_render = self._previous if source is None else source
         bilinear = self.config.resample == "bilinear"
-        reject = self.config.reject > 0
+        reject = self.config.reject > 0 or with_render
         with torch.inference_mode():
             # bicubic: only the points and what sees is needed of the reprojection (the depth: one
             # channel sampled, not three), and the render where it is compared
             source = prev if bilinear else prev_depth
             warped = reproject((torch.cat([source, prev_render]) if reject else source)[None], prev_depth[None],
                                depth[None], prev_K, K, prev_pose, pose)
-            self.last_warp = (warped.coords, warped.valid)
+            self.last_warp = (warped.coords, warped.valid) if last else None
             valid = warped.valid[0] > 0.5
             features = warped.features[0]
             warped_render = features[-3:] if reject else None
@@ -254,24 +297,33 @@ class TemporalFilter:
         return self._previous is None or changed or t % self.config.model_every == 0
 
     def carry(self, render: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor) -> Tensor | None:
-        """The previous frame's result reprojected into this frame (``render`` ``(3, H, W)``, its
-        z-depth ``(1, H, W)``, ``K``, camera-to-world ``(4, 4)``), the render where the previous
-        frame does not see; kept as the last frame's result. None (nothing kept) where there is
-        no previous frame or it sees less than :attr:`TemporalConfig.min_seen` of this one:
-        the model must run on it."""
+        """The previous frame's result (or the last model frame's: :attr:`TemporalConfig.carry_from`)
+        reprojected into this frame (``render`` ``(3, H, W)``, its z-depth ``(1, H, W)``, ``K``,
+        camera-to-world ``(4, 4)``), the render where that frame does not see; kept as the last
+        frame's result. None (nothing kept) where there is no previous frame or it sees less than
+        :attr:`TemporalConfig.min_seen` of this one: the model must run on it."""
         self.last_share = 0.0
+        self.last_agreement = None
         self.last_warp = None
         if self._previous is None:
             return None
         render, depth = render.float(), depth.float()
         pose = torch.as_tensor(world_from_cam).to(torch.float64)
         K = torch.as_tensor(K).to(torch.float32)
-        warped, valid, warped_render = self._warp(depth, K, pose)
+        source = self._anchor if self.config.carry_from == "model" and self._anchor is not None else self._previous
+        gate = self.config.carry_agreement > 0
+        warped, valid, warped_render = self._warp(depth, K, pose, source, with_render=gate)
         self.last_share = float(valid.float().mean())
         if self.last_share < self.config.min_seen:
             return None
+        if gate:
+            seen = valid.float()
+            mse = float(((warped_render - render).square() * seen).sum()) / max(3.0 * float(seen.sum()), 1.0)
+            self.last_agreement = -10.0 * math.log10(max(mse, 1e-12))
+            if self.last_agreement < self.config.carry_agreement:
+                return None
         keep = 1.0
-        if warped_render is not None:  # where the renders disagree, the render rather than the last result
+        if self.config.reject > 0:  # where the renders disagree, the render rather than the last result
             keep = self._agreement(warped_render, render, valid)
         carried = render + keep * (warped - render) if self.config.blend == "image" else render + keep * warped
         out = torch.where(valid, carried, render).clamp(0, 1)
@@ -295,6 +347,7 @@ class TemporalFilter:
         image = self.config.blend == "image"
         residual = enhanced if image else enhanced - render
         self.last_share = 0.0
+        self.last_agreement = None
         self.last_warp = None
         w = float(self.config.change_weight if changed else self.config.weight)
         if self._previous is not None and w > 0:
@@ -306,5 +359,5 @@ class TemporalFilter:
                 w = w * self._agreement(warped_render, render, valid)
             residual = torch.where(valid, (1 - w) * residual + w * warped, residual)
         out = (residual if image else render + residual).clamp(0, 1)
-        self._previous = _LastFrame(out if image else out - render, depth, K, pose, render)
+        self._previous = self._anchor = _LastFrame(out if image else out - render, depth, K, pose, render)
         return out

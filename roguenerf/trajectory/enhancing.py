@@ -242,9 +242,10 @@ def enhance_path(
                 last_neighbours = neighbours
             # Along a path with model_every > 1, a frame between the model's is the last one carried
             # into it (where the last frame sees enough of it); decided the same way on a resume.
-            carried = None
+            carried = agreement = None
             if temporal is not None and not temporal.model_due(t, changed=changed):
                 carried = temporal.carry(render, depth, *camera)
+                agreement = temporal.last_agreement  # what decided it (TemporalConfig.carry_agreement)
             out_png_existed = out_png.is_file()
             if out_png_existed:
                 enhanced = read_image(out_png)
@@ -270,6 +271,8 @@ def enhance_path(
                 row["neighbours"] = [scene.frames[i].name for i in neighbours]
             if temporal is not None and temporal.config.model_every > 1:
                 row["carried"] = carried is not None
+                if agreement is not None:
+                    row["carry_agreement_db"] = round(agreement, 2)
             if photo is not None:
                 row["render_psnr"] = float(psnr(render[None], photo[None])[0])
                 row["enhanced_psnr"] = float(psnr(enhanced[None], photo[None])[0])
@@ -284,7 +287,7 @@ def enhance_path(
                                  "photo": errors[2], "valid_fraction": fraction})
             prev = current
             if temporal is not None:  # the frame as written, whether made now or read back
-                temporal.remember(render, enhanced, depth, *camera)
+                temporal.remember(render, enhanced, depth, *camera, model=carried is None)
             if progress is not None:
                 progress(t + 1, total)
             if not out_png_existed:

@@ -180,6 +180,57 @@ def test_bicubic_resampling_keeps_the_detail_a_half_pixel_move_blurs():
         TemporalConfig(resample="nearest")
 
 
+
+def test_carried_from_the_model_frame_is_resampled_once():
+    """Two carried frames after a model frame, each half a pixel further (a sine of period 4
+    pixels): carried from the last frame, the second is resampled twice and loses some of the
+    wave; carried from the model frame, it is the model frame moved by a whole pixel, exact.
+    The frame before it is the last frame either way, so the first carry is the same; the
+    flicker report's warp is kept only for a move from the last frame."""
+    x = torch.arange(W, dtype=torch.float32)
+    wave = lambda shift: (0.5 + 0.3 * torch.sin(2 * torch.pi * (x + shift) / 4)).expand(3, H, W)  # noqa: E731
+    half, whole = POSE.clone(), POSE.clone()
+    half[0, 3], whole[0, 3] = 0.05, 0.1
+    out = {}
+    for source in ("last", "model"):
+        f = TemporalFilter(TemporalConfig(model_every=3, min_seen=0.5, reject=0.0, carry_from=source))
+        f(wave(0.0), wave(0.0), DEPTH, K, POSE)
+        first = f.carry(torch.zeros(3, H, W), DEPTH, K, half)
+        assert f.last_warp is not None
+        f.remember(torch.zeros(3, H, W), first, DEPTH, K, half, model=False)
+        out[source] = (first, f.carry(torch.zeros(3, H, W), DEPTH, K, whole))
+        assert (f.last_warp is None) == (source == "model")
+    assert torch.equal(out["last"][0], out["model"][0])
+    inner = (slice(None), slice(None), slice(3, -3))  # away from the edges
+    assert float((out["model"][1] - wave(1.0))[inner].abs().max()) < 1e-4
+    assert float((out["last"][1] - wave(1.0))[inner].abs().max()) > 0.005
+    with pytest.raises(InputError, match="carry_from"):
+        TemporalConfig(carry_from="first")
+
+
+def test_a_frame_whose_render_the_last_one_does_not_predict_is_not_carried():
+    """The last frame's render moved into this frame (a still camera: not moved) against this
+    frame's render: equal renders agree (carried), a render darker by 0.1 everywhere agrees to
+    20 dB exactly (10 log10(1 / 0.01)): below a 30 dB gate the model must run, above a 15 dB
+    one it is carried."""
+    r1, e1 = _frame(1)
+    darker = r1 - 0.1
+    for gate, carried in ((30.0, False), (15.0, True)):
+        f = TemporalFilter(TemporalConfig(model_every=2, reject=0.0, carry_agreement=gate))
+        f(r1, e1, DEPTH, K, POSE)
+        assert torch.allclose(f.carry(r1, DEPTH, K, POSE), e1, atol=1e-6) and f.last_agreement > 100
+        f(r1, e1, DEPTH, K, POSE)
+        out = f.carry(darker, DEPTH, K, POSE)
+        assert f.last_agreement == pytest.approx(20.0, abs=1e-3)
+        assert (out is not None) == carried
+    f = TemporalFilter(TemporalConfig(model_every=2))
+    f(r1, e1, DEPTH, K, POSE)
+    f.carry(darker, DEPTH, K, POSE)
+    assert f.last_agreement is None  # no gate: not measured
+    for bad in (-1.0, float("inf"), True, "30"):
+        with pytest.raises(InputError, match="carry_agreement"):
+            TemporalConfig(carry_agreement=bad)
+
 def _angle(a, b) -> float:
     import math
 

@@ -279,6 +279,42 @@ def test_frames_between_the_models_are_carried_and_resume_the_same(toy_path, enh
     assert all(frame("every2", t) == made[t] for t in range(T))
 
 
+
+def test_frames_are_carried_from_the_model_frame_only_where_its_render_predicts_theirs(toy_path, enhancer,
+                                                                                     tmp_path):
+    """model_every=3, carried from the last model frame, with the render-agreement gate set
+    between the agreements a path without it measures: a frame due to be carried is
+    carried exactly where its agreement reaches the gate (the report keeps it), and a resumed
+    path (a carried frame and a model frame deleted) makes the same frames."""
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.enhance.temporal import TemporalConfig
+
+    root, scene = toy_path["root"], toy_path["scene"]
+    cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
+
+    def run(gate: float, out):
+        config = TemporalConfig(model_every=3, min_seen=0.0, carry_from="model", carry_agreement=gate)
+        gated = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=config))
+        return enhance_path(scene, gated, cp, root / "frames", out, depth_type="ray", video=False).flicker["per_frame"]
+
+    free = run(1e-6, tmp_path / "free")
+    measured = [f["carry_agreement_db"] for f in free if "carry_agreement_db" in f]
+    assert len(measured) >= 2 and all(f["carried"] for f in free if "carry_agreement_db" in f)
+    gate = (min(measured) + max(measured)) / 2  # between them: no frame sits on it
+    rows = run(gate, tmp_path / "gated")
+    tried = [f for f in rows if "carry_agreement_db" in f]
+    assert tried and all(f["carried"] == (f["carry_agreement_db"] >= gate) for f in tried)
+    assert any(not f["carried"] for f in tried) and any(f["carried"] for f in tried)
+    assert not any(f["carried"] for f in rows if "carry_agreement_db" not in f)
+    frame = lambda t: (tmp_path / "gated" / "frames" / f"{t:05d}.png").read_bytes()  # noqa: E731
+    made = {t: frame(t) for t in range(len(rows))}
+    deleted = [next(f["frame"] for f in rows if f["carried"]), next(f["frame"] for f in tried if not f["carried"])]
+    for t in deleted:
+        (tmp_path / "gated" / "frames" / f"{t:05d}.png").unlink()
+    again = run(gate, tmp_path / "gated")
+    assert [f["carried"] for f in again] == [f["carried"] for f in rows]
+    assert all(frame(t) == made[t] for t in range(len(rows)))
+
 def test_enhance_path_cli(toy_path, tmp_path):
     root = toy_path["root"]
     runner = CliRunner()
