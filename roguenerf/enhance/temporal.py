@@ -96,19 +96,23 @@ class TemporalConfig:
     ``ollie``'s grid field (a 46-frame path each): +0.04 dB on the frames with photos on both,
     flicker 0.440 -> 0.451 and 0.506 -> 0.512 of the render's (docs/results.md, *Speed at users'
     sizes*)."""
-    carry_from: str = "last"
-    """Which frame a carried frame is moved from: ``"last"`` (the frame before it, itself
-    perhaps carried: with ``model_every`` >= 3 a frame is resampled once per carried frame
-    before it) or ``"model"`` (the last frame the model ran on: one resampling, over a longer
-    move). The same at ``model_every`` <= 2."""
-    carry_agreement: float = 0.0
+    carry_from: str = "model"
+    """Which frame a carried frame is moved from: ``"model"`` (the last frame the model ran on:
+    one resampling, over a longer move, which :attr:`carry_agreement` then judges whole) or
+    ``"last"`` (the frame before it, itself perhaps carried: with ``model_every`` >= 3 a frame
+    is resampled once per carried frame before it; the default before 2026-12-06). The same at
+    ``model_every`` <= 2."""
+    carry_agreement: float = 46.0
     """A frame is carried only where the frame it would be moved from predicts its render: that
     frame's render, moved the same way, matches this frame's render to at least this PSNR (dB)
     on the pixels it sees (:attr:`TemporalFilter.last_agreement`); otherwise the model runs on
     it. Where the field's depth is off, or the move is long, the moved frame puts detail in the
-    wrong place, and the renders say so: along ``ollie``'s path a carried frame came within
-    about 1-3 dB of this PSNR to the model's own output (docs/results.md, *Speed at users'
-    sizes*). 0: no such test (only :attr:`min_seen`)."""
+    wrong place, and the renders say so: along ``ollie``'s and ``can_clip``'s paths a carried
+    frame came within about 1-3 dB of this PSNR to the model's own output. 46 was chosen on
+    ``can_clip``'s 154-frame path (44 and 46 at ``model_every`` 4 and 8: the most gain on the
+    frames with photos, all carried there, at twice the frames per second of frame by frame)
+    and reported on ``ollie``'s and ``mary_rose``'s (docs/results.md, *Speed at users' sizes*).
+    0: no such test (only :attr:`min_seen`; the default before 2026-12-06)."""
     min_seen: float = 0.95
     """A frame is carried only where the previous frame sees at least this share of its
     pixels; otherwise the model runs on it."""

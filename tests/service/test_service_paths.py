@@ -94,14 +94,15 @@ def test_path_job_round_trip(setup, tmp_path):
 
 
 def test_a_path_job_with_model_every_carries_the_frames_between(setup):
-    """model_every=2: the worker runs the model on the even frames and carries the others
-    (counted in the result); a value out of range is a 422 before anything is stored."""
+    """model_every=2 and carry_agreement=0 (carry wherever the last frame sees enough): the
+    worker runs the model on the even frames and carries the others (counted in the result); a
+    value out of range is a 422 before anything is stored."""
     client, scene_id = setup["client"], setup["scene_id"]
     archive, frames = path_zip(setup["scene"], seed=SEED)
-    r = post_path(client, scene_id, archive, model_every=2)
+    r = post_path(client, scene_id, archive, model_every=2, carry_agreement=0)
     assert r.status_code == 202, r.text
     job = r.json()
-    assert job["request"]["model_every"] == 2
+    assert job["request"]["model_every"] == 2 and job["request"]["carry_agreement"] == 0
     assert run_job(setup["ctx"], job["id"]) == "succeeded"
     result = client.get(f"/jobs/{job['id']}").json()["result"]
     report = client.get(f"/jobs/{job['id']}/result", params={"what": "flicker"}).json()
@@ -110,6 +111,8 @@ def test_a_path_job_with_model_every_carries_the_frames_between(setup):
     before = stored(setup["data"])
     bad = post_path(client, scene_id, path_zip(setup["scene"], seed=SEED)[0], model_every=0)
     assert bad.status_code == 422 and "model_every" in bad.json()["error"]["message"]
+    bad = post_path(client, scene_id, path_zip(setup["scene"], seed=SEED)[0], model_every=2, carry_agreement=-1)
+    assert bad.status_code == 422 and "carry_agreement" in bad.json()["error"]["message"]
     assert stored(setup["data"]) == before
 
 

@@ -121,7 +121,8 @@ def test_blending_the_image_averages_the_frames_themselves():
 def test_a_carried_frame_is_the_last_result_moved_and_the_render_where_it_is_not_seen(blend):
     """A camera moved sideways by one pixel (z = 3, f = 30): the last frame's result lands one
     pixel to the left; the last column, which the last frame does not see, is the render's."""
-    f = TemporalFilter(TemporalConfig(blend=blend, model_every=2, min_seen=0.9, reject=0.0))
+    f = TemporalFilter(TemporalConfig(blend=blend, model_every=2, min_seen=0.9, reject=0.0, carry_agreement=0.0,
+                                      carry_from="last"))
     r1, e1 = _frame(1)
     f(r1, e1, DEPTH, K, POSE)
     assert not f.model_due(1) and f.model_due(2) and f.model_due(1, changed=True)
@@ -170,7 +171,8 @@ def test_bicubic_resampling_keeps_the_detail_a_half_pixel_move_blurs():
     moved[0, 3] = 0.05  # half a pixel: the points land half a pixel further right in the last frame
     errors = {}
     for resample in ("bilinear", "bicubic"):
-        f = TemporalFilter(TemporalConfig(model_every=2, min_seen=0.5, resample=resample, reject=0.0))
+        f = TemporalFilter(TemporalConfig(model_every=2, min_seen=0.5, resample=resample, reject=0.0,
+                                          carry_agreement=0.0))
         f(wave(0.0), wave(0.0), DEPTH, K, POSE)
         out = f.carry(torch.zeros(3, H, W), DEPTH, K, moved)
         errors[resample] = float((out - wave(0.5))[:, :, 2:-2].abs().max())  # away from the edges
@@ -193,7 +195,8 @@ def test_carried_from_the_model_frame_is_resampled_once():
     half[0, 3], whole[0, 3] = 0.05, 0.1
     out = {}
     for source in ("last", "model"):
-        f = TemporalFilter(TemporalConfig(model_every=3, min_seen=0.5, reject=0.0, carry_from=source))
+        f = TemporalFilter(TemporalConfig(model_every=3, min_seen=0.5, reject=0.0, carry_from=source,
+                                          carry_agreement=0.0))
         f(wave(0.0), wave(0.0), DEPTH, K, POSE)
         first = f.carry(torch.zeros(3, H, W), DEPTH, K, half)
         assert f.last_warp is not None
@@ -223,7 +226,7 @@ def test_a_frame_whose_render_the_last_one_does_not_predict_is_not_carried():
         out = f.carry(darker, DEPTH, K, POSE)
         assert f.last_agreement == pytest.approx(20.0, abs=1e-3)
         assert (out is not None) == carried
-    f = TemporalFilter(TemporalConfig(model_every=2))
+    f = TemporalFilter(TemporalConfig(model_every=2, carry_agreement=0.0))
     f(r1, e1, DEPTH, K, POSE)
     f.carry(darker, DEPTH, K, POSE)
     assert f.last_agreement is None  # no gate: not measured
@@ -312,7 +315,7 @@ def test_bad_rejections_are_refused(reject):
 def test_a_carried_frame_takes_the_render_where_the_renders_disagree():
     """``carry`` with ``reject``: the last result where the renders agree, half of it and half
     the render where they differ by ``reject``."""
-    f = TemporalFilter(TemporalConfig(model_every=2, reject=0.1))
+    f = TemporalFilter(TemporalConfig(model_every=2, reject=0.1, carry_agreement=0.0))
     r1, e1 = _frame(1)
     r2 = r1.clone()
     r2[:, :, 12:] += 0.1

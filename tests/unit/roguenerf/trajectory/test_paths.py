@@ -257,7 +257,8 @@ def test_frames_between_the_models_are_carried_and_resume_the_same(toy_path, enh
     root, scene = toy_path["root"], toy_path["scene"]
     cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
     every = SceneEnhancer(scene, enhancer.model,
-                          options=EnhanceOptions(temporal=TemporalConfig(model_every=2, min_seen=0.0)))
+                          options=EnhanceOptions(temporal=TemporalConfig(model_every=2, min_seen=0.0,
+                                                                         carry_agreement=0.0)))
     ran = []
     real = every.enhance
     monkeypatch.setattr(every, "enhance", lambda *a, **k: ran.append(1) or real(*a, **k))
@@ -330,13 +331,15 @@ def test_enhance_path_cli(toy_path, tmp_path):
     (tmp_path / "empty").mkdir()
     wrong = runner.invoke(app, [*args[:3], str(tmp_path / "empty"), *args[4:]])
     assert wrong.exit_code == 2 and "no frames found" in wrong.output
-    every = args[:7] + [str(tmp_path / "every"), *args[8:], "--model-every", "2"]
+    every = args[:7] + [str(tmp_path / "every"), *args[8:], "--model-every", "2", "--carry-agreement", "0"]
     result = runner.invoke(app, every)
     assert result.exit_code == 0, result.output
     carried = [f["carried"] for f in json.loads((tmp_path / "every" / FLICKER_FILE).read_text())["per_frame"]]
     assert not carried[0] and any(carried) and not any(carried[t] for t in range(0, len(carried), 2))
     for flags, message in ((["--model-every", "0"], "model_every"), (["--no-temporal", "--model-every", "2"],
-                                                                     "drop --no-temporal")):
+                                                                     "drop --no-temporal"),
+                           (["--carry-agreement", "40"], "only with --model-every"),
+                           (["--model-every", "2", "--carry-agreement", "-1"], "carry_agreement")):
         bad = runner.invoke(app, args[:7] + [str(tmp_path / "bad"), *args[8:], *flags])
         assert bad.exit_code == 2 and message in bad.output and "Traceback" not in bad.output
 
