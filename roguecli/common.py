@@ -128,8 +128,8 @@ class PathEnhanceFlags(EnhanceFlags):
     model_every: Annotated[int | None, typer.Option("--model-every", help=(
         "With --temporal, run the model on at least one frame in this many and carry the last model frame's "
         "result, reprojected, into the frames between, where it sees at least 95 % of them and its render, moved "
-        "the same way, predicts theirs (--carry-agreement): faster on smooth paths (8: about 2.5x on a "
-        "154-frame path), but a carried frame keeps only part of the model's detail. 1: the model on every "
+        "the same way, predicts theirs (--carry-agreement): faster on smooth paths (8: 1.6x with the same gain "
+        "on a 154-frame path), but a carried frame keeps only part of the model's detail. 1: the model on every "
         "frame (the default; docs/results.md, Speed at users' sizes)."))] = None
 
     carry_agreement: Annotated[float | None, typer.Option("--carry-agreement", metavar="DB", help=(

@@ -45,10 +45,9 @@ and the model runs on it after all where the previous frame sees less than
 :attr:`TemporalConfig.min_seen` of it (a cut, a fast turn, a disocclusion), or, with
 :attr:`TemporalConfig.carry_agreement`, where its render moved the same way does not predict
 this frame's render (the field's depth is off, or the move long: the moved frame would put
-detail in the wrong place). With
-:attr:`TemporalConfig.carry_from` ``"model"`` the frame moved is the last one the model ran on
-rather than the one before (``warp`` then moves ``out_m``, m the model's frame: resampled once,
-not once per carried frame).
+detail in the wrong place). With :attr:`TemporalConfig.carry_from` ``"model"`` (the default)
+the frame moved is the last one the model ran on rather than the one before (``warp`` then
+moves ``out_m``, m the model's frame: resampled once, not once per carried frame).
 """
 
 from __future__ import annotations
@@ -262,17 +261,17 @@ class TemporalFilter:
         if model:
             self._anchor = self._previous
 
-    def _warp(self, depth: Tensor, K: Tensor, pose: Tensor, source: _LastFrame | None = None, *,
+    def _warp(self, depth: Tensor, K: Tensor, pose: Tensor, frame: _LastFrame | None = None, *,
               with_render: bool = False) -> tuple[Tensor, Tensor, Tensor | None]:
-        """The kept last frame (or ``source``) moved into this one: ``(3, H, W)`` (0 where not
+        """The kept last frame (or ``frame``) moved into this one: ``(3, H, W)`` (0 where not
         seen), ``(1, H, W)`` bool: seen, and with :attr:`TemporalConfig.reject` (or
         ``with_render``) its render moved the same way (``(3, H, W)``, sampled bilinear: it only
         decides the weight), else None. :attr:`last_warp` keeps the move only when it is the
         last frame's."""
         from roguenerf.reprojection import reproject, sample_at
 
-        last = source is None or source is self._previous
-        prev, prev_depth, prev_K, prev_pose, prev_render = self._previous if source is None else source
+        last = frame is None or frame is self._previous
+        prev, prev_depth, prev_K, prev_pose, prev_render = self._previous if frame is None else frame
         bilinear = self.config.resample == "bilinear"
         reject = self.config.reject > 0 or with_render
         with torch.inference_mode():
