@@ -18,6 +18,10 @@ from service.state import ServicesDep
 from service.storage import ZipLimits, discard, extract_scene_zip
 
 log = logging.getLogger("roguenerf.service")
+CARRY_AGREEMENT = 46.0
+"""The form's default ``carry_agreement``: the library's (``TemporalConfig.carry_agreement``,
+written out so that importing the routes does not load torch; a test keeps them equal)."""
+
 router = APIRouter(prefix="/scenes", tags=["paths"])
 PATH_ARCHIVE = "the path archive"
 """What error messages call the uploaded path folder (never "the scene", nor a server path)."""
@@ -83,9 +87,9 @@ def create_path_job(
     model_every: Annotated[int, Form(ge=1, le=16, description=(
         "run the model on one frame in this many and carry the last frame's result into the frames between "
         "(faster, less flicker, less detail on the carried frames); 1: every frame"))] = 1,
-    carry_agreement: Annotated[float | None, Form(ge=0, le=200, description=(
+    carry_agreement: Annotated[float, Form(ge=0, le=200, description=(
         "with model_every > 1, carry a frame only where the last model frame's render, reprojected into it, "
-        "matches its render to this PSNR in dB (default 46; 0: wherever 95 % of it is seen)"))] = None,
+        "matches its render to this PSNR in dB (0: wherever 95 % of it is seen)"))] = CARRY_AGREEMENT,
     force: Annotated[bool, Form(description=(
         "enhance the path even when its cameras do not fit the scene (far from its cameras or seeing none of its "
         "training photos: OpenGL vs OpenCV, another unit or world, z vs ray depth; a 422 otherwise)"))] = False,
@@ -100,9 +104,8 @@ def create_path_job(
                                       depth_type=depth_type, depth_scale=depth_scale, background=background,
                                       force=force)
         request = {"kind": "path", "frames": frames, "depth_type": depth_type, "depth_scale": depth_scale,
-                   "background": background, "quality": quality, "force": force, "model_every": model_every}
-        if carry_agreement is not None:
-            request["carry_agreement"] = carry_agreement
+                   "background": background, "quality": quality, "force": force, "model_every": model_every,
+                   "carry_agreement": carry_agreement}
         try:
             job, _ = services.store.create_job(scene_id, request, base_version=row["active_version"],
                                                max_queued=settings.max_queued_jobs)

@@ -111,6 +111,10 @@ def test_a_path_job_with_model_every_carries_the_frames_between(setup):
     before = stored(setup["data"])
     bad = post_path(client, scene_id, path_zip(setup["scene"], seed=SEED)[0], model_every=0)
     assert bad.status_code == 422 and "model_every" in bad.json()["error"]["message"]
+    from roguenerf.enhance.temporal import TemporalConfig
+    from service.routers.paths import CARRY_AGREEMENT
+
+    assert CARRY_AGREEMENT == TemporalConfig().carry_agreement  # the form's default is the library's
     bad = post_path(client, scene_id, path_zip(setup["scene"], seed=SEED)[0], model_every=2, carry_agreement=-1)
     assert bad.status_code == 422 and "carry_agreement" in bad.json()["error"]["message"]
     assert stored(setup["data"]) == before
