@@ -162,20 +162,23 @@ def test_bad_carry_settings_are_refused(field, value):
         TemporalConfig(**{field: value})
 
 
+def _wave(shift: float):
+    """A sine of period 4 pixels along x, moved by ``shift`` pixels, ``(3, H, W)``."""
+    x = torch.arange(W, dtype=torch.float32)
+    return (0.5 + 0.3 * torch.sin(2 * torch.pi * (x + shift) / 4)).expand(3, H, W)
+
 def test_bicubic_resampling_keeps_the_detail_a_half_pixel_move_blurs():
     """A sine of period 4 pixels moved by half a pixel: bilinear sampling averages neighbouring
     pixels (amplitude x0.71); bicubic lands within a fifth of its error of the true moved sine."""
-    x = torch.arange(W, dtype=torch.float32)
-    wave = lambda shift: (0.5 + 0.3 * torch.sin(2 * torch.pi * (x + shift) / 4)).expand(3, H, W)  # noqa: E731
     moved = POSE.clone()
     moved[0, 3] = 0.05  # half a pixel: the points land half a pixel further right in the last frame
     errors = {}
     for resample in ("bilinear", "bicubic"):
         f = TemporalFilter(TemporalConfig(model_every=2, min_seen=0.5, resample=resample, reject=0.0,
                                           carry_agreement=0.0))
-        f(wave(0.0), wave(0.0), DEPTH, K, POSE)
+        f(_wave(0.0), _wave(0.0), DEPTH, K, POSE)
         out = f.carry(torch.zeros(3, H, W), DEPTH, K, moved)
-        errors[resample] = float((out - wave(0.5))[:, :, 2:-2].abs().max())  # away from the edges
+        errors[resample] = float((out - _wave(0.5))[:, :, 2:-2].abs().max())  # away from the edges
     assert errors["bilinear"] > 0.06  # 0.3 * 0.71 * (1 - 0.71): the samples sit at 0.71 of the peak
     assert errors["bicubic"] < errors["bilinear"] / 5
     with pytest.raises(InputError, match="resample"):
@@ -189,15 +192,13 @@ def test_carried_from_the_model_frame_is_resampled_once():
     wave; carried from the model frame, it is the model frame moved by a whole pixel, exact.
     The frame before it is the last frame either way, so the first carry is the same; the
     flicker report's warp is kept only for a move from the last frame."""
-    x = torch.arange(W, dtype=torch.float32)
-    wave = lambda shift: (0.5 + 0.3 * torch.sin(2 * torch.pi * (x + shift) / 4)).expand(3, H, W)  # noqa: E731
     half, whole = POSE.clone(), POSE.clone()
     half[0, 3], whole[0, 3] = 0.05, 0.1
     out = {}
     for source in ("last", "model"):
         f = TemporalFilter(TemporalConfig(model_every=3, min_seen=0.5, reject=0.0, carry_from=source,
                                           carry_agreement=0.0))
-        f(wave(0.0), wave(0.0), DEPTH, K, POSE)
+        f(_wave(0.0), _wave(0.0), DEPTH, K, POSE)
         first = f.carry(torch.zeros(3, H, W), DEPTH, K, half)
         assert f.last_warp is not None
         f.remember(torch.zeros(3, H, W), first, DEPTH, K, half, model=False)
@@ -205,8 +206,8 @@ def test_carried_from_the_model_frame_is_resampled_once():
         assert (f.last_warp is None) == (source == "model")
     assert torch.equal(out["last"][0], out["model"][0])
     inner = (slice(None), slice(None), slice(3, -3))  # away from the edges
-    assert float((out["model"][1] - wave(1.0))[inner].abs().max()) < 1e-4
-    assert float((out["last"][1] - wave(1.0))[inner].abs().max()) > 0.005
+    assert float((out["model"][1] - _wave(1.0))[inner].abs().max()) < 1e-4
+    assert float((out["last"][1] - _wave(1.0))[inner].abs().max()) > 0.005
     with pytest.raises(InputError, match="carry_from"):
         TemporalConfig(carry_from="first")
 
