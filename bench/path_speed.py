@@ -9,17 +9,21 @@ The path and its frames are ``bench.paths``'s (same ``--fit``, ``--factor``, ``-
 ``--repeats`` times with the temporal filter off and on, alternated (off, on, off, on ...), each
 into a fresh folder without videos: the frames per second of ``PathResult.frames_per_second``
 (each made frame's whole turn: reading, enhancing, smoothing, writing, its flicker and PSNR; before
-2026-11-30 without the flicker and PSNR), the flicker against the render's and the
-gain on the frames with photos. ``--model-every``, ``--resample``, ``--reject``, ``--carry-from``,
-``--blend`` and ``--carry-agreement`` run the filter once per combination of values of
+2026-11-30 without the flicker and PSNR), the flicker against the render's and against the
+render sharpened alike (``flicker_ratio_sharpened``, from 2026-12-07:
+:func:`~roguenerf.trajectory.flicker.sharpening`), and the gain on the frames with photos.
+``--model-every``, ``--resample``, ``--reject``, ``--carry-from``, ``--blend`` and
+``--carry-agreement`` and ``--carry-between`` run the filter once per combination of values of
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.model_every`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.resample`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.reject`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_from`,
-:attr:`~roguenerf.enhance.temporal.TemporalConfig.blend` and
-:attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_agreement` (labelled ``on`` for the
-shipped values, ``on/kK``, ``on/RESAMPLE``, ``on/rejectX``, ``on/from-C``, ``on/BLEND`` and
-``on/agreeDB`` for others), with the share of frames carried; the CSV also keeps each frame
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.blend`,
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_agreement` and
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_between` (labelled ``on`` for the
+shipped values, ``on/kK``, ``on/RESAMPLE``, ``on/rejectX``, ``on/from-C``, ``on/BLEND``,
+``on/agreeDB`` and ``on/between-on|off`` for others; at ``model_every`` 1, where nothing is
+carried, only the shipped ``carry_between`` runs), with the share of frames carried; the CSV also keeps each frame
 with a photo's gain (``gains``: frame, gain, carried). Writes ``OUTPUT.csv`` (a row per run;
 date, machine, commit), ``OUTPUT.json`` (the medians, the ratios) and ``OUTPUT.png``.
 """
@@ -59,6 +63,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="comma-separated TemporalConfig.blend values for the filter (default: the shipped one)")
     ap.add_argument("--carry-from", default=None,
                     help="comma-separated TemporalConfig.carry_from values for the filter (default: the shipped one)")
+    ap.add_argument("--carry-between", default=None,
+                    help="comma-separated TemporalConfig.carry_between values, on/off (default: the shipped one)")
     ap.add_argument("--force", action="store_true", help="enhance a path enhance_path's check refuses (as bench.paths)")
     args = ap.parse_args(argv)
     if args.repeats < 1:
@@ -86,16 +92,24 @@ def main(argv: list[str] | None = None) -> int:
     blend = [shipped.blend] if args.blend is None else args.blend.split(",")
     gates = ([shipped.carry_agreement] if args.carry_agreement is None
              else [float(x) for x in args.carry_agreement.split(",")])
+    onoff = {"on": True, "off": False}
+    if args.carry_between is not None and not set(args.carry_between.split(",")) <= set(onoff):
+        raise SystemExit(f"--carry-between: expected on, off or on,off, got {args.carry_between}")
+    betweens = ([shipped.carry_between] if args.carry_between is None
+                else [onoff[x] for x in args.carry_between.split(",")])
     modes = {"off": None}
-    for k, r, j, c, b, g in itertools.product(every, resample, reject, carry, blend, gates):
+    for k, r, j, c, b, g, bw in itertools.product(every, resample, reject, carry, blend, gates, betweens):
+        if k == 1 and bw != shipped.carry_between:
+            continue  # nothing is carried at K = 1: the same run as the shipped value's
         label = "/".join(["on", *([f"k{k}"] if k != shipped.model_every else []),
                           *([r] if r != shipped.resample else []),
                           *([f"reject{j:g}"] if j != shipped.reject else []),
                           *([f"from-{c}"] if c != shipped.carry_from else []),
                           *([b] if b != shipped.blend else []),
-                          *([f"agree{g:g}"] if g != shipped.carry_agreement else [])])
+                          *([f"agree{g:g}"] if g != shipped.carry_agreement else []),
+                          *([f"between-{'on' if bw else 'off'}"] if bw != shipped.carry_between else [])])
         modes[label] = TemporalConfig(model_every=k, resample=r, reject=j, carry_from=c, blend=b,
-                                      carry_agreement=g)
+                                      carry_agreement=g, carry_between=bw)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for repeat in range(args.repeats):
@@ -109,6 +123,8 @@ def main(argv: list[str] | None = None) -> int:
                              "repeat": repeat, "temporal": mode, "enhance_seconds": round(result.enhance_seconds, 3),
                              "frames_per_second": round(result.frames_per_second, 4),
                              "flicker_ratio": round(report["flicker"]["ratio"], 4),
+                             "flicker_ratio_sharpened": round(report["flicker"]["ratio_sharpened"], 4),
+                             "detail_ratio": round(report["flicker"]["detail_ratio"], 4),
                              "gain_db": round(report["psnr"]["mean_gain_db"], 4),
                              "carried_share": round(sum(bool(f.get("carried")) for f in report["per_frame"])
                                                     / len(report["per_frame"]), 4),
@@ -122,6 +138,8 @@ def main(argv: list[str] | None = None) -> int:
                "frames_per_second": fps,
                "speed_ratio": {m: fps[m] / fps["off"] for m in modes if m != "off"},
                "flicker_ratio": {m: next(r["flicker_ratio"] for r in rows if r["temporal"] == m) for m in fps},
+               "flicker_ratio_sharpened": {m: next(r["flicker_ratio_sharpened"] for r in rows if r["temporal"] == m)
+                                           for m in fps},
                "gain_db": {m: next(r["gain_db"] for r in rows if r["temporal"] == m) for m in fps}}
     output = args.output or RESULTS / f"path_speed_{name}_{args.fit.name}"
     write_csv(beside(output, ".csv"), rows)

@@ -350,6 +350,7 @@ def main() -> None:
         rows.append({**base, "scene": name, "size": f"{width}x{height}", "frame": f["frame"],
                      "view": f["view"] or "", "turn_deg": turns[f["frame"]], "render_flicker": pair.get("render"),
                      "enhanced_flicker": pair.get("enhanced"), "photo_flicker": pair.get("photo"),
+                     "sharpened_flicker": pair.get("sharpened"), "detail_ratio": f.get("detail_ratio"),
                      "valid_fraction": pair.get("valid_fraction"), "render_psnr": f.get("render_psnr"),
                      "enhanced_psnr": f.get("enhanced_psnr"), "gain_db": f.get("gain_db")})
     fl, ps_ = report["flicker"], report["psnr"]

@@ -45,7 +45,9 @@ def collect(results: Path) -> list[dict]:
             continue
         rows.append({"path": parsed[0], "setting": parsed[1], "frames": report.get("frames"),
                      "size": report.get("size"), "turn_deg": (report.get("turn_deg") or {}).get("mean"),
-                     "flicker_ratio": report["flicker"].get("ratio"), "gain_db": report["psnr"].get("mean_gain_db"),
+                     "flicker_ratio": report["flicker"].get("ratio"),
+                     "flicker_ratio_sharpened": report["flicker"].get("ratio_sharpened"),  # from 2026-12-07
+                     "gain_db": report["psnr"].get("mean_gain_db"),
                      "checkpoint": Path(str(report.get("checkpoint", ""))).name, "date": report.get("date"),
                      "commit": report.get("commit"), "file": path.name})
     return rows

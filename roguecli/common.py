@@ -132,6 +132,11 @@ class PathEnhanceFlags(EnhanceFlags):
         "on a 154-frame path), but a carried frame keeps only part of the model's detail. 1: the model on every "
         "frame (the default; docs/results.md, Speed at users' sizes)."))] = None
 
+    carry_between: Annotated[bool | None, typer.Option("--carry-between/--carry-after", help=(
+        "With --model-every K, make the model frames 0, K, 2K, ... first and carry each frame between two of "
+        "them from both, mixed by how near each is (the default); --carry-after: from the last model frame "
+        "only."), show_default=False)] = None
+
     carry_agreement: Annotated[float | None, typer.Option("--carry-agreement", metavar="DB", help=(
         "With --model-every, carry a frame only where the last model frame's render, reprojected into it, "
         "matches its render to this PSNR (default 46 dB; higher: fewer frames carried, more of the model's "
@@ -141,13 +146,16 @@ class PathEnhanceFlags(EnhanceFlags):
         temporal = self.temporal
         if self.carry_agreement is not None and self.model_every is None:
             raise InputError("--carry-agreement: frames are carried only with --model-every K (K > 1)")
+        if self.carry_between is not None and self.model_every is None:
+            raise InputError("--carry-between/--carry-after: frames are carried only with --model-every K (K > 1)")
         if self.model_every is not None:
             from roguenerf.enhance.temporal import TemporalConfig
 
             if not self.temporal:
                 raise InputError("--model-every: frames are carried by the temporal filter; drop --no-temporal")
-            gate = {} if self.carry_agreement is None else {"carry_agreement": self.carry_agreement}
-            temporal = TemporalConfig(model_every=self.model_every, **gate)
+            chosen = {"carry_agreement": self.carry_agreement, "carry_between": self.carry_between}
+            temporal = TemporalConfig(model_every=self.model_every,
+                                      **{k: v for k, v in chosen.items() if v is not None})
         return super().options(temporal=temporal)
 
 

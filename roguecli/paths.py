@@ -110,6 +110,10 @@ def enhance_path_command(
             typer.echo(f"flicker (mean |frame t reprojected into t+1 - frame t+1| on valid pixels): render "
                        f"{f['render']:.4f}, enhanced {f['enhanced']:.4f} (x{f['ratio']:.3f})"
                        + (f", photos {f['photo']:.4f}" if f["photo"] is not None else ""), err=True)
+        if f.get("ratio_sharpened") is not None:
+            typer.echo(f"  against the render sharpened alike to the enhanced frames' detail "
+                       f"(x{f['detail_ratio']:.2f}; sharper frames read as more flicker): "
+                       f"x{f['ratio_sharpened']:.3f}", err=True)
         if p["frames_with_photos"]:
             typer.echo(f"{p['frames_with_photos']} frames have photos: PSNR render {p['render']:.2f} dB, enhanced "
                        f"{p['enhanced']:.2f} dB, mean gain {p['mean_gain_db']:+.2f} dB", err=True)

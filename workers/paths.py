@@ -70,8 +70,10 @@ def run_path_job(run: JobRun) -> str:
     inputs = job_dir / "input"
     camera_path = read_camera_path(find_camera_file(inputs), dataparser=parser)
     # the shipped defaults, but for the request's carried frames
-    gate = {"carry_agreement": float(request["carry_agreement"])} if "carry_agreement" in request else {}  # older jobs
-    options = EnhanceOptions(temporal=TemporalConfig(model_every=int(request.get("model_every", 1)), **gate))
+    chosen = {"carry_agreement": float(request["carry_agreement"])} if "carry_agreement" in request else {}
+    if "carry_between" in request:  # older jobs: the library's defaults
+        chosen["carry_between"] = bool(request["carry_between"])
+    options = EnhanceOptions(temporal=TemporalConfig(model_every=int(request.get("model_every", 1)), **chosen))
     enhancer = SceneEnhancer(scene, model, options=options)
     stat = Path(checkpoint).stat()
     try:

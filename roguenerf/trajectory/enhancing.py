@@ -8,9 +8,11 @@ folder of each frame's render and depth, enhances the frames one by one with one
 the whole path; with ``EnhanceOptions.temporal`` each neighbour's pose is fitted once too, and
 each frame is blended with the previous one: :mod:`roguenerf.enhance.temporal`), writes each
 enhanced frame atomically as it is done (an interrupted run resumes after the last written
-frame), then encodes ``enhanced.mp4`` and ``side_by_side.mp4`` (render | enhanced, each half
-labelled) frame by frame. The flicker report is :mod:`roguenerf.trajectory.flicker`'s, on two
-frames held at a time.
+frame; with ``TemporalConfig.carry_between`` the model frame after a stretch is made before the
+frames of the stretch, and still written after them, in order), then encodes ``enhanced.mp4``
+and ``side_by_side.mp4`` (render | enhanced, each half labelled) frame by frame. The flicker
+report is :mod:`roguenerf.trajectory.flicker`'s, on two frames held at a time (with
+``carry_between``, up to ``model_every`` + 1 frames are held: the stretch's model frames ahead).
 
 One background thread reads the next frame's render and depth and encodes and writes the last
 enhanced frame while the present one is enhanced (the PNG encoder and the decoders release the
@@ -35,7 +37,7 @@ from torch import Tensor
 from roguenerf.enhance.temporal import TemporalFilter, sticky_neighbours
 from roguenerf.errors import InputError, PathCancelled
 from roguenerf.trajectory.checks import check_path
-from roguenerf.trajectory.flicker import pair_flicker, summarise_flicker
+from roguenerf.trajectory.flicker import pair_flicker, sharpening, summarise_flicker
 from roguenerf.trajectory.readers import CameraPath, find_path_frames
 
 FRAME_FOLDER = "frames"
@@ -218,79 +220,146 @@ def enhance_path(
     temporal = None if enhancer.options.temporal is None else TemporalFilter(enhancer.options.temporal)
     last_neighbours = None
     poses = {} if temporal is not None and temporal.config.reuse_poses and enhancer.align is not None else None
+    # TemporalConfig.carry_between: the model frames 0, k, 2k, ... (and the last) are made before
+    # the frames between them, each of which is carried from the two around it; frames are still
+    # written, measured and remembered in order.
+    every = 1 if temporal is None else temporal.config.model_every
+    between = temporal is not None and temporal.config.carry_between and every > 1
     behind = _Background()
+    loading: dict[int, Future] = {}
+    made: dict[int, dict] = {}  # frames made (or read back) ahead of their turn: the next model frame
+    anchors: dict[int, object] = {}  # between: a model frame's kept state (TemporalFilter.kept)
+
+    def frame(t: int) -> tuple[Tensor, Tensor]:
+        """Frame t's render and depth: read ahead by the background thread where it was asked."""
+        future = loading.pop(t, None)
+        return future.result() if future is not None else load_frame(t)
+
+    def read_ahead(t: int) -> None:
+        if t < total and t not in loading and t not in made:
+            loading[t] = behind.submit(load_frame, t)
+
+    def make(t: int, render: Tensor, depth: Tensor, *, neighbours=None, changed=False,
+             carry_between=None) -> dict:
+        """Frame t: carried (where due and allowed), read back (where written before) or enhanced."""
+        camera = (camera_path.K[t], camera_path.world_from_cam[t])
+        match = matches[t]
+        exclude = match if match is not None and scene.frames[match].split == "train" else None
+        # Along a path with model_every > 1, a frame between the model's is carried into (where
+        # the model frames see enough of it); decided the same way on a resume.
+        carried = agreement = None
+        if carry_between is not None:
+            carried = temporal.carry(render, depth, *camera, between=carry_between)
+            agreement = temporal.last_agreement
+        elif temporal is not None and not between and not temporal.model_due(t, changed=changed):
+            carried = temporal.carry(render, depth, *camera)
+            agreement = temporal.last_agreement  # what decided it (TemporalConfig.carry_agreement)
+        out_png = frame_dir / f"{t:05d}.png"
+        entry = {"render": render, "depth": depth, "carried": carried is not None, "agreement": agreement,
+                 "neighbours": neighbours, "made": not out_png.is_file()}
+        if not entry["made"]:
+            entry["enhanced"] = read_image(out_png)
+            if poses is not None and carried is None:  # a resumed path fits its neighbours' poses as it did
+                chosen = neighbours if neighbours is not None else enhancer.select(
+                    camera[1], exclude=exclude, view=(render, depth, camera[0]))
+                enhancer.neighbour_poses([enhancer.train.index(i) for i in chosen], render, depth, *camera,
+                                         memory=poses)
+        elif carried is not None:
+            entry["image"] = carried
+        else:
+            image = enhancer.enhance(render, depth, *camera, exclude=exclude, neighbours=neighbours,
+                                     pose_memory=poses).image
+            if temporal is not None:
+                image = temporal(render, image, depth, *camera, changed=changed)
+            entry["image"] = image
+        if entry["made"]:
+            entry["enhanced"] = _quantise(entry["image"])
+        return entry
+
+    def make_between(t: int, render: Tensor, depth: Tensor) -> dict:
+        """Frame t with TemporalConfig.carry_between: a model frame, or one carried from the model
+        frames before and after it (the one after made first, right after the one before was remembered)."""
+        before = t - t % every
+        after = min(before + every, total - 1)
+        if t == before or t == after:  # a model frame with nothing to carry between (the last, or frame 0)
+            return make(t, render, depth)
+        if after not in made:
+            kept = temporal.kept  # the model frame before, as written: the frame just remembered
+            after_render, after_depth = frame(after)
+            made[after] = make(after, after_render, after_depth)
+            read_ahead(t + 1)
+            camera = (camera_path.K[after], camera_path.world_from_cam[after])
+            temporal.remember(after_render, made[after]["enhanced"], after_depth, *camera, model=True)
+            anchors[after] = temporal.kept
+            anchors[before] = kept
+            temporal.restore(kept)
+        return make(t, render, depth, carry_between=(anchors[before], anchors[after], (t - before) / (after - before)))
+
     try:
-        ahead = None
         for t in range(total):
             if should_stop is not None and should_stop():
                 raise PathCancelled(t)
             began = time.perf_counter()
-            render, depth = load_frame(t) if ahead is None else ahead.result()
-            ahead = behind.submit(load_frame, t + 1) if t + 1 < total else None
-            out_png = frame_dir / f"{t:05d}.png"
-            camera = (camera_path.K[t], camera_path.world_from_cam[t])
-            match = matches[t]
-            exclude = match if match is not None and scene.frames[match].split == "train" else None
-            neighbours, changed = None, False
-            if temporal is not None and temporal.config.keep_within > 0:
-                # Chosen for every frame, read back or not: a resumed path keeps the same chain.
-                chosen = enhancer.select(camera[1], exclude=exclude, view=(render, depth, camera[0]))
-                nearest = [enhancer.train[p] for p in enhancer.candidates(camera[1], temporal.config.keep_within,
-                                                                          exclude=exclude)]
-                neighbours = sticky_neighbours(last_neighbours, chosen, nearest)
-                changed = last_neighbours is not None and set(neighbours) != set(last_neighbours)
-                last_neighbours = neighbours
-            # Along a path with model_every > 1, a frame between the model's is the last one carried
-            # into it (where the last frame sees enough of it); decided the same way on a resume.
-            carried = agreement = None
-            if temporal is not None and not temporal.model_due(t, changed=changed):
-                carried = temporal.carry(render, depth, *camera)
-                agreement = temporal.last_agreement  # what decided it (TemporalConfig.carry_agreement)
-            out_png_existed = out_png.is_file()
-            if out_png_existed:
-                enhanced = read_image(out_png)
-                if poses is not None and carried is None:  # a resumed path fits its neighbours' poses as it did
-                    chosen = neighbours if neighbours is not None else enhancer.select(
-                        camera[1], exclude=exclude, view=(render, depth, camera[0]))
-                    enhancer.neighbour_poses([enhancer.train.index(i) for i in chosen], render, depth, *camera,
-                                             memory=poses)
+            made_before = sum(e["made"] for e in made.values())
+            if t in made:
+                entry = made.pop(t)
+                render, depth = entry["render"], entry["depth"]
             else:
-                if carried is not None:
-                    image = carried
-                else:
-                    image = enhancer.enhance(render, depth, *camera, exclude=exclude, neighbours=neighbours,
-                                             pose_memory=poses).image
-                    if temporal is not None:
-                        image = temporal(render, image, depth, *camera, changed=changed)
-                behind.write(out_png, image)
-                enhanced = _quantise(image)
+                render, depth = frame(t)
+                read_ahead(t + 1)
+                neighbours, changed = None, False
+                if temporal is not None and temporal.config.keep_within > 0:
+                    # Chosen for every frame, read back or not: a resumed path keeps the same chain.
+                    camera = (camera_path.K[t], camera_path.world_from_cam[t])
+                    match = matches[t]
+                    exclude = match if match is not None and scene.frames[match].split == "train" else None
+                    chosen = enhancer.select(camera[1], exclude=exclude, view=(render, depth, camera[0]))
+                    nearest = [enhancer.train[p] for p in enhancer.candidates(camera[1], temporal.config.keep_within,
+                                                                              exclude=exclude)]
+                    neighbours = sticky_neighbours(last_neighbours, chosen, nearest)
+                    changed = last_neighbours is not None and set(neighbours) != set(last_neighbours)
+                    last_neighbours = neighbours
+                entry = (make_between(t, render, depth) if between
+                         else make(t, render, depth, neighbours=neighbours, changed=changed))
+            made_now = entry["made"] or sum(e["made"] for e in made.values()) > made_before
+            enhanced = entry["enhanced"]
+            if entry["made"]:
+                behind.write(frame_dir / f"{t:05d}.png", entry["image"])
                 done_now += 1
             photo = scene.photo(matches[t]) if matches[t] is not None else None
             row = {"frame": t, "view": scene.frames[matches[t]].name if matches[t] is not None else None}
-            if neighbours is not None:
-                row["neighbours"] = [scene.frames[i].name for i in neighbours]
-            if temporal is not None and temporal.config.model_every > 1:
-                row["carried"] = carried is not None
-                if agreement is not None:
-                    row["carry_agreement_db"] = round(agreement, 2)
+            if entry["neighbours"] is not None:
+                row["neighbours"] = [scene.frames[i].name for i in entry["neighbours"]]
+            if temporal is not None and every > 1:
+                row["carried"] = entry["carried"]
+                if entry["agreement"] is not None:
+                    row["carry_agreement_db"] = round(entry["agreement"], 2)
             if photo is not None:
                 row["render_psnr"] = float(psnr(render[None], photo[None])[0])
                 row["enhanced_psnr"] = float(psnr(enhanced[None], photo[None])[0])
                 row["gain_db"] = row["enhanced_psnr"] - row["render_psnr"]
+            sharp = sharpening(render, enhanced)
+            row["detail_ratio"] = round(sharp.ratio, 4)
             per_frame.append(row)
-            current = (render, enhanced, photo, depth, camera_path.K[t], camera_path.world_from_cam[t])
+            current = (render, enhanced, photo, depth, camera_path.K[t], camera_path.world_from_cam[t], sharp)
             if prev is not None:
-                moved = None if temporal is None else temporal.last_warp  # the filter's move of the last frame
-                errors, fraction = pair_flicker(list(prev[:3]), list(current[:3]), prev[3], depth, prev[4], current[4],
-                                                prev[5], current[5], warp=moved)
+                # the filter's move of the last frame, where it made one into this frame
+                moved = None if temporal is None or between else temporal.last_warp
+                # the reference: both renders sharpened alike, as much as the two enhanced frames on average
+                amount = 0.5 * (prev[6].amount + sharp.amount)
+                errors, fraction = pair_flicker([*prev[:3], prev[6].image(prev[0], amount)],
+                                                [*current[:3], sharp.image(render, amount)], prev[3], depth,
+                                                prev[4], current[4], prev[5], current[5], warp=moved)
                 per_pair.append({"from": t - 1, "to": t, "render": errors[0], "enhanced": errors[1],
-                                 "photo": errors[2], "valid_fraction": fraction})
+                                 "photo": errors[2], "sharpened": errors[3], "valid_fraction": fraction})
             prev = current
             if temporal is not None:  # the frame as written, whether made now or read back
-                temporal.remember(render, enhanced, depth, *camera, model=carried is None)
+                temporal.remember(render, enhanced, depth, camera_path.K[t], camera_path.world_from_cam[t],
+                                  model=not entry["carried"])
+            anchors.pop(t - every, None)
             if progress is not None:
                 progress(t + 1, total)
-            if not out_png_existed:
+            if made_now:
                 making += time.perf_counter() - began
         waited = time.perf_counter()
         behind.drain()  # the last frames' writes: part of making them

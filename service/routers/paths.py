@@ -85,8 +85,11 @@ def create_path_job(
     background: Annotated[Literal["zero", "max"], Form(description="what no-surface pixels hold")] = "zero",
     quality: Annotated[int, Form(ge=0, le=51, description="x264 CRF (lower is better)")] = 20,
     model_every: Annotated[int, Form(ge=1, le=16, description=(
-        "run the model on one frame in this many and carry the last frame's result into the frames between "
+        "run the model on one frame in this many and carry its results into the frames between "
         "(faster, less flicker, less detail on the carried frames); 1: every frame"))] = 1,
+    carry_between: Annotated[bool, Form(description=(
+        "with model_every > 1, make the model frames first and carry each frame between two of them from both, "
+        "mixed by how near each is; false: from the last model frame only"))] = True,
     carry_agreement: Annotated[float, Form(ge=0, le=200, description=(
         "with model_every > 1, carry a frame only where the last model frame's render, reprojected into it, "
         "matches its render to this PSNR in dB (0: wherever 95 % of it is seen)"))] = CARRY_AGREEMENT,
@@ -105,7 +108,7 @@ def create_path_job(
                                       force=force)
         request = {"kind": "path", "frames": frames, "depth_type": depth_type, "depth_scale": depth_scale,
                    "background": background, "quality": quality, "force": force, "model_every": model_every,
-                   "carry_agreement": carry_agreement}
+                   "carry_agreement": carry_agreement, "carry_between": carry_between}
         try:
             job, _ = services.store.create_job(scene_id, request, base_version=row["active_version"],
                                                max_queued=settings.max_queued_jobs)

@@ -829,6 +829,8 @@
       cell(tr, Number.isFinite(flicker.render) && Number.isFinite(flicker.enhanced)
         ? `${flicker.render.toFixed(4)} → ${flicker.enhanced.toFixed(4)}`
           + (Number.isFinite(flicker.ratio) ? ` (×${flicker.ratio.toFixed(2)})` : "")
+          + (Number.isFinite(flicker.ratio_sharpened)
+            ? `; ×${flicker.ratio_sharpened.toFixed(2)} of the render sharpened alike` : "")
         : "–", "Flicker");
       cell(tr, fmt.date(job.created_at), "Created");
       const actions = cell(tr, "", "Video");

@@ -745,7 +745,8 @@ def test_b_videos_tab_shows_each_jobs_state_and_flicker(chromium, site, session,
         flicker = job["result"]["flicker"]
         assert row.locator(".job-state").inner_text() == "succeeded"
         assert f"frame {frames} of {frames}" in row.inner_text()
-        want = f"{flicker['render']:.4f} → {flicker['enhanced']:.4f} (×{flicker['ratio']:.2f})"
+        want = (f"{flicker['render']:.4f} → {flicker['enhanced']:.4f} (×{flicker['ratio']:.2f}); "
+                f"×{flicker['ratio_sharpened']:.2f} of the render sharpened alike")
         assert row.locator("td[data-label='Flicker']").inner_text() == want
         bad = page.locator("#videos-table tr[data-job='" + "f" * 32 + "']")
         assert bad.locator(".job-state").inner_text() == "failed"

@@ -96,3 +96,34 @@ def test_path_speed_alternates_frame_by_frame_and_the_temporal_filter(tmp_path):
                             str(tmp_path / "res" / "reject")]) == 0
     summary = json.loads((tmp_path / "res" / "reject.json").read_text())
     assert list(summary["frames_per_second"]) == ["off", "on", "on/reject0"]
+    # carrying between the model frames (shipped) beside after the last one; nothing to carry at K = 1
+    assert path_speed.main(["--fit", str(tmp_path / "pairs"), "--work", str(tmp_path / "work"), "--keys", "2",
+                            "--steps", "2", "--repeats", "1", "--model-every", "1,3", "--carry-between", "on,off",
+                            "--force", "--output", str(tmp_path / "res" / "between")]) == 0
+    summary = json.loads((tmp_path / "res" / "between.json").read_text())
+    assert list(summary["frames_per_second"]) == ["off", "on", "on/k3", "on/k3/between-off"]
+    assert all(v > 0 for v in summary["flicker_ratio_sharpened"].values())
+
+
+@pytest.mark.slow
+def test_flicker_sharpness_shows_a_consistent_sharpening_as_flicker(tmp_path):
+    """The same unsharp mask on every frame of a path scores more flicker the stronger it is,
+    a blur less; low-passing the difference takes most of it away."""
+    import json
+
+    from bench import flicker_sharpness
+
+    root = tmp_path / "photos"
+    write_photo_set(root, views=9)
+    make_pairs(root, tmp_path / "pairs", CONFIGS["grid"])
+    out = tmp_path / "res" / "sharp"
+    assert flicker_sharpness.main(["--fit", str(tmp_path / "pairs"), "--work", str(tmp_path / "work"), "--keys", "2",
+                                   "--steps", "3", "--amounts", "1,3", "--output", str(out)]) == 0
+    ratio = json.loads((tmp_path / "res" / "sharp.json").read_text())["ratio"]
+    plain, low = ratio["plain"], ratio["lowpass"]
+    assert plain["render"] == low["render"] == 1.0
+    assert 1.0 < plain["unsharp 1"] < plain["unsharp 3"] and plain["blur"] < 1.0
+    assert low["unsharp 3"] < plain["unsharp 3"]
+    assert (tmp_path / "res" / "sharp.csv").is_file() and (tmp_path / "res" / "sharp.png").is_file()
+    with pytest.raises(SystemExit, match="amounts"):
+        flicker_sharpness.main(["--fit", str(tmp_path / "pairs"), "--amounts", "0"])

@@ -212,6 +212,38 @@ def test_carried_from_the_model_frame_is_resampled_once():
         TemporalConfig(carry_from="first")
 
 
+def test_a_frame_between_two_model_frames_mixes_them_by_how_near_each_is():
+    """Model frames at x = 0 and x = 0.3 (three pixels apart), a frame between at x = 0.1 (a
+    third of the way): the two results moved into it and mixed 2/3 : 1/3 where both see; its
+    first two columns only the first sees (the second's view starts two pixels to their right),
+    its last column only the second: each is that one's alone. A frame the two do not see
+    enough of together is refused."""
+    f = TemporalFilter(TemporalConfig(model_every=3, carry_between=True, reject=0.0, min_seen=0.9))
+    render = torch.full((3, H, W), 0.5)
+    before_pose, after_pose, here = POSE.clone(), POSE.clone(), POSE.clone()
+    after_pose[0, 3], here[0, 3] = 0.3, 0.1
+    f.remember(render, torch.full((3, H, W), 0.2), DEPTH, K, before_pose)
+    before = f.kept
+    f.remember(render, torch.full((3, H, W), 0.8), DEPTH, K, after_pose)
+    after = f.kept
+    f.restore(before)
+    out = f.carry(render, DEPTH, K, here, between=(before, after, 1 / 3))
+    assert torch.allclose(out[:, :, 2:-1], torch.full((3, H, W - 3), 0.4), atol=1e-5)  # 2/3 0.2 + 1/3 0.8
+    assert torch.allclose(out[:, :, :2], torch.full((3, H, 2), 0.2), atol=1e-5)  # only the first sees
+    assert torch.allclose(out[:, :, -1], torch.full((3, H), 0.8), atol=1e-5)  # only the second
+    assert f.last_warp is None and f.last_share == pytest.approx(1.0)
+    far = POSE.clone()
+    far[0, 3] = 1.5  # 15 pixels on: neither sees enough of it
+    assert f.carry(render, DEPTH, K, far, between=(before, after, 0.5)) is None
+    with pytest.raises(InputError, match="position"):
+        f.carry(render, DEPTH, K, here, between=(before, after, 1.0))
+    with pytest.raises(InputError, match="carry_between"):
+        TemporalConfig(carry_between=True, keep_within=4, model_every=2)
+    assert TemporalConfig(keep_within=4).carry_between  # nothing is carried at model_every 1
+    with pytest.raises(InputError, match="carry_between"):
+        TemporalConfig(carry_between=1)
+
+
 def test_a_frame_whose_render_the_last_one_does_not_predict_is_not_carried():
     """The last frame's render moved into this frame (a still camera: not moved) against this
     frame's render: equal renders agree (carried), a render darker by 0.1 everywhere agrees to

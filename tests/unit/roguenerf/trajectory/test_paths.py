@@ -112,6 +112,64 @@ def test_flicker_is_zero_for_a_static_world_and_positive_for_noise(toy_path):
     assert none is None
 
 
+def _unsharp(image, amount):
+    return (image + amount * (image - gaussian_blur2d(image[None], (7, 7), (1.0, 1.0), border_type="replicate")[0]))
+
+
+def test_sharpening_finds_the_amount_of_an_unsharp_mask(toy_path):
+    """The reference's amount is the one that gives the render the enhanced frame's detail: an
+    unsharp mask's own amount back (kornia's blur, not the library's), 0 for the render itself or
+    a blurrier frame."""
+    from roguenerf.trajectory.flicker import sharpening
+
+    scene = toy_path["scene"]
+    render = gaussian_blur2d(scene.photo(1)[None], (5, 5), (1.0, 1.0), border_type="replicate")[0] * 0.8 + 0.1
+    for amount in (0.5, 1.0, 2.0):
+        found = sharpening(render, _unsharp(render, amount))  # in [0, 1] unclamped: 0.1 + 0.8 x keeps a margin
+        assert found.amount == pytest.approx(amount, rel=0.1) and found.ratio > 1 + amount / 4
+        torch.testing.assert_close(found.image(render), _unsharp(render, found.amount).clamp(0, 1))
+    same = sharpening(render, render)
+    assert same.amount == 0 and same.ratio == pytest.approx(1.0)
+    blurrier = sharpening(render, gaussian_blur2d(render[None], (5, 5), (1.0, 1.0), border_type="replicate")[0])
+    assert blurrier.amount == 0 and blurrier.ratio < 0.8
+
+
+def test_a_consistent_sharpening_reads_as_flicker_but_not_against_the_sharpened_reference():
+    """Resampling loses fine detail, so the flicker figure rises with sharpness alone. A texture on
+    a plane facing the camera, the camera moved by half a pixel: each frame's render is the
+    texture blurred, its "enhanced" frame the render under the same unsharp mask (nothing changes
+    between the frames but the move). The sharpened frames score well above the renders' flicker,
+    and level with the reference the report sets beside it."""
+    from roguenerf.trajectory.flicker import sharpening
+
+    h, w, focal, z, shift = 48, 64, 40.0, 2.0, 0.5
+    gen = torch.Generator().manual_seed(3)
+    freq = (torch.rand(40, 2, generator=gen, dtype=torch.float64) - 0.5) * 2.4  # up to 1.2 rad per pixel
+    phase = torch.rand(40, generator=gen, dtype=torch.float64) * 2 * math.pi
+    amp = 0.3 / 40 ** 0.5 * torch.randn(3, 40, generator=gen, dtype=torch.float64)
+
+    def texture(dx):
+        v, u = torch.meshgrid(torch.arange(h) + 0.5, torch.arange(w) + 0.5 + dx, indexing="ij")
+        waves = torch.sin(u[..., None] * freq[:, 0] + v[..., None] * freq[:, 1] + phase)  # (h, w, 40)
+        return (0.5 + torch.einsum("hwk,ck->chw", waves, amp)).float()
+
+    K = torch.tensor([[focal, 0, w / 2], [0, focal, h / 2], [0, 0, 1]], dtype=torch.float32)
+    pose_a = torch.eye(4, dtype=torch.float64)
+    pose_b = pose_a.clone()
+    pose_b[0, 3] = shift * z / focal  # the texture moves left by `shift` pixels
+    depth = torch.full((1, h, w), z)
+    renders = [gaussian_blur2d(texture(dx)[None], (7, 7), (1.0, 1.0), border_type="reflect")[0] for dx in (0, shift)]
+    sharp = [_unsharp(r, 1.5).clamp(0, 1) for r in renders]
+    found = [sharpening(r, s) for r, s in zip(renders, sharp)]
+    amount = 0.5 * (found[0].amount + found[1].amount)
+    reference = [f.image(r, amount) for f, r in zip(found, renders)]
+    (render, enhanced, sharpened), fraction = pair_flicker(
+        [renders[0], sharp[0], reference[0]], [renders[1], sharp[1], reference[1]], depth, depth, K, K, pose_a, pose_b)
+    assert fraction > 0.9
+    assert enhanced > 1.3 * render
+    assert enhanced == pytest.approx(sharpened, rel=0.05)
+
+
 def test_flicker_on_the_filters_move_is_the_flicker_reprojected_again(toy_path):
     """pair_flicker sampling at a reprojection it is given (the temporal filter's) measures what
     it measures reprojecting itself: the same valid pixels, the same errors to float rounding."""
@@ -159,6 +217,11 @@ def test_enhance_path_writes_video_flicker_and_resumes(toy_path, enhancer, tmp_p
     assert [report["per_frame"][t]["view"] for t in with_photos] == [scene.frames[i].name for i in (1, 2, 3)]
     assert report["psnr"]["frames_with_photos"] == 3 and math.isfinite(report["psnr"]["mean_gain_db"])
     assert report["flicker"]["ratio"] == pytest.approx(report["flicker"]["enhanced"] / report["flicker"]["render"])
+    # Beside it, the renders sharpened alike as much as the enhanced frames (their detail ratio, per frame).
+    assert all(f["detail_ratio"] > 0 for f in report["per_frame"])
+    assert all(p["sharpened"] > 0 for p in report["per_pair"])
+    assert report["flicker"]["ratio_sharpened"] == pytest.approx(report["flicker"]["enhanced"]
+                                                                 / report["flicker"]["sharpened"])
     # The path's training photos were encoded once, for the whole path.
     assert 0 < result.cached_views <= len(scene.indices("train"))
 
@@ -294,7 +357,8 @@ def test_frames_are_carried_from_the_model_frame_only_where_its_render_predicts_
     cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
 
     def run(gate: float, out):
-        config = TemporalConfig(model_every=3, min_seen=0.0, carry_from="model", carry_agreement=gate)
+        config = TemporalConfig(model_every=3, min_seen=0.0, carry_from="model", carry_agreement=gate,
+                                carry_between=False)
         gated = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=config))
         return enhance_path(scene, gated, cp, root / "frames", out, depth_type="ray", video=False).flicker["per_frame"]
 
@@ -316,6 +380,53 @@ def test_frames_are_carried_from_the_model_frame_only_where_its_render_predicts_
     assert [f["carried"] for f in again] == [f["carried"] for f in rows]
     assert all(frame(t) == made[t] for t in range(len(rows)))
 
+def test_frames_between_two_model_frames_are_carried_from_both_and_resume_the_same(toy_path, enhancer, tmp_path,
+                                                                                     monkeypatch):
+    """carry_between with model_every=3 on the 7-frame path: the model runs on frames 0, 3 and 6
+    only, and in that order for each stretch (3 before 1 and 2); each frame between is a mix of
+    the two moved into it, not what carrying from the one before gives; the frames are written
+    and reported in order, and a resumed path (a frame between and the model frame after it
+    deleted, then stopped between them) makes the same frames."""
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.enhance.temporal import TemporalConfig
+
+    root, scene = toy_path["root"], toy_path["scene"]
+    cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
+    T = len(cp)
+    made_by_model = []
+
+    def run(out, between=True, **kw):
+        config = TemporalConfig(model_every=3, min_seen=0.0, carry_agreement=0.0, carry_between=between)
+        mixer = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=config))
+        real = mixer.enhance
+        monkeypatch.setattr(mixer, "enhance", lambda render, *a, **k: made_by_model.append(
+            next(t for t in range(T) if torch.equal(a[2], cp.world_from_cam[t]))) or real(render, *a, **k))
+        return enhance_path(scene, mixer, cp, root / "frames", out, depth_type="ray", video=False, **kw)
+
+    result = run(tmp_path / "between")
+    assert made_by_model == [0, 3, 6] and result.enhanced_now == T
+    rows = result.flicker["per_frame"]
+    assert [f["frame"] for f in rows] == list(range(T))
+    assert [f["carried"] for f in rows] == [t % 3 > 0 for t in range(T)]
+    assert [p["to"] for p in result.flicker["per_pair"]] == list(range(1, T))
+    frame = lambda folder, t: (tmp_path / folder / "frames" / f"{t:05d}.png").read_bytes()  # noqa: E731
+    run(tmp_path / "after", between=False)
+    assert frame("between", 0) == frame("after", 0) and frame("between", 1) != frame("after", 1)
+    made = {t: frame("between", t) for t in range(T)}
+    for t in (4, 5, 6):
+        (tmp_path / "between" / "frames" / f"{t:05d}.png").unlink()
+    asked = iter([False] * 5 + [True])  # stops before frame 5: 4 written, 6 made but not yet
+    with pytest.raises(PathCancelled):
+        run(tmp_path / "between", should_stop=lambda: next(asked))
+    assert (tmp_path / "between" / "frames" / "00004.png").is_file()
+    assert not (tmp_path / "between" / "frames" / "00006.png").exists()
+    made_by_model.clear()
+    again = run(tmp_path / "between")
+    assert again.enhanced_now == 2 and made_by_model == [6]
+    assert all(frame("between", t) == made[t] for t in range(T))
+    assert [f["carried"] for f in again.flicker["per_frame"]] == [f["carried"] for f in rows]
+
+
 def test_enhance_path_cli(toy_path, tmp_path):
     root = toy_path["root"]
     runner = CliRunner()
@@ -336,9 +447,15 @@ def test_enhance_path_cli(toy_path, tmp_path):
     assert result.exit_code == 0, result.output
     carried = [f["carried"] for f in json.loads((tmp_path / "every" / FLICKER_FILE).read_text())["per_frame"]]
     assert not carried[0] and any(carried) and not any(carried[t] for t in range(0, len(carried), 2))
+    # --carry-after: from the last model frame only (another setting: another folder); frame 1 differs
+    after = every[:7] + [str(tmp_path / "after"), *every[8:], "--carry-after"]
+    assert runner.invoke(app, after).exit_code == 0
+    frame = lambda folder: (tmp_path / folder / "frames" / "00001.png").read_bytes()  # noqa: E731
+    assert frame("after") != frame("every")
     for flags, message in ((["--model-every", "0"], "model_every"), (["--no-temporal", "--model-every", "2"],
                                                                      "drop --no-temporal"),
                            (["--carry-agreement", "40"], "only with --model-every"),
+                           (["--carry-after"], "only with --model-every"),
                            (["--model-every", "2", "--carry-agreement", "-1"], "carry_agreement")):
         bad = runner.invoke(app, args[:7] + [str(tmp_path / "bad"), *args[8:], *flags])
         assert bad.exit_code == 2 and message in bad.output and "Traceback" not in bad.output
