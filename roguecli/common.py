@@ -126,11 +126,11 @@ class PathEnhanceFlags(EnhanceFlags):
         "Default on."))] = True
 
     model_every: Annotated[int | None, typer.Option("--model-every", help=(
-        "With --temporal, run the model on at least one frame in this many and carry the last model frame's "
-        "result, reprojected, into the frames between, where it sees at least 95 % of them and its render, moved "
-        "the same way, predicts theirs (--carry-agreement): faster on smooth paths (8: 1.6x with the same gain "
-        "on a 154-frame path), but a carried frame keeps only part of the model's detail. 1: the model on every "
-        "frame (the default; docs/results.md, Speed at users' sizes)."))] = None
+        "With --temporal, run the model on at least one frame in this many and carry the model frames' "
+        "results, reprojected, into the frames between, where they see at least 95 % of them and their renders, "
+        "moved the same way, predict theirs (--carry-agreement): faster on smooth paths (4: 1.7x with the same "
+        "gain on a 154-frame path), but a carried frame keeps only part of the model's detail. 1: the model on "
+        "every frame (the default; docs/results.md, Speed at users' sizes)."))] = None
 
     carry_between: Annotated[bool | None, typer.Option("--carry-between/--carry-after", help=(
         "With --model-every K, make the model frames 0, K, 2K, ... first and carry each frame between two of "
@@ -138,9 +138,10 @@ class PathEnhanceFlags(EnhanceFlags):
         "only."), show_default=False)] = None
 
     carry_agreement: Annotated[float | None, typer.Option("--carry-agreement", metavar="DB", help=(
-        "With --model-every, carry a frame only where the last model frame's render, reprojected into it, "
-        "matches its render to this PSNR (default 46 dB; higher: fewer frames carried, more of the model's "
-        "detail kept; 0: carry wherever 95 % is seen)."))] = None
+        "With --model-every, carry a frame only where the model frames' renders, reprojected into it, "
+        "match its render to this PSNR (default 46 dB; higher: fewer frames carried, more of the model's "
+        "detail kept; 0: carry wherever 95 % is seen: 2.1x on a smooth path, but a fast orbit loses detail)."
+        ))] = None
 
     def options(self):
         temporal = self.temporal

@@ -12,7 +12,7 @@ frame; with ``TemporalConfig.carry_between`` the model frame after a stretch is 
 frames of the stretch, and still written after them, in order), then encodes ``enhanced.mp4``
 and ``side_by_side.mp4`` (render | enhanced, each half labelled) frame by frame. The flicker
 report is :mod:`roguenerf.trajectory.flicker`'s, on two frames held at a time (with
-``carry_between``, up to ``model_every`` + 1 frames are held: the stretch's model frames ahead).
+``carry_between``, also the next model frame, made ahead of the stretch before it).
 
 One background thread reads the next frame's render and depth and encodes and writes the last
 enhanced frame while the present one is enhanced (the PNG encoder and the decoders release the
