@@ -94,10 +94,11 @@ class TemporalConfig:
     few frames, and each change makes the enhanced frame jump (:func:`sticky_neighbours`)."""
 
     model_every: int = 1
-    """Run the model on one frame in this many (the first, then every ``model_every``-th; and
-    every frame whose neighbours changed); carry the previous frame's result into the frames
-    between (:meth:`TemporalFilter.carry`). 1: the model on every frame. A carried frame costs
-    a reprojection instead of the model, its pose fits, colour and trust."""
+    """Run the model on one frame in this many (the first, then every ``model_every``-th, and the
+    last; with :attr:`carry_between` off, also every frame whose neighbours changed); carry the
+    model frames' results into the frames between (:meth:`TemporalFilter.carry`: from the two
+    around, :attr:`carry_between`, or from the last). 1: the model on every frame. A carried
+    frame costs a reprojection or two instead of the model, its pose fits, colour and trust."""
     resample: str = "bicubic"
     """How the last frame is sampled where its points land: ``"bicubic"`` (sharper) or
     ``"bilinear"`` (the reprojection's own sampling: a sample between pixels averages them, and
@@ -110,7 +111,7 @@ class TemporalConfig:
     one resampling, over a longer move, which :attr:`carry_agreement` then judges whole) or
     ``"last"`` (the frame before it, itself perhaps carried: with ``model_every`` >= 3 a frame
     is resampled once per carried frame before it; the default before 2026-12-06). The same at
-    ``model_every`` <= 2."""
+    ``model_every`` <= 2; only with :attr:`carry_between` off."""
     carry_agreement: float = 46.0
     """A frame is carried only where the frame it would be moved from predicts its render: that
     frame's render, moved the same way, matches this frame's render to at least this PSNR (dB)

@@ -91,8 +91,8 @@ def create_path_job(
         "with model_every > 1, make the model frames first and carry each frame between two of them from both, "
         "mixed by how near each is; false: from the last model frame only"))] = True,
     carry_agreement: Annotated[float, Form(ge=0, le=200, description=(
-        "with model_every > 1, carry a frame only where the last model frame's render, reprojected into it, "
-        "matches its render to this PSNR in dB (0: wherever 95 % of it is seen)"))] = CARRY_AGREEMENT,
+        "with model_every > 1, carry a frame only where the model frames' renders, reprojected into it, "
+        "match its render to this PSNR in dB (0: wherever 95 % of it is seen)"))] = CARRY_AGREEMENT,
     force: Annotated[bool, Form(description=(
         "enhance the path even when its cameras do not fit the scene (far from its cameras or seeing none of its "
         "training photos: OpenGL vs OpenCV, another unit or world, z vs ray depth; a 422 otherwise)"))] = False,
