@@ -94,8 +94,8 @@ class TemporalConfig:
     few frames, and each change makes the enhanced frame jump (:func:`sticky_neighbours`)."""
 
     model_every: int = 1
-    """Run the model on one frame in this many (the first, then every ``model_every``-th, and the
-    last; with :attr:`carry_between` off, also every frame whose neighbours changed); carry the
+    """Run the model on one frame in this many (the first, then every ``model_every``-th; with
+    :attr:`carry_between` also the last, without it every frame whose neighbours changed); carry the
     model frames' results into the frames between (:meth:`TemporalFilter.carry`: from the two
     around, :attr:`carry_between`, or from the last). 1: the model on every frame. A carried
     frame costs a reprojection or two instead of the model, its pose fits, colour and trust."""
