@@ -13,16 +13,18 @@ into a fresh folder without videos: the frames per second of ``PathResult.frames
 render sharpened alike (``flicker_ratio_sharpened``, from 2026-12-07:
 :func:`~roguenerf.trajectory.flicker.sharpening`), and the gain on the frames with photos.
 ``--model-every``, ``--resample``, ``--reject``, ``--carry-from``, ``--blend`` and
-``--carry-agreement`` and ``--carry-between`` run the filter once per combination of values of
+``--carry-agreement``, ``--carry-between`` and ``--between-agreement`` run the filter once per
+combination of values of
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.model_every`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.resample`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.reject`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_from`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.blend`,
-:attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_agreement` and
-:attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_between` (labelled ``on`` for the
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_agreement`,
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_between` and
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.between_agreement` (labelled ``on`` for the
 shipped values, ``on/kK``, ``on/RESAMPLE``, ``on/rejectX``, ``on/from-C``, ``on/BLEND``,
-``on/agreeDB`` and ``on/between-on|off`` for others; at ``model_every`` 1, where nothing is
+``on/agreeDB``, ``on/between-on|off`` and ``on/mutualDB`` for others; at ``model_every`` 1, where nothing is
 carried, only the shipped ``carry_between`` runs), with the share of frames carried; the CSV also keeps each frame
 with a photo's gain (``gains``: frame, gain, carried). Writes ``OUTPUT.csv`` (a row per run;
 date, machine, commit), ``OUTPUT.json`` (the medians, the ratios) and ``OUTPUT.png``.
@@ -65,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="comma-separated TemporalConfig.carry_from values for the filter (default: the shipped one)")
     ap.add_argument("--carry-between", default=None,
                     help="comma-separated TemporalConfig.carry_between values, on/off (default: the shipped one)")
+    ap.add_argument("--between-agreement", default=None,
+                    help="comma-separated TemporalConfig.between_agreement values (default: the shipped one)")
     ap.add_argument("--force", action="store_true", help="enhance a path enhance_path's check refuses (as bench.paths)")
     args = ap.parse_args(argv)
     if args.repeats < 1:
@@ -97,8 +101,12 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"--carry-between: expected on, off or on,off, got {args.carry_between}")
     betweens = ([shipped.carry_between] if args.carry_between is None
                 else [onoff[x] for x in args.carry_between.split(",")])
+    mutual = ([shipped.between_agreement] if args.between_agreement is None
+              else [float(x) for x in args.between_agreement.split(",")])
     modes = {"off": None}
-    for k, r, j, c, b, g, bw in itertools.product(every, resample, reject, carry, blend, gates, betweens):
+    for k, r, j, c, b, g, bw, m in itertools.product(every, resample, reject, carry, blend, gates, betweens, mutual):
+        if k == 1 and m != shipped.between_agreement:
+            continue  # nothing is carried at K = 1
         if k == 1 and bw != shipped.carry_between:
             continue  # nothing is carried at K = 1: the same run as the shipped value's
         label = "/".join(["on", *([f"k{k}"] if k != shipped.model_every else []),
@@ -107,9 +115,10 @@ def main(argv: list[str] | None = None) -> int:
                           *([f"from-{c}"] if c != shipped.carry_from else []),
                           *([b] if b != shipped.blend else []),
                           *([f"agree{g:g}"] if g != shipped.carry_agreement else []),
-                          *([f"between-{'on' if bw else 'off'}"] if bw != shipped.carry_between else [])])
+                          *([f"between-{'on' if bw else 'off'}"] if bw != shipped.carry_between else []),
+                          *([f"mutual{m:g}"] if m != shipped.between_agreement else [])])
         modes[label] = TemporalConfig(model_every=k, resample=r, reject=j, carry_from=c, blend=b,
-                                      carry_agreement=g, carry_between=bw)
+                                      carry_agreement=g, carry_between=bw, between_agreement=m)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for repeat in range(args.repeats):

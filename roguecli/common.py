@@ -137,6 +137,11 @@ class PathEnhanceFlags(EnhanceFlags):
         "them from both, mixed by how near each is (the default); --carry-after: from the last model frame "
         "only."), show_default=False)] = None
 
+    between_agreement: Annotated[float | None, typer.Option("--between-agreement", metavar="DB", help=(
+        "With --model-every (carrying between), carry a frame only where the two model frames around it, "
+        "reprojected into it, also agree with each other to this PSNR (default 0: no such test; it depends on "
+        "the scene's quality: docs/results.md)."))] = None
+
     carry_agreement: Annotated[float | None, typer.Option("--carry-agreement", metavar="DB", help=(
         "With --model-every, carry a frame only where the model frames' renders, reprojected into it, "
         "match its render to this PSNR (default 46 dB; higher: fewer frames carried, more of the model's "
@@ -149,12 +154,16 @@ class PathEnhanceFlags(EnhanceFlags):
             raise InputError("--carry-agreement: frames are carried only with --model-every K (K > 1)")
         if self.carry_between is not None and self.model_every is None:
             raise InputError("--carry-between/--carry-after: frames are carried only with --model-every K (K > 1)")
+        if self.between_agreement is not None and (self.model_every is None or self.carry_between is False):
+            raise InputError("--between-agreement: judges frames carried between model frames: needs --model-every "
+                             "K (K > 1), without --carry-after")
         if self.model_every is not None:
             from roguenerf.enhance.temporal import TemporalConfig
 
             if not self.temporal:
                 raise InputError("--model-every: frames are carried by the temporal filter; drop --no-temporal")
-            chosen = {"carry_agreement": self.carry_agreement, "carry_between": self.carry_between}
+            chosen = {"carry_agreement": self.carry_agreement, "carry_between": self.carry_between,
+                      "between_agreement": self.between_agreement}
             temporal = TemporalConfig(model_every=self.model_every,
                                       **{k: v for k, v in chosen.items() if v is not None})
         return super().options(temporal=temporal)

@@ -135,6 +135,16 @@ class TemporalConfig:
     against +2.71 from the last model frame without the gate, +3.02 with it at 0.6 times the
     frames per second; flicker 0.78-0.80 of the render's against 0.90), reported on ``ollie``'s
     and ``mary_rose``'s (docs/results.md, *Speed at users' sizes*)."""
+    between_agreement: float = 0.0
+    """With :attr:`carry_between`: a frame between two model frames is carried only where the
+    two, moved into it, also agree with each other to at least this PSNR (dB) on the pixels both
+    see (:attr:`TemporalFilter.last_mutual`); otherwise the model runs on it. Where the two model
+    frames' results disagree about the frame between them, the mix is neither's. Along
+    ``can_clip``'s 49-frame path this agreement predicts how close a carried frame comes to the
+    model's own output there (correlation 0.79; the renders' agreement: -0.18), but as a PSNR it
+    depends on the scene: 42 dB kept ``can_clip``'s gain at 1.2 times frame by frame's speed, and
+    on ``dtu_scan37`` (renders at 18 dB) 38 already refused every frame (docs/results.md, *Speed
+    at users' sizes*). 0 (the default): no such test."""
     min_seen: float = 0.95
     """A frame is carried only where the previous frame sees at least this share of its
     pixels; otherwise the model runs on it."""
@@ -163,10 +173,11 @@ class TemporalConfig:
             raise InputError(f"TemporalConfig.carry_from: expected 'last' or 'model', got {self.carry_from!r}")
         if self.resample not in ("bilinear", "bicubic"):
             raise InputError(f"TemporalConfig.resample: expected 'bilinear' or 'bicubic', got {self.resample!r}")
-        if not (isinstance(self.carry_agreement, (int, float)) and not isinstance(self.carry_agreement, bool)
-                and math.isfinite(self.carry_agreement) and self.carry_agreement >= 0):
-            raise InputError(f"TemporalConfig.carry_agreement: expected a PSNR in dB >= 0 (0: off), "
-                             f"got {self.carry_agreement!r}")
+        for name in ("carry_agreement", "between_agreement"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                    and value >= 0):
+                raise InputError(f"TemporalConfig.{name}: expected a PSNR in dB >= 0 (0: off), got {value!r}")
         if not (isinstance(self.min_seen, (int, float)) and 0 <= self.min_seen <= 1):
             raise InputError(f"TemporalConfig.min_seen: expected a share in [0, 1], got {self.min_seen!r}")
         if not (isinstance(self.reject, (int, float)) and math.isfinite(self.reject) and self.reject >= 0):
@@ -202,6 +213,17 @@ def render_disagreement(warped_render: Tensor, render: Tensor, valid: Tensor) ->
     diff = (warped_render - render).abs().mean(0, keepdim=True) * seen
     total, count = box_sum3(torch.cat([diff, seen])[None])[0]
     return torch.where(count > 0, total / count.clamp_min(1e-12), 0.0)[None]
+
+
+def _masked_psnr(image: Tensor, reference: Tensor, seen: Tensor) -> float:
+    """PSNR (dB, peak 1) of ``image`` against ``reference`` (``(3, H, W)``) on the pixels ``seen``
+    (``(1, H, W)`` bool); 0 where none is seen, 120 where they are equal."""
+    mask = seen.float()
+    count = 3.0 * float(mask.sum())
+    if count == 0:
+        return 0.0
+    mse = float(((image - reference).square() * mask).sum()) / count
+    return -10.0 * math.log10(max(mse, 1e-12))
 
 
 def parallax_deg(depth: Tensor, K: Tensor, world_from_cam: Tensor, other_centre: Tensor) -> Tensor:
@@ -261,6 +283,10 @@ class TemporalFilter:
         frame, against its own render, on the pixels seen (:attr:`TemporalConfig.carry_agreement`);
         None where it was not measured, and again after :meth:`__call__`, :meth:`remember` and
         :meth:`reset`."""
+        self.last_mutual: float | None = None
+        """PSNR (dB) of the two model frames the last :meth:`carry` between them moved, against each
+        other on the pixels both see (:attr:`TemporalConfig.between_agreement`); None where it was
+        not measured."""
         self.last_warp: tuple[Tensor, Tensor] | None = None
         """``(coords, valid)`` of the reprojection that moved the kept frame into the last one
         given to :meth:`__call__` or :meth:`carry` (``(1, H, W, 2)``, ``(1, 1, H, W)``:
@@ -274,6 +300,7 @@ class TemporalFilter:
         self._anchor = None
         self.last_share = 0.0
         self.last_agreement = None
+        self.last_mutual = None
         self.last_warp = None
 
     @property
@@ -295,6 +322,7 @@ class TemporalFilter:
         carried = enhanced.float() - render.float() if self.config.blend == "residual" else enhanced.float()
         self.last_warp = None
         self.last_agreement = None
+        self.last_mutual = None
         self._previous = _LastFrame(carried, depth.float(), torch.as_tensor(K).to(torch.float32),
                                     torch.as_tensor(world_from_cam).to(torch.float64), render.float())
         if model:
@@ -353,6 +381,7 @@ class TemporalFilter:
         mix."""
         self.last_share = 0.0
         self.last_agreement = None
+        self.last_mutual = None
         self.last_warp = None
         if self._previous is None and between is None:
             return None
@@ -384,6 +413,11 @@ class TemporalFilter:
             self.last_agreement = -10.0 * math.log10(max(mse, 1e-12))
             if self.last_agreement < self.config.carry_agreement:
                 return None
+        if between is not None and self.config.between_agreement > 0:
+            # the two model frames' results, moved, against each other where both see
+            self.last_mutual = _masked_psnr(moved[0][0], moved[1][0], moved[0][1] & moved[1][1])
+            if self.last_mutual < self.config.between_agreement:
+                return None
         keep = 1.0
         if self.config.reject > 0:  # where the renders disagree, the render rather than the last result
             keep = self._agreement(warped_render, render, valid)
@@ -410,6 +444,7 @@ class TemporalFilter:
         residual = enhanced if image else enhanced - render
         self.last_share = 0.0
         self.last_agreement = None
+        self.last_mutual = None
         self.last_warp = None
         w = float(self.config.change_weight if changed else self.config.weight)
         if self._previous is not None and w > 0:

@@ -247,16 +247,16 @@ def enhance_path(
         exclude = match if match is not None and scene.frames[match].split == "train" else None
         # Along a path with model_every > 1, a frame between the model's is carried into (where
         # the model frames see enough of it); decided the same way on a resume.
-        carried = agreement = None
+        carried = agreement = mutual = None
         if carry_between is not None:
             carried = temporal.carry(render, depth, *camera, between=carry_between)
-            agreement = temporal.last_agreement
+            agreement, mutual = temporal.last_agreement, temporal.last_mutual
         elif temporal is not None and not between and not temporal.model_due(t, changed=changed):
             carried = temporal.carry(render, depth, *camera)
             agreement = temporal.last_agreement  # what decided it (TemporalConfig.carry_agreement)
         out_png = frame_dir / f"{t:05d}.png"
         entry = {"render": render, "depth": depth, "carried": carried is not None, "agreement": agreement,
-                 "neighbours": neighbours, "made": not out_png.is_file()}
+                 "mutual": mutual, "neighbours": neighbours, "made": not out_png.is_file()}
         if not entry["made"]:
             entry["enhanced"] = read_image(out_png)
             if poses is not None and carried is None:  # a resumed path fits its neighbours' poses as it did
@@ -334,6 +334,8 @@ def enhance_path(
                 row["carried"] = entry["carried"]
                 if entry["agreement"] is not None:
                     row["carry_agreement_db"] = round(entry["agreement"], 2)
+                if entry["mutual"] is not None:
+                    row["between_agreement_db"] = round(entry["mutual"], 2)
             if photo is not None:
                 row["render_psnr"] = float(psnr(render[None], photo[None])[0])
                 row["enhanced_psnr"] = float(psnr(enhanced[None], photo[None])[0])

@@ -21,6 +21,9 @@ log = logging.getLogger("roguenerf.service")
 CARRY_AGREEMENT = 46.0
 """The form's default ``carry_agreement``: the library's (``TemporalConfig.carry_agreement``,
 written out so that importing the routes does not load torch; a test keeps them equal)."""
+BETWEEN_AGREEMENT = 0.0
+"""The form's default ``between_agreement``: the library's (``TemporalConfig.between_agreement``),
+as :data:`CARRY_AGREEMENT`."""
 
 router = APIRouter(prefix="/scenes", tags=["paths"])
 PATH_ARCHIVE = "the path archive"
@@ -93,6 +96,10 @@ def create_path_job(
     carry_agreement: Annotated[float, Form(ge=0, le=200, description=(
         "with model_every > 1, carry a frame only where the model frames' renders, reprojected into it, "
         "match its render to this PSNR in dB (0: wherever 95 % of it is seen)"))] = CARRY_AGREEMENT,
+    between_agreement: Annotated[float, Form(ge=0, le=200, description=(
+        "with model_every > 1 and carry_between, carry a frame only where the two model frames around it, "
+        "reprojected into it, also agree with each other to this PSNR in dB (0: no such test)"))
+    ] = BETWEEN_AGREEMENT,
     force: Annotated[bool, Form(description=(
         "enhance the path even when its cameras do not fit the scene (far from its cameras or seeing none of its "
         "training photos: OpenGL vs OpenCV, another unit or world, z vs ray depth; a 422 otherwise)"))] = False,
@@ -108,7 +115,8 @@ def create_path_job(
                                       force=force)
         request = {"kind": "path", "frames": frames, "depth_type": depth_type, "depth_scale": depth_scale,
                    "background": background, "quality": quality, "force": force, "model_every": model_every,
-                   "carry_agreement": carry_agreement, "carry_between": carry_between}
+                   "carry_agreement": carry_agreement, "carry_between": carry_between,
+                   "between_agreement": between_agreement}
         try:
             job, _ = services.store.create_job(scene_id, request, base_version=row["active_version"],
                                                max_queued=settings.max_queued_jobs)

@@ -104,6 +104,7 @@ def test_a_path_job_with_model_every_carries_the_frames_between(setup):
     job = r.json()
     assert job["request"]["model_every"] == 2 and job["request"]["carry_agreement"] == 0
     assert job["request"]["carry_between"] is True  # the library's default: from both model frames around
+    assert job["request"]["between_agreement"] == 0
     assert run_job(setup["ctx"], job["id"]) == "succeeded"
     result = client.get(f"/jobs/{job['id']}").json()["result"]
     report = client.get(f"/jobs/{job['id']}/result", params={"what": "flicker"}).json()
@@ -117,6 +118,9 @@ def test_a_path_job_with_model_every_carries_the_frames_between(setup):
 
     assert CARRY_AGREEMENT == TemporalConfig().carry_agreement  # the form's default is the library's
     assert TemporalConfig().carry_between is True  # as the form's
+    from service.routers.paths import BETWEEN_AGREEMENT
+
+    assert BETWEEN_AGREEMENT == TemporalConfig().between_agreement
     bad = post_path(client, scene_id, path_zip(setup["scene"], seed=SEED)[0], model_every=2, carry_agreement=-1)
     assert bad.status_code == 422 and "carry_agreement" in bad.json()["error"]["message"]
     assert stored(setup["data"]) == before

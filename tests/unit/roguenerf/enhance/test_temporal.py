@@ -232,6 +232,14 @@ def test_a_frame_between_two_model_frames_mixes_them_by_how_near_each_is():
     assert torch.allclose(out[:, :, :2], torch.full((3, H, 2), 0.2), atol=1e-5)  # only the first sees
     assert torch.allclose(out[:, :, -1], torch.full((3, H), 0.8), atol=1e-5)  # only the second
     assert f.last_warp is None and f.last_share == pytest.approx(1.0)
+    # between_agreement: the two moved results against each other where both see (0.2 against 0.8:
+    # 10 log10(1 / 0.36) = 4.44 dB), beside the renders' gate (equal renders: passed); a frame the
+    # two disagree on is not carried
+    for gate, carried in ((10.0, False), (4.0, True)):
+        judged = TemporalFilter(TemporalConfig(model_every=3, reject=0.0, min_seen=0.9, between_agreement=gate))
+        judged.restore(before)
+        assert (judged.carry(render, DEPTH, K, here, between=(before, after, 1 / 3)) is not None) == carried
+        assert judged.last_mutual == pytest.approx(4.437, abs=1e-3) and judged.last_agreement > 100
     far = POSE.clone()
     far[0, 3] = 1.5  # 15 pixels on: neither sees enough of it
     assert f.carry(render, DEPTH, K, far, between=(before, after, 0.5)) is None
@@ -242,6 +250,8 @@ def test_a_frame_between_two_model_frames_mixes_them_by_how_near_each_is():
     assert TemporalConfig(keep_within=4).carry_between  # nothing is carried at model_every 1
     with pytest.raises(InputError, match="carry_between"):
         TemporalConfig(carry_between=1)
+    with pytest.raises(InputError, match="between_agreement"):
+        TemporalConfig(between_agreement=-1.0)
 
 
 def test_a_frame_whose_render_the_last_one_does_not_predict_is_not_carried():

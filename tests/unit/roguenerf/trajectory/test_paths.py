@@ -442,13 +442,15 @@ def test_enhance_path_cli(toy_path, tmp_path):
     (tmp_path / "empty").mkdir()
     wrong = runner.invoke(app, [*args[:3], str(tmp_path / "empty"), *args[4:]])
     assert wrong.exit_code == 2 and "no frames found" in wrong.output
-    every = args[:7] + [str(tmp_path / "every"), *args[8:], "--model-every", "2", "--carry-agreement", "0"]
+    every = args[:7] + [str(tmp_path / "every"), *args[8:], "--model-every", "2", "--carry-agreement", "0",
+                        "--between-agreement", "0"]
     result = runner.invoke(app, every)
     assert result.exit_code == 0, result.output
     carried = [f["carried"] for f in json.loads((tmp_path / "every" / FLICKER_FILE).read_text())["per_frame"]]
     assert not carried[0] and any(carried) and not any(carried[t] for t in range(0, len(carried), 2))
     # --carry-after: from the last model frame only (another setting: another folder); frame 1 differs
-    after = every[:7] + [str(tmp_path / "after"), *every[8:], "--carry-after"]
+    after = args[:7] + [str(tmp_path / "after"), *args[8:], "--model-every", "2", "--carry-after",
+                        "--carry-agreement", "0"]
     assert runner.invoke(app, after).exit_code == 0
     frame = lambda folder: (tmp_path / folder / "frames" / "00001.png").read_bytes()  # noqa: E731
     assert frame("after") != frame("every")
@@ -456,6 +458,9 @@ def test_enhance_path_cli(toy_path, tmp_path):
                                                                      "drop --no-temporal"),
                            (["--carry-agreement", "40"], "only with --model-every"),
                            (["--carry-after"], "only with --model-every"),
+                           (["--model-every", "2", "--carry-after", "--between-agreement", "40"],
+                            "without --carry-after"),
+                           (["--model-every", "2", "--between-agreement", "-1"], "between_agreement"),
                            (["--model-every", "2", "--carry-agreement", "-1"], "carry_agreement")):
         bad = runner.invoke(app, args[:7] + [str(tmp_path / "bad"), *args[8:], *flags])
         assert bad.exit_code == 2 and message in bad.output and "Traceback" not in bad.output
