@@ -378,7 +378,7 @@ class TemporalFilter:
         both moved into this frame and mixed, ``after`` weighing ``position`` (in (0, 1): how far
         along from ``before`` this frame is) and ``before`` the rest, each only where it sees
         (:attr:`TemporalConfig.carry_between`); ``min_seen`` and ``carry_agreement`` judge the
-        mix."""
+        mix, and ``between_agreement`` (where set) the two against each other."""
         self.last_share = 0.0
         self.last_agreement = None
         self.last_mutual = None
