@@ -12,7 +12,7 @@ into a fresh folder without videos: the frames per second of ``PathResult.frames
 2026-11-30 without the flicker and PSNR), the flicker against the render's and against the
 render sharpened alike (``flicker_ratio_sharpened``, from 2026-12-07:
 :func:`~roguenerf.trajectory.flicker.sharpening`), and the gain on the frames with photos.
-``--model-every``, ``--resample``, ``--reject``, ``--carry-from``, ``--blend`` and
+``--model-every``, ``--resample``, ``--reject``, ``--carry-from``, ``--blend``,
 ``--carry-agreement``, ``--carry-between`` and ``--between-agreement`` run the filter once per
 combination of values of
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.model_every`,
