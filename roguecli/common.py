@@ -150,10 +150,10 @@ class PathEnhanceFlags(EnhanceFlags):
 
     def options(self):
         temporal = self.temporal
-        if self.carry_agreement is not None and self.model_every is None:
-            raise InputError("--carry-agreement: frames are carried only with --model-every K (K > 1)")
-        if self.carry_between is not None and self.model_every is None:
-            raise InputError("--carry-between/--carry-after: frames are carried only with --model-every K (K > 1)")
+        for value, flag in ((self.carry_agreement, "--carry-agreement"),
+                            (self.carry_between, "--carry-between/--carry-after")):
+            if value is not None and self.model_every is None:
+                raise InputError(f"{flag}: frames are carried only with --model-every K (K > 1)")
         if self.between_agreement is not None and (self.model_every is None or self.carry_between is False):
             raise InputError("--between-agreement: judges frames carried between model frames: needs --model-every "
                              "K (K > 1), without --carry-after")

@@ -215,13 +215,13 @@ def render_disagreement(warped_render: Tensor, render: Tensor, valid: Tensor) ->
     return torch.where(count > 0, total / count.clamp_min(1e-12), 0.0)[None]
 
 
-def _masked_psnr(image: Tensor, reference: Tensor, seen: Tensor) -> float:
+def _masked_psnr(image: Tensor, reference: Tensor, seen: Tensor, *, none_seen: float = 0.0) -> float:
     """PSNR (dB, peak 1) of ``image`` against ``reference`` (``(3, H, W)``) on the pixels ``seen``
-    (``(1, H, W)`` bool); 0 where none is seen, 120 where they are equal."""
+    (``(1, H, W)`` bool); ``none_seen`` where none is, 120 where they are equal."""
     mask = seen.float()
     count = 3.0 * float(mask.sum())
     if count == 0:
-        return 0.0
+        return none_seen
     mse = float(((image - reference).square() * mask).sum()) / count
     return -10.0 * math.log10(max(mse, 1e-12))
 
@@ -408,9 +408,8 @@ class TemporalFilter:
         if self.last_share < self.config.min_seen:
             return None
         if gate:
-            seen = valid.float()
-            mse = float(((warped_render - render).square() * seen).sum()) / max(3.0 * float(seen.sum()), 1.0)
-            self.last_agreement = -10.0 * math.log10(max(mse, 1e-12))
+            # nothing seen (min_seen 0): nothing moved that could disagree, as before
+            self.last_agreement = _masked_psnr(warped_render, render, valid, none_seen=120.0)
             if self.last_agreement < self.config.carry_agreement:
                 return None
         if between is not None and self.config.between_agreement > 0:

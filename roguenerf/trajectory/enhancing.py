@@ -239,12 +239,16 @@ def enhance_path(
         if t < total and t not in loading and t not in made:
             loading[t] = behind.submit(load_frame, t)
 
+    def excluded(t: int) -> int | None:
+        """The scene view frame t sits on where it is a training view: never its own neighbour."""
+        match = matches[t]
+        return match if match is not None and scene.frames[match].split == "train" else None
+
     def make(t: int, render: Tensor, depth: Tensor, *, neighbours=None, changed=False,
              carry_between=None) -> dict:
         """Frame t: carried (where due and allowed), read back (where written before) or enhanced."""
         camera = (camera_path.K[t], camera_path.world_from_cam[t])
-        match = matches[t]
-        exclude = match if match is not None and scene.frames[match].split == "train" else None
+        exclude = excluded(t)
         # Along a path with model_every > 1, a frame between the model's is carried into (where
         # the model frames see enough of it); decided the same way on a resume.
         carried = agreement = mutual = None
@@ -311,8 +315,7 @@ def enhance_path(
                 if temporal is not None and temporal.config.keep_within > 0:
                     # Chosen for every frame, read back or not: a resumed path keeps the same chain.
                     camera = (camera_path.K[t], camera_path.world_from_cam[t])
-                    match = matches[t]
-                    exclude = match if match is not None and scene.frames[match].split == "train" else None
+                    exclude = excluded(t)
                     chosen = enhancer.select(camera[1], exclude=exclude, view=(render, depth, camera[0]))
                     nearest = [enhancer.train[p] for p in enhancer.candidates(camera[1], temporal.config.keep_within,
                                                                               exclude=exclude)]
