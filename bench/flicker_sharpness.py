@@ -41,26 +41,26 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"--amounts: expected positive amounts, got {args.amounts}")
     args.photo_path, args.toy, args.quick, args.force = False, False, False, False
 
-    import numpy as np
     import torch
     import torch.nn.functional as F
 
     import roguenerf.runtime
     from bench.paths import field_frames
-    from roguenerf.imageio import read_image
+    from roguenerf.imageio import read_depth, read_image
     from roguenerf.ops import gaussian_blur
     from roguenerf.reprojection import reproject
+    from roguenerf.trajectory import find_path_frames
 
     roguenerf.runtime.configure()
     scene, frames, poses, K, width, height, *_rest, name = field_frames(args)
+    pairs = find_path_frames(frames, len(poses))
     variants = ["render", *[f"unsharp {a:g}" for a in amounts], "blur"]
 
     def blur(x: torch.Tensor) -> torch.Tensor:
         return gaussian_blur(x[None], 7, 1.0)[0]
 
     def images(t: int) -> tuple[list[torch.Tensor], torch.Tensor]:
-        render = read_image(frames / "rgb" / f"{t:05d}.png")
-        depth = torch.from_numpy(np.load(frames / "depth" / f"{t:05d}.npy")).float()[None]
+        render, depth = read_image(pairs[t][0]), read_depth(pairs[t][1])
         soft = blur(render)
         return [render, *[(render + a * (render - soft)).clamp(0, 1) for a in amounts], soft], depth
 
