@@ -13,18 +13,22 @@ into a fresh folder without videos: the frames per second of ``PathResult.frames
 render sharpened alike (``flicker_ratio_sharpened``, from 2026-12-07:
 :func:`~roguenerf.trajectory.flicker.sharpening`), and the gain on the frames with photos.
 ``--model-every``, ``--resample``, ``--reject``, ``--carry-from``, ``--blend``,
-``--carry-agreement``, ``--carry-between`` and ``--between-agreement`` run the filter once per
-combination of values of
+``--carry-agreement``, ``--carry-between``, ``--between-agreement``, ``--weight``,
+``--change-weight`` and ``--change-frames`` run the filter once per combination of values of
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.model_every`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.resample`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.reject`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_from`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.blend`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_agreement`,
-:attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_between` and
-:attr:`~roguenerf.enhance.temporal.TemporalConfig.between_agreement` (labelled ``on`` for the
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_between`,
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.between_agreement`,
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.weight`,
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.change_weight` and
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.change_frames` (labelled ``on`` for the
 shipped values, ``on/kK``, ``on/RESAMPLE``, ``on/rejectX``, ``on/from-C``, ``on/BLEND``,
-``on/agreeDB``, ``on/between-on|off`` and ``on/mutualDB`` for others; at ``model_every`` 1, where nothing is
+``on/agreeDB``, ``on/between-on|off``, ``on/mutualDB``, ``on/wW``, ``on/cwW`` and ``on/cfN`` for
+others; at ``model_every`` 1, where nothing is
 carried, only the shipped ``carry_between`` runs), with the share of frames carried; the CSV also keeps each frame
 with a photo's gain (``gains``: frame, gain, carried). Writes ``OUTPUT.csv`` (a row per run;
 date, machine, commit), ``OUTPUT.json`` (the medians, the ratios) and ``OUTPUT.png``.
@@ -69,6 +73,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="comma-separated TemporalConfig.carry_between values, on/off (default: the shipped one)")
     ap.add_argument("--between-agreement", default=None,
                     help="comma-separated TemporalConfig.between_agreement values (default: the shipped one)")
+    ap.add_argument("--weight", default=None,
+                    help="comma-separated TemporalConfig.weight values (default: the shipped one)")
+    ap.add_argument("--change-weight", default=None,
+                    help="comma-separated TemporalConfig.change_weight values (default: the shipped one)")
+    ap.add_argument("--change-frames", default=None,
+                    help="comma-separated TemporalConfig.change_frames values (default: the shipped one)")
     ap.add_argument("--force", action="store_true", help="enhance a path enhance_path's check refuses (as bench.paths)")
     args = ap.parse_args(argv)
     if args.repeats < 1:
@@ -103,8 +113,14 @@ def main(argv: list[str] | None = None) -> int:
                 else [onoff[x] for x in args.carry_between.split(",")])
     mutual = ([shipped.between_agreement] if args.between_agreement is None
               else [float(x) for x in args.between_agreement.split(",")])
+    weights = [shipped.weight] if args.weight is None else [float(x) for x in args.weight.split(",")]
+    change = ([shipped.change_weight] if args.change_weight is None
+              else [float(x) for x in args.change_weight.split(",")])
+    settle = ([shipped.change_frames] if args.change_frames is None
+              else [int(x) for x in args.change_frames.split(",")])
     modes = {"off": None}
-    for k, r, j, c, b, g, bw, m in itertools.product(every, resample, reject, carry, blend, gates, betweens, mutual):
+    for k, r, j, c, b, g, bw, m, w, cw, cf in itertools.product(every, resample, reject, carry, blend, gates, betweens,
+                                                                 mutual, weights, change, settle):
         if k == 1 and m != shipped.between_agreement:
             continue  # nothing is carried at K = 1
         if k == 1 and bw != shipped.carry_between:
@@ -116,9 +132,13 @@ def main(argv: list[str] | None = None) -> int:
                           *([b] if b != shipped.blend else []),
                           *([f"agree{g:g}"] if g != shipped.carry_agreement else []),
                           *([f"between-{'on' if bw else 'off'}"] if bw != shipped.carry_between else []),
-                          *([f"mutual{m:g}"] if m != shipped.between_agreement else [])])
+                          *([f"mutual{m:g}"] if m != shipped.between_agreement else []),
+                          *([f"w{w:g}"] if w != shipped.weight else []),
+                          *([f"cw{cw:g}"] if cw != shipped.change_weight else []),
+                          *([f"cf{cf}"] if cf != shipped.change_frames else [])])
         modes[label] = TemporalConfig(model_every=k, resample=r, reject=j, carry_from=c, blend=b,
-                                      carry_agreement=g, carry_between=bw, between_agreement=m)
+                                      carry_agreement=g, carry_between=bw, between_agreement=m, weight=w,
+                                      change_weight=cw, change_frames=cf)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for repeat in range(args.repeats):

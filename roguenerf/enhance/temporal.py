@@ -77,8 +77,12 @@ class TemporalConfig:
     weight: float = 0.5
     """Share of the previous frame's (reprojected) residual in each frame's residual, in [0, 1)."""
     change_weight: float = 0.5
-    """``weight`` at a frame whose neighbours differ from the previous frame's: the jump a new
-    neighbour brings is spread over more frames."""
+    """``weight`` at a frame whose neighbours differ from the previous frame's, and at the
+    :attr:`change_frames` - 1 frames after it: the jump a new neighbour set brings (the model's
+    output with one photo swapped) is spread over more frames."""
+    change_frames: int = 1
+    """How many frames, from a change of the neighbour set on, take :attr:`change_weight`
+    (:func:`settling`); 0: none."""
     blend: str = "image"
     """What is carried and blended: ``"residual"`` (the enhancer's change over the render, the
     module docstring) or ``"image"`` (the enhanced frame itself: the render's own flicker, a
@@ -192,6 +196,8 @@ class TemporalConfig:
             raise InputError(f"TemporalConfig.blend: expected 'residual' or 'image', got {self.blend!r}")
         if not isinstance(self.reuse_poses, bool):
             raise InputError(f"TemporalConfig.reuse_poses: expected True or False, got {self.reuse_poses!r}")
+        if isinstance(self.change_frames, bool) or not isinstance(self.change_frames, int) or self.change_frames < 0:
+            raise InputError(f"TemporalConfig.change_frames: expected an integer >= 0, got {self.change_frames!r}")
         if isinstance(self.keep_within, bool) or not isinstance(self.keep_within, int) or self.keep_within < 0:
             raise InputError(f"TemporalConfig.keep_within: expected an integer >= 0, got {self.keep_within!r}")
         if not isinstance(self.carry_between, bool):
@@ -241,6 +247,13 @@ def parallax_deg(depth: Tensor, K: Tensor, world_from_cam: Tensor, other_centre:
     # atan2 of the sine and cosine (not acos of the cosine): exact at 0 and stable near it
     angle = torch.atan2(torch.linalg.cross(here, there).norm(dim=-1), (here * there).sum(-1))
     return torch.where(known, torch.rad2deg(angle), 0.0).float()[None]
+
+
+def settling(changes: list[int], t: int, frames: int) -> bool:
+    """Whether frame ``t`` takes :attr:`TemporalConfig.change_weight`: a frame in ``changes`` (the
+    frames whose neighbour set differs from the frame before's) is among the ``frames`` frames
+    up to and including ``t``."""
+    return any(t - frames < c <= t for c in changes)
 
 
 def sticky_neighbours(previous: list[int] | None, chosen: list[int], nearest: list[int]) -> list[int]:

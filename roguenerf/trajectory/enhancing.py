@@ -34,7 +34,7 @@ from pathlib import Path
 
 from torch import Tensor
 
-from roguenerf.enhance.temporal import TemporalFilter, sticky_neighbours
+from roguenerf.enhance.temporal import TemporalFilter, settling, sticky_neighbours
 from roguenerf.errors import InputError, PathCancelled
 from roguenerf.trajectory.checks import check_path
 from roguenerf.trajectory.flicker import pair_flicker, sharpening, summarise_flicker
@@ -244,6 +244,32 @@ def enhance_path(
         match = matches[t]
         return match if match is not None and scene.frames[match].split == "train" else None
 
+    # Along a path the rule's neighbour set changes every few frames, and each change makes the
+    # enhanced frame jump (TemporalConfig.change_weight, change_frames): every frame's set is
+    # known, read back or not, so a resumed path weighs its frames as the first run did.
+    rule: dict[int, list[int]] = {}
+    measured = enhancer.options.neighbours is not None and enhancer.options.neighbours.measured
+
+    def chosen(t: int, view: tuple[Tensor, Tensor] | None = None) -> list[int]:
+        """The rule's neighbours of frame t (scene indices), chosen once; a measured rule reads
+        the frame where it has not been read yet."""
+        if t not in rule:
+            if view is None and measured:
+                view = load_frame(t)
+            rule[t] = enhancer.select(camera_path.world_from_cam[t], exclude=excluded(t),
+                                      view=None if view is None else (*view, camera_path.K[t]))
+        return rule[t]
+
+    changes: list[int] = []  # with keep_within: the frames whose neighbours differ from the frame before's
+
+    def settles(t: int) -> bool:
+        """Whether frame t takes TemporalConfig.change_weight (a set change within change_frames)."""
+        frames = temporal.config.change_frames
+        if temporal.config.keep_within > 0:
+            return settling(changes, t, frames)
+        return settling([s for s in range(max(1, t - frames + 1), t + 1) if set(chosen(s)) != set(chosen(s - 1))],
+                        t, frames)
+
     def make(t: int, render: Tensor, depth: Tensor, *, neighbours=None, changed=False,
              carry_between=None) -> dict:
         """Frame t: carried (where due and allowed), read back (where written before) or enhanced."""
@@ -264,9 +290,8 @@ def enhance_path(
         if not entry["made"]:
             entry["enhanced"] = read_image(out_png)
             if poses is not None and carried is None:  # a resumed path fits its neighbours' poses as it did
-                chosen = neighbours if neighbours is not None else enhancer.select(
-                    camera[1], exclude=exclude, view=(render, depth, camera[0]))
-                enhancer.neighbour_poses([enhancer.train.index(i) for i in chosen], render, depth, *camera,
+                used = neighbours if neighbours is not None else chosen(t, (render, depth))
+                enhancer.neighbour_poses([enhancer.train.index(i) for i in used], render, depth, *camera,
                                          memory=poses)
         elif carried is not None:
             entry["image"] = carried
@@ -274,7 +299,7 @@ def enhance_path(
             image = enhancer.enhance(render, depth, *camera, exclude=exclude, neighbours=neighbours,
                                      pose_memory=poses).image
             if temporal is not None:
-                image = temporal(render, image, depth, *camera, changed=changed)
+                image = temporal(render, image, depth, *camera, changed=settles(t))
             entry["image"] = image
         if entry["made"]:
             entry["enhanced"] = _quantise(entry["image"])
@@ -286,11 +311,12 @@ def enhance_path(
         before = t - t % every
         after = min(before + every, total - 1)
         if t == before or t == after:  # a model frame with nothing to carry between (the last, or frame 0)
-            return make(t, render, depth)
+            return make(t, render, depth, neighbours=chosen(t, (render, depth)))
         if after not in made:
             kept = temporal.kept  # the model frame before, as written: the frame just remembered
             after_render, after_depth = frame(after)
-            made[after] = make(after, after_render, after_depth)
+            made[after] = make(after, after_render, after_depth,
+                               neighbours=chosen(after, (after_render, after_depth)))
             read_ahead(t + 1)
             camera = (camera_path.K[after], camera_path.world_from_cam[after])
             temporal.remember(after_render, made[after]["enhanced"], after_depth, *camera, model=True)
@@ -312,15 +338,16 @@ def enhance_path(
                 render, depth = frame(t)
                 read_ahead(t + 1)
                 neighbours, changed = None, False
-                if temporal is not None and temporal.config.keep_within > 0:
+                if temporal is not None and not between:  # between: make_between chooses for its model frames
                     # Chosen for every frame, read back or not: a resumed path keeps the same chain.
-                    camera = (camera_path.K[t], camera_path.world_from_cam[t])
-                    exclude = excluded(t)
-                    chosen = enhancer.select(camera[1], exclude=exclude, view=(render, depth, camera[0]))
-                    nearest = [enhancer.train[p] for p in enhancer.candidates(camera[1], temporal.config.keep_within,
-                                                                              exclude=exclude)]
-                    neighbours = sticky_neighbours(last_neighbours, chosen, nearest)
+                    neighbours = chosen(t, (render, depth))
+                    if temporal.config.keep_within > 0:
+                        nearest = [enhancer.train[p] for p in enhancer.candidates(
+                            camera_path.world_from_cam[t], temporal.config.keep_within, exclude=excluded(t))]
+                        neighbours = sticky_neighbours(last_neighbours, neighbours, nearest)
                     changed = last_neighbours is not None and set(neighbours) != set(last_neighbours)
+                    if changed:
+                        changes.append(t)
                     last_neighbours = neighbours
                 entry = (make_between(t, render, depth) if between
                          else make(t, render, depth, neighbours=neighbours, changed=changed))
@@ -331,7 +358,7 @@ def enhance_path(
                 done_now += 1
             photo = scene.photo(matches[t]) if matches[t] is not None else None
             row = {"frame": t, "view": scene.frames[matches[t]].name if matches[t] is not None else None}
-            if entry["neighbours"] is not None:
+            if entry["neighbours"] is not None and not entry["carried"]:
                 row["neighbours"] = [scene.frames[i].name for i in entry["neighbours"]]
             if temporal is not None and every > 1:
                 row["carried"] = entry["carried"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from roguenerf.enhance.temporal import TemporalConfig, TemporalFilter
+from roguenerf.enhance.temporal import TemporalConfig, TemporalFilter, settling
 from roguenerf.errors import InputError
 from tests.geometry_helpers import turned
 
@@ -101,6 +101,22 @@ def test_sticky_neighbours_keep_what_is_still_near():
 def test_bad_keep_within_is_refused(keep):
     with pytest.raises(InputError, match="keep_within"):
         TemporalConfig(keep_within=keep)
+
+
+def test_a_neighbour_change_settles_over_change_frames():
+    """The frame whose neighbour set changed and the change_frames - 1 after it take change_weight."""
+    changes = [5, 20]
+    assert [t for t in range(30) if settling(changes, t, 3)] == [5, 6, 7, 20, 21, 22]
+    assert [t for t in range(30) if settling(changes, t, 1)] == [5, 20]
+    assert not any(settling(changes, t, 0) for t in range(30))
+    assert [t for t in range(12) if settling([5, 7], t, 3)] == [5, 6, 7, 8, 9]  # a second change restarts it
+    assert not any(settling([], t, 3) for t in range(30))
+
+
+@pytest.mark.parametrize("frames", [-1, 2.5, True, "3"])
+def test_bad_change_frames_is_refused(frames):
+    with pytest.raises(InputError, match="change_frames"):
+        TemporalConfig(change_frames=frames)
 
 
 def test_blending_the_image_averages_the_frames_themselves():

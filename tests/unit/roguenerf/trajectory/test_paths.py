@@ -300,7 +300,10 @@ def test_the_temporal_filter_lowers_flicker_and_leaves_the_first_frame(toy_path,
     sticky = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=TemporalConfig(keep_within=keep)))
     kept = enhance_path(scene, sticky, cp, root / "frames", tmp_path / "sticky", depth_type="ray", video=False)
     used = [f["neighbours"] for f in kept.flicker["per_frame"]]
-    assert all(len(u) >= 2 for u in used) and "neighbours" not in on.flicker["per_frame"][0]
+    assert all(len(u) >= 2 for u in used) and "neighbours" not in off.flicker["per_frame"][0]
+    assert [f["neighbours"] for f in on.flicker["per_frame"]] == [  # the rule's, named for every frame
+        [enhancer.train_names[p] for p in enhancer.candidates(pose, 2, exclude=view)]
+        for pose, view in zip(cp.world_from_cam, [f["view"] for f in on.flicker["per_frame"]], strict=True)]
     views = [f["view"] for f in kept.flicker["per_frame"]]  # a frame on a training view never takes it
     nearest = [[enhancer.train_names[p] for p in enhancer.candidates(pose, keep, exclude=view)]
                for pose, view in zip(cp.world_from_cam, views, strict=True)]
@@ -309,6 +312,49 @@ def test_the_temporal_filter_lowers_flicker_and_leaves_the_first_frame(toy_path,
         assert used[t][:len(stay)] == stay
     with pytest.raises(InputError, match="another path"):
         enhance_path(scene, alone, cp, root / "frames", tmp_path / "on", depth_type="ray", video=False)
+
+
+def test_a_neighbour_change_is_blended_more_for_change_frames_and_resumes_the_same(toy_path, enhancer, tmp_path,
+                                                                                    monkeypatch):
+    """A frame whose neighbour set differs from the frame before's, and the change_frames - 1
+    frames after it, take change_weight instead of weight (the jump a new photo brings is spread
+    over more frames); the frames before the first change are those of change_weight = weight,
+    and a path resumed after a change weighs and makes its frames as the first run did."""
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.enhance.temporal import TemporalConfig, TemporalFilter
+
+    root, scene = toy_path["root"], toy_path["scene"]
+    cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
+    T = len(cp)
+    took = []
+    real = TemporalFilter.__call__
+    monkeypatch.setattr(TemporalFilter, "__call__", lambda self, *a, changed=False, **k: took.append(
+        self.config.change_weight if changed else self.config.weight) or real(self, *a, changed=changed, **k))
+
+    def run(out, change_weight=0.9):
+        config = TemporalConfig(weight=0.5, change_weight=change_weight, change_frames=2)
+        mover = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=config))
+        return enhance_path(scene, mover, cp, root / "frames", out, depth_type="ray", video=False)
+
+    result = run(tmp_path / "change")
+    sets = [set(f["neighbours"]) for f in result.flicker["per_frame"]]
+    changes = [t for t in range(1, T) if sets[t] != sets[t - 1]]
+    assert changes and changes[0] + 1 < T  # the toy orbit's path changes its neighbours on the way
+    first = changes[0]
+    assert took[:first] == [0.5] * first and took[first:first + 2] == [0.9, 0.9]
+    assert took == [0.9 if any(t - 2 < c <= t for c in changes) else 0.5 for t in range(T)]
+    frame = lambda folder, t: (tmp_path / folder / "frames" / f"{t:05d}.png").read_bytes()  # noqa: E731
+    run(tmp_path / "plain", change_weight=0.5)
+    assert all(frame("change", t) == frame("plain", t) for t in range(first))
+    assert frame("change", first) != frame("plain", first)
+    made = {t: frame("change", t) for t in range(T)}
+    for t in range(first + 1, T):
+        (tmp_path / "change" / "frames" / f"{t:05d}.png").unlink()
+    took.clear()
+    again = run(tmp_path / "change")
+    assert again.enhanced_now == T - first - 1 and took == [0.9 if any(t - 2 < c <= t for c in changes) else 0.5
+                                                            for t in range(first + 1, T)]
+    assert all(frame("change", t) == made[t] for t in range(T))
 
 
 def test_frames_between_the_models_are_carried_and_resume_the_same(toy_path, enhancer, tmp_path, monkeypatch):
