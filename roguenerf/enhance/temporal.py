@@ -27,8 +27,9 @@ the angle at its 3-D point between the two frames' rays: ``w = weight * 0.5 ** (
 fade_deg)``.
 
 Because the carried frame is the blended one, the filter is an exponential moving average along
-the path: with ``w = 0.5`` a frame weighs the one before by 1/2, the one before that by 1/4, and
-so on. Blending the image smooths the render's own flicker too (a field's floaters that come and
+the path: with ``w = 0.8`` (the default) a frame's own result counts 0.2, the one before 0.16,
+the one before that 0.128, and so on (with 0.5, the default before 2026-12-07: 1/2, 1/4, ...).
+Blending the image smooths the render's own flicker too (a field's floaters that come and
 go; the rejection keeps each frame's own where they differ much); blending only the residual
 carries those back in, and flickered more on a hash field's path than no blending at all
 (docs/broad.md, *Videos that do not flicker*). A cut (a pose far from the last) needs no
@@ -74,15 +75,24 @@ from roguenerf.errors import InputError
 
 @dataclass(frozen=True)
 class TemporalConfig:
-    weight: float = 0.5
-    """Share of the previous frame's (reprojected) residual in each frame's residual, in [0, 1)."""
-    change_weight: float = 0.5
+    weight: float = 0.8
+    """Share of the previous frame's result (reprojected) in each frame's, in [0, 1), before
+    :attr:`reject` lowers it where the renders disagree. 0.8 since 2026-12-07 (0.5 before): chosen
+    on the choice half's paths, ``can_clip``'s smooth 154-frame path and ``dtu_scan37``'s 49- and
+    13-frame ones (5 and 10 degrees a frame), by the rule that chose :attr:`reject`: the least mean
+    flicker of the weights (0.5 to 0.9) that cost no path more than 0.1 dB on its frames with photos
+    against frame by frame (0.85 cost ``can_clip`` 0.19 dB); reported on ``ollie``'s and
+    ``mary_rose``'s (docs/broad.md, *A heavier blend, and the neighbour changes*)."""
+    change_weight: float = 0.9
     """``weight`` at a frame whose neighbours differ from the previous frame's, and at the
-    :attr:`change_frames` - 1 frames after it: the jump a new neighbour set brings (the model's
-    output with one photo swapped) is spread over more frames."""
-    change_frames: int = 1
+    :attr:`change_frames` - 1 frames after it (only with :attr:`change_frames` > 0): the jump a
+    new neighbour set brings (the model's output with one photo swapped) is spread over more
+    frames."""
+    change_frames: int = 0
     """How many frames, from a change of the neighbour set on, take :attr:`change_weight`
-    (:func:`settling`); 0: none."""
+    (:func:`settling`); 0 (the default): none. Along ``can_clip``'s 154-frame path the set changes
+    15 times, and those pairs flicker twice as much as the others; 3 frames at 0.9 lowered the
+    flicker less than the heavier :attr:`weight` and cost 0.08-0.15 dB there (docs/broad.md)."""
     blend: str = "image"
     """What is carried and blended: ``"residual"`` (the enhancer's change over the render, the
     module docstring) or ``"image"`` (the enhanced frame itself: the render's own flicker, a
