@@ -11,7 +11,10 @@ into a fresh folder without videos: the frames per second of ``PathResult.frames
 (each made frame's whole turn: reading, enhancing, smoothing, writing, its flicker and PSNR; before
 2026-11-30 without the flicker and PSNR), the flicker against the render's and against the
 render sharpened alike (``flicker_ratio_sharpened``, from 2026-12-07:
-:func:`~roguenerf.trajectory.flicker.sharpening`), and the gain on the frames with photos.
+:func:`~roguenerf.trajectory.flicker.sharpening`), the pairs across which the model's neighbour
+set changed and the flicker ratio there and elsewhere (``neighbour_changes``,
+``flicker_ratio_changed``, ``flicker_ratio_steady``; pairs with a carried frame in neither), and the
+gain on the frames with photos.
 ``--model-every``, ``--resample``, ``--reject``, ``--carry-from``, ``--blend``,
 ``--carry-agreement``, ``--carry-between``, ``--between-agreement``, ``--weight``,
 ``--change-weight`` and ``--change-frames`` run the filter once per combination of values of
@@ -154,6 +157,10 @@ def main(argv: list[str] | None = None) -> int:
                              "flicker_ratio": round(report["flicker"]["ratio"], 4),
                              "flicker_ratio_sharpened": round(report["flicker"]["ratio_sharpened"], 4),
                              "detail_ratio": round(report["flicker"]["detail_ratio"], 4),
+                             "neighbour_changes": report["flicker"]["neighbour_changes"],
+                             **{f"flicker_ratio_{k}": (None if report["flicker"][f"ratio_{k}"] is None
+                                                       else round(report["flicker"][f"ratio_{k}"], 4))
+                                for k in ("changed", "steady")},
                              "gain_db": round(report["psnr"]["mean_gain_db"], 4),
                              "carried_share": round(sum(bool(f.get("carried")) for f in report["per_frame"])
                                                     / len(report["per_frame"]), 4),

@@ -114,6 +114,10 @@ def enhance_path_command(
             typer.echo(f"  against the render sharpened alike to the enhanced frames' detail "
                        f"(x{f['detail_ratio']:.2f}; sharper frames read as more flicker): "
                        f"x{f['ratio_sharpened']:.3f}", err=True)
+        if f.get("neighbour_changes") and f.get("ratio_changed") is not None and f.get("ratio_steady") is not None:
+            typer.echo(f"  the neighbour set changed across {f['neighbour_changes']} of {f['pairs']} frame pairs "
+                       f"(flicker.json names each frame's): x{f['ratio_changed']:.3f} there, "
+                       f"x{f['ratio_steady']:.3f} elsewhere", err=True)
         if p["frames_with_photos"]:
             typer.echo(f"{p['frames_with_photos']} frames have photos: PSNR render {p['render']:.2f} dB, enhanced "
                        f"{p['enhanced']:.2f} dB, mean gain {p['mean_gain_db']:+.2f} dB", err=True)

@@ -286,7 +286,9 @@ def enhance_path(
             agreement = temporal.last_agreement  # what decided it (TemporalConfig.carry_agreement)
         out_png = frame_dir / f"{t:05d}.png"
         entry = {"render": render, "depth": depth, "carried": carried is not None, "agreement": agreement,
-                 "mutual": mutual, "neighbours": neighbours, "made": not out_png.is_file()}
+                 "mutual": mutual, "made": not out_png.is_file(),
+                 "neighbours": None if neighbours is None or carried is not None
+                 else [scene.frames[i].name for i in neighbours]}
         if not entry["made"]:
             entry["enhanced"] = read_image(out_png)
             if poses is not None and carried is None:  # a resumed path fits its neighbours' poses as it did
@@ -296,8 +298,9 @@ def enhance_path(
         elif carried is not None:
             entry["image"] = carried
         else:
-            image = enhancer.enhance(render, depth, *camera, exclude=exclude, neighbours=neighbours,
-                                     pose_memory=poses).image
+            result = enhancer.enhance(render, depth, *camera, exclude=exclude, neighbours=neighbours,
+                                      pose_memory=poses)
+            image, entry["neighbours"] = result.image, result.neighbours
             if temporal is not None:
                 image = temporal(render, image, depth, *camera, changed=settles(t))
             entry["image"] = image
@@ -358,8 +361,8 @@ def enhance_path(
                 done_now += 1
             photo = scene.photo(matches[t]) if matches[t] is not None else None
             row = {"frame": t, "view": scene.frames[matches[t]].name if matches[t] is not None else None}
-            if entry["neighbours"] is not None and not entry["carried"]:
-                row["neighbours"] = [scene.frames[i].name for i in entry["neighbours"]]
+            if entry["neighbours"] is not None:  # the model's, where it ran (or would have, read back)
+                row["neighbours"] = entry["neighbours"]
             if temporal is not None and every > 1:
                 row["carried"] = entry["carried"]
                 if entry["agreement"] is not None:

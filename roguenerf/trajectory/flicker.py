@@ -107,7 +107,10 @@ def pair_flicker(images_t: list[Tensor | None], images_t1: list[Tensor | None], 
 
 
 def summarise_flicker(per_pair: list[dict], per_frame: list[dict]) -> dict:
-    """Means over the pairs (and the frames with photos) of :func:`~roguenerf.trajectory.enhance_path`'s rows."""
+    """Means over the pairs (and the frames with photos) of :func:`~roguenerf.trajectory.enhance_path`'s rows;
+    ``flicker.ratio_changed`` / ``ratio_steady``: enhanced over render flicker on the
+    ``neighbour_changes`` pairs across which the frames' neighbour sets differ / on the pairs
+    where they are the same (None where no pair is such: frames carried name no neighbours)."""
     def mean(values):
         values = [v for v in values if v is not None and math.isfinite(v)]
         return sum(values) / len(values) if values else None
@@ -116,13 +119,24 @@ def summarise_flicker(per_pair: list[dict], per_frame: list[dict]) -> dict:
     enhanced = mean(p["enhanced"] for p in per_pair)
     sharpened = mean(p.get("sharpened") for p in per_pair)
     with_photo = [f for f in per_frame if "gain_db" in f]
+    # The pairs across which the model's neighbour set changed, where both frames name theirs
+    # (frames carried along a path name none): most of a path's flicker comes from them.
+    named = {f["frame"]: set(f["neighbours"]) for f in per_frame if f.get("neighbours") is not None}
+    change = [p for p in per_pair if p["from"] in named and p["to"] in named and named[p["from"]] != named[p["to"]]]
+    steady = [p for p in per_pair if p["from"] in named and p["to"] in named and named[p["from"]] == named[p["to"]]]
+
+    def ratio(pairs):
+        render, enhanced = mean(p["render"] for p in pairs), mean(p["enhanced"] for p in pairs)
+        return enhanced / render if render and enhanced is not None else None
+
     return {
         "flicker": {"render": render, "enhanced": enhanced, "photo": mean(p["photo"] for p in per_pair),
                     "ratio": (enhanced / render) if render and enhanced is not None else None,
                     "sharpened": sharpened,
                     "ratio_sharpened": (enhanced / sharpened) if sharpened and enhanced is not None else None,
                     "detail_ratio": mean(f.get("detail_ratio") for f in per_frame),
-                    "pairs": len(per_pair), "pairs_with_photos": sum(p["photo"] is not None for p in per_pair)},
+                    "pairs": len(per_pair), "pairs_with_photos": sum(p["photo"] is not None for p in per_pair),
+                    "neighbour_changes": len(change), "ratio_changed": ratio(change), "ratio_steady": ratio(steady)},
         "psnr": {"frames_with_photos": len(with_photo),
                  "render": mean(f["render_psnr"] for f in with_photo),
                  "enhanced": mean(f["enhanced_psnr"] for f in with_photo),

@@ -103,6 +103,14 @@ def test_path_speed_alternates_frame_by_frame_and_the_temporal_filter(tmp_path):
     summary = json.loads((tmp_path / "res" / "between.json").read_text())
     assert list(summary["frames_per_second"]) == ["off", "on", "on/k3", "on/k3/between-off"]
     assert all(v > 0 for v in summary["flicker_ratio_sharpened"].values())
+    # the blend's weights beside the shipped ones; each run counts the pairs whose neighbours changed
+    assert path_speed.main(["--fit", str(tmp_path / "pairs"), "--work", str(tmp_path / "work"), "--keys", "2",
+                            "--steps", "2", "--repeats", "1", "--weight", "0.5,0.8", "--change-frames", "0,3",
+                            "--force", "--output", str(tmp_path / "res" / "weights")]) == 0
+    summary = json.loads((tmp_path / "res" / "weights.json").read_text())
+    assert list(summary["frames_per_second"]) == ["off", "on/w0.5", "on/w0.5/cf3", "on", "on/cf3"]
+    rows = list(csv.DictReader(open(tmp_path / "res" / "weights.csv")))
+    assert len({r["neighbour_changes"] for r in rows}) == 1 and int(rows[0]["neighbour_changes"]) >= 0
 
 
 @pytest.mark.slow

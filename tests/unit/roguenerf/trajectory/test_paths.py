@@ -170,6 +170,24 @@ def test_a_consistent_sharpening_reads_as_flicker_but_not_against_the_sharpened_
     assert enhanced == pytest.approx(sharpened, rel=0.05)
 
 
+def test_the_flicker_report_splits_the_pairs_where_the_neighbours_changed():
+    """summarise_flicker: enhanced over render flicker on the pairs across which the frames' neighbour
+    sets differ, and on the others; a frame that names none (carried) leaves its pairs out of both."""
+    from roguenerf.trajectory.flicker import summarise_flicker
+
+    frames = [{"frame": 0, "neighbours": ["a", "b"]}, {"frame": 1, "neighbours": ["b", "a"]},
+              {"frame": 2, "neighbours": ["a", "c"]}, {"frame": 3, "neighbours": ["a", "c"]}, {"frame": 4}]
+    pair = lambda t, render, enhanced: {"from": t, "to": t + 1, "render": render, "enhanced": enhanced,  # noqa: E731
+                                        "photo": None, "sharpened": None}
+    report = summarise_flicker([pair(0, 0.1, 0.1), pair(1, 0.1, 0.4), pair(2, 0.2, 0.1), pair(3, 0.1, 0.9)], frames)
+    flicker = report["flicker"]
+    assert flicker["neighbour_changes"] == 1 and flicker["ratio_changed"] == pytest.approx(4.0)
+    assert flicker["ratio_steady"] == pytest.approx(0.1 / 0.15)  # pairs 0-1 (the same set, reordered) and 2-3
+    assert flicker["ratio"] == pytest.approx(1.5 / 0.5)
+    none = summarise_flicker([pair(0, 0.1, 0.1)], [{"frame": 0}, {"frame": 1}])["flicker"]
+    assert none["neighbour_changes"] == 0 and none["ratio_changed"] is None and none["ratio_steady"] is None
+
+
 def test_flicker_on_the_filters_move_is_the_flicker_reprojected_again(toy_path):
     """pair_flicker sampling at a reprojection it is given (the temporal filter's) measures what
     it measures reprojecting itself: the same valid pixels, the same errors to float rounding."""
@@ -300,10 +318,11 @@ def test_the_temporal_filter_lowers_flicker_and_leaves_the_first_frame(toy_path,
     sticky = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=TemporalConfig(keep_within=keep)))
     kept = enhance_path(scene, sticky, cp, root / "frames", tmp_path / "sticky", depth_type="ray", video=False)
     used = [f["neighbours"] for f in kept.flicker["per_frame"]]
-    assert all(len(u) >= 2 for u in used) and "neighbours" not in off.flicker["per_frame"][0]
-    assert [f["neighbours"] for f in on.flicker["per_frame"]] == [  # the rule's, named for every frame
-        [enhancer.train_names[p] for p in enhancer.candidates(pose, 2, exclude=view)]
-        for pose, view in zip(cp.world_from_cam, [f["view"] for f in on.flicker["per_frame"]], strict=True)]
+    assert all(len(u) >= 2 for u in used)
+    rule = [[enhancer.train_names[p] for p in enhancer.candidates(pose, 2, exclude=view)]  # the 2 nearest here
+            for pose, view in zip(cp.world_from_cam, [f["view"] for f in on.flicker["per_frame"]], strict=True)]
+    for run in (on, off):  # every frame names the neighbours the model took, filtered or not
+        assert [f["neighbours"] for f in run.flicker["per_frame"]] == rule
     views = [f["view"] for f in kept.flicker["per_frame"]]  # a frame on a training view never takes it
     nearest = [[enhancer.train_names[p] for p in enhancer.candidates(pose, keep, exclude=view)]
                for pose, view in zip(cp.world_from_cam, views, strict=True)]
@@ -340,6 +359,7 @@ def test_a_neighbour_change_is_blended_more_for_change_frames_and_resumes_the_sa
     sets = [set(f["neighbours"]) for f in result.flicker["per_frame"]]
     changes = [t for t in range(1, T) if sets[t] != sets[t - 1]]
     assert changes and changes[0] + 1 < T  # the toy orbit's path changes its neighbours on the way
+    assert result.flicker["flicker"]["neighbour_changes"] == len(changes)
     first = changes[0]
     assert took[:first] == [0.5] * first and took[first:first + 2] == [0.9, 0.9]
     assert took == [0.9 if any(t - 2 < c <= t for c in changes) else 0.5 for t in range(T)]
@@ -483,6 +503,8 @@ def test_enhance_path_cli(toy_path, tmp_path):
     assert "flicker" in result.output and "frames have photos" in result.output
     report = json.loads((tmp_path / "cli" / FLICKER_FILE).read_text())
     assert report["frames"] == 2 * STEPS + 1
+    changes = report["flicker"]["neighbour_changes"]  # the toy path's set changes, and the CLI says where
+    assert changes > 0 and f"the neighbour set changed across {changes} of {2 * STEPS} frame pairs" in result.output
     bad = runner.invoke(app, args[:-1] + ["--quality", "99"])
     assert bad.exit_code == 2 and "--quality" in bad.output and "Traceback" not in bad.output
     (tmp_path / "empty").mkdir()
