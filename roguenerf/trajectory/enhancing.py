@@ -248,7 +248,7 @@ def enhance_path(
     # enhanced frame jump (TemporalConfig.change_weight, change_frames): every frame's set is
     # known, read back or not, so a resumed path weighs its frames as the first run did.
     rule: dict[int, list[int]] = {}
-    measured = enhancer.options.neighbours is not None and enhancer.options.neighbours.measured
+    measured = enhancer.options.neighbours.measured
 
     def chosen(t: int, view: tuple[Tensor, Tensor] | None = None) -> list[int]:
         """The rule's neighbours of frame t (scene indices), chosen once; a measured rule reads
@@ -392,6 +392,8 @@ def enhance_path(
                 temporal.remember(render, enhanced, depth, camera_path.K[t], camera_path.world_from_cam[t],
                                   model=not entry["carried"])
             anchors.pop(t - every, None)
+            if temporal is not None:  # frames later than t look back this far at most (settles)
+                rule.pop(t - temporal.config.change_frames - 1, None)
             if progress is not None:
                 progress(t + 1, total)
             if made_now:
