@@ -271,7 +271,7 @@ def enhance_path(
                         t, frames)
 
     def make(t: int, render: Tensor, depth: Tensor, *, neighbours=None, changed=False,
-             carry_between=None) -> dict:
+             carry_between=None, apart=1) -> dict:
         """Frame t: carried (where due and allowed), read back (where written before) or enhanced."""
         camera = (camera_path.K[t], camera_path.world_from_cam[t])
         exclude = excluded(t)
@@ -302,7 +302,7 @@ def enhance_path(
                                       pose_memory=poses)
             image, entry["neighbours"] = result.image, result.neighbours
             if temporal is not None:
-                image = temporal(render, image, depth, *camera, changed=settles(t))
+                image = temporal(render, image, depth, *camera, changed=settles(t), frames_apart=apart)
             entry["image"] = image
         if entry["made"]:
             entry["enhanced"] = _quantise(entry["image"])
@@ -318,8 +318,8 @@ def enhance_path(
         if after not in made:
             kept = temporal.kept  # the model frame before, as written: the frame just remembered
             after_render, after_depth = frame(after)
-            made[after] = make(after, after_render, after_depth,
-                               neighbours=chosen(after, (after_render, after_depth)))
+            made[after] = make(after, after_render, after_depth,  # blended with the model frame before
+                               neighbours=chosen(after, (after_render, after_depth)), apart=after - before)
             read_ahead(t + 1)
             camera = (camera_path.K[after], camera_path.world_from_cam[after])
             temporal.remember(after_render, made[after]["enhanced"], after_depth, *camera, model=True)

@@ -130,6 +130,21 @@ def test_blending_the_image_averages_the_frames_themselves():
         TemporalConfig(blend="pixels")
 
 
+def test_a_last_frame_further_along_the_path_weighs_less():
+    """frames_apart = k: the last frame kept weighs weight ** k (a moving average over k frames
+    would leave it that much); the change weight the same way; k must be a whole number >= 1."""
+    r1, e1 = _frame(1)
+    r2, e2 = _frame(2)
+    for changed, w in ((False, 0.8), (True, 0.9)):
+        f = TemporalFilter(TemporalConfig(weight=0.8, change_weight=0.9, blend="image", reject=0.0))
+        f(r1, e1, DEPTH, K, POSE)
+        out = f(r2, e2, DEPTH, K, POSE, changed=changed, frames_apart=4)
+        assert torch.allclose(out, (1 - w ** 4) * e2 + w ** 4 * e1, atol=1e-5)
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(InputError, match="frames_apart"):
+            f(r2, e2, DEPTH, K, POSE, frames_apart=bad)
+
+
 # --- issue 51: frames between the model's carry the last one -----------------------------------
 
 

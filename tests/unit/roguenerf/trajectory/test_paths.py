@@ -469,8 +469,15 @@ def test_frames_between_two_model_frames_are_carried_from_both_and_resume_the_sa
             next(t for t in range(T) if torch.equal(a[2], cp.world_from_cam[t]))) or real(render, *a, **k))
         return enhance_path(scene, mixer, cp, root / "frames", out, depth_type="ray", video=False, **kw)
 
+    from roguenerf.enhance.temporal import TemporalFilter
+
+    apart = []
+    blend = TemporalFilter.__call__
+    monkeypatch.setattr(TemporalFilter, "__call__", lambda self, *a, frames_apart=1, **k: apart.append(
+        frames_apart) or blend(self, *a, frames_apart=frames_apart, **k))
     result = run(tmp_path / "between")
     assert made_by_model == [0, 3, 6] and result.enhanced_now == T
+    assert apart == [1, 3, 3]  # each model frame is blended with the one 3 frames before it
     rows = result.flicker["per_frame"]
     assert [f["frame"] for f in rows] == list(range(T))
     assert [f["carried"] for f in rows] == [t % 3 > 0 for t in range(T)]
