@@ -120,7 +120,7 @@ def summarise_flicker(per_pair: list[dict], per_frame: list[dict]) -> dict:
     sharpened = mean(p.get("sharpened") for p in per_pair)
     with_photo = [f for f in per_frame if "gain_db" in f]
     # The pairs across which the model's neighbour set changed, where both frames name theirs
-    # (frames carried along a path name none): most of a path's flicker comes from them.
+    # (frames carried along a path name none): a path flickers most across them.
     named = {f["frame"]: set(f["neighbours"]) for f in per_frame if f.get("neighbours") is not None}
     change = [p for p in per_pair if p["from"] in named and p["to"] in named and named[p["from"]] != named[p["to"]]]
     steady = [p for p in per_pair if p["from"] in named and p["to"] in named and named[p["from"]] == named[p["to"]]]
