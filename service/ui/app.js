@@ -831,6 +831,9 @@
           + (Number.isFinite(flicker.ratio) ? ` (×${flicker.ratio.toFixed(2)})` : "")
           + (Number.isFinite(flicker.ratio_sharpened)
             ? `; ×${flicker.ratio_sharpened.toFixed(2)} of the render sharpened alike` : "")
+          + (flicker.neighbour_changes > 0 && Number.isFinite(flicker.ratio_changed)
+            ? `; ×${flicker.ratio_changed.toFixed(2)} across the ${flicker.neighbour_changes} frame pairs`
+              + " where the neighbour photos changed" : "")
         : "–", "Flicker");
       cell(tr, fmt.date(job.created_at), "Created");
       const actions = cell(tr, "", "Video");

@@ -745,8 +745,11 @@ def test_b_videos_tab_shows_each_jobs_state_and_flicker(chromium, site, session,
         flicker = job["result"]["flicker"]
         assert row.locator(".job-state").inner_text() == "succeeded"
         assert f"frame {frames} of {frames}" in row.inner_text()
+        assert flicker["neighbour_changes"] > 0  # the toy path changes its neighbours: the page says how it fares there
         want = (f"{flicker['render']:.4f} → {flicker['enhanced']:.4f} (×{flicker['ratio']:.2f}); "
-                f"×{flicker['ratio_sharpened']:.2f} of the render sharpened alike")
+                f"×{flicker['ratio_sharpened']:.2f} of the render sharpened alike; "
+                f"×{flicker['ratio_changed']:.2f} across the {flicker['neighbour_changes']} frame pairs "
+                "where the neighbour photos changed")
         assert row.locator("td[data-label='Flicker']").inner_text() == want
         bad = page.locator("#videos-table tr[data-job='" + "f" * 32 + "']")
         assert bad.locator(".job-state").inner_text() == "failed"
