@@ -82,8 +82,9 @@ class TemporalConfig:
     13-frame ones (about 2.5 and 10 degrees a frame), by the rule that chose :attr:`reject`: the least mean
     flicker of the weights (0.5 to 0.9) that cost no path more than 0.1 dB on its frames with photos
     against frame by frame (0.85 cost ``can_clip`` 0.19 dB); reported on ``ollie``'s and
-    ``mary_rose``'s: less flicker on every path, within 0.09 dB but on ``mary_rose``'s 97-frame
-    half-size orbit, -0.15 (docs/broad.md, *A heavier blend, and the neighbour changes*)."""
+    ``mary_rose``'s: less flicker on every path, within 0.09 dB on five of seven, -0.14 and -0.15
+    on ``ollie``'s hash field and ``mary_rose``'s 97-frame half-size orbit (docs/broad.md, *A
+    heavier blend, and the neighbour changes*)."""
     change_weight: float = 0.9
     """``weight`` at a frame whose neighbours differ from the previous frame's, and at the
     :attr:`change_frames` - 1 frames after it (only with :attr:`change_frames` > 0): the jump a
