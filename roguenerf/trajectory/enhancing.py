@@ -286,11 +286,11 @@ def enhance_path(
             agreement = temporal.last_agreement  # what decided it (TemporalConfig.carry_agreement)
         out_png = frame_dir / f"{t:05d}.png"
         entry = {"render": render, "depth": depth, "carried": carried is not None, "agreement": agreement,
-                 "mutual": mutual, "made": not out_png.is_file(),
-                 "neighbours": None if neighbours is None or carried is not None
-                 else [scene.frames[i].name for i in neighbours]}
+                 "mutual": mutual, "made": not out_png.is_file(), "neighbours": None}
         if not entry["made"]:
             entry["enhanced"] = read_image(out_png)
+            if neighbours is not None and carried is None:  # named as the model took them when it ran
+                entry["neighbours"] = [scene.frames[i].name for i in neighbours]
             if poses is not None and carried is None:  # a resumed path fits its neighbours' poses as it did
                 used = neighbours if neighbours is not None else chosen(t, (render, depth))
                 enhancer.neighbour_poses([enhancer.train.index(i) for i in used], render, depth, *camera,

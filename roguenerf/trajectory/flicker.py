@@ -122,8 +122,9 @@ def summarise_flicker(per_pair: list[dict], per_frame: list[dict]) -> dict:
     # The pairs across which the model's neighbour set changed, where both frames name theirs
     # (frames carried along a path name none): a path flickers most across them.
     named = {f["frame"]: set(f["neighbours"]) for f in per_frame if f.get("neighbours") is not None}
-    change = [p for p in per_pair if p["from"] in named and p["to"] in named and named[p["from"]] != named[p["to"]]]
-    steady = [p for p in per_pair if p["from"] in named and p["to"] in named and named[p["from"]] == named[p["to"]]]
+    both = [p for p in per_pair if p["from"] in named and p["to"] in named]
+    change = [p for p in both if named[p["from"]] != named[p["to"]]]
+    steady = [p for p in both if named[p["from"]] == named[p["to"]]]
 
     def ratio(pairs):
         render, enhanced = mean(p["render"] for p in pairs), mean(p["enhanced"] for p in pairs)
