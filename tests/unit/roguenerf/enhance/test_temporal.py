@@ -397,3 +397,73 @@ def test_a_carried_frame_takes_the_render_where_the_renders_disagree():
     out = f.carry(r2, DEPTH, K, POSE)
     assert torch.allclose(out[:, :, :11], e1[:, :, :11], atol=1e-5)
     assert torch.allclose(out[:, :, 13:], (0.5 * e1 + 0.5 * r2)[:, :, 13:].clamp(0, 1), atol=1e-5)
+
+
+def _flicker(a, b) -> float:
+    """The flicker figure's measure for a still camera: the mean absolute difference."""
+    return float((a - b).abs().mean())
+
+
+def test_the_least_weight_brings_the_flicker_to_target_times_the_renders():
+    """A still camera, renders 0.02 apart, the frame's own result 0.1 from the last one: the
+    flicker after blending with weight w is 0.1 * (1 - w), so a target of 2 (0.04) takes w = 0.6,
+    and the frame is then 0.04 from the last one, twice its render's change."""
+    f = TemporalFilter(TemporalConfig(weight=0.8, reject=0.0, target=2.0))
+    r1, r2 = torch.full((3, H, W), 0.5), torch.full((3, H, W), 0.52)
+    e1, e2 = torch.full((3, H, W), 0.6), torch.full((3, H, W), 0.7)
+    f(r1, e1, DEPTH, K, POSE)
+    out = f(r2, e2, DEPTH, K, POSE)
+    assert f.last_weight == pytest.approx(0.6, abs=0.8 / 2048)
+    assert torch.allclose(out, torch.full_like(out, 0.64), atol=1e-3)
+    assert _flicker(out, e1) == pytest.approx(2 * _flicker(r2, r1), rel=0.01)
+
+
+def test_a_frame_steady_enough_keeps_its_own_result_and_one_never_steady_takes_the_most():
+    r1, r2 = torch.full((3, H, W), 0.5), torch.full((3, H, W), 0.52)
+    e1 = torch.full((3, H, W), 0.6)
+    steady = TemporalFilter(TemporalConfig(weight=0.8, reject=0.0, target=1.0))
+    steady(r1, e1, DEPTH, K, POSE)
+    e2 = torch.full((3, H, W), 0.61)  # 0.01 from the last result, the render moved 0.02
+    assert torch.equal(steady(r2, e2, DEPTH, K, POSE), e2)
+    assert steady.last_weight == 0.0
+    # 0.3 from the last result: even the most weight (0.8) leaves 0.06 > 0.02
+    capped = TemporalFilter(TemporalConfig(weight=0.8, reject=0.0, target=1.0))
+    capped(r1, e1, DEPTH, K, POSE)
+    out = capped(r2, torch.full((3, H, W), 0.9), DEPTH, K, POSE)
+    assert capped.last_weight == 0.8
+    assert torch.allclose(out, torch.full_like(out, 0.2 * 0.9 + 0.8 * 0.6), atol=1e-5)
+    # off (the default): the weight everywhere
+    plain = TemporalFilter(TemporalConfig(weight=0.8, reject=0.0))
+    plain(r1, e1, DEPTH, K, POSE)
+    assert torch.allclose(plain(r2, e2, DEPTH, K, POSE), 0.2 * e2 + 0.8 * e1, atol=1e-5)
+    assert plain.last_weight == 0.8
+
+
+def test_the_least_weight_measures_the_frame_as_blended_with_the_rejection():
+    """With the rejection the per-pixel weight is w times the renders' agreement (here the same
+    on every pixel: the renders 0.02 apart, reject 0.04: 0.5 ** 0.25); the least weight makes the
+    blended frame, not the unrejected one, meet the target."""
+    f = TemporalFilter(TemporalConfig(weight=0.95, reject=0.04, target=2.0))
+    r1, r2 = torch.full((3, H, W), 0.5), torch.full((3, H, W), 0.52)
+    e1, e2 = torch.full((3, H, W), 0.6), torch.full((3, H, W), 0.7)
+    f(r1, e1, DEPTH, K, POSE)
+    out = f(r2, e2, DEPTH, K, POSE)
+    a = 0.5 ** 0.25
+    assert f.last_weight == pytest.approx(0.6 / a, abs=0.95 / 2048)
+    assert _flicker(out, e1) == pytest.approx(0.04, rel=0.01)
+
+
+def test_the_least_weight_is_the_same_for_a_residual_blend():
+    f = TemporalFilter(TemporalConfig(weight=0.8, reject=0.0, target=2.0, blend="residual"))
+    r1, r2 = torch.full((3, H, W), 0.5), torch.full((3, H, W), 0.52)
+    f(r1, torch.full((3, H, W), 0.6), DEPTH, K, POSE)
+    out = f(r2, torch.full((3, H, W), 0.7), DEPTH, K, POSE)
+    # residuals 0.1 and 0.18: the frame 0.7 - w * 0.08 is 0.04 from 0.6 at w = 0.75
+    assert f.last_weight == pytest.approx(0.75, abs=0.8 / 2048)
+    assert torch.allclose(out, torch.full_like(out, 0.64), atol=1e-3)
+
+
+@pytest.mark.parametrize("target", [-1.0, float("nan"), float("inf"), "1", True])
+def test_bad_targets_are_refused(target):
+    with pytest.raises(InputError, match="target"):
+        TemporalConfig(target=target)
