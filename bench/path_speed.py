@@ -17,7 +17,7 @@ set changed and the flicker ratio there and elsewhere (``neighbour_changes``,
 gain on the frames with photos.
 ``--model-every``, ``--resample``, ``--reject``, ``--carry-from``, ``--blend``,
 ``--carry-agreement``, ``--carry-between``, ``--between-agreement``, ``--weight``,
-``--change-weight``, ``--change-frames`` and ``--target`` run the filter once per combination of values of
+``--change-weight`` and ``--change-frames`` run the filter once per combination of values of
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.model_every`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.resample`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.reject`,
@@ -27,11 +27,10 @@ gain on the frames with photos.
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_between`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.between_agreement`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.weight`,
-:attr:`~roguenerf.enhance.temporal.TemporalConfig.change_weight`,
-:attr:`~roguenerf.enhance.temporal.TemporalConfig.change_frames` and
-:attr:`~roguenerf.enhance.temporal.TemporalConfig.target` (labelled ``on`` for the
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.change_weight` and
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.change_frames` (labelled ``on`` for the
 shipped values, ``on/kK``, ``on/RESAMPLE``, ``on/rejectX``, ``on/from-C``, ``on/BLEND``,
-``on/agreeDB``, ``on/between-on|off``, ``on/mutualDB``, ``on/wW``, ``on/cwW``, ``on/cfN`` and ``on/targetT`` for
+``on/agreeDB``, ``on/between-on|off``, ``on/mutualDB``, ``on/wW``, ``on/cwW`` and ``on/cfN`` for
 others; at ``model_every`` 1, where nothing is
 carried, only the shipped ``carry_between`` runs), with the share of frames carried; the CSV also keeps each frame
 with a photo's gain (``gains``: frame, gain, carried). Writes ``OUTPUT.csv`` (a row per run;
@@ -79,8 +78,6 @@ def main(argv: list[str] | None = None) -> int:
                     help="comma-separated TemporalConfig.between_agreement values (default: the shipped one)")
     ap.add_argument("--weight", default=None,
                     help="comma-separated TemporalConfig.weight values (default: the shipped one)")
-    ap.add_argument("--target", default=None,
-                    help="comma-separated TemporalConfig.target values (default: the shipped one)")
     ap.add_argument("--change-weight", default=None,
                     help="comma-separated TemporalConfig.change_weight values (default: the shipped one)")
     ap.add_argument("--change-frames", default=None,
@@ -122,13 +119,11 @@ def main(argv: list[str] | None = None) -> int:
     weights = [shipped.weight] if args.weight is None else [float(x) for x in args.weight.split(",")]
     change = ([shipped.change_weight] if args.change_weight is None
               else [float(x) for x in args.change_weight.split(",")])
-    targets = [shipped.target] if args.target is None else [float(x) for x in args.target.split(",")]
     settle = ([shipped.change_frames] if args.change_frames is None
               else [int(x) for x in args.change_frames.split(",")])
     modes = {"off": None}
-    for k, r, j, c, b, g, bw, m, w, cw, cf, tg in itertools.product(every, resample, reject, carry, blend, gates,
-                                                                     betweens, mutual, weights, change, settle,
-                                                                     targets):
+    for k, r, j, c, b, g, bw, m, w, cw, cf in itertools.product(every, resample, reject, carry, blend, gates, betweens,
+                                                                 mutual, weights, change, settle):
         if k == 1 and m != shipped.between_agreement:
             continue  # nothing is carried at K = 1
         if k == 1 and bw != shipped.carry_between:
@@ -143,11 +138,10 @@ def main(argv: list[str] | None = None) -> int:
                           *([f"mutual{m:g}"] if m != shipped.between_agreement else []),
                           *([f"w{w:g}"] if w != shipped.weight else []),
                           *([f"cw{cw:g}"] if cw != shipped.change_weight else []),
-                          *([f"cf{cf}"] if cf != shipped.change_frames else []),
-                          *([f"target{tg:g}"] if tg != shipped.target else [])])
+                          *([f"cf{cf}"] if cf != shipped.change_frames else [])])
         modes[label] = TemporalConfig(model_every=k, resample=r, reject=j, carry_from=c, blend=b,
                                       carry_agreement=g, carry_between=bw, between_agreement=m, weight=w,
-                                      change_weight=cw, change_frames=cf, target=tg)
+                                      change_weight=cw, change_frames=cf)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for repeat in range(args.repeats):

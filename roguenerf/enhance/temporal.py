@@ -95,15 +95,6 @@ class TemporalConfig:
     (:func:`settling`); 0 (the default): none. Along ``can_clip``'s 154-frame path the set changes
     15 times, and those pairs flicker twice as much as the others; 3 frames at 0.9 lowered the
     flicker less than the heavier :attr:`weight` and cost 0.08-0.15 dB there (docs/broad.md)."""
-    target: float = 0.0
-    """Blend only as much as steadiness needs: each frame's weight is the least, up to
-    :attr:`weight` (:attr:`change_weight`, ``weight ** frames_apart``), that brings the frame's
-    flicker against the last frame (the mean absolute difference to the last frame's result
-    moved into it, sampled as the flicker figure samples it: :func:`~roguenerf.trajectory.pair_flicker`)
-    down to ``target`` times its *render's* flicker for the same move (:meth:`TemporalFilter.least_weight`).
-    Where the frame's own result is already that steady it is kept whole (weight 0), so a frame
-    loses no detail to the blend that the video's steadiness did not ask for. 0 (off): the weight
-    everywhere."""
     blend: str = "image"
     """What is carried and blended: ``"residual"`` (the enhancer's change over the render, the
     module docstring) or ``"image"`` (the enhanced frame itself: the render's own flicker, a
@@ -207,10 +198,6 @@ class TemporalConfig:
             raise InputError(f"TemporalConfig.min_seen: expected a share in [0, 1], got {self.min_seen!r}")
         if not (isinstance(self.reject, (int, float)) and math.isfinite(self.reject) and self.reject >= 0):
             raise InputError(f"TemporalConfig.reject: expected a colour difference >= 0 (0: off), got {self.reject!r}")
-        if not (isinstance(self.target, (int, float)) and not isinstance(self.target, bool)
-                and math.isfinite(self.target) and self.target >= 0):
-            raise InputError(f"TemporalConfig.target: expected a share of the render's flicker >= 0 (0: off), "
-                             f"got {self.target!r}")
         if not (isinstance(self.fade_deg, (int, float)) and math.isfinite(self.fade_deg) and self.fade_deg >= 0):
             raise InputError(f"TemporalConfig.fade_deg: expected degrees >= 0 (0: no fade), got {self.fade_deg!r}")
         for name in ("weight", "change_weight"):
@@ -325,10 +312,6 @@ class TemporalFilter:
         """PSNR (dB) of the two model frames the last :meth:`carry` between them moved, against each
         other on the pixels both see (:attr:`TemporalConfig.between_agreement`); None where it was
         not measured."""
-        self.last_weight: float | None = None
-        """The blend weight :meth:`__call__` gave the last frame before the per-pixel rejection and
-        fade (:attr:`TemporalConfig.target`: the least that steadies it); None where nothing was
-        blended."""
         self.last_warp: tuple[Tensor, Tensor] | None = None
         """``(coords, valid)`` of the reprojection that moved the kept frame into the last one
         given to :meth:`__call__` or :meth:`carry` (``(1, H, W, 2)``, ``(1, 1, H, W)``:
@@ -344,7 +327,6 @@ class TemporalFilter:
         self.last_agreement = None
         self.last_mutual = None
         self.last_warp = None
-        self.last_weight = None
 
     @property
     def kept(self) -> _LastFrame | None:
@@ -403,33 +385,6 @@ class TemporalFilter:
         """``0.5 ** (d / reject) ** 2`` of the renders' disagreement ``d`` (:attr:`TemporalConfig.reject`)."""
         d = render_disagreement(warped_render, render, valid)
         return torch.exp2(-(d / self.config.reject).square())
-
-    def least_weight(self, own: Tensor, step: Tensor, render_moved: Tensor, valid: Tensor, most: float) -> float:
-        """The least weight ``w`` in [0, ``most``] for which the frame's flicker, the mean over the
-        ``valid`` pixels (``(1, H, W)``) and channels of ``|own + w * step|`` (``own``: the frame's
-        own result minus the last frame's moved into it; ``step``: what a weight of 1 adds to the
-        frame, per pixel), is at most :attr:`TemporalConfig.target` times the render's,
-        ``|render_moved|`` (the last render moved into this frame minus this frame's render) on the
-        same pixels: 0 where the frame's own result is that steady, ``most`` where even it is not.
-        The flicker is convex in ``w``: halving the interval 12 times finds it to about ``most / 4096``."""
-        seen = valid[0]
-        if not bool(seen.any()):
-            return most
-        own, step = own[:, seen], step[:, seen]
-        goal = self.config.target * float(render_moved.abs()[:, seen].mean())
-
-        def flicker(w: float) -> float:
-            return float((own + w * step).abs().mean())
-
-        if flicker(0.0) <= goal:
-            return 0.0
-        if flicker(most) > goal:
-            return most
-        low, high = 0.0, most
-        for _ in range(12):
-            middle = 0.5 * (low + high)
-            low, high = (low, middle) if flicker(middle) <= goal else (middle, high)
-        return high
 
     def model_due(self, t: int, *, changed: bool = False) -> bool:
         """Whether frame ``t`` of the path (from 0) is one the model runs on by
@@ -525,28 +480,14 @@ class TemporalFilter:
         self.last_agreement = None
         self.last_mutual = None
         self.last_warp = None
-        self.last_weight = None
         w = float(self.config.change_weight if changed else self.config.weight) ** frames_apart
         if self._previous is not None and w > 0:
-            steady = self.config.target > 0
-            warped, valid, warped_render = self._warp(depth, K, pose, with_render=steady)
+            warped, valid, warped_render = self._warp(depth, K, pose)
             self.last_share = float(valid.float().mean())
-            scale = 1.0  # per pixel: what the parallax and the renders' disagreement leave of the weight
             if self.config.fade_deg > 0:
-                scale = 0.5 ** (parallax_deg(depth, K, pose, self._previous.pose[:3, 3]) / self.config.fade_deg)
-            if self.config.reject > 0:
-                scale = scale * self._agreement(warped_render, render, valid)
-            if steady:
-                from roguenerf.reprojection import sample_at
-
-                prev = self._previous
-                shown = prev.carried if image else prev.carried + prev.render  # the last frame as written
-                with torch.inference_mode():
-                    last = sample_at(shown[None], self.last_warp[0])[0]  # bilinear, as the flicker figure
-                w = self.least_weight(enhanced - last, scale * (warped - residual), warped_render - render,
-                                      valid, w)
-            self.last_weight = w
-            w = w * scale
+                w = w * 0.5 ** (parallax_deg(depth, K, pose, self._previous.pose[:3, 3]) / self.config.fade_deg)
+            if warped_render is not None:
+                w = w * self._agreement(warped_render, render, valid)
             residual = torch.where(valid, (1 - w) * residual + w * warped, residual)
         out = (residual if image else render + residual).clamp(0, 1)
         self._previous = self._anchor = _LastFrame(out if image else out - render, depth, K, pose, render)

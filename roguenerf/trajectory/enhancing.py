@@ -286,7 +286,7 @@ def enhance_path(
             agreement = temporal.last_agreement  # what decided it (TemporalConfig.carry_agreement)
         out_png = frame_dir / f"{t:05d}.png"
         entry = {"render": render, "depth": depth, "carried": carried is not None, "agreement": agreement,
-                 "mutual": mutual, "made": not out_png.is_file(), "neighbours": None, "blend_weight": None}
+                 "mutual": mutual, "made": not out_png.is_file(), "neighbours": None}
         if not entry["made"]:
             entry["enhanced"] = read_image(out_png)
             if neighbours is not None and carried is None:  # named as the model took them when it ran
@@ -303,7 +303,6 @@ def enhance_path(
             image, entry["neighbours"] = result.image, result.neighbours
             if temporal is not None:
                 image = temporal(render, image, depth, *camera, changed=settles(t), frames_apart=apart)
-                entry["blend_weight"] = temporal.last_weight
             entry["image"] = image
         if entry["made"]:
             entry["enhanced"] = _quantise(entry["image"])
@@ -364,8 +363,6 @@ def enhance_path(
             row = {"frame": t, "view": scene.frames[matches[t]].name if matches[t] is not None else None}
             if entry["neighbours"] is not None:  # the model's, where it ran (or would have, read back)
                 row["neighbours"] = entry["neighbours"]
-            if entry["blend_weight"] is not None:  # blended with the last frame, made now
-                row["blend_weight"] = round(entry["blend_weight"], 4)
             if temporal is not None and every > 1:
                 row["carried"] = entry["carried"]
                 if entry["agreement"] is not None:

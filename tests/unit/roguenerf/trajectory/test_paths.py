@@ -915,25 +915,3 @@ def test_a_transposed_inria_cameras_json_is_refused_in_its_own_convention(toy_pa
     assert "a rotation written world-to-camera (transposed) or with OpenGL axes (Inria's cameras.json is read as " \
            "OpenCV camera-to-world (rotation and position, as 3DGS's train.py writes them))" in message
     assert "read as OpenGL" not in message
-
-
-def test_a_target_blends_each_frame_only_as_much_as_steadiness_needs(toy_path, enhancer, tmp_path):
-    """TemporalConfig.target: each frame records the weight it was blended with, at most the
-    configured one; every pair of frames flickers at most target times its renders' (as the report
-    measures it, frames quantised to 8 bits), unless the frame took the most weight."""
-    from roguenerf.enhance import EnhanceOptions
-    from roguenerf.enhance.temporal import TemporalConfig
-
-    root, scene = toy_path["root"], toy_path["scene"]
-    cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
-    target, most = 0.9, 0.8
-    steady = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(
-        temporal=TemporalConfig(weight=most, change_weight=most, target=target)))
-    result = enhance_path(scene, steady, cp, root / "frames", tmp_path / "steady", depth_type="ray", video=False)
-    frames, pairs = result.flicker["per_frame"], result.flicker["per_pair"]
-    assert "blend_weight" not in frames[0]  # nothing before it to blend
-    weights = [f["blend_weight"] for f in frames[1:]]
-    assert all(0.0 <= w <= most for w in weights) and min(weights) < most  # some frames need less
-    for pair, w in zip(pairs, weights, strict=True):
-        if w < most:  # the 8-bit rounding of the frame as written moves it by about 1 %
-            assert pair["enhanced"] <= 1.03 * target * pair["render"]
