@@ -16,7 +16,8 @@ the peak RSS (``VmHWM``, imports and model included) and the seconds spent loadi
 scene, checkpoint). With ``--cli`` the one-view command as a user runs it (``roguenerf enhance``,
 defaults) is timed too: its wall-clock beside the view time it prints.
 
-Settings: ``defaults``, ``no-align``, ``no-colour``, ``no-trust``, ``neighbours=N``, ``tile=PX`` (the
+Settings: ``defaults``, ``no-align``, ``no-colour``, ``no-trust``, ``neighbours=N``, ``measured`` (the
+neighbour rule that measures its candidates, ``NeighbourRule(measured=True)``), ``tile=PX`` (the
 tile size, ``EnhanceOptions.tile``), ``early=SHARE`` (the pose fits'
 ``AlignConfig.early_refusal``; ``early=0`` fits every level), ``cache=MiB``
 (the neighbour cache's budget, ``SceneEnhancer(cache_bytes=)``), ``judged`` (an untimed child
@@ -69,7 +70,11 @@ from roguenerf.metrics import psnr
 
 scene = load_scene({scene!r})
 model, _ = load_checkpoint(default_checkpoint_path())
-enhancer = SceneEnhancer(scene, model, options=EnhanceOptions.from_flags(**{flags!r}), **{extra!r})
+options = EnhanceOptions.from_flags(**{flags!r})
+if {measured!r}:
+    from roguenerf.enhance import NeighbourRule
+    options = options.with_(neighbours=NeighbourRule(measured=True))
+enhancer = SceneEnhancer(scene, model, options=options, **{extra!r})
 loaded = time.perf_counter() - t0
 rows = []
 for view in scene.indices("test")[:{views}]:
@@ -79,7 +84,8 @@ for view in scene.indices("test")[:{views}]:
     io = time.perf_counter() - t
     result = enhancer.enhance(render, depth, frame.K, frame.world_from_cam)
     rows.append({{"view": frame.name, "seconds": result.seconds, "io": io, **result.timings,
-                  "neighbours": len(result.neighbours), "render_psnr": float(psnr(render, photo)),
+                  "neighbours": len(result.neighbours), "candidates": len(result.candidates or []),
+                  "render_psnr": float(psnr(render, photo)),
                   "enhanced_psnr": float(psnr(result.image, photo))}})
 peak = [int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("VmHWM:")][0]
 print(json.dumps({{"rows": rows, "peak_mb": peak / 1024, "load_s": loaded, "wall_s": time.perf_counter() - t0}}))
@@ -117,9 +123,11 @@ def parse_setting(text: str) -> tuple[dict, dict]:
             extra["cache_bytes"] = int(float(part.split("=", 1)[1]) * 2**20)
         elif part == "judged":
             extra["judged"] = True
+        elif part == "measured":
+            extra["measured"] = True
         else:
             raise SystemExit(f"--settings: unknown switch {part!r} (defaults, no-align, no-colour, no-trust, "
-                             "neighbours=N, tile=PX, cache=MiB, early=SHARE, judged, joined by +)")
+                             "neighbours=N, measured, tile=PX, cache=MiB, early=SHARE, judged, joined by +)")
     return flags, extra
 
 
@@ -175,7 +183,9 @@ def run_child(scene: Path, setting: tuple[dict, dict], views: int, repo: Path = 
             extra = {k: v for k, v in extra.items() if k != "judged"} | {"settled_file": f"{tmp}/settled.json"}
             run_child(scene, (flags, extra), views, repo)  # the earlier process
             return run_child(scene, (flags, extra), views, repo)
-    code = CHILD.format(repo=str(repo), scene=str(scene), flags=flags, extra=extra, views=views)
+    measured = bool(extra.get("measured"))
+    extra = {k: v for k, v in extra.items() if k != "measured"}
+    code = CHILD.format(repo=str(repo), scene=str(scene), flags=flags, extra=extra, views=views, measured=measured)
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"the child failed on {scene}:\n{proc.stderr[-3000:]}")

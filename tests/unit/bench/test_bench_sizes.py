@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import subprocess
 
 import pytest
@@ -50,6 +51,7 @@ def test_settings_and_sizes_are_checked():
     assert flags == {"align": AlignConfig(early_refusal=0.0)}
     assert eval(repr(flags), {"AlignConfig": AlignConfig}) == flags  # what the child process reads
     assert sizes.parse_setting("judged") == ({}, {"judged": True})
+    assert sizes.parse_setting("measured+no-trust") == ({"trust": False}, {"measured": True})
     with pytest.raises(SystemExit, match="unknown switch 'no-model'"):
         sizes.parse_setting("no-model")
     assert sizes.parse_size("1920x1080") == (1920, 1080)
@@ -62,13 +64,17 @@ def test_a_run_reports_every_step_and_the_memory(tmp_path):
     make_toy_scene(tmp_path / "toy", seed=2, n_train=6, n_test=2, height=72, width=96)
     out = tmp_path / "res" / "sizes"
     assert sizes.main(["--scene", str(tmp_path / "toy"), "--sizes", "64x48", "--views", "2",
-                       "--settings", "defaults,no-align+no-colour+no-trust+cache=0,judged",
+                       "--settings", "defaults,no-align+no-colour+no-trust+cache=0,judged,measured",
                        "--work", str(tmp_path / "work"), "--output", str(out)]) == 0
     summary = json.loads((tmp_path / "res" / "sizes.json").read_text())["summary"]
     assert [(s["size"], s["setting"]) for s in summary] == [("64x48", "defaults"),
                                                             ("64x48", "no-align+no-colour+no-trust+cache=0"),
-                                                            ("64x48", "judged")]
-    on, off, judged = summary
+                                                            ("64x48", "judged"), ("64x48", "measured")]
+    on, off, judged, measured = summary
+    assert measured["views"] == 2 and math.isfinite(measured["gain_db"])
+    with open(tmp_path / "res" / "sizes.csv", newline="") as f:
+        measured_by = {r["setting"]: int(r["candidates"]) for r in csv.DictReader(f)}
+    assert measured_by["measured"] > 0 and measured_by["defaults"] == 0  # only that rule measures candidates
     # the poses judged by an earlier enhancer: the same images, fits only where one was kept
     assert judged["gain_db"] == pytest.approx(on["gain_db"], abs=1e-6) and judged["align_s"] < 0.5 * on["align_s"]
     assert on["align_s"] > 0 and off["align_s"] < on["align_s"]
