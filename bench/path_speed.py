@@ -17,7 +17,7 @@ set changed and the flicker ratio there and elsewhere (``neighbour_changes``,
 gain on the frames with photos.
 ``--model-every``, ``--resample``, ``--reject``, ``--carry-from``, ``--blend``,
 ``--carry-agreement``, ``--carry-between``, ``--between-agreement``, ``--weight``,
-``--change-weight`` and ``--change-frames`` run the filter once per combination of values of
+``--change-weight``, ``--change-frames`` and ``--both-ways`` run the filter once per combination of values of
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.model_every`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.resample`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.reject`,
@@ -27,10 +27,12 @@ gain on the frames with photos.
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_between`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.between_agreement`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.weight`,
-:attr:`~roguenerf.enhance.temporal.TemporalConfig.change_weight` and
-:attr:`~roguenerf.enhance.temporal.TemporalConfig.change_frames` (labelled ``on`` for the
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.change_weight`,
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.change_frames` and
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.both_ways` (labelled ``on`` for the
 shipped values, ``on/kK``, ``on/RESAMPLE``, ``on/rejectX``, ``on/from-C``, ``on/BLEND``,
-``on/agreeDB``, ``on/between-on|off``, ``on/mutualDB``, ``on/wW``, ``on/cwW`` and ``on/cfN`` for
+``on/agreeDB``, ``on/between-on|off``, ``on/mutualDB``, ``on/wW``, ``on/cwW``, ``on/cfN`` and
+``on/both-ways-on|off`` for
 others; at ``model_every`` 1, where nothing is
 carried, only the shipped ``carry_between`` runs), with the share of frames carried; the CSV also keeps each frame
 with a photo's gain (``gains``: frame, gain, carried). Writes ``OUTPUT.csv`` (a row per run;
@@ -78,6 +80,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="comma-separated TemporalConfig.between_agreement values (default: the shipped one)")
     ap.add_argument("--weight", default=None,
                     help="comma-separated TemporalConfig.weight values (default: the shipped one)")
+    ap.add_argument("--both-ways", default=None,
+                    help="comma-separated TemporalConfig.both_ways values, on/off (default: the shipped one)")
     ap.add_argument("--change-weight", default=None,
                     help="comma-separated TemporalConfig.change_weight values (default: the shipped one)")
     ap.add_argument("--change-frames", default=None,
@@ -119,11 +123,14 @@ def main(argv: list[str] | None = None) -> int:
     weights = [shipped.weight] if args.weight is None else [float(x) for x in args.weight.split(",")]
     change = ([shipped.change_weight] if args.change_weight is None
               else [float(x) for x in args.change_weight.split(",")])
+    if args.both_ways is not None and not set(args.both_ways.split(",")) <= set(onoff):
+        raise SystemExit(f"--both-ways: expected on, off or on,off, got {args.both_ways}")
+    ways = [shipped.both_ways] if args.both_ways is None else [onoff[x] for x in args.both_ways.split(",")]
     settle = ([shipped.change_frames] if args.change_frames is None
               else [int(x) for x in args.change_frames.split(",")])
     modes = {"off": None}
-    for k, r, j, c, b, g, bw, m, w, cw, cf in itertools.product(every, resample, reject, carry, blend, gates, betweens,
-                                                                 mutual, weights, change, settle):
+    for k, r, j, c, b, g, bw, m, w, cw, cf, two in itertools.product(every, resample, reject, carry, blend, gates,
+                                                                      betweens, mutual, weights, change, settle, ways):
         if k == 1 and m != shipped.between_agreement:
             continue  # nothing is carried at K = 1
         if k == 1 and bw != shipped.carry_between:
@@ -138,10 +145,11 @@ def main(argv: list[str] | None = None) -> int:
                           *([f"mutual{m:g}"] if m != shipped.between_agreement else []),
                           *([f"w{w:g}"] if w != shipped.weight else []),
                           *([f"cw{cw:g}"] if cw != shipped.change_weight else []),
-                          *([f"cf{cf}"] if cf != shipped.change_frames else [])])
+                          *([f"cf{cf}"] if cf != shipped.change_frames else []),
+                          *([f"both-ways-{'on' if two else 'off'}"] if two != shipped.both_ways else [])])
         modes[label] = TemporalConfig(model_every=k, resample=r, reject=j, carry_from=c, blend=b,
                                       carry_agreement=g, carry_between=bw, between_agreement=m, weight=w,
-                                      change_weight=cw, change_frames=cf)
+                                      change_weight=cw, change_frames=cf, both_ways=two)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for repeat in range(args.repeats):

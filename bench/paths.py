@@ -295,7 +295,8 @@ def main() -> None:
         try:
             fields = dict(part.split("=", 1) for part in args.temporal.split(":"))
             kinds = {"keep_within": int, "model_every": int, "change_frames": int,
-                     "reuse_poses": lambda v: {"1": True, "0": False}[v], "blend": str, "resample": str}
+                     "reuse_poses": lambda v: {"1": True, "0": False}[v],
+                     "both_ways": lambda v: {"1": True, "0": False}[v], "blend": str, "resample": str}
             temporal = TemporalConfig(**{k: kinds.get(k, float)(v) for k, v in fields.items()})
         except (InputError, ValueError, TypeError, KeyError) as exc:
             parser.error(f"--temporal: expected on, off or FIELD=VALUE[:FIELD=VALUE], got {args.temporal!r} ({exc})")

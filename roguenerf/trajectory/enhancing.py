@@ -29,7 +29,7 @@ import math
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from torch import Tensor
@@ -41,6 +41,10 @@ from roguenerf.trajectory.flicker import pair_flicker, sharpening, summarise_fli
 from roguenerf.trajectory.readers import CameraPath, find_path_frames
 
 FRAME_FOLDER = "frames"
+FORWARD_FOLDER = "forward"
+"""With ``TemporalConfig.both_ways``: the first pass's frames (each blended with the frames before
+it), which the second pass, from the last frame back, blends with the frames after it into
+:data:`FRAME_FOLDER`; kept, so that a stopped path resumes either pass."""
 STATE_FILE = "path_state.json"
 FLICKER_FILE = "flicker.json"
 VIDEO_FILE = "enhanced.mp4"
@@ -58,7 +62,8 @@ class PathResult:
     output: Path
     frames: int
     enhanced_now: int
-    """Frames enhanced by this call (the rest were already there: resumed)."""
+    """Frames enhanced by this call: written into ``frames/`` (with ``TemporalConfig.both_ways`` by
+    its second pass); the rest were already there (resumed)."""
     seconds: float
     video: Path | None
     side_by_side: Path | None
@@ -69,8 +74,9 @@ class PathResult:
     """What went on with ``force=True`` (:func:`~roguenerf.trajectory.check_camera_path`'s message)."""
     enhance_seconds: float = 0.0
     """Seconds spent making the frames enhanced by this call: each such frame's whole turn of
-    the loop (reading, enhancing, smoothing, writing, its flicker and PSNR), and the wait for
-    the last writes; not the checks before, the frames read back, nor the videos after."""
+    the loop (reading, enhancing, smoothing, writing, its flicker and PSNR; with
+    ``TemporalConfig.both_ways`` its turn in each pass), and the wait for the last writes; not the
+    checks before, the frames read back, nor the videos after."""
 
     @property
     def frames_per_second(self) -> float | None:
@@ -225,6 +231,33 @@ def enhance_path(
     # written, measured and remembered in order.
     every = 1 if temporal is None else temporal.config.model_every
     between = temporal is not None and temporal.config.carry_between and every > 1
+    # TemporalConfig.both_ways: the pass above writes into forward/, measured by the second pass,
+    # which writes frames/ from the last frame back (a forward-backward moving average)
+    both_ways = temporal is not None and temporal.config.both_ways
+    first_dir = output / FORWARD_FOLDER if both_ways else frame_dir
+    first_dir.mkdir(exist_ok=True)
+
+    def measure(t: int, render: Tensor, enhanced: Tensor, depth: Tensor, row: dict) -> tuple:
+        """Frame t as written: its PSNR gain where it has a photo and its detail, into ``row``; what
+        its pairs' flicker needs."""
+        photo = scene.photo(matches[t]) if matches[t] is not None else None
+        if photo is not None:
+            row["render_psnr"] = float(psnr(render[None], photo[None])[0])
+            row["enhanced_psnr"] = float(psnr(enhanced[None], photo[None])[0])
+            row["gain_db"] = row["enhanced_psnr"] - row["render_psnr"]
+        sharp = sharpening(render, enhanced)
+        row["detail_ratio"] = round(sharp.ratio, 4)
+        return render, enhanced, photo, depth, camera_path.K[t], camera_path.world_from_cam[t], sharp
+
+    def measure_pair(a: tuple, b: tuple, t: int, moved=None) -> dict:
+        """The flicker of frames t (``a``, :func:`measure`'s) and t + 1 (``b``); ``moved``: the
+        filter's move of frame t into t + 1, where it made one."""
+        # the reference: both renders sharpened alike, as much as the two enhanced frames on average
+        amount = 0.5 * (a[6].amount + b[6].amount)
+        errors, fraction = pair_flicker([*a[:3], a[6].image(a[0], amount)], [*b[:3], b[6].image(b[0], amount)],
+                                        a[3], b[3], a[4], b[4], a[5], b[5], warp=moved)
+        return {"from": t, "to": t + 1, "render": errors[0], "enhanced": errors[1], "photo": errors[2],
+                "sharpened": errors[3], "valid_fraction": fraction}
     behind = _Background()
     loading: dict[int, Future] = {}
     made: dict[int, dict] = {}  # frames made (or read back) ahead of their turn: the next model frame
@@ -284,7 +317,7 @@ def enhance_path(
         elif temporal is not None and not between and not temporal.model_due(t, changed=changed):
             carried = temporal.carry(render, depth, *camera)
             agreement = temporal.last_agreement  # what decided it (TemporalConfig.carry_agreement)
-        out_png = frame_dir / f"{t:05d}.png"
+        out_png = first_dir / f"{t:05d}.png"
         entry = {"render": render, "depth": depth, "carried": carried is not None, "agreement": agreement,
                  "mutual": mutual, "made": not out_png.is_file(), "neighbours": None}
         if not entry["made"]:
@@ -328,6 +361,41 @@ def enhance_path(
             temporal.restore(kept)
         return make(t, render, depth, carry_between=(anchors[before], anchors[after], (t - before) / (after - before)))
 
+    def backward_pass() -> tuple[float, int]:
+        """TemporalConfig.both_ways: from the last frame back to the first, each first-pass frame
+        blended with the frame after it as written (read back where it was written before), into
+        frames/, and measured; the seconds spent on the frames written now, and their number."""
+        back = TemporalFilter(replace(temporal.config, model_every=1, change_frames=0))
+        later, pairs_back, spent, written_now = None, [], 0.0, 0
+        ahead = behind.submit(load_frame, total - 1)
+        for t in reversed(range(total)):
+            if should_stop is not None and should_stop():
+                raise PathCancelled(total)
+            began = time.perf_counter()
+            render, depth = ahead.result()
+            if t > 0:
+                ahead = behind.submit(load_frame, t - 1)
+            camera = (camera_path.K[t], camera_path.world_from_cam[t])
+            out_png = frame_dir / f"{t:05d}.png"
+            written = out_png.is_file()
+            if written:
+                final = read_image(out_png)
+            else:
+                final = _quantise(back(render, read_image(first_dir / f"{t:05d}.png"), depth, *camera))
+                behind.write(out_png, final)
+                written_now += 1
+            back.remember(render, final, depth, *camera)
+            current = measure(t, render, final, depth, per_frame[t])
+            if later is not None:
+                pairs_back.append(measure_pair(current, later, t))
+            later = current
+            if not written:
+                spent += time.perf_counter() - began
+        waited = time.perf_counter()
+        behind.drain()
+        per_pair.extend(reversed(pairs_back))
+        return spent + (time.perf_counter() - waited if written_now else 0.0), written_now
+
     try:
         for t in range(total):
             if should_stop is not None and should_stop():
@@ -357,9 +425,8 @@ def enhance_path(
             made_now = entry["made"] or sum(e["made"] for e in made.values()) > made_before
             enhanced = entry["enhanced"]
             if entry["made"]:
-                behind.write(frame_dir / f"{t:05d}.png", entry["image"])
+                behind.write(first_dir / f"{t:05d}.png", entry["image"])
                 done_now += 1
-            photo = scene.photo(matches[t]) if matches[t] is not None else None
             row = {"frame": t, "view": scene.frames[matches[t]].name if matches[t] is not None else None}
             if entry["neighbours"] is not None:  # the model's, where it ran (or would have, read back)
                 row["neighbours"] = entry["neighbours"]
@@ -369,25 +436,13 @@ def enhance_path(
                     row["carry_agreement_db"] = round(entry["agreement"], 2)
                 if entry["mutual"] is not None:
                     row["between_agreement_db"] = round(entry["mutual"], 2)
-            if photo is not None:
-                row["render_psnr"] = float(psnr(render[None], photo[None])[0])
-                row["enhanced_psnr"] = float(psnr(enhanced[None], photo[None])[0])
-                row["gain_db"] = row["enhanced_psnr"] - row["render_psnr"]
-            sharp = sharpening(render, enhanced)
-            row["detail_ratio"] = round(sharp.ratio, 4)
             per_frame.append(row)
-            current = (render, enhanced, photo, depth, camera_path.K[t], camera_path.world_from_cam[t], sharp)
-            if prev is not None:
-                # the filter's move of the last frame, where it made one into this frame
-                moved = None if temporal is None or between else temporal.last_warp
-                # the reference: both renders sharpened alike, as much as the two enhanced frames on average
-                amount = 0.5 * (prev[6].amount + sharp.amount)
-                errors, fraction = pair_flicker([*prev[:3], prev[6].image(prev[0], amount)],
-                                                [*current[:3], sharp.image(render, amount)], prev[3], depth,
-                                                prev[4], current[4], prev[5], current[5], warp=moved)
-                per_pair.append({"from": t - 1, "to": t, "render": errors[0], "enhanced": errors[1],
-                                 "photo": errors[2], "sharpened": errors[3], "valid_fraction": fraction})
-            prev = current
+            if not both_ways:  # both ways: the second pass measures the frames it writes
+                current = measure(t, render, enhanced, depth, row)
+                if prev is not None:  # the filter's move of the last frame, where it made one into this frame
+                    per_pair.append(measure_pair(prev, current, t - 1,
+                                                 moved=None if temporal is None or between else temporal.last_warp))
+                prev = current
             if temporal is not None:  # the frame as written, whether made now or read back
                 temporal.remember(render, enhanced, depth, camera_path.K[t], camera_path.world_from_cam[t],
                                   model=not entry["carried"])
@@ -399,9 +454,12 @@ def enhance_path(
             if made_now:
                 making += time.perf_counter() - began
         waited = time.perf_counter()
-        behind.drain()  # the last frames' writes: part of making them
+        behind.drain()  # the last frames' writes: part of making them (and what the second pass reads)
         if done_now:
             making += time.perf_counter() - waited
+        if both_ways:  # what this call made is what it wrote into frames/: the second pass's frames
+            spent, done_now = backward_pass()
+            making += spent
     finally:
         behind.close()
     report = summarise_flicker(per_pair, per_frame)

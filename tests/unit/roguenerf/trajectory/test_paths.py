@@ -243,15 +243,16 @@ def test_enhance_path_writes_video_flicker_and_resumes(toy_path, enhancer, tmp_p
     # The path's training photos were encoded once, for the whole path.
     assert 0 < result.cached_views <= len(scene.indices("train"))
 
-    # Interrupted: two frames lost, then a cancel after the first of them; a re-run finishes the rest.
+    # Interrupted: two frames lost, then a cancel after the first of them (the second pass, from the
+    # last frame back, makes 5 before 2); a re-run finishes the rest.
     first = (out / "frames" / "00002.png").read_bytes()
     (out / "frames" / "00002.png").unlink()
     (out / "frames" / "00005.png").unlink()
-    asked = iter([False, False, False, True])
+    asked = iter([False] * T + [False, False, True])  # the first pass's frames, then 6, 5 and 4
     with pytest.raises(PathCancelled):
         enhance_path(scene, enhancer, cp, root / "frames", out, depth_type="ray", quality=23,
                      should_stop=lambda: next(asked))
-    assert (out / "frames" / "00002.png").is_file() and not (out / "frames" / "00005.png").exists()
+    assert (out / "frames" / "00005.png").is_file() and not (out / "frames" / "00002.png").exists()
     again = enhance_path(scene, enhancer, cp, root / "frames", out, depth_type="ray", quality=23, video=False)
     assert again.enhanced_now == 1 and (out / "frames" / "00002.png").read_bytes() == first
     assert again.flicker["enhanced_now"] == 1 and again.frames_per_second == pytest.approx(1 / again.enhance_seconds)
@@ -289,18 +290,22 @@ def test_a_frame_write_that_fails_stops_the_path_in_order_and_the_rerun_makes_th
     out = tmp_path / "out"
     with pytest.raises(OSError, match="No space left"):
         enhance_path(scene, enhancer, cp, root / "frames", out, depth_type="ray", video=False)
-    assert sorted(p.name for p in (out / "frames").iterdir()) == [f"{t:05d}.png" for t in range(4)]
+    # the first pass (TemporalConfig.both_ways) failed at its frame 4: nothing of the second written
+    assert sorted(p.name for p in (out / "forward").iterdir()) == [f"{t:05d}.png" for t in range(4)]
+    assert not any((out / "frames").iterdir())
     monkeypatch.setattr(roguenerf.imageio, "write_png", real)
     again = enhance_path(scene, enhancer, cp, root / "frames", out, depth_type="ray", video=False)
-    assert again.enhanced_now == len(cp) - 4
+    assert again.enhanced_now == len(cp)  # every frame written into frames/ now
     for t in range(len(cp)):
-        assert (out / "frames" / f"{t:05d}.png").read_bytes() == (clean / "frames" / f"{t:05d}.png").read_bytes()
+        for sub in ("forward", "frames"):
+            assert (out / sub / f"{t:05d}.png").read_bytes() == (clean / sub / f"{t:05d}.png").read_bytes()
 
 
 def test_the_temporal_filter_lowers_flicker_and_leaves_the_first_frame(toy_path, enhancer, tmp_path):
     """Along the path each frame's change is blended with the last frame's, reprojected
     (roguenerf.enhance.temporal): the enhanced video flickers less than with every frame on its
-    own, the first frame is the same, and the setting is part of the resume fingerprint."""
+    own, the first frame of the first pass is the same, and the setting is part of the resume
+    fingerprint."""
     from roguenerf.enhance import EnhanceOptions
     from roguenerf.enhance.temporal import TemporalConfig
 
@@ -310,8 +315,8 @@ def test_the_temporal_filter_lowers_flicker_and_leaves_the_first_frame(toy_path,
     assert enhancer.options.temporal == TemporalConfig()
     on = enhance_path(scene, enhancer, cp, root / "frames", tmp_path / "on", depth_type="ray", video=False)
     off = enhance_path(scene, alone, cp, root / "frames", tmp_path / "off", depth_type="ray", video=False)
-    frame = lambda folder, t: (tmp_path / folder / "frames" / f"{t:05d}.png").read_bytes()  # noqa: E731
-    assert frame("on", 0) == frame("off", 0) and frame("on", 1) != frame("off", 1)
+    frame = lambda folder, t, sub="frames": (tmp_path / folder / sub / f"{t:05d}.png").read_bytes()  # noqa: E731
+    assert frame("on", 0, "forward") == frame("off", 0) and frame("on", 1, "forward") != frame("off", 1)
     assert on.flicker["flicker"]["enhanced"] < off.flicker["flicker"]["enhanced"]
     # keep_within: each frame names its neighbours; one still among the nearest stays to the next frame
     keep = 4
@@ -351,7 +356,7 @@ def test_a_neighbour_change_is_blended_more_for_change_frames_and_resumes_the_sa
         self.config.change_weight if changed else self.config.weight) or real(self, *a, changed=changed, **k))
 
     def run(out, change_weight=0.9):
-        config = TemporalConfig(weight=0.5, change_weight=change_weight, change_frames=2)
+        config = TemporalConfig(weight=0.5, change_weight=change_weight, change_frames=2, both_ways=False)
         mover = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=config))
         return enhance_path(scene, mover, cp, root / "frames", out, depth_type="ray", video=False)
 
@@ -387,7 +392,7 @@ def test_frames_between_the_models_are_carried_and_resume_the_same(toy_path, enh
     cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
     every = SceneEnhancer(scene, enhancer.model,
                           options=EnhanceOptions(temporal=TemporalConfig(model_every=2, min_seen=0.0,
-                                                                         carry_agreement=0.0)))
+                                                                         carry_agreement=0.0, both_ways=False)))
     ran = []
     real = every.enhance
     monkeypatch.setattr(every, "enhance", lambda *a, **k: ran.append(1) or real(*a, **k))
@@ -396,7 +401,8 @@ def test_frames_between_the_models_are_carried_and_resume_the_same(toy_path, enh
     T = len(cp)
     assert [f["carried"] for f in result.flicker["per_frame"]] == [t % 2 == 1 for t in range(T)]
     assert len(ran) == (T + 1) // 2 and result.enhanced_now == T
-    shipped = enhance_path(scene, enhancer, cp, root / "frames", tmp_path / "shipped", depth_type="ray", video=False)
+    once = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=TemporalConfig(both_ways=False)))
+    shipped = enhance_path(scene, once, cp, root / "frames", tmp_path / "shipped", depth_type="ray", video=False)
     assert "carried" not in shipped.flicker["per_frame"][0]
     frame = lambda folder, t: (tmp_path / folder / "frames" / f"{t:05d}.png").read_bytes()  # noqa: E731
     assert frame("every2", 0) == frame("shipped", 0) and frame("every2", 1) != frame("shipped", 1)
@@ -462,7 +468,8 @@ def test_frames_between_two_model_frames_are_carried_from_both_and_resume_the_sa
     made_by_model = []
 
     def run(out, between=True, **kw):
-        config = TemporalConfig(model_every=3, min_seen=0.0, carry_agreement=0.0, carry_between=between)
+        config = TemporalConfig(model_every=3, min_seen=0.0, carry_agreement=0.0, carry_between=between,
+                                both_ways=False)
         mixer = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=config))
         real = mixer.enhance
         monkeypatch.setattr(mixer, "enhance", lambda render, *a, **k: made_by_model.append(
@@ -915,3 +922,50 @@ def test_a_transposed_inria_cameras_json_is_refused_in_its_own_convention(toy_pa
     assert "a rotation written world-to-camera (transposed) or with OpenGL axes (Inria's cameras.json is read as " \
            "OpenCV camera-to-world (rotation and position, as 3DGS's train.py writes them))" in message
     assert "read as OpenGL" not in message
+
+
+def test_both_ways_blends_each_first_pass_frame_with_the_frame_after_it(toy_path, enhancer, tmp_path):
+    """TemporalConfig.both_ways (the default): forward/ holds what the first pass alone writes
+    (both_ways=False), and frames/ is that, blended from the last frame back with the frame after
+    it as written, by the same filter; the last frame has none after it. Flicker and gains are
+    measured on frames/."""
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.enhance.temporal import TemporalConfig, TemporalFilter
+    from roguenerf.geometry.cameras import ray_to_z_depth
+    from roguenerf.imageio import read_depth, read_image
+    from roguenerf.trajectory import find_path_frames
+
+    root, scene = toy_path["root"], toy_path["scene"]
+    cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
+    T = len(cp)
+    both = enhance_path(scene, enhancer, cp, root / "frames", tmp_path / "both", depth_type="ray", video=False)
+    once = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=TemporalConfig(both_ways=False)))
+    enhance_path(scene, once, cp, root / "frames", tmp_path / "once", depth_type="ray", video=False)
+    png = lambda folder, sub, t: tmp_path / folder / sub / f"{t:05d}.png"  # noqa: E731
+    assert all(png("both", "forward", t).read_bytes() == png("once", "frames", t).read_bytes() for t in range(T))
+    assert not (tmp_path / "once" / "forward").exists()
+    back = TemporalFilter(TemporalConfig())
+    files = find_path_frames(root / "frames", T)
+    for t in reversed(range(T)):
+        render = read_image(files[t][0])
+        depth = ray_to_z_depth(read_depth(files[t][1]).double(), cp.K[t]).float()
+        expected = back(render, read_image(png("both", "forward", t)), depth, cp.K[t], cp.world_from_cam[t])
+        written = read_image(png("both", "frames", t))
+        assert (written - expected).abs().max() <= 0.5 / 255 + 1e-6, t
+        back.remember(render, written, depth, cp.K[t], cp.world_from_cam[t])
+    assert png("both", "frames", T - 1).read_bytes() == png("both", "forward", T - 1).read_bytes()
+    assert png("both", "frames", 0).read_bytes() != png("both", "forward", 0).read_bytes()
+    report = json.loads((tmp_path / "both" / FLICKER_FILE).read_text())
+    assert [p["from"] for p in report["per_pair"]] == list(range(T - 1))
+    gains = {f["frame"]: f["gain_db"] for f in report["per_frame"] if "gain_db" in f}
+    photo = scene.photo(scene.index(report["per_frame"][0]["view"]))
+    first = read_image(png("both", "frames", 0))
+    render0 = read_image(files[0][0])
+    assert gains[0] == pytest.approx(float(psnr_of(first, photo) - psnr_of(render0, photo)), abs=1e-4)
+    assert both.enhanced_now == T
+
+
+def psnr_of(image, photo):
+    from roguenerf.metrics import psnr
+
+    return psnr(image[None], photo[None])[0]
