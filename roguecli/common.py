@@ -148,8 +148,16 @@ class PathEnhanceFlags(EnhanceFlags):
         "detail kept; 0: carry wherever 95 % is seen: 2.1x on a smooth path, but a fast orbit loses detail)."
         ))] = None
 
+    both_ways: Annotated[bool, typer.Option("--both-ways/--one-way", help=(
+        "With --temporal, blend each frame with the frames after it too: a second pass from the last frame "
+        "back over the first pass's frames (kept in OUTPUT/forward/): no lag, so a frame where a nearer photo "
+        "comes in keeps more of it (default); --one-way: the first pass alone, frames final as they are made."
+        ))] = True
+
     def options(self):
         temporal = self.temporal
+        if not self.both_ways and not self.temporal:
+            raise InputError("--one-way: the frames are blended only with --temporal; drop --no-temporal")
         for value, flag in ((self.carry_agreement, "--carry-agreement"),
                             (self.carry_between, "--carry-between/--carry-after")):
             if value is not None and self.model_every is None:
@@ -164,8 +172,12 @@ class PathEnhanceFlags(EnhanceFlags):
                 raise InputError("--model-every: frames are carried by the temporal filter; drop --no-temporal")
             chosen = {"carry_agreement": self.carry_agreement, "carry_between": self.carry_between,
                       "between_agreement": self.between_agreement}
-            temporal = TemporalConfig(model_every=self.model_every,
+            temporal = TemporalConfig(model_every=self.model_every, both_ways=self.both_ways,
                                       **{k: v for k, v in chosen.items() if v is not None})
+        elif self.temporal and not self.both_ways:
+            from roguenerf.enhance.temporal import TemporalConfig
+
+            temporal = TemporalConfig(both_ways=False)
         return super().options(temporal=temporal)
 
 

@@ -9,7 +9,10 @@ the whole path; with ``EnhanceOptions.temporal`` each neighbour's pose is fitted
 each frame is blended with the previous one: :mod:`roguenerf.enhance.temporal`), writes each
 enhanced frame atomically as it is done (an interrupted run resumes after the last written
 frame; with ``TemporalConfig.carry_between`` the model frame after a stretch is made before the
-frames of the stretch, and still written after them, in order), then encodes ``enhanced.mp4``
+frames of the stretch, and still written after them, in order); with ``TemporalConfig.both_ways``
+(the default) those are the first pass's frames, written into :data:`FORWARD_FOLDER`, and a
+second pass from the last frame back blends each with the frame after it as written into
+``frames/`` (resumable the same way, from the end), where the report measures them; then encodes ``enhanced.mp4``
 and ``side_by_side.mp4`` (render | enhanced, each half labelled) frame by frame. The flicker
 report is :mod:`roguenerf.trajectory.flicker`'s, on two frames held at a time (with
 ``carry_between``, also the next model frame, made ahead of the stretch before it).

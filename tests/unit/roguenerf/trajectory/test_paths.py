@@ -519,6 +519,15 @@ def test_enhance_path_cli(toy_path, tmp_path):
     assert report["frames"] == 2 * STEPS + 1
     changes = report["flicker"]["neighbour_changes"]  # the toy path's set changes, and the CLI says where
     assert changes > 0 and f"the neighbour set changed across {changes} of {2 * STEPS} frame pairs" in result.output
+    assert (tmp_path / "cli" / "forward").is_dir()  # both ways: the first pass's frames kept
+    into = lambda name: [str(tmp_path / name) if a == str(tmp_path / "cli") else a for a in args]  # noqa: E731
+    once = runner.invoke(app, [*into("once"), "--one-way"])
+    assert once.exit_code == 0, once.output
+    assert not (tmp_path / "once" / "forward").exists()
+    assert (tmp_path / "once" / "frames" / "00000.png").read_bytes() == (
+        tmp_path / "cli" / "forward" / "00000.png").read_bytes()
+    clash = runner.invoke(app, [*into("clash"), "--one-way", "--no-temporal"])
+    assert clash.exit_code == 2 and "--one-way" in clash.output and "Traceback" not in clash.output
     bad = runner.invoke(app, args[:-1] + ["--quality", "99"])
     assert bad.exit_code == 2 and "--quality" in bad.output and "Traceback" not in bad.output
     (tmp_path / "empty").mkdir()
