@@ -397,3 +397,9 @@ def test_a_carried_frame_takes_the_render_where_the_renders_disagree():
     out = f.carry(r2, DEPTH, K, POSE)
     assert torch.allclose(out[:, :, :11], e1[:, :, :11], atol=1e-5)
     assert torch.allclose(out[:, :, 13:], (0.5 * e1 + 0.5 * r2)[:, :, 13:].clamp(0, 1), atol=1e-5)
+
+
+@pytest.mark.parametrize("value", [1, "yes", None])
+def test_both_ways_must_be_true_or_false(value):
+    with pytest.raises(InputError, match="both_ways"):
+        TemporalConfig(both_ways=value)
