@@ -370,21 +370,25 @@ def enhance_path(
         frames/, and measured; the seconds spent on the frames written now, and their number."""
         back = TemporalFilter(replace(temporal.config, model_every=1, change_frames=0))
         later, pairs_back, spent, written_now = None, [], 0.0, 0
-        ahead = behind.submit(load_frame, total - 1)
+
+        def read_back(t: int) -> tuple[Tensor, Tensor, Tensor]:  # by the background thread, a frame ahead
+            return *load_frame(t), read_image(first_dir / f"{t:05d}.png")
+
+        ahead = behind.submit(read_back, total - 1)
         for t in reversed(range(total)):
             if should_stop is not None and should_stop():
                 raise PathCancelled(total)
             began = time.perf_counter()
-            render, depth = ahead.result()
+            render, depth, first = ahead.result()
             if t > 0:
-                ahead = behind.submit(load_frame, t - 1)
+                ahead = behind.submit(read_back, t - 1)
             camera = (camera_path.K[t], camera_path.world_from_cam[t])
             out_png = frame_dir / f"{t:05d}.png"
             written = out_png.is_file()
             if written:
                 final = read_image(out_png)
             else:
-                final = _quantise(back(render, read_image(first_dir / f"{t:05d}.png"), depth, *camera))
+                final = _quantise(back(render, first, depth, *camera))
                 behind.write(out_png, final)
                 written_now += 1
             back.remember(render, final, depth, *camera)
