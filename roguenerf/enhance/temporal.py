@@ -84,8 +84,9 @@ class TemporalConfig:
     weight: float = 0.8
     """Share of the previous frame's result (reprojected) in each frame's, in [0, 1), before
     :attr:`reject` lowers it where the renders disagree. 0.8 since 2026-12-07 (0.5 before): chosen
-    on the choice half's paths, ``can_clip``'s smooth 154-frame path and ``dtu_scan37``'s 49- and
-    13-frame ones (about 2.5 and 10 degrees a frame), by the rule that chose :attr:`reject`: the least mean
+    on the choice half's paths (one way: before :attr:`both_ways`), ``can_clip``'s smooth 154-frame
+    path and ``dtu_scan37``'s 49- and 13-frame ones (about 2.5 and 10 degrees a frame), by the rule
+    that chose :attr:`reject`: the least mean
     flicker of the weights (0.5 to 0.9) that cost no path more than 0.1 dB on its frames with photos
     against frame by frame (0.85 cost ``can_clip`` 0.19 dB); reported on ``ollie``'s and
     ``mary_rose``'s: less flicker on every path, within 0.09 dB on five of seven, -0.14 and -0.15
