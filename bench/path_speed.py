@@ -51,6 +51,25 @@ from pathlib import Path
 
 from bench.common import RESULTS, beside, save_figure, stamp, write_csv, write_json
 
+ONOFF = {"on": True, "off": False}
+SWEPT = (
+    ("model_every", int, lambda v: f"k{v}"),
+    ("resample", str, str),
+    ("reject", float, lambda v: f"reject{v:g}"),
+    ("carry_from", str, lambda v: f"from-{v}"),
+    ("blend", str, str),
+    ("carry_agreement", float, lambda v: f"agree{v:g}"),
+    ("carry_between", ONOFF, lambda v: f"between-{'on' if v else 'off'}"),
+    ("between_agreement", float, lambda v: f"mutual{v:g}"),
+    ("weight", float, lambda v: f"w{v:g}"),
+    ("change_weight", float, lambda v: f"cw{v:g}"),
+    ("change_frames", int, lambda v: f"cf{v}"),
+    ("both_ways", ONOFF, lambda v: f"both-ways-{'on' if v else 'off'}"),
+)
+"""The TemporalConfig fields this bench sweeps, in the order of the runs and of their labels: each
+with how its comma-separated values are read (on/off for the switches) and its label where it is
+not the shipped value."""
+
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -61,36 +80,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=16)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--output", type=Path, default=None)
-    ap.add_argument("--model-every", default=None,
-                    help="comma-separated TemporalConfig.model_every values for the filter (default: the shipped one)")
-    ap.add_argument("--resample", default=None,
-                    help="comma-separated TemporalConfig.resample values for the filter (default: the shipped one)")
-    ap.add_argument("--reject", default=None,
-                    help="comma-separated TemporalConfig.reject values for the filter (default: the shipped one)")
-    ap.add_argument("--carry-agreement", default=None,
-                    help="comma-separated TemporalConfig.carry_agreement values (dB) for the filter "
-                         "(default: the shipped one)")
-    ap.add_argument("--blend", default=None,
-                    help="comma-separated TemporalConfig.blend values for the filter (default: the shipped one)")
-    ap.add_argument("--carry-from", default=None,
-                    help="comma-separated TemporalConfig.carry_from values for the filter (default: the shipped one)")
-    ap.add_argument("--carry-between", default=None,
-                    help="comma-separated TemporalConfig.carry_between values, on/off (default: the shipped one)")
-    ap.add_argument("--between-agreement", default=None,
-                    help="comma-separated TemporalConfig.between_agreement values (default: the shipped one)")
-    ap.add_argument("--weight", default=None,
-                    help="comma-separated TemporalConfig.weight values (default: the shipped one)")
-    ap.add_argument("--both-ways", default=None,
-                    help="comma-separated TemporalConfig.both_ways values, on/off (default: the shipped one)")
-    ap.add_argument("--change-weight", default=None,
-                    help="comma-separated TemporalConfig.change_weight values (default: the shipped one)")
-    ap.add_argument("--change-frames", default=None,
-                    help="comma-separated TemporalConfig.change_frames values (default: the shipped one)")
+    for field, kind, _label in SWEPT:
+        ap.add_argument("--" + field.replace("_", "-"), default=None,
+                        help=f"comma-separated TemporalConfig.{field} values{', on/off' if kind is ONOFF else ''} "
+                             "(default: the shipped one)")
     ap.add_argument("--force", action="store_true", help="enhance a path enhance_path's check refuses (as bench.paths)")
     args = ap.parse_args(argv)
     if args.repeats < 1:
         raise SystemExit(f"--repeats: expected 1 or more, got {args.repeats}")
     args.photo_path, args.toy, args.quick = False, False, False
+    chosen = {}  # field -> the values asked for (the shipped one where none was)
+    for field, kind, _label in SWEPT:
+        text = getattr(args, field)
+        if text is None:
+            continue
+        if kind is ONOFF and not set(text.split(",")) <= set(ONOFF):
+            raise SystemExit(f"--{field.replace('_', '-')}: expected on, off or on,off, got {text}")
+        chosen[field] = [(ONOFF.get if kind is ONOFF else kind)(x) for x in text.split(",")]
 
     import roguenerf.runtime
     from bench.paths import field_frames
@@ -106,50 +112,15 @@ def main(argv: list[str] | None = None) -> int:
                              height=height, fps=24.0)
     model, _ = load_checkpoint(default_checkpoint_path())
     shipped = TemporalConfig()
-    every = [shipped.model_every] if args.model_every is None else [int(k) for k in args.model_every.split(",")]
-    resample = [shipped.resample] if args.resample is None else args.resample.split(",")
-    reject = [shipped.reject] if args.reject is None else [float(x) for x in args.reject.split(",")]
-    carry = [shipped.carry_from] if args.carry_from is None else args.carry_from.split(",")
-    blend = [shipped.blend] if args.blend is None else args.blend.split(",")
-    gates = ([shipped.carry_agreement] if args.carry_agreement is None
-             else [float(x) for x in args.carry_agreement.split(",")])
-    onoff = {"on": True, "off": False}
-    if args.carry_between is not None and not set(args.carry_between.split(",")) <= set(onoff):
-        raise SystemExit(f"--carry-between: expected on, off or on,off, got {args.carry_between}")
-    betweens = ([shipped.carry_between] if args.carry_between is None
-                else [onoff[x] for x in args.carry_between.split(",")])
-    mutual = ([shipped.between_agreement] if args.between_agreement is None
-              else [float(x) for x in args.between_agreement.split(",")])
-    weights = [shipped.weight] if args.weight is None else [float(x) for x in args.weight.split(",")]
-    change = ([shipped.change_weight] if args.change_weight is None
-              else [float(x) for x in args.change_weight.split(",")])
-    if args.both_ways is not None and not set(args.both_ways.split(",")) <= set(onoff):
-        raise SystemExit(f"--both-ways: expected on, off or on,off, got {args.both_ways}")
-    ways = [shipped.both_ways] if args.both_ways is None else [onoff[x] for x in args.both_ways.split(",")]
-    settle = ([shipped.change_frames] if args.change_frames is None
-              else [int(x) for x in args.change_frames.split(",")])
     modes = {"off": None}
-    for k, r, j, c, b, g, bw, m, w, cw, cf, two in itertools.product(every, resample, reject, carry, blend, gates,
-                                                                      betweens, mutual, weights, change, settle, ways):
-        if k == 1 and m != shipped.between_agreement:
-            continue  # nothing is carried at K = 1
-        if k == 1 and bw != shipped.carry_between:
-            continue  # nothing is carried at K = 1: the same run as the shipped value's
-        label = "/".join(["on", *([f"k{k}"] if k != shipped.model_every else []),
-                          *([r] if r != shipped.resample else []),
-                          *([f"reject{j:g}"] if j != shipped.reject else []),
-                          *([f"from-{c}"] if c != shipped.carry_from else []),
-                          *([b] if b != shipped.blend else []),
-                          *([f"agree{g:g}"] if g != shipped.carry_agreement else []),
-                          *([f"between-{'on' if bw else 'off'}"] if bw != shipped.carry_between else []),
-                          *([f"mutual{m:g}"] if m != shipped.between_agreement else []),
-                          *([f"w{w:g}"] if w != shipped.weight else []),
-                          *([f"cw{cw:g}"] if cw != shipped.change_weight else []),
-                          *([f"cf{cf}"] if cf != shipped.change_frames else []),
-                          *([f"both-ways-{'on' if two else 'off'}"] if two != shipped.both_ways else [])])
-        modes[label] = TemporalConfig(model_every=k, resample=r, reject=j, carry_from=c, blend=b,
-                                      carry_agreement=g, carry_between=bw, between_agreement=m, weight=w,
-                                      change_weight=cw, change_frames=cf, both_ways=two)
+    for values in itertools.product(*(chosen.get(field, [getattr(shipped, field)]) for field, _, _ in SWEPT)):
+        config = dict(zip((field for field, _, _ in SWEPT), values))
+        if config["model_every"] == 1 and any(config[f] != getattr(shipped, f)
+                                              for f in ("between_agreement", "carry_between")):
+            continue  # nothing is carried at K = 1: the same run as the shipped values'
+        label = "/".join(["on", *(tag(v) for (field, _, tag), v in zip(SWEPT, values)
+                                  if v != getattr(shipped, field))])
+        modes[label] = TemporalConfig(**config)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for repeat in range(args.repeats):

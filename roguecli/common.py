@@ -165,19 +165,14 @@ class PathEnhanceFlags(EnhanceFlags):
         if self.between_agreement is not None and (self.model_every is None or self.carry_between is False):
             raise InputError("--between-agreement: judges frames carried between model frames: needs --model-every "
                              "K (K > 1), without --carry-after")
-        if self.model_every is not None:
+        if self.model_every is not None and not self.temporal:
+            raise InputError("--model-every: frames are carried by the temporal filter; drop --no-temporal")
+        if self.model_every is not None or not self.both_ways:
             from roguenerf.enhance.temporal import TemporalConfig
 
-            if not self.temporal:
-                raise InputError("--model-every: frames are carried by the temporal filter; drop --no-temporal")
-            chosen = {"carry_agreement": self.carry_agreement, "carry_between": self.carry_between,
-                      "between_agreement": self.between_agreement}
-            temporal = TemporalConfig(model_every=self.model_every, both_ways=self.both_ways,
-                                      **{k: v for k, v in chosen.items() if v is not None})
-        elif self.temporal and not self.both_ways:
-            from roguenerf.enhance.temporal import TemporalConfig
-
-            temporal = TemporalConfig(both_ways=False)
+            chosen = {"model_every": self.model_every, "carry_agreement": self.carry_agreement,
+                      "carry_between": self.carry_between, "between_agreement": self.between_agreement}
+            temporal = TemporalConfig(both_ways=self.both_ways, **{k: v for k, v in chosen.items() if v is not None})
         return super().options(temporal=temporal)
 
 

@@ -32,7 +32,7 @@ import math
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from torch import Tensor
@@ -368,7 +368,7 @@ def enhance_path(
         """TemporalConfig.both_ways: from the last frame back to the first, each first-pass frame
         blended with the frame after it as written (read back where it was written before), into
         frames/, and measured; the seconds spent on the frames written now, and their number."""
-        back = TemporalFilter(replace(temporal.config, model_every=1, change_frames=0))
+        back = TemporalFilter(temporal.config)  # only blends: never carries, never told of a change
         later, pairs_back, spent, written_now = None, [], 0.0, 0
 
         def read_back(t: int) -> tuple[Tensor, Tensor, Tensor]:  # by the background thread, a frame ahead

@@ -942,6 +942,7 @@ def test_both_ways_blends_each_first_pass_frame_with_the_frame_after_it(toy_path
     from roguenerf.enhance.temporal import TemporalConfig, TemporalFilter
     from roguenerf.geometry.cameras import ray_to_z_depth
     from roguenerf.imageio import read_depth, read_image
+    from roguenerf.metrics import psnr
     from roguenerf.trajectory import find_path_frames
 
     root, scene = toy_path["root"], toy_path["scene"]
@@ -970,11 +971,6 @@ def test_both_ways_blends_each_first_pass_frame_with_the_frame_after_it(toy_path
     photo = scene.photo(scene.index(report["per_frame"][0]["view"]))
     first = read_image(png("both", "frames", 0))
     render0 = read_image(files[0][0])
-    assert gains[0] == pytest.approx(float(psnr_of(first, photo) - psnr_of(render0, photo)), abs=1e-4)
+    assert gains[0] == pytest.approx(float(psnr(first[None], photo[None])[0] - psnr(render0[None], photo[None])[0]),
+                                     abs=1e-4)
     assert both.enhanced_now == T
-
-
-def psnr_of(image, photo):
-    from roguenerf.metrics import psnr
-
-    return psnr(image[None], photo[None])[0]
