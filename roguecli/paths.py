@@ -90,7 +90,9 @@ def enhance_path_command(
         model, _meta = load_checkpoint(ckpt)
         enhancer = SceneEnhancer(scene, model, options=flags.options())
         stat = ckpt.stat()
-        with progress_bar(f"enhancing {len(camera_path)} frames", "frame") as progress:
+        temporal = enhancer.options.temporal
+        passes = " in two passes (blended both ways)" if temporal is not None and temporal.both_ways else ""
+        with progress_bar(f"enhancing {len(camera_path)} frames{passes}", "step") as progress:
             result = enhance_path(scene, enhancer, camera_path, frames, output, depth_type=depth_type,
                                   depth_scale=depth_scale, background=background, video=not no_video,
                                   quality=quality, fps=fps,

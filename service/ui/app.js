@@ -817,7 +817,8 @@
       const bar = document.createElement("progress");
       bar.id = "vp-" + job.id; bar.max = 1; bar.value = job.progress;
       const words = document.createElement("span");
-      const frames = job.step ? ` · frame ${job.step} of ${job.total_steps}` : "";
+      // steps: one per frame, or one per frame and pass where the frames are blended both ways
+      const frames = job.step ? ` · step ${job.step} of ${job.total_steps}` : "";
       const eta = job.state === "running" && job.eta_s !== null ? ` · ${fmt.seconds(job.eta_s)} left` : "";
       const doing = job.state === "queued" || job.state === "running" ? ` · ${jobPhase(job)}` : "";
       words.textContent = (job.error ? `: ${job.error.message} (${job.error.code})` : "") + doing + frames + eta;

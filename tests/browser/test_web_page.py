@@ -642,9 +642,10 @@ def test_9_videos_tab_lists_plays_and_downloads_path_jobs(chromium, site, sessio
         wait_for(page, f"() => document.querySelector(\"#videos-table tr[data-job='{job_id}']\").dataset.state"
                        " === 'succeeded'", timeout_s=180)
         job = api.get(f"/jobs/{job_id}").json()
-        assert job["state"] == "succeeded" and job["step"] == frames
+        # one step per frame and pass: the frames are blended both ways (TemporalConfig.both_ways)
+        assert job["state"] == "succeeded" and job["step"] == job["total_steps"] == 2 * frames
         assert row.locator("progress").evaluate("e => e.value") == 1
-        assert f"frame {frames} of {frames}" in row.inner_text()
+        assert f"step {2 * frames} of {2 * frames}" in row.inner_text()
 
         row.get_by_role("button", name="Play").click()
         wait_for(page, "() => document.getElementById('video-player').readyState >= 1 || "
@@ -744,7 +745,7 @@ def test_b_videos_tab_shows_each_jobs_state_and_flicker(chromium, site, session,
         row.wait_for(timeout=30_000)
         flicker = job["result"]["flicker"]
         assert row.locator(".job-state").inner_text() == "succeeded"
-        assert f"frame {frames} of {frames}" in row.inner_text()
+        assert f"step {2 * frames} of {2 * frames}" in row.inner_text()
         assert flicker["neighbour_changes"] > 0  # the toy path changes its neighbours: the page says how it fares there
         want = (f"{flicker['render']:.4f} → {flicker['enhanced']:.4f} (×{flicker['ratio']:.2f}); "
                 f"×{flicker['ratio_sharpened']:.2f} of the render sharpened alike; "

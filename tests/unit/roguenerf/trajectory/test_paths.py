@@ -216,7 +216,10 @@ def test_enhance_path_writes_video_flicker_and_resumes(toy_path, enhancer, tmp_p
     result = enhance_path(scene, enhancer, cp, root / "frames", out, depth_type="ray", quality=23,
                           progress=lambda d, t: calls.append((d, t)))
     T = len(cp)
-    assert result.frames == result.enhanced_now == T and calls[-1] == (T, T)
+    assert result.frames == result.enhanced_now == T
+    # One progress step per frame and pass (the defaults blend both ways): the bar reaches its end
+    # only when the second pass has written the last of frames/, never earlier.
+    assert enhancer.options.temporal.both_ways and calls == [(d, 2 * T) for d in range(1, 2 * T + 1)]
     assert sorted(p.name for p in (out / "frames").iterdir()) == [f"{t:05d}.png" for t in range(T)]
     info = read_video_info(result.video)
     assert (info["frames"], info["width"], info["height"], info["codec"]) == (T, W, H, "h264")
@@ -950,7 +953,10 @@ def test_both_ways_blends_each_first_pass_frame_with_the_frame_after_it(toy_path
     T = len(cp)
     both = enhance_path(scene, enhancer, cp, root / "frames", tmp_path / "both", depth_type="ray", video=False)
     once = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=TemporalConfig(both_ways=False)))
-    enhance_path(scene, once, cp, root / "frames", tmp_path / "once", depth_type="ray", video=False)
+    calls = []
+    enhance_path(scene, once, cp, root / "frames", tmp_path / "once", depth_type="ray", video=False,
+                 progress=lambda d, t: calls.append((d, t)))
+    assert calls == [(d, T) for d in range(1, T + 1)]  # one pass: one step per frame
     png = lambda folder, sub, t: tmp_path / folder / sub / f"{t:05d}.png"  # noqa: E731
     assert all(png("both", "forward", t).read_bytes() == png("once", "frames", t).read_bytes() for t in range(T))
     assert not (tmp_path / "once" / "forward").exists()
