@@ -72,7 +72,9 @@ def test_path_job_round_trip(setup, tmp_path):
     assert client.get(f"/jobs/{job['id']}/result").status_code == 409  # not finished yet
     assert run_job(setup["ctx"], job["id"]) == "succeeded"
     done = client.get(f"/jobs/{job['id']}").json()
-    assert done["state"] == "succeeded" and done["progress"] == 1.0 and done["step"] == frames
+    # The service blends both ways by default: one step per frame and pass.
+    assert done["state"] == "succeeded" and done["progress"] == 1.0
+    assert done["step"] == done["total_steps"] == 2 * frames
     flicker = done["result"]["flicker"]
     assert flicker["pairs"] == frames - 1 and flicker["render"] > 0 and flicker["enhanced"] > 0
     assert done["result"]["psnr"]["frames_with_photos"] == 3
@@ -195,7 +197,7 @@ def test_cancel_queued_and_running_path_jobs(setup, monkeypatch):
     worker.join(60)
     assert outcome["r"] == "cancelled"
     job = client.get(f"/jobs/{running['id']}").json()
-    assert job["state"] == "cancelled" and job["step"] < frames
+    assert job["state"] == "cancelled" and job["step"] < 2 * frames
     assert not (data / "jobs" / running["id"]).exists()
     assert client.get(f"/jobs/{running['id']}/result").status_code == 409
 
