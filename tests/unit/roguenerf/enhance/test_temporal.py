@@ -56,8 +56,9 @@ def test_a_cut_keeps_the_frame_and_weight_zero_changes_nothing():
 
 def test_a_moving_camera_carries_the_residual_to_where_the_point_went():
     """A camera moved sideways by one pixel's worth: a residual spike at pixel (10, 8) lands at
-    (10, 7) in the next frame (z = 3, f = 30: 0.1 units to the right is one pixel to the left)."""
-    f = TemporalFilter(TemporalConfig(weight=0.5, blend="residual"))
+    (10, 7) in the next frame (z = 3, f = 30: 0.1 units to the right is one pixel to the left).
+    No fade: the weight is the configured one (the fade is tested below)."""
+    f = TemporalFilter(TemporalConfig(weight=0.5, blend="residual", fade_deg=0.0))
     render = torch.full((3, H, W), 0.5)
     spike = render.clone()
     spike[:, 10, 8] = 0.9
@@ -325,6 +326,40 @@ def test_parallax_is_the_angle_between_the_two_rays_at_the_point():
     assert float(angles[0, 10, 12]) == pytest.approx(_angle((0.05, 0.05, 3), (-2.95, 0.05, 3)), abs=1e-4)
     assert float(angles[0, 0, 0]) == 0.0
     assert float(parallax_deg(DEPTH, K, POSE, torch.zeros(3)).abs().max()) < 1e-9  # the same centre
+
+
+def test_parallax_far_from_the_origin_matches_the_float64_angle():
+    """Cameras 5000 units from the origin, 0.05 apart, turned: the float32 per-pixel form agrees
+    with the float64 angle between the two rays at every point to 1e-4 degrees, and unknown
+    depth (NaN, 0) gives 0."""
+    import math
+
+    from roguenerf.enhance.temporal import parallax_deg
+    from roguenerf.geometry.noise import axis_angle_to_matrix
+
+    g = torch.Generator().manual_seed(3)
+    h, w = 24, 32
+    intrinsics = torch.tensor([[40.0, 0.2, 15.0], [0.0, 42.0, 13.0], [0.0, 0.0, 1.0]])
+    pose = torch.eye(4, dtype=torch.float64)
+    pose[:3, :3] = axis_angle_to_matrix(torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64))
+    pose[:3, 3] = torch.tensor([5e3, -2e3, 1e3], dtype=torch.float64)
+    other = pose[:3, 3] + torch.tensor([0.05, 0.01, -0.02], dtype=torch.float64)
+    depth = torch.rand(1, h, w, generator=g) * 3 + 0.5
+    depth[0, 0, :4] = float("nan")
+    depth[0, 1, :4] = 0.0
+    angles = parallax_deg(depth, intrinsics, pose, other)
+    inv = torch.linalg.inv(intrinsics.double())
+    worst = 0.0
+    for v in range(2, h, 3):
+        for u in range(0, w, 5):
+            point = pose[:3, :3] @ (inv @ torch.tensor([u + 0.5, v + 0.5, 1.0], dtype=torch.float64)) * depth[0, v, u]
+            point = point + pose[:3, 3]
+            a, b = point - pose[:3, 3], point - other
+            expected = math.degrees(math.acos(float(a @ b / (a.norm() * b.norm()))))
+            worst = max(worst, abs(float(angles[0, v, u]) - expected))
+    assert worst < 1e-4
+    assert float(angles[0, :2, :4].abs().max()) == 0.0
+    assert float(angles.max()) > 0.5  # the test has parallax to get wrong
 
 
 def test_the_blend_fades_with_parallax():
