@@ -66,6 +66,8 @@ SWEPT = (
     ("change_frames", int, lambda v: f"cf{v}"),
     ("both_ways", ONOFF, lambda v: f"both-ways-{'on' if v else 'off'}"),
     ("fade_deg", float, lambda v: f"fade{v:g}"),
+    ("reuse_poses", ONOFF, lambda v: f"reuse-poses-{'on' if v else 'off'}"),
+    ("refit_nearer", float, lambda v: f"refit{v:g}"),
 )
 """The TemporalConfig fields this bench sweeps, in the order of the runs and of their labels: each
 with how its comma-separated values are read (on/off for the switches) and its label where it is

@@ -140,6 +140,45 @@ def _resolve_exclude(scene, train: list[int], exclude) -> list[int]:
     return out
 
 
+@dataclass
+class PoseMemory:
+    """Neighbour poses fitted along a camera path (:meth:`SceneEnhancer.neighbour_poses`): each
+    neighbour's pose is fitted the first time a frame uses it and reused after, so the same photo
+    lands the same way on every frame and the fit is paid once.
+
+    A fit is only as good as the view it was made against: a neighbour usually joins the set
+    while the path is still far from it, and the render there matches the photo worst. With
+    ``refit_nearer`` in (0, 1) a frame whose camera is nearer the photo's than ``refit_nearer``
+    times the distance of the last fit fits it again (and keeps that fit): a few fits per
+    neighbour (each halving the distance at 0.5), made from ever nearer. A neighbour whose fit
+    found nothing to gain (refused ``early`` or for its ``gain``: the dataset pose is right) is
+    not fitted again. 0: fitted once. Paths take :attr:`TemporalConfig.refit_nearer
+    <roguenerf.enhance.temporal.TemporalConfig.refit_nearer>`."""
+
+    refit_nearer: float = 0.0
+    fits: dict = field(default_factory=dict)
+    """Training position -> ``(pose (4, 4) float64, accepted, camera distance it was fitted from,
+    whether it found nothing to gain)``."""
+
+    def refit(self, position: int, world_from_cam: Tensor, photo_pose: Tensor) -> bool:
+        """Whether the neighbour at ``position`` must be fitted for the view at ``world_from_cam``."""
+        if position not in self.fits:
+            return True
+        _pose, _accepted, fitted_from, settled = self.fits[position]
+        return (self.refit_nearer > 0 and not settled
+                and _distance(world_from_cam, photo_pose) < self.refit_nearer * fitted_from)
+
+    def keep(self, position: int, fit, world_from_cam: Tensor, photo_pose: Tensor) -> None:
+        """Keep ``fit`` (an :class:`~roguenerf.enhance.align.Alignment`) made for the view at
+        ``world_from_cam``."""
+        self.fits[position] = (fit.world_from_cam.clone(), fit.accepted, _distance(world_from_cam, photo_pose),
+                               fit.refusal in ("early", "gain"))
+
+
+def _distance(a: Tensor, b: Tensor) -> float:
+    return float((torch.as_tensor(a)[:3, 3].double() - torch.as_tensor(b)[:3, 3].double()).norm())
+
+
 class SceneEnhancer:
     """An enhancer bound to one scene: the pipeline ``select -> align -> model -> stages``
     (:mod:`roguenerf.enhance`), with cached conv_H features and tiling.
@@ -304,15 +343,15 @@ class SceneEnhancer:
             return self._small[position]
 
     def neighbour_poses(self, positions: list[int], render: Tensor, depth: Tensor, K: Tensor,
-                        world_from_cam: Tensor, *, memory: dict | None = None) -> tuple[Tensor, list[bool]]:
+                        world_from_cam: Tensor, *, memory: PoseMemory | None = None) -> tuple[Tensor, list[bool]]:
         """``(N, 4, 4)`` float64 poses of the neighbours at training ``positions`` for this view:
         refined against the render where :attr:`align` is on and the fit is accepted, else the
-        dataset's; and, per neighbour, whether it was refined. With ``memory`` (a dict kept by
-        the caller: a camera path) a neighbour's pose is fitted the first time it is used and
-        reused after: a photo's pose error does not depend on the view it is fitted against.
-        Without it, where :attr:`AlignConfig.reuse <roguenerf.enhance.align.AlignConfig.reuse>`
-        is on, a neighbour whose fit found nothing to gain on an earlier view (:attr:`settled`)
-        keeps its dataset pose without a fit."""
+        dataset's; and, per neighbour, whether it was refined. With ``memory`` (kept by the
+        caller: a camera path) a neighbour's pose is fitted the first time it is used and reused
+        after, fitted again on a view nearer the photo (:class:`PoseMemory`). Without it, where
+        :attr:`AlignConfig.reuse <roguenerf.enhance.align.AlignConfig.reuse>` is on, a neighbour
+        whose fit found nothing to gain on an earlier view (:attr:`settled`) keeps its dataset
+        pose without a fit."""
         from roguenerf.enhance.align import align_neighbour, shrink
 
         poses = self.train_poses[positions].clone()
@@ -323,8 +362,8 @@ class SceneEnhancer:
         done = []
         grown = False
         for j, p in enumerate(positions):
-            if memory is not None and p in memory:
-                poses[j], accepted = memory[p]
+            if memory is not None and not memory.refit(p, world_from_cam, self.train_poses[p]):
+                poses[j], accepted = memory.fits[p][:2]
                 done.append(accepted)
                 continue
             if reuse and p in self.settled:  # nothing to gain on an earlier view: the dataset pose
@@ -342,7 +381,7 @@ class SceneEnhancer:
             poses[j] = fit.world_from_cam
             done.append(fit.accepted)
             if memory is not None:
-                memory[p] = (fit.world_from_cam.clone(), fit.accepted)
+                memory.keep(p, fit, world_from_cam, self.train_poses[p])
         if grown and self.settled_file is not None:
             from roguenerf.enhance import settled
 
@@ -478,7 +517,7 @@ class SceneEnhancer:
 
     def enhance(self, render: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
                 exclude: int | str | Sequence[int | str] | None = None, progress=None,
-                neighbours: Sequence[int | str] | None = None, pose_memory: dict | None = None) -> EnhanceResult:
+                neighbours: Sequence[int | str] | None = None, pose_memory: PoseMemory | None = None) -> EnhanceResult:
         """Enhance one render.
 
         Args:
@@ -497,8 +536,8 @@ class SceneEnhancer:
             progress: optional ``callback(done, total)`` called after each tile of a tiled image.
             neighbours: training views (scene indices or names) to use instead of the rule's
                 choice, in this order (an empty list: none).
-            pose_memory: a dict the caller keeps across calls (the frames of one camera path):
-                each neighbour's refined pose is fitted once and reused (:meth:`neighbour_poses`).
+            pose_memory: what the caller keeps across calls (the frames of one camera path):
+                each neighbour's refined pose is fitted once and reused (:class:`PoseMemory`).
         Returns:
             :class:`EnhanceResult`; raises :class:`~roguenerf.errors.RoGUENeRFError` instead of
             returning a non-finite image.

@@ -39,6 +39,7 @@ from torch import Tensor
 
 from roguenerf.enhance.temporal import TemporalFilter, settling, sticky_neighbours
 from roguenerf.errors import InputError, PathCancelled
+from roguenerf.inference import PoseMemory
 from roguenerf.trajectory.checks import check_path
 from roguenerf.trajectory.flicker import pair_flicker, sharpening, summarise_flicker
 from roguenerf.trajectory.readers import CameraPath, find_path_frames
@@ -231,7 +232,8 @@ def enhance_path(
     making = 0.0
     temporal = None if enhancer.options.temporal is None else TemporalFilter(enhancer.options.temporal)
     last_neighbours = None
-    poses = {} if temporal is not None and temporal.config.reuse_poses and enhancer.align is not None else None
+    poses = (PoseMemory(temporal.config.refit_nearer)
+             if temporal is not None and temporal.config.reuse_poses and enhancer.align is not None else None)
     # TemporalConfig.carry_between: the model frames 0, k, 2k, ... (and the last) are made before
     # the frames between them, each of which is carried from the two around it; frames are still
     # written, measured and remembered in order.

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -160,6 +161,52 @@ def test_the_scene_enhancer_refines_wrong_neighbour_poses(tmp_path):
     assert exact.enhance_view(test).aligned is None
     with pytest.raises(InputError, match="align"):
         SceneEnhancer(scene, model, align="yes")
+
+
+def test_a_path_fits_each_neighbour_once_and_again_from_nearer(tmp_path, monkeypatch):
+    """PoseMemory: a neighbour is fitted on the first frame that uses it and reused after; with
+    refit_nearer 0.5 a frame at under half the distance of the last fit fits it again (and that
+    fit is what later frames reuse); with 0 it never is, nor where the fit found nothing to gain."""
+    from roguenerf.enhance import align
+    from roguenerf.enhance.temporal import TemporalConfig
+    from roguenerf.inference import PoseMemory, SceneEnhancer
+    from roguenerf.models import Enhancer, make_config
+
+    scene = make_toy_scene(tmp_path / "scene", n_train=6, n_test=1, height=48, width=64)
+    test = scene.indices("test")[0]
+    enhancer = SceneEnhancer(scene, Enhancer(make_config("nano", num_neighbours=2)))
+    position = enhancer.train.index(enhancer.select(scene.frames[test].world_from_cam)[0])
+    photo_pose = enhancer.train_poses[position]
+    render, depth, K = scene.render(test), scene.depth(test), scene.frames[test].K
+    fitted_from = []
+    real = align.align_neighbour
+
+    def counting(*args, **kwargs):  # a fit that always finds something to gain
+        fitted_from.append(round(float((args[-1][:3, 3] - photo_pose[:3, 3]).norm()), 6))
+        return dataclasses.replace(real(*args, **kwargs), accepted=True, refusal="")
+
+    monkeypatch.setattr(align, "align_neighbour", counting)
+
+    def at(distance: float) -> torch.Tensor:
+        pose = photo_pose.clone()
+        pose[0, 3] += distance
+        return pose
+
+    for refit, expected in ((0.5, [0.4, 0.15]), (0.0, [0.4])):
+        memory = PoseMemory(refit)
+        fitted_from.clear()
+        for distance in (0.4, 0.3, 0.21, 0.15, 0.1, 0.08):
+            enhancer.neighbour_poses([position], render, depth, K, at(distance), memory=memory)
+        assert fitted_from == expected
+        assert memory.fits[position][2] == pytest.approx(expected[-1])
+    monkeypatch.setattr(align, "align_neighbour",
+                        lambda *a, **k: dataclasses.replace(real(*a, **k), accepted=False, refusal="gain"))
+    memory = PoseMemory(0.5)
+    for distance in (0.4, 0.15):
+        enhancer.neighbour_poses([position], render, depth, K, at(distance), memory=memory)
+    assert memory.fits[position][2] == pytest.approx(0.4)  # settled: not fitted again
+    with pytest.raises(InputError, match="refit_nearer"):
+        TemporalConfig(refit_nearer=1.0)
 
 
 def test_evaluate_reports_which_neighbours_were_refined(tmp_path):
