@@ -121,8 +121,8 @@ class PathEnhanceFlags(EnhanceFlags):
 
     temporal: Annotated[bool, typer.Option("--temporal/--no-temporal", help=(
         "Along the path, blend each frame with the last one (reprojected through the depth; less where the two "
-        "renders disagree) and fit "
-        "each neighbour's pose once: less flicker, faster; --no-temporal enhances every frame on its own. "
+        "renders disagree or the parallax is large) and fit each neighbour's pose once (again from a frame at "
+        "under half the distance): less flicker, faster; --no-temporal enhances every frame on its own. "
         "Default on."))] = True
 
     model_every: Annotated[int | None, typer.Option("--model-every", help=(
