@@ -330,7 +330,7 @@ def test_parallax_is_the_angle_between_the_two_rays_at_the_point():
 
 def test_parallax_far_from_the_origin_matches_the_float64_angle():
     """Cameras 5000 units from the origin, 0.05 apart, turned: the float32 per-pixel form agrees
-    with the float64 angle between the two rays at every point to 1e-4 degrees, and unknown
+    with the float64 angle between the two rays on a grid of pixels to 1e-4 degrees, and unknown
     depth (NaN, 0) gives 0."""
     import math
 
