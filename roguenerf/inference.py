@@ -18,6 +18,7 @@ from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -140,6 +141,18 @@ def _resolve_exclude(scene, train: list[int], exclude) -> list[int]:
     return out
 
 
+class _PathFit(NamedTuple):
+    """A neighbour's last pose fit along a path (:class:`PoseMemory`)."""
+
+    pose: Tensor
+    """``(4, 4)`` float64."""
+    accepted: bool
+    distance: float
+    """From the view's camera centre to the photo's, when it was fitted."""
+    settled: bool
+    """The fit found nothing to gain: not fitted again."""
+
+
 @dataclass
 class PoseMemory:
     """Neighbour poses fitted along a camera path (:meth:`SceneEnhancer.neighbour_poses`): each
@@ -156,23 +169,22 @@ class PoseMemory:
     <roguenerf.enhance.temporal.TemporalConfig.refit_nearer>`."""
 
     refit_nearer: float = 0.0
-    fits: dict = field(default_factory=dict)
-    """Training position -> ``(pose (4, 4) float64, accepted, camera distance it was fitted from,
-    whether it found nothing to gain)``."""
+    fits: dict[int, _PathFit] = field(default_factory=dict)
+    """Training position -> its last fit."""
 
     def refit(self, position: int, world_from_cam: Tensor, photo_pose: Tensor) -> bool:
         """Whether the neighbour at ``position`` must be fitted for the view at ``world_from_cam``."""
-        if position not in self.fits:
+        last = self.fits.get(position)
+        if last is None:
             return True
-        _pose, _accepted, fitted_from, settled = self.fits[position]
-        return (self.refit_nearer > 0 and not settled
-                and _distance(world_from_cam, photo_pose) < self.refit_nearer * fitted_from)
+        return (self.refit_nearer > 0 and not last.settled
+                and _distance(world_from_cam, photo_pose) < self.refit_nearer * last.distance)
 
     def keep(self, position: int, fit, world_from_cam: Tensor, photo_pose: Tensor) -> None:
         """Keep ``fit`` (an :class:`~roguenerf.enhance.align.Alignment`) made for the view at
         ``world_from_cam``."""
-        self.fits[position] = (fit.world_from_cam.clone(), fit.accepted, _distance(world_from_cam, photo_pose),
-                               fit.refusal in ("early", "gain"))
+        self.fits[position] = _PathFit(fit.world_from_cam.clone(), fit.accepted, _distance(world_from_cam, photo_pose),
+                                       fit.nothing_to_gain)
 
 
 def _distance(a: Tensor, b: Tensor) -> float:
@@ -363,8 +375,8 @@ class SceneEnhancer:
         grown = False
         for j, p in enumerate(positions):
             if memory is not None and not memory.refit(p, world_from_cam, self.train_poses[p]):
-                poses[j], accepted = memory.fits[p][:2]
-                done.append(accepted)
+                poses[j] = memory.fits[p].pose
+                done.append(memory.fits[p].accepted)
                 continue
             if reuse and p in self.settled:  # nothing to gain on an earlier view: the dataset pose
                 done.append(False)
@@ -375,7 +387,7 @@ class SceneEnhancer:
             photo, photo_depth, photo_K, levels = self._small_neighbour(p)
             fit = align_neighbour(photo, photo_depth, photo_K, poses[j], *small, world_from_cam, config=self.align,
                                   cache=levels, target_cache=target)
-            if reuse and fit.refusal in ("early", "gain"):
+            if reuse and fit.nothing_to_gain:
                 self.settled.add(p)
                 grown = True
             poses[j] = fit.world_from_cam

@@ -127,6 +127,11 @@ class Alignment:
         """Refused by :attr:`AlignConfig.early_refusal` before the finest level was fitted."""
         return self.refusal == "early"
 
+    @property
+    def nothing_to_gain(self) -> bool:
+        """Refused ``early`` or for its ``gain``: the given (dataset) pose is as good as a fit."""
+        return self.refusal in ("early", "gain")
+
 
 def _area(x: Tensor, size: tuple[int, int]) -> Tensor:
     return F.interpolate(x, size=size, mode="area") if tuple(x.shape[-2:]) != size else x
