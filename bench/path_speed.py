@@ -68,7 +68,6 @@ SWEPT = (
     ("fade_deg", float, lambda v: f"fade{v:g}"),
     ("reuse_poses", ONOFF, lambda v: f"reuse-poses-{'on' if v else 'off'}"),
     ("refit_nearer", float, lambda v: f"refit{v:g}"),
-    ("back_carried", ONOFF, lambda v: f"back-carried-{'on' if v else 'off'}"),
 )
 """The TemporalConfig fields this bench sweeps, in the order of the runs and of their labels: each
 with how its comma-separated values are read (on/off for the switches) and its label where it is

@@ -119,10 +119,6 @@ class TemporalConfig:
     +1.881 dB; one way +1.831), but ``mary_rose``'s orbits 0.10-0.20 dB below frame by frame (a
     mean over both sides averages more view-dependent detail). False: the first pass alone
     (frames written as they are made, no second read of them)."""
-    back_carried: bool = True
-    """With :attr:`both_ways` and :attr:`carry_between`: the second pass blends the frames
-    carried between two model frames too. False: it keeps them as carried (the mix of the two
-    model frames around them is already a two-sided average) and blends only the model frames."""
     blend: str = "image"
     """What is carried and blended: ``"residual"`` (the enhancer's change over the render, the
     module docstring) or ``"image"`` (the enhanced frame itself: the render's own flicker, a
@@ -249,8 +245,6 @@ class TemporalConfig:
             raise InputError(f"TemporalConfig.blend: expected 'residual' or 'image', got {self.blend!r}")
         if not isinstance(self.both_ways, bool):
             raise InputError(f"TemporalConfig.both_ways: expected True or False, got {self.both_ways!r}")
-        if not isinstance(self.back_carried, bool):
-            raise InputError(f"TemporalConfig.back_carried: expected True or False, got {self.back_carried!r}")
         if not isinstance(self.reuse_poses, bool):
             raise InputError(f"TemporalConfig.reuse_poses: expected True or False, got {self.reuse_poses!r}")
         if not (isinstance(self.refit_nearer, (int, float)) and not isinstance(self.refit_nearer, bool)

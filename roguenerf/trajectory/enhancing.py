@@ -375,7 +375,6 @@ def enhance_path(
         blended with the frame after it as written (read back where it was written before), into
         frames/, and measured; the seconds spent on the frames written now, and their number."""
         back = TemporalFilter(temporal.config)  # only blends: never carries, never told of a change
-        keep_carried = between and not temporal.config.back_carried
         later, pairs_back, spent, written_now = None, [], 0.0, 0
 
         def read_back(t: int) -> tuple[Tensor, Tensor, Tensor]:  # by the background thread, a frame ahead
@@ -394,10 +393,6 @@ def enhance_path(
             written = out_png.is_file()
             if written:
                 final = read_image(out_png)
-            elif keep_carried and per_frame[t].get("carried"):
-                final = first  # TemporalConfig.back_carried off: a frame carried between stays as carried
-                behind.write(out_png, final)
-                written_now += 1
             else:
                 final = _quantise(back(render, first, depth, *camera))
                 behind.write(out_png, final)
