@@ -97,12 +97,16 @@ def pair_flicker(images_t: list[Tensor | None], images_t1: list[Tensor | None], 
             features, valid = rp.features[0], rp.valid[0, 0] > 0
         else:
             features, valid = sample_at(src, warp[0])[0], warp[1][0, 0] > 0
-    fraction = float(valid.float().mean())
-    if not bool(valid.any()):
+    seen = valid.float()
+    count = float(seen.sum())
+    fraction = count / valid.numel()
+    if count == 0:
         return out, fraction
+    # every image's mean over the valid pixels in one pass: (sum of |difference| where valid) / count
+    targets = torch.cat([images_t1[i] for i in present]).float()
+    sums = ((features - targets).abs() * seen).sum(dim=(1, 2)).view(len(present), 3).sum(1) / 3
     for k, i in enumerate(present):
-        diff = (features[3 * k:3 * k + 3] - images_t1[i].float()).abs().mean(0)
-        out[i] = float(diff[valid].mean())
+        out[i] = float(sums[k]) / count
     return out, fraction
 
 

@@ -208,6 +208,30 @@ def test_flicker_on_the_filters_move_is_the_flicker_reprojected_again(toy_path):
     assert shared[:2] == pytest.approx(again[:2], rel=1e-5) and again[1] > again[0] + 0.1
 
 
+def test_flicker_is_the_mean_absolute_difference_over_the_pixels_that_land(toy_path):
+    """Each image's flicker is |frame t moved into t+1 - frame t+1|, averaged over the colour
+    channels and then over the pixels whose points land in frame t (a part of the view does not),
+    computed here from the reprojection directly, for two images at once and with an image missing."""
+    from roguenerf.reprojection import reproject
+
+    scene = toy_path["scene"]
+    a, b = scene.indices("train")[:2]
+    gen = torch.Generator().manual_seed(2)
+    images_a = [scene.photo(a), torch.rand(3, H, W, generator=gen), None]
+    images_b = [scene.photo(b), torch.rand(3, H, W, generator=gen), scene.photo(b)]
+    args = (scene.depth(a), scene.depth(b), scene.frames[a].K, scene.frames[b].K,
+            scene.frames[a].world_from_cam, scene.frames[b].world_from_cam)
+    errors, fraction = pair_flicker(images_a, images_b, *args)
+    rp = reproject(torch.cat(images_a[:2])[None], scene.depth(a)[None], scene.depth(b)[None], args[2].float(),
+                   args[3].float(), args[4].double(), args[5].double())
+    valid = rp.valid[0, 0] > 0
+    assert 0.3 < fraction < 0.999 and fraction == pytest.approx(float(valid.float().mean()))
+    for k in range(2):
+        expected = (rp.features[0, 3 * k:3 * k + 3] - images_b[k]).abs().mean(0)[valid].mean()
+        assert errors[k] == pytest.approx(float(expected), rel=1e-5)
+    assert errors[2] is None
+
+
 def test_enhance_path_writes_video_flicker_and_resumes(toy_path, enhancer, tmp_path):
     root, scene = toy_path["root"], toy_path["scene"]
     cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
