@@ -314,16 +314,22 @@ def setup_logging() -> None:
 
 
 @contextlib.contextmanager
-def progress_bar(desc: str, unit: str):
-    """A ``progress(done, total)`` callback drawing a tqdm bar on stderr (created on first call)."""
+def progress_bar(desc: str, unit: str, *, clock=None):
+    """A ``progress(done, total)`` callback drawing a tqdm bar on stderr (created on first call).
+    ``clock``: ``(done, total) -> seconds left or None`` (:class:`roguenerf.trajectory.PathClock`),
+    shown instead of tqdm's own estimate (which takes every step to cost the same)."""
     bar = None
 
     def progress(done: int, total: int) -> None:
         nonlocal bar
-        if bar is None:
-            from tqdm import tqdm
+        from tqdm import tqdm
 
-            bar = tqdm(total=total, unit=unit, desc=desc, file=sys.stderr, dynamic_ncols=True)
+        if bar is None:
+            shape = {"bar_format": "{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]"} if clock else {}
+            bar = tqdm(total=total, unit=unit, desc=desc, file=sys.stderr, dynamic_ncols=True, **shape)
+        if clock is not None:
+            left = clock(done, total)
+            bar.set_postfix_str("" if left is None else f"about {tqdm.format_interval(left)} left", refresh=False)
         bar.update(done - bar.n)
 
     try:

@@ -56,7 +56,7 @@ def enhance_path_command(
     """
     from roguenerf.data.exports import DATAPARSER_FILE, DataparserTransform
     from roguenerf.inference import SceneEnhancer
-    from roguenerf.trajectory import FLICKER_FILE, check_path_output, enhance_path, read_camera_path
+    from roguenerf.trajectory import FLICKER_FILE, PathClock, check_path_output, enhance_path, read_camera_path
 
     with handle_errors():
         if depth_type not in ("z", "ray"):
@@ -92,7 +92,8 @@ def enhance_path_command(
         stat = ckpt.stat()
         temporal = enhancer.options.temporal
         passes = " in two passes (blended both ways)" if temporal is not None and temporal.both_ways else ""
-        with progress_bar(f"enhancing {len(camera_path)} frames{passes}", "step") as progress:
+        clock = PathClock(temporal)  # each pass timed on its own: the second pass's steps are cheaper
+        with progress_bar(f"enhancing {len(camera_path)} frames{passes}", "step", clock=clock) as progress:
             result = enhance_path(scene, enhancer, camera_path, frames, output, depth_type=depth_type,
                                   depth_scale=depth_scale, background=background, video=not no_video,
                                   quality=quality, fps=fps,

@@ -66,6 +66,7 @@ _LAZY = {
     "PathResult": "roguenerf.trajectory",
     "read_camera_path": "roguenerf.trajectory",
     "enhance_path": "roguenerf.trajectory",
+    "PathClock": "roguenerf.trajectory",
     "check_path": "roguenerf.trajectory",
     "check_camera": "roguenerf.trajectory",
     "import_3dgs": "roguenerf.splats.importer",

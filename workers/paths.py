@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 import os
-import time
 import zipfile
 from pathlib import Path
 
@@ -37,6 +36,7 @@ def run_path_job(run: JobRun) -> str:
         DataparserTransform,
         EnhanceOptions,
         PathCancelled,
+        PathClock,
         SceneEnhancer,
         TemporalConfig,
         enhance_path,
@@ -51,14 +51,6 @@ def run_path_job(run: JobRun) -> str:
     scene_row = store.get_scene(scene_id)
     if scene_row is None:
         return run.fail("scene_deleted", f"scene {scene_id} no longer exists")
-
-    started = time.monotonic()
-    first_done: list = []
-
-    def progress(done: int, total: int) -> None:
-        first_done.append(done) if not first_done else None
-        rate = (done - first_done[0] + 1) / max(time.monotonic() - started, 1e-6)
-        run.record(store.record_frames, done=done, total=total, eta_s=(total - done) / rate if rate > 0 else None)
 
     scene = load_scene(layout.scene_files(scene_id), confine=True)
     checkpoint = base_checkpoint(run.settings, layout, scene_id, scene_row["active_version"])
@@ -77,6 +69,11 @@ def run_path_job(run: JobRun) -> str:
     options = EnhanceOptions(temporal=TemporalConfig(model_every=int(request.get("model_every", 1)), **chosen))
     enhancer = SceneEnhancer(scene, model, options=options)
     stat = Path(checkpoint).stat()
+    clock = PathClock(options.temporal)  # each pass timed on its own (the second's steps are cheaper)
+
+    def progress(done: int, total: int) -> None:
+        run.record(store.record_frames, done=done, total=total, eta_s=clock(done, total))
+
     try:
         result = enhance_path(
             scene, enhancer, camera_path, inputs, job_dir / "output",

@@ -8,6 +8,7 @@ frame by frame, their flicker measured.
   :func:`check_camera_path`, :func:`check_camera`, :func:`check_path`, :class:`PathCheck`.
 - :mod:`~roguenerf.trajectory.flicker`: :func:`pair_flicker`, :func:`summarise_flicker`.
 - :mod:`~roguenerf.trajectory.enhancing`: :func:`enhance_path` -> :class:`PathResult`,
+  :class:`PathClock` (the seconds left of a run, from its progress),
   :func:`check_path_output` and the names of the files it writes.
 """
 
@@ -29,6 +30,7 @@ from roguenerf.trajectory.enhancing import (
     SIDE_BY_SIDE_FILE,
     STATE_FILE,
     VIDEO_FILE,
+    PathClock,
     PathResult,
     check_path_output,
     enhance_path,
@@ -59,6 +61,7 @@ __all__ = [
     "VIDEO_FILE",
     "CameraPath",
     "PathCheck",
+    "PathClock",
     "PathResult",
     "check_camera",
     "check_camera_path",

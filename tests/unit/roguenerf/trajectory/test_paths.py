@@ -542,6 +542,7 @@ def test_enhance_path_cli(toy_path, tmp_path):
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     assert "flicker" in result.output and "frames have photos" in result.output
+    assert " left]" in result.output  # the bar's estimate is PathClock's, not tqdm's own
     report = json.loads((tmp_path / "cli" / FLICKER_FILE).read_text())
     assert report["frames"] == 2 * STEPS + 1
     changes = report["flicker"]["neighbour_changes"]  # the toy path's set changes, and the CLI says where
@@ -1004,3 +1005,40 @@ def test_both_ways_blends_each_first_pass_frame_with_the_frame_after_it(toy_path
     assert gains[0] == pytest.approx(float(psnr(first[None], photo[None])[0] - psnr(render0[None], photo[None])[0]),
                                      abs=1e-4)
     assert both.enhanced_now == T
+
+
+def test_the_path_clock_times_each_pass_on_its_own():
+    """PathClock: while the first of two passes runs, the seconds left are its own steps at its
+    rate plus the second pass's at SECOND_PASS_SHARE of that; the second pass is then timed on its
+    own steps; frames read back at the start of a resumed path leave the window; one pass without
+    both_ways; None before anything is timed."""
+    from roguenerf.enhance.temporal import TemporalConfig
+    from roguenerf.trajectory.enhancing import SECOND_PASS_SHARE, SECOND_PASS_SHARE_CARRIED, PathClock
+
+    now = [0.0]
+    clock = PathClock(TemporalConfig(), clock=lambda: now[0])
+    frames, left = 10, []
+    for done in range(1, 2 * frames + 1):  # the first pass 2 s a step, the second 0.5 s (not the share's 0.4)
+        now[0] += 2.0 if done <= frames else 0.5
+        left.append(clock(done, 2 * frames))
+    assert left[0] == pytest.approx(9 * 2.0 + frames * 2.0 * SECOND_PASS_SHARE)
+    assert left[frames - 1] == pytest.approx(frames * 2.0 * SECOND_PASS_SHARE)  # the first pass done
+    assert left[frames:] == pytest.approx([0.5 * (frames - k) for k in range(1, frames + 1)])  # its own rate
+    cumulative = (2 * frames - 1) / (1 / 2.0)  # what the rate of all steps so far said after the first step
+    assert left[0] < 0.7 * cumulative
+
+    now[0] = 0.0
+    resumed = PathClock(None, clock=lambda: now[0])  # frame by frame: one pass
+    estimates = []
+    for done in range(1, 41):  # 20 frames read back (0.01 s), then 1 s a frame
+        now[0] += 0.01 if done <= 20 else 1.0
+        estimates.append(resumed(done, 40))
+    assert estimates[20] < 5  # just after the read-back frames the window still holds them
+    assert estimates[-8] == pytest.approx(7.0)  # 13 steps later it holds only enhanced frames
+    assert PathClock(TemporalConfig(model_every=4)).second_share == SECOND_PASS_SHARE_CARRIED
+    assert PathClock(TemporalConfig(both_ways=False)).passes == 1
+    start = [5.0]
+    first = PathClock(TemporalConfig(), clock=lambda: start[0])
+    assert first(0, 20) is None  # nothing done yet
+    start[0] = 7.0
+    assert first(1, 20) == pytest.approx(9 * 2.0 + 10 * 2.0 * SECOND_PASS_SHARE)  # timed from the clock's start
