@@ -66,6 +66,12 @@
 #     STEPS=1500 LR=2.5e-4 SEED=7 NOISE=0.5,0.05 BLEND=0.5 \
 #     FITS=dtu_scan24/coarse_x3,coke_can/coarse_x3,beer/coarse_x3,bird_figurine/coarse_x3,doraemon/coarse_x3 \
 #     OUT=runs/rotation/pretrain_R DEST=runs/rotation/rotated.safetensors scripts/pretrain_real.sh
+# Every kind, continued from the eighth (2026-12-07, issue 48 item 5; not shipped: lower on every pair of the
+# broad figure's choice half, docs/kinds.md "The shipped checkpoint continued on every kind"):
+#   python scripts/kind_pairs.py --scenes cup,coke_can --kinds splat,hash --scale 2 --folds 2 --out runs/pairs
+#   CACHE=runs/pairs STAGE=pretrain START=runs/k9/E8.safetensors STEPS=1500 LR=2.5e-4 SEED=9 NOISE=0.5,0.05 BLEND=0.5 \
+#     FITS=cup/splat_s2_x2,cup/hash_s2_x2,coke_can/splat_s2_x2,coke_can/hash_s2_x2 OUT=runs/pretrain_K9 \
+#     DEST=runs/k9/K9.safetensors scripts/pretrain_real.sh   # 367 s; E8 = a copy of the shipped checkpoint
 # (/tmp/sixth.safetensors is `git show b611814:roguenerf/weights/default.safetensors`.)
 # (/tmp/fifth.safetensors is `git show b24f519:roguenerf/weights/default.safetensors`.)
 # (/tmp/looks.safetensors is `git show 70e5329:roguenerf/weights/default.safetensors`.)
