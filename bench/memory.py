@@ -58,8 +58,9 @@ t = time.perf_counter()
 result = enhancer.enhance(render, depth, frame.K, frame.world_from_cam)
 seconds = time.perf_counter() - t
 h, w = render.shape[1:]
-tiles = 1 if max(h, w) <= enhancer.tile else (len(tile_starts(h, enhancer.tile, 32, model.tile_alignment))
-                                               * len(tile_starts(w, enhancer.tile, 32, model.tile_alignment)))
+tile = enhancer.view_tile((h, w))
+tiles = 1 if max(h, w) <= tile else (len(tile_starts(h, tile, min(32, tile // 4), model.tile_alignment))
+                                     * len(tile_starts(w, tile, min(32, tile // 4), model.tile_alignment)))
 # VmHWM, not ru_maxrss: Linux carries the parent's RSS high-water mark into a child's
 # ru_maxrss across fork + exec, which here would count the scene generation.
 peak = next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM:")) / 1024

@@ -239,7 +239,7 @@ class SceneEnhancer:
         default_n = getattr(config, "num_neighbours", 5) if config is not None else 5
         self.use_neighbours = bool(getattr(config, "use_neighbours", True)) if config is not None else True
         self.num_neighbours, self.near_extra = options.neighbours.counts(int(default_n))
-        self.tile = tile_for(options.tile, self.device)
+        self.tile = tile_for(options.tile, self.device)  # where the view's size is not known (view_tile)
         self.train = list(scene.indices("train"))
         self.train_names = [scene.frames[i].name for i in self.train]
         poses = scene.poses()
@@ -399,6 +399,10 @@ class SceneEnhancer:
 
             settled.save(self.settled_file, self.scene, [self.train_names[p] for p in sorted(self.settled)], self.align)
         return poses, done
+
+    def view_tile(self, size: tuple[int, int]) -> int:
+        """The tile a view of ``size`` (height, width) is enhanced in (:func:`tile_for`)."""
+        return tile_for(self.options.tile, self.device, size)
 
     def _crop_provider(self, positions: list[int], world_from_cam: Tensor, poses: Tensor):
         """Per-tile neighbours for photos too large to cache: for each tile, each neighbour's
@@ -624,11 +628,12 @@ class SceneEnhancer:
         lap("encode")
         with torch.inference_mode():
             height, width = render.shape[1:]
-            if max(height, width) > self.tile or callable(batch):
+            tile = self.view_tile((height, width))
+            if max(height, width) > tile or callable(batch):
                 from roguenerf.models.tiling import enhance_tiled
 
-                out = enhance_tiled(self.model, render_b, depth_b, K_b, pose_b, batch, tile=self.tile,
-                                    overlap=min(32, self.tile // 4), progress=progress)
+                out = enhance_tiled(self.model, render_b, depth_b, K_b, pose_b, batch, tile=tile,
+                                    overlap=min(32, tile // 4), progress=progress)
             else:
                 out = self.model(render_b, depth_b, K_b, pose_b, batch)
         if callable(batch):  # a very large image: hand its working set back to the OS now

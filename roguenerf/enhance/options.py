@@ -24,7 +24,16 @@ from roguenerf.errors import InputError
 
 DEFAULT_TILE = 512
 """On the CPU, images whose height or width exceed this are enhanced tile by tile (bounded
-memory: a 2016 x 1512 view under 1.5 GB)."""
+memory: a 2016 x 1512 view under 1.5 GB), unless they have at most :data:`LARGE_TILE_PIXELS`."""
+
+LARGE_TILE = 1024
+"""On the CPU, the tile of images of at most :data:`LARGE_TILE_PIXELS`: fewer tiles, less work
+wasted on their overlaps."""
+
+LARGE_TILE_PIXELS = 1920 * 1080
+"""The largest image (height x width) enhanced in :data:`LARGE_TILE` tiles on the CPU; larger
+ones use :data:`DEFAULT_TILE`, which bounds their memory (their neighbour photos, cached or
+encoded per tile, grow with them)."""
 
 DEVICE_TILE = 2048
 """The same on an accelerator (CUDA, ...), where memory is not what binds and every tile is a
@@ -33,12 +42,18 @@ sequence of small kernel launches: on an H200, 1920 x 1080 views took 0.26 s wit
 (``scripts/gpu_speed.py --tiles``; docs/results.md)."""
 
 
-def tile_for(tile: int | None, device) -> int:
-    """The tile size a view is enhanced in: ``tile`` where given, else by the ``device``
-    (a ``torch.device`` or its name): :data:`DEFAULT_TILE` on the CPU, :data:`DEVICE_TILE` elsewhere."""
+def tile_for(tile: int | None, device, size: tuple[int, int] | None = None) -> int:
+    """The tile size a view of ``size`` (height, width) is enhanced in: ``tile`` where given, else
+    by the ``device`` (a ``torch.device`` or its name) and the size: :data:`DEVICE_TILE` on an
+    accelerator; on the CPU :data:`LARGE_TILE` up to :data:`LARGE_TILE_PIXELS`, else (and where the
+    size is not given) :data:`DEFAULT_TILE`."""
     if tile is not None:
         return tile
-    return DEFAULT_TILE if torch.device(device).type == "cpu" else DEVICE_TILE
+    if torch.device(device).type != "cpu":
+        return DEVICE_TILE
+    if size is not None and size[0] * size[1] <= LARGE_TILE_PIXELS:
+        return LARGE_TILE
+    return DEFAULT_TILE
 
 
 NEAR_EXTRA = 1
@@ -153,7 +168,7 @@ class EnhanceOptions:
         trust: keep only part of the model's change where the neighbours mostly disagree
             (:mod:`roguenerf.enhance.trust`); None: off.
         tile: images larger than this (height or width) are enhanced tile by tile; None (the
-            default): :data:`DEFAULT_TILE` on the CPU, :data:`DEVICE_TILE` on an accelerator.
+            default): by the device and the image (:func:`tile_for`).
         temporal: along a camera path (:func:`~roguenerf.trajectory.enhance_path`), blend each
             frame with the previous one, reprojected, less where their renders disagree
             (:mod:`roguenerf.enhance.temporal`); None: every frame on its own. Single views ignore it.

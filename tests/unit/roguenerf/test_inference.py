@@ -10,7 +10,7 @@ import torch
 
 from roguenerf.data.toy import make_toy_scene
 from roguenerf.errors import InputError, RoGUENeRFError
-from roguenerf.inference import NO_NEIGHBOUR_NOTE, SceneEnhancer
+from roguenerf.inference import NO_NEIGHBOUR_NOTE, SceneEnhancer, tile_for
 from tests.geometry_helpers import turned
 from tests.model_helpers import perturbed_micro
 
@@ -241,6 +241,11 @@ def test_large_images_are_tiled(scene):
     model = perturbed_micro(use_uformer=False)
     on_cpu = SceneEnhancer(scene, model, num_neighbours=2)
     assert on_cpu.tile == 512  # the CPU's default (2048 on an accelerator: tile_for)
+    # on the CPU, views up to 1920 x 1080 in 1024-px tiles, larger ones in 512-px tiles; a tile given wins
+    assert [on_cpu.view_tile(size) for size in ((378, 504), (1080, 1920), (1920, 1080), (1081, 1920), (1512, 2016))] \
+        == [1024, 1024, 1024, 512, 512]
+    assert SceneEnhancer(scene, model, num_neighbours=2, tile=640).view_tile((1080, 1920)) == 640
+    assert tile_for(None, "cuda", (1512, 2016)) == 2048 and tile_for(None, "cpu") == 512
     whole = on_cpu.enhance_view("test_000")
     tiled = SceneEnhancer(scene, model, num_neighbours=2, tile=16).enhance_view("test_000")
     assert tiled.image.shape == whole.image.shape
