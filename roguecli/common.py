@@ -102,9 +102,9 @@ class EnhanceFlags(Flags):
         "field's geometry is off there: floaters), in proportion to the share where they agree; where they "
         "agree on under a tenth of it, only where they agree nearby. Default on."))] = True
     tile: Annotated[int | None, typer.Option("--tile", help=(
-        "Enhance images taller or wider than this many pixels tile by tile (default 512 on the CPU, 2048 on a "
-        "GPU): larger tiles are "
-        "faster on large images and take more memory (docs/results.md, Speed at users' sizes)."))] = None
+        "Enhance images taller or wider than this many pixels tile by tile (default on the CPU 1024 up to "
+        "1920 x 1080 pixels and 512 above, bounding memory; 2048 on a GPU): larger tiles are faster on large "
+        "images and take more memory (docs/results.md, Speed at users' sizes)."))] = None
 
     def options(self, **more):
         """The :class:`~roguenerf.enhance.EnhanceOptions` (``more``: a subclass's flags); bad
