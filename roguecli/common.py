@@ -129,8 +129,9 @@ class PathEnhanceFlags(EnhanceFlags):
         "With --temporal, run the model on at least one frame in this many and carry the model frames' "
         "results, reprojected, into the frames between, where they see at least 95 % of them and their renders, "
         "moved the same way, predict theirs (--carry-agreement): faster on smooth paths (4: 1.65x with the same "
-        "gain on a 154-frame path, both ways), but a carried frame keeps only part of the model's detail. 1: the "
-        "model on every frame (the default; docs/results.md, Speed at users' sizes)."))] = None
+        "gain on a 154-frame path, both ways), but a carried frame keeps only part of the model's detail, and "
+        "where the renders refuse most carries (fast orbits, fields with poor geometry) it is slower than 1. 1: "
+        "the model on every frame (the default; docs/results.md, Speed at users' sizes)."))] = None
 
     carry_between: Annotated[bool | None, typer.Option("--carry-between/--carry-after", help=(
         "With --model-every K, make the model frames 0, K, 2K, ... first and carry each frame between two of "
