@@ -323,14 +323,14 @@ def progress_bar(desc: str, unit: str, *, clock=None):
 
     def progress(done: int, total: int) -> None:
         nonlocal bar
-        from tqdm import tqdm
-
         if bar is None:
+            from tqdm import tqdm
+
             shape = {"bar_format": "{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]"} if clock else {}
             bar = tqdm(total=total, unit=unit, desc=desc, file=sys.stderr, dynamic_ncols=True, **shape)
         if clock is not None:
             left = clock(done, total)
-            bar.set_postfix_str("" if left is None else f"about {tqdm.format_interval(left)} left", refresh=False)
+            bar.set_postfix_str("" if left is None else f"about {bar.format_interval(left)} left", refresh=False)
         bar.update(done - bar.n)
 
     try:

@@ -24,7 +24,14 @@ import torch
 from torch import Tensor
 
 from roguenerf.data.scene import ByteLRU
-from roguenerf.enhance.options import DEFAULT_TILE, NEAR_DEGREES, NEAR_EXTRA, EnhanceOptions, tile_for  # noqa: F401 (re-exported)
+from roguenerf.enhance.options import (  # noqa: F401 (re-exported)
+    DEFAULT_TILE,
+    NEAR_DEGREES,
+    NEAR_EXTRA,
+    EnhanceOptions,
+    tile_for,
+    tile_overlap,
+)
 from roguenerf.errors import InputError, NonFiniteOutputError
 from roguenerf.images import check_float_image
 from roguenerf.models.layers import receptive_radius
@@ -633,7 +640,7 @@ class SceneEnhancer:
                 from roguenerf.models.tiling import enhance_tiled
 
                 out = enhance_tiled(self.model, render_b, depth_b, K_b, pose_b, batch, tile=tile,
-                                    overlap=min(32, tile // 4), progress=progress)
+                                    overlap=tile_overlap(tile), progress=progress)
             else:
                 out = self.model(render_b, depth_b, K_b, pose_b, batch)
         if callable(batch):  # a very large image: hand its working set back to the OS now

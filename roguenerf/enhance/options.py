@@ -56,6 +56,11 @@ def tile_for(tile: int | None, device, size: tuple[int, int] | None = None) -> i
     return DEFAULT_TILE
 
 
+def tile_overlap(tile: int) -> int:
+    """Pixels each tile of ``tile`` px shares with its neighbours (:func:`~roguenerf.models.tiling.enhance_tiled`)."""
+    return min(32, tile // 4)
+
+
 NEAR_EXTRA = 1
 """How many neighbours beyond the model's count the default rule may add, each only where it is
 a near view (:data:`NEAR_DEGREES`)."""
