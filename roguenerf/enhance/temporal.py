@@ -347,6 +347,21 @@ class _LastFrame(NamedTuple):
     """The render it was made from (compared with the next frame's by ``reject``)."""
 
 
+class _Move(NamedTuple):
+    """A kept frame's reprojection into another (:meth:`TemporalFilter._move`)."""
+
+    frame: Tensor
+    """``(3, H, W)``: the kept frame (its :attr:`_LastFrame.carried`), to be sampled."""
+    coords: Tensor
+    """``(1, H, W, 2)``: where each pixel's point lands in it."""
+    valid: Tensor
+    """``(1, H, W)`` bool: seen."""
+    render: Tensor | None
+    """``(3, H, W)``: its render moved (bilinear), where asked for; else None."""
+    bilinear: Tensor | None
+    """``(3, H, W)``: the frame moved bilinear by the reprojection itself (``resample="bilinear"``); else None."""
+
+
 class TemporalFilter:
     """The last frame's result carried along one camera path (see the module docstring); one per
     path, frames given in order."""
@@ -356,6 +371,9 @@ class TemporalFilter:
         self._previous: _LastFrame | None = None
         self._anchor: _LastFrame | None = None
         """The last frame the model ran on (:attr:`TemporalConfig.carry_from` ``"model"``)."""
+        self._sources: dict[tuple[int, bool], tuple[_LastFrame, Tensor]] = {}
+        """What the reprojection samples from the last few kept frames moved (``sampling_source``),
+        by the frame's ``id`` (the frame kept beside it: an id is reused only once it is freed)."""
         self.last_share: float = 0.0
         """Share of the last frame's pixels that took the previous frame's residual."""
         self.last_agreement: float | None = None
@@ -378,6 +396,7 @@ class TemporalFilter:
         """Forget the previous frame (a new path, or a frame not enhanced here)."""
         self._previous = None
         self._anchor = None
+        self._sources.clear()
         self.last_share = 0.0
         self.last_agreement = None
         self.last_mutual = None
@@ -415,26 +434,52 @@ class TemporalFilter:
         ``with_render``) its render moved the same way (``(3, H, W)``, sampled bilinear: it only
         decides the weight), else None. :attr:`last_warp` keeps the move only when it is the
         last frame's."""
-        from roguenerf.reprojection import reproject, sample_at
+        move = self._move(depth, K, pose, frame, with_render=with_render)
+        return self._moved_frame(move), move.valid, move.render
 
-        last = frame is None or frame is self._previous
-        prev, prev_depth, prev_K, prev_pose, prev_render = self._previous if frame is None else frame
+    def _move(self, depth: Tensor, K: Tensor, pose: Tensor, frame: _LastFrame | None = None, *,
+              with_render: bool = False) -> _Move:
+        """The reprojection of the kept last frame (or ``frame``) into this one, its render moved
+        (where needed) but not yet the frame itself (:meth:`_moved_frame`): a carry the renders
+        refuse skips that sampling."""
+        from roguenerf.reprojection import reproject, sampling_source
+
+        frame = self._previous if frame is None else frame
+        last = frame is self._previous
+        prev, prev_depth, prev_K, prev_pose, prev_render = frame
         bilinear = self.config.resample == "bilinear"
         reject = self.config.reject > 0 or with_render
         with torch.inference_mode():
             # bicubic: only the points and what sees is needed of the reprojection (the depth: one
             # channel sampled, not three), and the render where it is compared
             source = prev if bilinear else prev_depth
-            warped = reproject((torch.cat([source, prev_render]) if reject else source)[None], prev_depth[None],
-                               depth[None], prev_K, K, prev_pose, pose)
-            self.last_warp = (warped.coords, warped.valid) if last else None
-            valid = warped.valid[0] > 0.5
-            features = warped.features[0]
-            warped_render = features[-3:] if reject else None
-            if bilinear:
-                return features[:3], valid, warped_render
-            sampled = sample_at(prev[None], warped.coords, mode="bicubic")[0]  # at the last frame's pixels
-            return torch.where(valid, sampled, 0.0), valid, warped_render
+            features = (torch.cat([source, prev_render]) if reject else source)[None]
+            # a kept frame is moved into several (the frames between two model frames, the blend):
+            # what the reprojection samples from it is built once
+            key = (id(frame), reject)
+            cached = self._sources.get(key)
+            if cached is None or cached[0] is not frame:
+                cached = (frame, sampling_source(features, prev_depth[None]))
+                self._sources[key] = cached
+                while len(self._sources) > 4:
+                    self._sources.pop(next(iter(self._sources)))
+            warped = reproject(features, prev_depth[None], depth[None], prev_K, K, prev_pose, pose, source=cached[1])
+        self.last_warp = (warped.coords, warped.valid) if last else None
+        features = warped.features[0]
+        return _Move(prev, warped.coords, warped.valid[0] > 0.5, features[-3:] if reject else None,
+                     features[:3] if bilinear else None)
+
+    def _moved_frame(self, move: _Move) -> Tensor:
+        """``(3, H, W)``: the frame of a :meth:`_move`, sampled where its points land (0 where not seen)."""
+        if move.bilinear is not None:
+            return move.bilinear
+        from roguenerf.reprojection import sample_at
+
+        with torch.inference_mode():
+            # at the last frame's pixels; channels-last: the same values, 10-15 % faster on the CPU
+            sampled = sample_at(move.frame[None].contiguous(memory_format=torch.channels_last), move.coords,
+                                mode="bicubic")[0]
+            return torch.where(move.valid, sampled, 0.0)
 
     def _agreement(self, warped_render: Tensor, render: Tensor, valid: Tensor) -> Tensor:
         """``0.5 ** (d / reject) ** 2`` of the renders' disagreement ``d`` (:attr:`TemporalConfig.reject`)."""
@@ -469,21 +514,23 @@ class TemporalFilter:
         pose = torch.as_tensor(world_from_cam).to(torch.float64)
         K = torch.as_tensor(K).to(torch.float32)
         gate = self.config.carry_agreement > 0
+        # The frames themselves are sampled (bicubic: half a move's cost) only once the renders
+        # have let the carry through.
         if between is None:
             source = self._anchor if self.config.carry_from == "model" and self._anchor is not None else self._previous
-            warped, valid, warped_render = self._warp(depth, K, pose, source, with_render=gate)
+            move = self._move(depth, K, pose, source, with_render=gate)
+            valid, warped_render = move.valid, move.render
         else:
             before, after, position = between
             if not 0 < position < 1:
                 raise InputError(f"carry: expected a position between the two frames in (0, 1), got {position!r}")
-            moved = [self._warp(depth, K, pose, frame, with_render=gate) for frame in (before, after)]
+            moves = [self._move(depth, K, pose, frame, with_render=gate) for frame in (before, after)]
             self.last_warp = None  # two moves, neither the last frame's
-            weights = [(1.0 - position) * moved[0][1].float(), position * moved[1][1].float()]
+            weights = [(1.0 - position) * moves[0].valid.float(), position * moves[1].valid.float()]
             total = weights[0] + weights[1]
             valid = total > 0
             share = [w / total.clamp_min(1e-12) for w in weights]
-            warped = share[0] * moved[0][0] + share[1] * moved[1][0]
-            warped_render = None if moved[0][2] is None else share[0] * moved[0][2] + share[1] * moved[1][2]
+            warped_render = None if moves[0].render is None else share[0] * moves[0].render + share[1] * moves[1].render
         self.last_share = float(valid.float().mean())
         if self.last_share < self.config.min_seen:
             return None
@@ -492,9 +539,14 @@ class TemporalFilter:
             self.last_agreement = _masked_psnr(warped_render, render, valid, none_seen=120.0)
             if self.last_agreement < self.config.carry_agreement:
                 return None
+        if between is None:
+            warped = self._moved_frame(move)
+        else:
+            moved = [self._moved_frame(m) for m in moves]
+            warped = share[0] * moved[0] + share[1] * moved[1]
         if between is not None and self.config.between_agreement > 0:
             # the two model frames' results, moved, against each other where both see
-            self.last_mutual = _masked_psnr(moved[0][0], moved[1][0], moved[0][1] & moved[1][1])
+            self.last_mutual = _masked_psnr(moved[0], moved[1], moves[0].valid & moves[1].valid)
             if self.last_mutual < self.config.between_agreement:
                 return None
         keep = 1.0

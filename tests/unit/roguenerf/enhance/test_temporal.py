@@ -309,6 +309,26 @@ def test_a_frame_whose_render_the_last_one_does_not_predict_is_not_carried():
         with pytest.raises(InputError, match="carry_agreement"):
             TemporalConfig(carry_agreement=bad)
 
+def test_a_carry_the_renders_refuse_never_samples_the_frame(monkeypatch):
+    """The gate reads the moved renders only: a carry it refuses (the darker render, 20 dB below
+    a 30 dB gate) pays no bicubic sampling of the kept frame, alone or between two; one it lets
+    through samples each kept frame once."""
+    import roguenerf.reprojection as reprojection
+
+    calls = []
+    real = reprojection.sample_at
+    monkeypatch.setattr(reprojection, "sample_at", lambda *a, **k: calls.append(k.get("mode")) or real(*a, **k))
+    r1, e1 = _frame(1)
+    f = TemporalFilter(TemporalConfig(model_every=2, reject=0.0, carry_agreement=30.0))
+    f(r1, e1, DEPTH, K, POSE)
+    calls.clear()
+    assert f.carry(r1 - 0.1, DEPTH, K, POSE) is None and calls == []
+    kept = f.kept
+    assert f.carry(r1 - 0.1, DEPTH, K, POSE, between=(kept, kept, 0.5)) is None and calls == []
+    assert torch.allclose(f.carry(r1, DEPTH, K, POSE, between=(kept, kept, 0.5)), e1, atol=1e-6)
+    assert calls == ["bicubic", "bicubic"]
+
+
 def _angle(a, b) -> float:
     import math
 
