@@ -371,8 +371,9 @@ class TemporalFilter:
         self._previous: _LastFrame | None = None
         self._anchor: _LastFrame | None = None
         """The last frame the model ran on (:attr:`TemporalConfig.carry_from` ``"model"``)."""
-        self._sources: dict[tuple[int, bool], tuple[_LastFrame, Tensor]] = {}
-        """What the reprojection samples from the last few kept frames moved (``sampling_source``),
+        self._sources: dict[tuple[int, bool], tuple[_LastFrame, Tensor, Tensor]] = {}
+        """What the reprojection samples from the last few kept frames moved (the channels moved and
+        their ``sampling_source``),
         by the frame's ``id`` (the frame kept beside it: an id is reused only once it is freed)."""
         self.last_share: float = 0.0
         """Share of the last frame's pixels that took the previous frame's residual."""
@@ -450,20 +451,21 @@ class TemporalFilter:
         bilinear = self.config.resample == "bilinear"
         reject = self.config.reject > 0 or with_render
         with torch.inference_mode():
-            # bicubic: only the points and what sees is needed of the reprojection (the depth: one
-            # channel sampled, not three), and the render where it is compared
-            source = prev if bilinear else prev_depth
-            features = (torch.cat([source, prev_render]) if reject else source)[None]
             # a kept frame is moved into several (the frames between two model frames, the blend):
             # what the reprojection samples from it is built once
             key = (id(frame), reject)
             cached = self._sources.get(key)
             if cached is None or cached[0] is not frame:
-                cached = (frame, sampling_source(features, prev_depth[None]))
+                # bicubic: only the points and what sees is needed of the reprojection (the depth:
+                # one channel sampled, not three), and the render where it is compared
+                source = prev if bilinear else prev_depth
+                features = (torch.cat([source, prev_render]) if reject else source)[None]
+                cached = (frame, features, sampling_source(features, prev_depth[None]))
                 self._sources[key] = cached
                 while len(self._sources) > 4:
                     self._sources.pop(next(iter(self._sources)))
-            warped = reproject(features, prev_depth[None], depth[None], prev_K, K, prev_pose, pose, source=cached[1])
+            _, features, source = cached
+            warped = reproject(features, prev_depth[None], depth[None], prev_K, K, prev_pose, pose, source=source)
         self.last_warp = (warped.coords, warped.valid) if last else None
         features = warped.features[0]
         return _Move(prev, warped.coords, warped.valid[0] > 0.5, features[-3:] if reject else None,

@@ -329,6 +329,35 @@ def test_a_carry_the_renders_refuse_never_samples_the_frame(monkeypatch):
     assert calls == ["bicubic", "bicubic"]
 
 
+def test_a_kept_frame_moved_into_several_gives_each_what_a_fresh_move_gives():
+    """The kept frames' sampling sources are built once and reused: two model frames carried
+    into three frames between them (each camera moved sideways), by one filter, equal the carries
+    of a fresh filter per frame, to the bit."""
+    r1, e1 = _frame(1)
+    r2, e2 = _frame(2)
+    config = TemporalConfig(model_every=4, carry_agreement=0.0)
+
+    def anchors(f):
+        f(r1, e1, DEPTH, K, POSE)
+        before = f.kept
+        moved = POSE.clone()
+        moved[0, 3] = 0.4
+        f(r2, e2, DEPTH, K, moved)
+        return before, f.kept
+
+    shared = TemporalFilter(config)
+    before, after = anchors(shared)
+    for step in (1, 2, 3):
+        pose = POSE.clone()
+        pose[0, 3] = 0.1 * step
+        fresh = TemporalFilter(config)
+        fresh_anchors = anchors(fresh)
+        position = step / 4
+        out = shared.carry(r1, DEPTH, K, pose, between=(before, after, position))
+        assert torch.equal(out, fresh.carry(r1, DEPTH, K, pose, between=(*fresh_anchors, position)))
+        shared.restore(after)
+
+
 def _angle(a, b) -> float:
     import math
 
