@@ -372,8 +372,8 @@ class TemporalFilter:
         self._anchor: _LastFrame | None = None
         """The last frame the model ran on (:attr:`TemporalConfig.carry_from` ``"model"``)."""
         self._sources: dict[tuple[int, bool], tuple[_LastFrame, Tensor, Tensor]] = {}
-        """What the reprojection samples from the last few kept frames moved (the channels moved and
-        their ``sampling_source``),
+        """What the reprojection samples from the last two kept frames moved (the channels moved and
+        their ``sampling_source``: 10 floats a pixel each),
         by the frame's ``id`` (the frame kept beside it: an id is reused only once it is freed)."""
         self.last_share: float = 0.0
         """Share of the last frame's pixels that took the previous frame's residual."""
@@ -462,7 +462,7 @@ class TemporalFilter:
                 features = (torch.cat([source, prev_render]) if reject else source)[None]
                 cached = (frame, features, sampling_source(features, prev_depth[None]))
                 self._sources[key] = cached
-                while len(self._sources) > 4:
+                while len(self._sources) > 2:  # the two model frames a stretch is carried from
                     self._sources.pop(next(iter(self._sources)))
             _, features, source = cached
             warped = reproject(features, prev_depth[None], depth[None], prev_K, K, prev_pose, pose, source=source)
