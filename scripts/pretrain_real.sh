@@ -72,6 +72,15 @@
 #   CACHE=runs/pairs STAGE=pretrain START=runs/k9/E8.safetensors STEPS=1500 LR=2.5e-4 SEED=9 NOISE=0.5,0.05 BLEND=0.5 \
 #     FITS=cup/splat_s2_x2,cup/hash_s2_x2,coke_can/splat_s2_x2,coke_can/hash_s2_x2 OUT=runs/pretrain_K9 \
 #     DEST=runs/k9/K9.safetensors scripts/pretrain_real.sh   # 367 s; E8 = a copy of the shipped checkpoint
+# The eighth's recipe with every kind, each new kind left out in turn (2026-12-07, issue 48 item 5; not shipped:
+# +1.652 / +1.659 / +1.679 against the shipped +1.677 dB on the broad figure's choice half, docs/kinds.md
+# "The eighth's recipe with every kind"):
+#   MANIFEST=runs/pairs/manifest.csv CACHE=runs/pairs FOLDS=3 PRESETS=coarse \
+#     SCENES=cup,dtu_scan24,coke_can,beer,bird_figurine,blowtorch,dancing_robot,doraemon STAGE=pairs scripts/pretrain_real.sh  # 55 min
+#   CACHE=runs/pairs STAGE=pretrain START=/tmp/sixth.safetensors STEPS=1500 LR=2.5e-4 SEED=7 NOISE=0.5,0.05 BLEND=0.5 \
+#     FITS=<the eighth's FITS>,KINDS OUT=runs/pretrain_CK DEST=runs/k9/CK.safetensors scripts/pretrain_real.sh  # 6-7 min
+#   # CK=EK, KINDS=cup/splat_s2_x2,cup/hash_s2_x2,coke_can/splat_s2_x2,coke_can/hash_s2_x2 (K9's pairs);
+#   # CK=EKs, KINDS=cup/splat_s2_x2,coke_can/splat_s2_x2; CK=EKh, KINDS=cup/hash_s2_x2,coke_can/hash_s2_x2
 # (/tmp/sixth.safetensors is `git show b611814:roguenerf/weights/default.safetensors`.)
 # (/tmp/fifth.safetensors is `git show b24f519:roguenerf/weights/default.safetensors`.)
 # (/tmp/looks.safetensors is `git show 70e5329:roguenerf/weights/default.safetensors`.)
