@@ -37,19 +37,28 @@ others; at ``model_every`` 1, where nothing is
 carried, only the shipped ``carry_between`` runs), with the share of frames carried; the CSV also keeps each frame
 with a photo's gain (``gains``: frame, gain, carried). Writes ``OUTPUT.csv`` (a row per run;
 date, machine, commit), ``OUTPUT.json`` (the medians, the ratios) and ``OUTPUT.png``.
+
+``--filter-before REV`` also runs every filter setting with the ``TemporalFilter`` of an older
+revision's ``roguenerf/enhance/temporal.py`` (loaded from a temporary worktree into this process:
+the rest of the code is this checkout's), labelled ``MODE@REV``, alternated with this checkout's
+run by run (the order swapped every repeat), so that both see the same load; every row also
+keeps the process's CPU seconds (``cpu_seconds``: all threads, less sensitive than the wall
+clock to other processes' load).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import shutil
 import statistics
 import sys
 import tempfile
+import time
 from pathlib import Path
 
-from bench.common import RESULTS, beside, save_figure, stamp, write_csv, write_json
+from bench.common import RESULTS, beside, older_tree, save_figure, stamp, write_csv, write_json
 
 ONOFF = {"on": True, "off": False}
 SWEPT = (
@@ -88,6 +97,8 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"comma-separated TemporalConfig.{field} values{', on/off' if kind is ONOFF else ''} "
                              "(default: the shipped one)")
     ap.add_argument("--force", action="store_true", help="enhance a path enhance_path's check refuses (as bench.paths)")
+    ap.add_argument("--filter-before", default=None, metavar="REV",
+                    help="also run each filter setting with REV's TemporalFilter, alternated (labelled MODE@REV)")
     args = ap.parse_args(argv)
     if args.repeats < 1:
         raise SystemExit(f"--repeats: expected 1 or more, got {args.repeats}")
@@ -124,17 +135,37 @@ def main(argv: list[str] | None = None) -> int:
         label = "/".join(["on", *(tag(v) for (field, _, tag), v in zip(SWEPT, values)
                                   if v != getattr(shipped, field))])
         modes[label] = TemporalConfig(**config)
+    filters = {mode: None for mode in modes}  # None: this checkout's TemporalFilter
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
+    with contextlib.ExitStack() as stack, tempfile.TemporaryDirectory() as tmp:
+        pairs = [[mode] for mode in modes]  # each setting, then its older filter's run
+        if args.filter_before:
+            older = older_filter(*stack.enter_context(older_tree(args.filter_before)))
+            for pair in pairs[1:]:
+                pair.append(f"{pair[0]}@{older.revision}")
+                modes[pair[1]] = modes[pair[0]]
+                filters[pair[1]] = older.TemporalFilter
+        import roguenerf.trajectory.enhancing as enhancing
+
+        shipped_filter = enhancing.TemporalFilter
         for repeat in range(args.repeats):
-            for mode, config in modes.items():
+            # the older filter's run before this checkout's every second repeat: both see the same load
+            for mode in [m for pair in pairs for m in (pair if repeat % 2 == 0 else reversed(pair))]:
+                config = modes[mode]
                 enhancer = SceneEnhancer(scene, model, options=EnhanceOptions(temporal=config))
-                out = Path(tmp) / mode.replace("/", "_")
+                out = Path(tmp) / mode.replace("/", "_").replace("@", "_")
                 shutil.rmtree(out, ignore_errors=True)
-                result = enhance_path(scene, enhancer, camera_path, frames, out, video=False, force=args.force)
+                enhancing.TemporalFilter = filters[mode] or shipped_filter
+                cpu = time.process_time()
+                try:
+                    result = enhance_path(scene, enhancer, camera_path, frames, out, video=False, force=args.force)
+                finally:
+                    enhancing.TemporalFilter = shipped_filter
+                cpu = time.process_time() - cpu
                 report = result.flicker
                 rows.append({**stamp(), "scene": name, "size": f"{width}x{height}", "frames": result.enhanced_now,
                              "repeat": repeat, "temporal": mode, "enhance_seconds": round(result.enhance_seconds, 3),
+                             "cpu_seconds": round(cpu, 3),
                              "frames_per_second": round(result.frames_per_second, 4),
                              "flicker_ratio": round(report["flicker"]["ratio"], 4),
                              "flicker_ratio_sharpened": round(report["flicker"]["ratio_sharpened"], 4),
@@ -154,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     summary = {**stamp(), "command": " ".join(["python -m bench.path_speed", *(argv or sys.argv[1:])]),
                "scene": name, "size": f"{width}x{height}", "frames": len(poses), "repeats": args.repeats,
                "frames_per_second": fps,
+               "cpu_seconds": {m: statistics.median(r["cpu_seconds"] for r in rows if r["temporal"] == m)
+                               for m in modes},
                "speed_ratio": {m: fps[m] / fps["off"] for m in modes if m != "off"},
                "flicker_ratio": {m: next(r["flicker_ratio"] for r in rows if r["temporal"] == m) for m in fps},
                "flicker_ratio_sharpened": {m: next(r["flicker_ratio_sharpened"] for r in rows if r["temporal"] == m)
@@ -172,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
     for i, mode in enumerate(modes):
         ax.scatter([i] * args.repeats, [r["frames_per_second"] for r in rows if r["temporal"] == mode])
     ax.set_xticks(range(len(modes)), ["frame by frame" if m == "off" else f"filter {m[3:] or 'shipped'}"
-                                      for m in modes])
+                                      for m in modes], fontsize=7)
     ax.set_ylabel("frames per second")
     ratios = ", ".join(f"{m}: x{r:.2f}" for m, r in summary["speed_ratio"].items())
     ax.set_title(f"{name} {width}x{height}, {len(poses)} frames: {ratios}", fontsize=9)
@@ -180,6 +213,20 @@ def main(argv: list[str] | None = None) -> int:
     save_figure(fig, beside(output, ".png"))
     print(f"wrote {beside(output, '.csv')}, {beside(output, '.json')} and {beside(output, '.png')}")
     return 0
+
+
+def older_filter(tree: Path, revision: str):
+    """``tree``'s ``roguenerf/enhance/temporal.py`` loaded as a module of its own (its imports are
+    this checkout's), with ``revision`` (a short hash) as its ``revision``."""
+    import importlib.util
+
+    name = f"_temporal_{revision}"
+    spec = importlib.util.spec_from_file_location(name, tree / "roguenerf" / "enhance" / "temporal.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up while the class is made
+    spec.loader.exec_module(module)
+    module.revision = revision
+    return module
 
 
 if __name__ == "__main__":

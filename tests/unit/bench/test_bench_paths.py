@@ -111,6 +111,22 @@ def test_path_speed_alternates_frame_by_frame_and_the_temporal_filter(tmp_path):
     assert list(summary["frames_per_second"]) == ["off", "on/w0.5", "on/w0.5/cf3", "on", "on/cf3"]
     rows = list(csv.DictReader(open(tmp_path / "res" / "weights.csv")))
     assert len({r["neighbour_changes"] for r in rows}) == 1 and int(rows[0]["neighbour_changes"]) >= 0
+    # an older revision's TemporalFilter beside this checkout's, alternated: HEAD's is this one's, so
+    # the same frames (flicker and gain), each run's CPU seconds kept
+    import subprocess
+
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                          check=True).stdout.strip()
+    assert path_speed.main(["--fit", str(tmp_path / "pairs"), "--work", str(tmp_path / "work"), "--keys", "2",
+                            "--steps", "2", "--repeats", "2", "--model-every", "3", "--filter-before", "HEAD",
+                            "--force", "--output", str(tmp_path / "res" / "before")]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "res" / "before.csv")))
+    assert [r["temporal"] for r in rows] == ["off", "on/k3", f"on/k3@{head}", "off", f"on/k3@{head}", "on/k3"]
+    for field in ("flicker_ratio", "gain_db", "carried_share"):
+        assert len({r[field] for r in rows if r["temporal"] != "off"}) == 1
+    assert all(float(r["cpu_seconds"]) > 0 for r in rows)
+    summary = json.loads((tmp_path / "res" / "before.json").read_text())
+    assert set(summary["cpu_seconds"]) == {"off", "on/k3", f"on/k3@{head}"}
 
 
 @pytest.mark.slow
