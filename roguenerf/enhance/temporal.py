@@ -373,7 +373,7 @@ class TemporalFilter:
         """The last frame the model ran on (:attr:`TemporalConfig.carry_from` ``"model"``)."""
         self._sources: dict[tuple[int, bool], tuple[_LastFrame, Tensor, Tensor]] = {}
         """What the reprojection samples from the last two kept frames moved (the channels moved and
-        their ``sampling_source``: 10 floats a pixel each),
+        their ``sampling_source``: 10 floats a pixel each, 14 with ``resample="bilinear"``),
         by the frame's ``id`` (the frame kept beside it: an id is reused only once it is freed)."""
         self.last_share: float = 0.0
         """Share of the last frame's pixels that took the previous frame's residual."""
