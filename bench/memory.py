@@ -59,8 +59,9 @@ result = enhancer.enhance(render, depth, frame.K, frame.world_from_cam)
 seconds = time.perf_counter() - t
 h, w = render.shape[1:]
 tile = enhancer.view_tile((h, w))
-tiles = 1 if max(h, w) <= tile else (len(tile_starts(h, tile, tile_overlap(tile), model.tile_alignment))
-                                     * len(tile_starts(w, tile, tile_overlap(tile), model.tile_alignment)))
+overlap = tile_overlap(tile)
+tiles = 1 if max(h, w) <= tile else (len(tile_starts(h, tile, overlap, model.tile_alignment))
+                                     * len(tile_starts(w, tile, overlap, model.tile_alignment)))
 # VmHWM, not ru_maxrss: Linux carries the parent's RSS high-water mark into a child's
 # ru_maxrss across fork + exec, which here would count the scene generation.
 peak = next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM:")) / 1024
