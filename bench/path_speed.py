@@ -75,6 +75,7 @@ SWEPT = (
     ("change_frames", int, lambda v: f"cf{v}"),
     ("both_ways", ONOFF, lambda v: f"both-ways-{'on' if v else 'off'}"),
     ("fade_deg", float, lambda v: f"fade{v:g}"),
+    ("fade_along", ONOFF, lambda v: f"fade-along-{'on' if v else 'off'}"),
     ("reuse_poses", ONOFF, lambda v: f"reuse-poses-{'on' if v else 'off'}"),
     ("refit_nearer", float, lambda v: f"refit{v:g}"),
 )

@@ -219,7 +219,19 @@ class TemporalConfig:
     which no setting kept) and its flicker at most the render's, the least flicker; reported on
     the report half's (docs/broad.md, *Blend fading with parallax*)."""
 
+    fade_along: bool = False
+    """With :attr:`fade_deg`: fade by the parallax *accumulated* along the moving average rather
+    than by the angle between two frames only. The frame carried into a blend is itself a mix of
+    frames seen from further back along the path; each pixel keeps the mean parallax of what it
+    carries (:attr:`TemporalFilter.last_parallax`: the angle to the last frame plus what that
+    frame carried, moved with it, times the weight it took), and the weight halves for every
+    :attr:`fade_deg` of that sum. A frame's far history then counts less than its near one, where
+    the plain fade weighs a whole moving average by its last step. False (the default): the angle
+    of the last step alone."""
+
     def __post_init__(self):
+        if not isinstance(self.fade_along, bool):
+            raise InputError(f"TemporalConfig.fade_along: expected True or False, got {self.fade_along!r}")
         if isinstance(self.model_every, bool) or not isinstance(self.model_every, int) or self.model_every < 1:
             raise InputError(f"TemporalConfig.model_every: expected an integer >= 1, got {self.model_every!r}")
         if self.carry_from not in ("last", "model"):
@@ -345,6 +357,9 @@ class _LastFrame(NamedTuple):
     """Camera-to-world, float64."""
     render: Tensor
     """The render it was made from (compared with the next frame's by ``reject``)."""
+    parallax: Tensor | None = None
+    """``(1, H, W)``: the mean parallax (degrees) of what the frame carries from the frames before
+    it (:attr:`TemporalConfig.fade_along`); None: nothing carried, or not kept."""
 
 
 class _Move(NamedTuple):
@@ -360,6 +375,9 @@ class _Move(NamedTuple):
     """``(3, H, W)``: its render moved (bilinear), where asked for; else None."""
     bilinear: Tensor | None
     """``(3, H, W)``: the frame moved bilinear by the reprojection itself (``resample="bilinear"``); else None."""
+    parallax: Tensor | None = None
+    """``(1, H, W)``: the kept frame's :attr:`_LastFrame.parallax` moved (bilinear), where it has one
+    and :attr:`TemporalConfig.fade_along` is on; else None."""
 
 
 class TemporalFilter:
@@ -386,6 +404,10 @@ class TemporalFilter:
         """PSNR (dB) of the two model frames the last :meth:`carry` between them moved, against each
         other on the pixels both see (:attr:`TemporalConfig.between_agreement`); None where it was
         not measured."""
+        self.last_parallax: Tensor | None = None
+        """With :attr:`TemporalConfig.fade_along`: ``(1, H, W)`` the mean parallax (degrees) of what
+        the last frame given to :meth:`__call__` carries from the frames before it, for the caller
+        to hand back to :meth:`remember` with that frame as written; None otherwise."""
         self.last_warp: tuple[Tensor, Tensor] | None = None
         """``(coords, valid)`` of the reprojection that moved the kept frame into the last one
         given to :meth:`__call__` or :meth:`carry` (``(1, H, W, 2)``, ``(1, 1, H, W)``:
@@ -402,6 +424,7 @@ class TemporalFilter:
         self.last_agreement = None
         self.last_mutual = None
         self.last_warp = None
+        self.last_parallax = None
 
     @property
     def kept(self) -> _LastFrame | None:
@@ -414,29 +437,23 @@ class TemporalFilter:
         self._previous = self._anchor = kept
 
     def remember(self, render: Tensor, enhanced: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
-                 model: bool = True) -> None:
+                 model: bool = True, parallax: Tensor | None = None) -> None:
         """Take ``enhanced`` (of ``render``) as the last frame's result without blending: the frame
         as written (a resumed path reads its finished frames back, so the frames after them
         come out the same as without the stop). ``model``: the model ran on it (not carried),
-        so later frames may be carried from it (:attr:`TemporalConfig.carry_from`)."""
+        so later frames may be carried from it (:attr:`TemporalConfig.carry_from`). ``parallax``:
+        the :attr:`last_parallax` of the call that made it (:attr:`TemporalConfig.fade_along`);
+        None: the frame carries nothing from before (a frame read back starts afresh)."""
         carried = enhanced.float() - render.float() if self.config.blend == "residual" else enhanced.float()
         self.last_warp = None
         self.last_agreement = None
         self.last_mutual = None
+        self.last_parallax = None
         self._previous = _LastFrame(carried, depth.float(), torch.as_tensor(K).to(torch.float32),
-                                    torch.as_tensor(world_from_cam).to(torch.float64), render.float())
+                                    torch.as_tensor(world_from_cam).to(torch.float64), render.float(),
+                                    parallax if self.config.fade_along else None)
         if model:
             self._anchor = self._previous
-
-    def _warp(self, depth: Tensor, K: Tensor, pose: Tensor, frame: _LastFrame | None = None, *,
-              with_render: bool = False) -> tuple[Tensor, Tensor, Tensor | None]:
-        """The kept last frame (or ``frame``) moved into this one: ``(3, H, W)`` (0 where not
-        seen), ``(1, H, W)`` bool: seen, and with :attr:`TemporalConfig.reject` (or
-        ``with_render``) its render moved the same way (``(3, H, W)``, sampled bilinear: it only
-        decides the weight), else None. :attr:`last_warp` keeps the move only when it is the
-        last frame's."""
-        move = self._move(depth, K, pose, frame, with_render=with_render)
-        return self._moved_frame(move), move.valid, move.render
 
     def _move(self, depth: Tensor, K: Tensor, pose: Tensor, frame: _LastFrame | None = None, *,
               with_render: bool = False) -> _Move:
@@ -447,19 +464,21 @@ class TemporalFilter:
 
         frame = self._previous if frame is None else frame
         last = frame is self._previous
-        prev, prev_depth, prev_K, prev_pose, prev_render = frame
+        prev, prev_depth, prev_K, prev_pose, prev_render = frame.carried, frame.depth, frame.K, frame.pose, frame.render
         bilinear = self.config.resample == "bilinear"
         reject = self.config.reject > 0 or with_render
+        along = self.config.fade_along and frame.parallax is not None
         with torch.inference_mode():
             # a kept frame is moved into several (the frames between two model frames, the blend):
             # what the reprojection samples from it is built once
-            key = (id(frame), reject)
+            key = (id(frame), reject, along)
             cached = self._sources.get(key)
             if cached is None or cached[0] is not frame:
                 # bicubic: only the points and what sees is needed of the reprojection (the depth:
                 # one channel sampled, not three), and the render where it is compared
                 source = prev if bilinear else prev_depth
-                features = (torch.cat([source, prev_render]) if reject else source)[None]
+                parts = [source, frame.parallax] if along else [source]
+                features = torch.cat(parts + [prev_render] if reject else parts)[None]
                 cached = (frame, features, sampling_source(features, prev_depth[None]))
                 self._sources[key] = cached
                 while len(self._sources) > 2:  # the two model frames a stretch is carried from
@@ -469,7 +488,8 @@ class TemporalFilter:
         self.last_warp = (warped.coords, warped.valid) if last else None
         features = warped.features[0]
         return _Move(prev, warped.coords, warped.valid[0] > 0.5, features[-3:] if reject else None,
-                     features[:3] if bilinear else None)
+                     features[:3] if bilinear else None,
+                     features[len(source):len(source) + 1] if along else None)
 
     def _moved_frame(self, move: _Move) -> Tensor:
         """``(3, H, W)``: the frame of a :meth:`_move`, sampled where its points land (0 where not seen)."""
@@ -589,15 +609,26 @@ class TemporalFilter:
         self.last_agreement = None
         self.last_mutual = None
         self.last_warp = None
+        self.last_parallax = None
+        along = self.config.fade_along and self.config.fade_deg > 0
         w = float(self.config.change_weight if changed else self.config.weight) ** frames_apart
         if self._previous is not None and w > 0:
-            warped, valid, warped_render = self._warp(depth, K, pose)
+            move = self._move(depth, K, pose)
+            warped, valid, warped_render = self._moved_frame(move), move.valid, move.render
             self.last_share = float(valid.float().mean())
             if self.config.fade_deg > 0:
-                w = w * 0.5 ** (parallax_deg(depth, K, pose, self._previous.pose[:3, 3]) / self.config.fade_deg)
+                angle = parallax_deg(depth, K, pose, self._previous.pose[:3, 3])
+                if move.parallax is not None:  # what the last frame carried, seen from further back
+                    angle = angle + torch.where(valid, move.parallax, 0.0)
+                w = w * 0.5 ** (angle / self.config.fade_deg)
             if warped_render is not None:
                 w = w * self._agreement(warped_render, render, valid)
             residual = torch.where(valid, (1 - w) * residual + w * warped, residual)
+            if along:  # the mean parallax of what this frame now carries (its own: 0)
+                self.last_parallax = torch.where(valid, w * angle, 0.0).expand(1, *render.shape[1:]).float()
+        elif along:
+            self.last_parallax = torch.zeros(1, *render.shape[1:])
         out = (residual if image else render + residual).clamp(0, 1)
-        self._previous = self._anchor = _LastFrame(out if image else out - render, depth, K, pose, render)
+        self._previous = self._anchor = _LastFrame(out if image else out - render, depth, K, pose, render,
+                                                   self.last_parallax)
         return out

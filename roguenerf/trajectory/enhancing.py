@@ -405,6 +405,7 @@ def enhance_path(
             image, entry["neighbours"] = result.image, result.neighbours
             if temporal is not None:
                 image = temporal(render, image, depth, *camera, changed=settles(t), frames_apart=apart)
+                entry["parallax"] = temporal.last_parallax  # TemporalConfig.fade_along: kept with the frame
             entry["image"] = image
         if entry["made"]:
             entry["enhanced"] = _quantise(entry["image"])
@@ -424,7 +425,8 @@ def enhance_path(
                                neighbours=chosen(after, (after_render, after_depth)), apart=after - before)
             read_ahead(t + 1)
             camera = (camera_path.K[after], camera_path.world_from_cam[after])
-            temporal.remember(after_render, made[after]["enhanced"], after_depth, *camera, model=True)
+            temporal.remember(after_render, made[after]["enhanced"], after_depth, *camera, model=True,
+                              parallax=made[after].get("parallax"))
             anchors[after] = temporal.kept
             anchors[before] = kept
             temporal.restore(kept)
@@ -457,7 +459,7 @@ def enhance_path(
                 final = _quantise(back(render, first, depth, *camera))
                 behind.write(out_png, final)
                 written_now += 1
-            back.remember(render, final, depth, *camera)
+            back.remember(render, final, depth, *camera, parallax=None if written else back.last_parallax)
             current = measure(t, render, final, depth, per_frame[t])
             if later is not None:
                 pairs_back.append(measure_pair(current, later, t))
@@ -520,7 +522,7 @@ def enhance_path(
                 prev = current
             if temporal is not None:  # the frame as written, whether made now or read back
                 temporal.remember(render, enhanced, depth, camera_path.K[t], camera_path.world_from_cam[t],
-                                  model=not entry["carried"])
+                                  model=not entry["carried"], parallax=entry.get("parallax"))
             anchors.pop(t - every, None)
             if temporal is not None:  # frames later than t look back this far at most (settles)
                 rule.pop(t - temporal.config.change_frames - 1, None)

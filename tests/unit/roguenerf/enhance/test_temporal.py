@@ -437,6 +437,58 @@ def test_the_blend_fades_with_parallax():
     assert torch.equal(still[0](r2, e2, DEPTH, K, POSE), still[1](r2, e2, DEPTH, K, POSE))
 
 
+def test_the_fade_along_the_path_adds_what_the_last_frame_carried():
+    """``fade_along``: a camera moved sideways twice by one pixel's worth over a plane (z = 3,
+    f = 30: 0.1 units), uniform images. At a pixel the second frame takes the first's weight by
+    its parallax ``a1``, ``w2 = 0.5 * 0.5 ** (a1 / f)``, and keeps ``w2 * a1`` as what it carries;
+    the third, at the pixel one to the left (where the point went), fades by ``a2 + w2 * a1``
+    (the plain fade: by ``a2`` alone)."""
+    from roguenerf.enhance.temporal import parallax_deg
+
+    fade = 2.0
+    poses = []
+    for step in range(3):
+        pose = POSE.clone()
+        pose[0, 3] = 0.1 * step
+        poses.append(pose)
+    values = (0.2, 0.6, 0.4)
+    outs = {}
+    for along in (False, True):
+        f = TemporalFilter(TemporalConfig(weight=0.5, fade_deg=fade, reject=0.0, fade_along=along))
+        frames = []
+        for pose, value in zip(poses, values):
+            image = torch.full((3, H, W), value)
+            frames.append(f(torch.full((3, H, W), 0.5), image, DEPTH, K, pose))
+            remembered = f.last_parallax
+            f.remember(torch.full((3, H, W), 0.5), frames[-1], DEPTH, K, pose, parallax=remembered)
+            if along:
+                assert remembered is not None and remembered.shape == (1, H, W)
+            else:
+                assert remembered is None
+        outs[along] = frames
+    y, x = 10, 5  # seen by the frame before in both moves (the camera moves right: it sees the left)
+    a1 = float(parallax_deg(DEPTH, K, poses[1], poses[0][:3, 3])[0, y, x])
+    a2 = float(parallax_deg(DEPTH, K, poses[2], poses[1][:3, 3])[0, y, x - 1])
+    assert a1 > 0.5 and a2 > 0.5
+    w2 = 0.5 * 0.5 ** (a1 / fade)
+    second = (1 - w2) * 0.6 + w2 * 0.2
+    for along in (False, True):
+        assert float(outs[along][1][0, y, x]) == pytest.approx(second, abs=1e-5)  # the same: nothing carried yet
+    for along, angle in ((False, a2), (True, a2 + w2 * a1)):
+        w3 = 0.5 * 0.5 ** (angle / fade)
+        assert float(outs[along][2][0, y, x - 1]) == pytest.approx((1 - w3) * 0.4 + w3 * second, abs=1e-5)
+    # a frame read back (nothing remembered of what it carried) starts afresh
+    f = TemporalFilter(TemporalConfig(weight=0.5, fade_deg=fade, reject=0.0, fade_along=True))
+    f.remember(torch.full((3, H, W), 0.5), outs[True][1], DEPTH, K, poses[1])
+    plain = TemporalFilter(TemporalConfig(weight=0.5, fade_deg=fade, reject=0.0))
+    plain.remember(torch.full((3, H, W), 0.5), outs[True][1], DEPTH, K, poses[1])
+    image = torch.full((3, H, W), 0.4)
+    assert torch.equal(f(torch.full((3, H, W), 0.5), image, DEPTH, K, poses[2]),
+                       plain(torch.full((3, H, W), 0.5), image, DEPTH, K, poses[2]))
+    with pytest.raises(InputError, match="fade_along"):
+        TemporalConfig(fade_along=1)
+
+
 @pytest.mark.parametrize("fade", [-1.0, float("nan"), float("inf"), "2"])
 def test_bad_fades_are_refused(fade):
     with pytest.raises(InputError, match="fade_deg"):
