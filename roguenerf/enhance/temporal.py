@@ -437,21 +437,31 @@ class TemporalFilter:
         self._previous = self._anchor = kept
 
     def remember(self, render: Tensor, enhanced: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
-                 model: bool = True, parallax: Tensor | None = None) -> None:
+                 model: bool = True, parallax: Tensor | None = None,
+                 blended: tuple[bool, int] | None = None) -> None:
         """Take ``enhanced`` (of ``render``) as the last frame's result without blending: the frame
         as written (a resumed path reads its finished frames back, so the frames after them
         come out the same as without the stop). ``model``: the model ran on it (not carried),
-        so later frames may be carried from it (:attr:`TemporalConfig.carry_from`). ``parallax``:
-        the :attr:`last_parallax` of the call that made it (:attr:`TemporalConfig.fade_along`);
-        None: the frame carries nothing from before (a frame read back starts afresh)."""
+        so later frames may be carried from it (:attr:`TemporalConfig.carry_from`).
+
+        With :attr:`TemporalConfig.fade_along`, what the frame carries from before: ``parallax``,
+        the :attr:`last_parallax` of the call that made it; or, for a frame read back that a call
+        made (``blended``: that call's ``(changed, frames_apart)``), worked out again from the
+        frame remembered before it (the weights depend on the renders, depths and cameras only, not
+        on the images: the same map); else nothing (a carried frame)."""
         carried = enhanced.float() - render.float() if self.config.blend == "residual" else enhanced.float()
+        along = self.config.fade_along and self.config.fade_deg > 0
+        if along and parallax is None and blended is not None:
+            pose = torch.as_tensor(world_from_cam).to(torch.float64)
+            parallax = self._carried_parallax(render.float(), depth.float(), torch.as_tensor(K).to(torch.float32),
+                                              pose, *blended)
         self.last_warp = None
         self.last_agreement = None
         self.last_mutual = None
         self.last_parallax = None
         self._previous = _LastFrame(carried, depth.float(), torch.as_tensor(K).to(torch.float32),
                                     torch.as_tensor(world_from_cam).to(torch.float64), render.float(),
-                                    parallax if self.config.fade_along else None)
+                                    parallax if along else None)
         if model:
             self._anchor = self._previous
 
@@ -507,6 +517,44 @@ class TemporalFilter:
         """``0.5 ** (d / reject) ** 2`` of the renders' disagreement ``d`` (:attr:`TemporalConfig.reject`)."""
         d = render_disagreement(warped_render, render, valid)
         return torch.exp2(-(d / self.config.reject).square())
+
+    def _weight0(self, changed: bool, frames_apart: int) -> float:
+        """The blend's weight before the fade and the rejection."""
+        return float(self.config.change_weight if changed else self.config.weight) ** frames_apart
+
+    def _weights(self, move: _Move, render: Tensor, depth: Tensor, K: Tensor, pose: Tensor, changed: bool,
+                 frames_apart: int) -> tuple[Tensor | float, Tensor | None]:
+        """The blend's weight per pixel of the kept last frame moved into this one (``move``), and
+        the parallax it faded by (None without :attr:`TemporalConfig.fade_deg`): the angle to the
+        last frame, plus what that frame carried (:attr:`TemporalConfig.fade_along`)."""
+        w = self._weight0(changed, frames_apart)
+        angle = None
+        if self.config.fade_deg > 0:
+            angle = parallax_deg(depth, K, pose, self._previous.pose[:3, 3])
+            if move.parallax is not None:  # what the last frame carried, seen from further back
+                angle = angle + torch.where(move.valid, move.parallax, 0.0)
+            w = w * 0.5 ** (angle / self.config.fade_deg)
+        if move.render is not None:
+            w = w * self._agreement(move.render, render, move.valid)
+        return w, angle
+
+    @staticmethod
+    def _parallax_after(w: Tensor | float, angle: Tensor, valid: Tensor, render: Tensor) -> Tensor:
+        """``(1, H, W)``: the mean parallax of what a frame carries once blended (its own: 0), kept
+        at float16's precision (a frame's map is the same whether it is made or worked out again)."""
+        carried = torch.where(valid, w * angle, 0.0).expand(1, *render.shape[1:])
+        return carried.half().float()
+
+    def _carried_parallax(self, render: Tensor, depth: Tensor, K: Tensor, pose: Tensor, changed: bool,
+                          frames_apart: int) -> Tensor:
+        """:attr:`last_parallax` of a :meth:`__call__` on this frame after the frame kept now,
+        without its images (:meth:`remember` of a frame read back)."""
+        zeros = torch.zeros(1, *render.shape[1:])
+        if self._previous is None or self._weight0(changed, frames_apart) <= 0:
+            return zeros
+        move = self._move(depth, K, pose)
+        w, angle = self._weights(move, render, depth, K, pose, changed, frames_apart)
+        return self._parallax_after(w, angle, move.valid, render)
 
     def model_due(self, t: int, *, changed: bool = False) -> bool:
         """Whether frame ``t`` of the path (from 0) is one the model runs on by
@@ -611,23 +659,16 @@ class TemporalFilter:
         self.last_warp = None
         self.last_parallax = None
         along = self.config.fade_along and self.config.fade_deg > 0
-        w = float(self.config.change_weight if changed else self.config.weight) ** frames_apart
-        if self._previous is not None and w > 0:
-            move = self._move(depth, K, pose)
-            warped, valid, warped_render = self._moved_frame(move), move.valid, move.render
-            self.last_share = float(valid.float().mean())
-            if self.config.fade_deg > 0:
-                angle = parallax_deg(depth, K, pose, self._previous.pose[:3, 3])
-                if move.parallax is not None:  # what the last frame carried, seen from further back
-                    angle = angle + torch.where(valid, move.parallax, 0.0)
-                w = w * 0.5 ** (angle / self.config.fade_deg)
-            if warped_render is not None:
-                w = w * self._agreement(warped_render, render, valid)
-            residual = torch.where(valid, (1 - w) * residual + w * warped, residual)
-            if along:  # the mean parallax of what this frame now carries (its own: 0)
-                self.last_parallax = torch.where(valid, w * angle, 0.0).expand(1, *render.shape[1:]).float()
-        elif along:
+        if along:
             self.last_parallax = torch.zeros(1, *render.shape[1:])
+        if self._previous is not None and self._weight0(changed, frames_apart) > 0:
+            move = self._move(depth, K, pose)
+            w, angle = self._weights(move, render, depth, K, pose, changed, frames_apart)
+            warped, valid = self._moved_frame(move), move.valid
+            self.last_share = float(valid.float().mean())
+            residual = torch.where(valid, (1 - w) * residual + w * warped, residual)
+            if along:
+                self.last_parallax = self._parallax_after(w, angle, valid, render)
         out = (residual if image else render + residual).clamp(0, 1)
         self._previous = self._anchor = _LastFrame(out if image else out - render, depth, K, pose, render,
                                                    self.last_parallax)

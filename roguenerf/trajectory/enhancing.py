@@ -391,6 +391,8 @@ def enhance_path(
                  "mutual": mutual, "made": not out_png.is_file(), "neighbours": None}
         if not entry["made"]:
             entry["enhanced"] = read_image(out_png)
+            if temporal is not None and carried is None and temporal.config.fade_along:
+                entry["blended"] = (settles(t), apart)  # TemporalConfig.fade_along: its map worked out again
             if neighbours is not None and carried is None:  # named as the model took them when it ran
                 entry["neighbours"] = [scene.frames[i].name for i in neighbours]
             if poses is not None and carried is None:  # a resumed path fits its neighbours' poses as it did
@@ -426,7 +428,8 @@ def enhance_path(
             read_ahead(t + 1)
             camera = (camera_path.K[after], camera_path.world_from_cam[after])
             temporal.remember(after_render, made[after]["enhanced"], after_depth, *camera, model=True,
-                              parallax=made[after].get("parallax"))
+                              parallax=made[after].get("parallax"), blended=made[after].pop("blended", None))
+            made[after]["parallax"] = temporal.kept.parallax  # what it carries, for its turn below
             anchors[after] = temporal.kept
             anchors[before] = kept
             temporal.restore(kept)
@@ -459,7 +462,8 @@ def enhance_path(
                 final = _quantise(back(render, first, depth, *camera))
                 behind.write(out_png, final)
                 written_now += 1
-            back.remember(render, final, depth, *camera, parallax=None if written else back.last_parallax)
+            back.remember(render, final, depth, *camera, parallax=None if written else back.last_parallax,
+                          blended=(False, 1) if written else None)
             current = measure(t, render, final, depth, per_frame[t])
             if later is not None:
                 pairs_back.append(measure_pair(current, later, t))
@@ -522,7 +526,8 @@ def enhance_path(
                 prev = current
             if temporal is not None:  # the frame as written, whether made now or read back
                 temporal.remember(render, enhanced, depth, camera_path.K[t], camera_path.world_from_cam[t],
-                                  model=not entry["carried"], parallax=entry.get("parallax"))
+                                  model=not entry["carried"], parallax=entry.get("parallax"),
+                                  blended=entry.get("blended"))
             anchors.pop(t - every, None)
             if temporal is not None:  # frames later than t look back this far at most (settles)
                 rule.pop(t - temporal.config.change_frames - 1, None)

@@ -534,6 +534,39 @@ def test_frames_between_two_model_frames_are_carried_from_both_and_resume_the_sa
     assert [f["carried"] for f in again.flicker["per_frame"]] == [f["carried"] for f in rows]
 
 
+@pytest.mark.parametrize("every", [1, 3])
+def test_the_fade_along_the_path_resumes_to_the_same_frames(toy_path, enhancer, tmp_path, every):
+    """fade_along, both ways (and with model_every=3, frames carried between the model's): frames
+    deleted from both passes are made again as they were, though what a read-back frame carries
+    from before is not on disk (worked out again from the renders, depths and cameras); the
+    fade along the path makes other frames than the plain fade."""
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.enhance.temporal import TemporalConfig
+
+    root, scene = toy_path["root"], toy_path["scene"]
+    cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
+    T = len(cp)
+
+    def run(out, along=True, **kw):
+        # a fade of 0.5 degrees: the toy path's frames are 2-4 degrees apart
+        config = TemporalConfig(fade_deg=0.5, fade_along=along, model_every=every, min_seen=0.0,
+                                carry_agreement=0.0)
+        faded = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=config))
+        return enhance_path(scene, faded, cp, root / "frames", out, depth_type="ray", video=False, **kw)
+
+    run(tmp_path / "along")
+    run(tmp_path / "plain", along=False)
+    frame = lambda folder, sub, t: (tmp_path / folder / sub / f"{t:05d}.png").read_bytes()  # noqa: E731
+    made = {(sub, t): frame("along", sub, t) for sub in ("forward", "frames") for t in range(T)}
+    assert any(made["frames", t] != frame("plain", "frames", t) for t in range(T))
+    assert frame("plain", "forward", 0) == made["forward", 0]  # nothing carried into the first frame
+    for sub, t in (("forward", 4), ("forward", 5), ("frames", 1), ("frames", 2)):
+        (tmp_path / "along" / sub / f"{t:05d}.png").unlink()
+    again = run(tmp_path / "along")
+    assert again.enhanced_now == 2
+    assert all(frame("along", sub, t) == made[sub, t] for sub in ("forward", "frames") for t in range(T))
+
+
 def test_enhance_path_cli(toy_path, tmp_path):
     root = toy_path["root"]
     runner = CliRunner()
