@@ -220,6 +220,7 @@ def older_filter(tree: Path, revision: str):
     """``tree``'s ``roguenerf/enhance/temporal.py`` loaded as a module of its own (its imports are
     this checkout's), with ``revision`` (a short hash) as its ``revision``."""
     import importlib.util
+    import inspect
 
     name = f"_temporal_{revision}"
     spec = importlib.util.spec_from_file_location(name, tree / "roguenerf" / "enhance" / "temporal.py")
@@ -227,7 +228,22 @@ def older_filter(tree: Path, revision: str):
     sys.modules[name] = module  # dataclasses look their module up while the class is made
     spec.loader.exec_module(module)
     module.revision = revision
+    if "parallax" not in inspect.signature(module.TemporalFilter.remember).parameters:
+        module.TemporalFilter = _before_fade_along(module)
     return module
+
+
+def _before_fade_along(module):
+    """An older ``TemporalFilter`` (before ``TemporalConfig.fade_along``) as this checkout's
+    ``enhance_path`` calls it: the map of what a frame carries is never made, never asked for."""
+
+    class Filter(module.TemporalFilter):
+        last_parallax = None
+
+        def remember(self, *args, parallax=None, blended=None, **kwargs):
+            return super().remember(*args, **kwargs)
+
+    return Filter
 
 
 if __name__ == "__main__":

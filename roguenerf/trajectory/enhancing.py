@@ -429,7 +429,8 @@ def enhance_path(
             camera = (camera_path.K[after], camera_path.world_from_cam[after])
             temporal.remember(after_render, made[after]["enhanced"], after_depth, *camera, model=True,
                               parallax=made[after].get("parallax"), blended=made[after].pop("blended", None))
-            made[after]["parallax"] = temporal.kept.parallax  # what it carries, for its turn below
+            # what it carries (fade_along), for its turn below (an older filter's kept frame has no map)
+            made[after]["parallax"] = getattr(temporal.kept, "parallax", None)
             anchors[after] = temporal.kept
             anchors[before] = kept
             temporal.restore(kept)

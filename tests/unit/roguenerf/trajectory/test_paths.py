@@ -1026,7 +1026,7 @@ def test_both_ways_blends_each_first_pass_frame_with_the_frame_after_it(toy_path
         expected = back(render, read_image(png("both", "forward", t)), depth, cp.K[t], cp.world_from_cam[t])
         written = read_image(png("both", "frames", t))
         assert (written - expected).abs().max() <= 0.5 / 255 + 1e-6, t
-        back.remember(render, written, depth, cp.K[t], cp.world_from_cam[t])
+        back.remember(render, written, depth, cp.K[t], cp.world_from_cam[t], parallax=back.last_parallax)
     assert png("both", "frames", T - 1).read_bytes() == png("both", "forward", T - 1).read_bytes()
     assert png("both", "frames", 0).read_bytes() != png("both", "forward", 0).read_bytes()
     report = json.loads((tmp_path / "both" / FLICKER_FILE).read_text())
