@@ -43,7 +43,9 @@ revision's ``roguenerf/enhance/temporal.py`` (loaded from a temporary worktree i
 the rest of the code is this checkout's), labelled ``MODE@REV``, alternated with this checkout's
 run by run (the order swapped every repeat), so that both see the same load; every row also
 keeps the process's CPU seconds (``cpu_seconds``: all threads, less sensitive than the wall
-clock to other processes' load).
+clock to other processes' load). A filter older than ``TemporalConfig.fade_along`` gets the same
+setting as this checkout's but fades by the last step's parallax alone, at its ``fade_deg`` (16 by
+default now): to time the defaults of then, pass ``--fade-along off --fade-deg 4``.
 """
 
 from __future__ import annotations
