@@ -127,6 +127,15 @@ def test_path_speed_alternates_frame_by_frame_and_the_temporal_filter(tmp_path):
     assert all(float(r["cpu_seconds"]) > 0 for r in rows)
     summary = json.loads((tmp_path / "res" / "before.json").read_text())
     assert set(summary["cpu_seconds"]) == {"off", "on/k3", f"on/k3@{head}"}
+    # a revision from before TemporalConfig.fade_along (b1222f1): its filter runs under this checkout's
+    # enhance_path, and this checkout's with the plain fade makes its frames
+    assert path_speed.main(["--fit", str(tmp_path / "pairs"), "--work", str(tmp_path / "work"), "--keys", "2",
+                            "--steps", "2", "--repeats", "1", "--fade-along", "off", "--filter-before", "b1222f1",
+                            "--force", "--output", str(tmp_path / "res" / "plain")]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "res" / "plain.csv")))
+    assert [r["temporal"] for r in rows] == ["off", "on/fade-along-off", "on/fade-along-off@b1222f1"]
+    for field in ("flicker_ratio", "gain_db"):
+        assert len({r[field] for r in rows if r["temporal"] != "off"}) == 1
 
 
 @pytest.mark.slow
