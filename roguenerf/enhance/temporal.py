@@ -462,7 +462,7 @@ class TemporalFilter:
         frame remembered before it (the weights depend on the renders, depths and cameras only, not
         on the images: the same map); else nothing (a carried frame)."""
         carried = enhanced.float() - render.float() if self.config.blend == "residual" else enhanced.float()
-        along = self.config.fade_along and self.config.fade_deg > 0
+        along = self._along
         if along and parallax is None and blended is not None:
             pose = torch.as_tensor(world_from_cam).to(torch.float64)
             parallax = self._carried_parallax(render.float(), depth.float(), torch.as_tensor(K).to(torch.float32),
@@ -493,7 +493,7 @@ class TemporalFilter:
         with torch.inference_mode():
             # a kept frame is moved into several (the frames between two model frames, the blend):
             # what the reprojection samples from it is built once
-            key = (id(frame), reject, along)
+            key = (id(frame), reject)  # whether its map is moved too is the frame's own
             cached = self._sources.get(key)
             if cached is None or cached[0] is not frame:
                 # bicubic: only the points and what sees is needed of the reprojection (the depth:
@@ -550,12 +550,16 @@ class TemporalFilter:
             w = w * self._agreement(move.render, render, move.valid)
         return w, angle
 
+    @property
+    def _along(self) -> bool:
+        """Whether blended frames keep the map of what they carry (:attr:`TemporalConfig.fade_along`)."""
+        return self.config.fade_along and self.config.fade_deg > 0
+
     @staticmethod
-    def _parallax_after(w: Tensor | float, angle: Tensor, valid: Tensor, render: Tensor) -> Tensor:
+    def _parallax_after(w: Tensor | float, angle: Tensor, valid: Tensor) -> Tensor:
         """``(1, H, W)``: the mean parallax of what a frame carries once blended (its own: 0), kept
         at float16's precision (a frame's map is the same whether it is made or worked out again)."""
-        carried = torch.where(valid, w * angle, 0.0).expand(1, *render.shape[1:])
-        return carried.half().float()
+        return torch.where(valid, w * angle, 0.0).half().float()
 
     def _carried_parallax(self, render: Tensor, depth: Tensor, K: Tensor, pose: Tensor, changed: bool,
                           frames_apart: int) -> Tensor:
@@ -566,7 +570,7 @@ class TemporalFilter:
             return zeros
         move = self._move(depth, K, pose)
         w, angle = self._weights(move, render, depth, K, pose, changed, frames_apart)
-        return self._parallax_after(w, angle, move.valid, render)
+        return self._parallax_after(w, angle, move.valid)
 
     def model_due(self, t: int, *, changed: bool = False) -> bool:
         """Whether frame ``t`` of the path (from 0) is one the model runs on by
@@ -670,7 +674,7 @@ class TemporalFilter:
         self.last_mutual = None
         self.last_warp = None
         self.last_parallax = None
-        along = self.config.fade_along and self.config.fade_deg > 0
+        along = self._along
         if along:
             self.last_parallax = torch.zeros(1, *render.shape[1:])
         if self._previous is not None and self._weight0(changed, frames_apart) > 0:
@@ -680,7 +684,7 @@ class TemporalFilter:
             self.last_share = float(valid.float().mean())
             residual = torch.where(valid, (1 - w) * residual + w * warped, residual)
             if along:
-                self.last_parallax = self._parallax_after(w, angle, valid, render)
+                self.last_parallax = self._parallax_after(w, angle, valid)
         out = (residual if image else render + residual).clamp(0, 1)
         self._previous = self._anchor = _LastFrame(out if image else out - render, depth, K, pose, render,
                                                    self.last_parallax)
