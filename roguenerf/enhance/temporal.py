@@ -39,8 +39,9 @@ make a forward-backward moving average, which has no lag: a frame's result is a 
 on both sides of it rather than of the frames before it only.
 
 Because the carried frame is the blended one, the filter is an exponential moving average along
-the path: with ``w = 0.8`` (the default) a frame's own result counts 0.2, the one before 0.16,
-the one before that 0.128, and so on (with 0.5, the default before 2026-12-07: 1/2, 1/4, ...).
+the path: with ``w = 0.75`` (the default) a frame's own result counts 0.25, the one before
+0.1875, the one before that 0.14, and so on (with 0.5, the default before 2026-12-07: 1/2, 1/4,
+...), before the rejection and the fade lower ``w``.
 Blending the image smooths the render's own flicker too (a field's floaters that come and
 go; the rejection keeps each frame's own where they differ much); blending only the residual
 carries those back in, and flickered more on a hash field's path than no blending at all
@@ -87,17 +88,17 @@ from roguenerf.errors import InputError
 
 @dataclass(frozen=True)
 class TemporalConfig:
-    weight: float = 0.8
+    weight: float = 0.75
     """Share of the previous frame's result (reprojected) in each frame's, in [0, 1), before
-    :attr:`reject` lowers it where the renders disagree. 0.8 since 2026-12-07 (0.5 before): chosen
-    on the choice half's paths (one way: before :attr:`both_ways`), ``can_clip``'s smooth 154-frame
-    path and ``dtu_scan37``'s 49- and 13-frame ones (about 2.5 and 10 degrees a frame), by the rule
-    that chose :attr:`reject`: the least mean
-    flicker of the weights (0.5 to 0.9) that cost no path more than 0.1 dB on its frames with photos
-    against frame by frame (0.85 cost ``can_clip`` 0.19 dB); reported on ``ollie``'s and
-    ``mary_rose``'s: less flicker on every path, within 0.09 dB on five of seven, -0.14 and -0.15
-    on ``ollie``'s hash field and ``mary_rose``'s 97-frame half-size orbit (docs/broad.md, *A
-    heavier blend, and the neighbour changes*)."""
+    :attr:`reject` and :attr:`fade_deg` lower it. 0.75 since 2026-12-07 (0.8 from earlier that day,
+    0.5 before): chosen on the choice half's paths (``can_clip``'s smooth 154- and 49-frame paths,
+    ``dtu_scan37``'s 49- and 13-frame ones, about 2.5 and 10 degrees a frame) by the rule that chose
+    :attr:`reject`: the least mean flicker of the weights (0.6, 0.7, 0.75, 0.8) that cost no path
+    more than 0.1 dB on its frames with photos against frame by frame and leave none flickering more
+    than its render. 0.8 was chosen so before both ways and the fade along the path; with them it
+    cost ``can_clip``'s 49 frames 0.11 dB (0.75: 0.05), and 0.6 left its 154 frames at 1.002 of
+    the render's flicker. Reported on ``ollie``'s and ``mary_rose``'s paths (docs/broad.md, *The
+    blend's weight again*)."""
     change_weight: float = 0.9
     """``weight`` at a frame whose neighbours differ from the previous frame's, and at the
     :attr:`change_frames` - 1 frames after it (only with :attr:`change_frames` > 0): the jump a
@@ -654,9 +655,9 @@ class TemporalFilter:
         (:attr:`TemporalConfig.carry_between`'s model frames: ``model_every``). Its weight is then
         ``weight ** frames_apart``, the share a moving average along every frame between would
         leave it; the frames between, carried from the two, add nothing of their own, so the rest
-        is this frame's. (With ``weight`` itself over 4 frames, 0.8 instead of 0.41, the model frames
-        of ``can_clip``'s and ``ollie``'s 154-frame paths kept 0.2-0.7 dB less on their frames with
-        photos.)"""
+        is this frame's. (With ``weight`` itself over 4 frames, 0.8 instead of 0.41 when 0.8 was the
+        default, the model frames of ``can_clip``'s and ``ollie``'s 154-frame paths kept 0.2-0.7 dB
+        less on their frames with photos.)"""
         if isinstance(frames_apart, bool) or not isinstance(frames_apart, int) or frames_apart < 1:
             raise InputError(f"frames_apart: expected an integer >= 1, got {frames_apart!r}")
         if render.shape != enhanced.shape or render.ndim != 3 or render.shape[0] != 3:

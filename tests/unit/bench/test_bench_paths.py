@@ -105,7 +105,7 @@ def test_path_speed_alternates_frame_by_frame_and_the_temporal_filter(tmp_path):
     assert all(v > 0 for v in summary["flicker_ratio_sharpened"].values())
     # the blend's weights beside the shipped ones; each run counts the pairs whose neighbours changed
     assert path_speed.main(["--fit", str(tmp_path / "pairs"), "--work", str(tmp_path / "work"), "--keys", "2",
-                            "--steps", "2", "--repeats", "1", "--weight", "0.5,0.8", "--change-frames", "0,3",
+                            "--steps", "2", "--repeats", "1", "--weight", "0.5,0.75", "--change-frames", "0,3",
                             "--force", "--output", str(tmp_path / "res" / "weights")]) == 0
     summary = json.loads((tmp_path / "res" / "weights.json").read_text())
     assert list(summary["frames_per_second"]) == ["off", "on/w0.5", "on/w0.5/cf3", "on", "on/cf3"]
