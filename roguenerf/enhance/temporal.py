@@ -462,19 +462,17 @@ class TemporalFilter:
         made (``blended``: that call's ``(changed, frames_apart)``), worked out again from the
         frame remembered before it (the weights depend on the renders, depths and cameras only, not
         on the images: the same map); else nothing (a carried frame)."""
-        carried = enhanced.float() - render.float() if self.config.blend == "residual" else enhanced.float()
+        render, depth = render.float(), depth.float()
+        K, pose = torch.as_tensor(K).to(torch.float32), torch.as_tensor(world_from_cam).to(torch.float64)
+        carried = enhanced.float() - render if self.config.blend == "residual" else enhanced.float()
         along = self._along
         if along and parallax is None and blended is not None:
-            pose = torch.as_tensor(world_from_cam).to(torch.float64)
-            parallax = self._carried_parallax(render.float(), depth.float(), torch.as_tensor(K).to(torch.float32),
-                                              pose, *blended)
+            parallax = self._carried_parallax(render, depth, K, pose, *blended)
         self.last_warp = None
         self.last_agreement = None
         self.last_mutual = None
         self.last_parallax = None
-        self._previous = _LastFrame(carried, depth.float(), torch.as_tensor(K).to(torch.float32),
-                                    torch.as_tensor(world_from_cam).to(torch.float64), render.float(),
-                                    parallax if along else None)
+        self._previous = _LastFrame(carried, depth, K, pose, render, parallax if along else None)
         if model:
             self._anchor = self._previous
 
