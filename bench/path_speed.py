@@ -16,7 +16,7 @@ set changed and the flicker ratio there and elsewhere (``neighbour_changes``,
 ``flicker_ratio_changed``, ``flicker_ratio_steady``; pairs with a carried frame in neither), and the
 gain on the frames with photos.
 ``--model-every``, ``--resample``, ``--reject``, ``--carry-from``, ``--blend``,
-``--carry-agreement``, ``--carry-between``, ``--between-agreement``, ``--weight``,
+``--carry-agreement``, ``--carry-share``, ``--carry-between``, ``--between-agreement``, ``--weight``,
 ``--change-weight``, ``--change-frames`` and ``--both-ways`` run the filter once per combination of values of
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.model_every`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.resample`,
@@ -24,6 +24,7 @@ gain on the frames with photos.
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_from`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.blend`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_agreement`,
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_share`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_between`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.between_agreement`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.weight`,
@@ -31,12 +32,13 @@ gain on the frames with photos.
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.change_frames` and
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.both_ways` (labelled ``on`` for the
 shipped values, ``on/kK``, ``on/RESAMPLE``, ``on/rejectX``, ``on/from-C``, ``on/BLEND``,
-``on/agreeDB``, ``on/between-on|off``, ``on/mutualDB``, ``on/wW``, ``on/cwW``, ``on/cfN`` and
+``on/agreeDB``, ``on/shareS``, ``on/between-on|off``, ``on/mutualDB``, ``on/wW``, ``on/cwW``, ``on/cfN`` and
 ``on/both-ways-on|off`` for
-others; at ``model_every`` 1, where nothing is
-carried, only the shipped ``carry_between`` runs), with the share of frames carried; the CSV also keeps each frame
-with a photo's gain (``gains``: frame, gain, carried). Writes ``OUTPUT.csv`` (a row per run;
-date, machine, commit), ``OUTPUT.json`` (the medians, the ratios) and ``OUTPUT.png``.
+others; at ``model_every`` 1, where nothing is carried, only the shipped ``carry_between`` runs),
+with the share of frames carried; the CSV also keeps each frame with a photo's gain (``gains``:
+frame, gain, carried) and each frame a carry gate judged (``carry_tests``: frame, the renders'
+agreement in dB, with ``carry_share`` the change's, carried). Writes ``OUTPUT.csv`` (a row per
+run; date, machine, commit), ``OUTPUT.json`` (the medians, the ratios) and ``OUTPUT.png``.
 
 ``--filter-before REV`` also runs every filter setting with the ``TemporalFilter`` of an older
 revision's ``roguenerf/enhance/temporal.py`` (loaded from a temporary worktree into this process:
@@ -70,6 +72,7 @@ SWEPT = (
     ("carry_from", str, lambda v: f"from-{v}"),
     ("blend", str, str),
     ("carry_agreement", float, lambda v: f"agree{v:g}"),
+    ("carry_share", float, lambda v: f"share{v:g}"),
     ("carry_between", ONOFF, lambda v: f"between-{'on' if v else 'off'}"),
     ("between_agreement", float, lambda v: f"mutual{v:g}"),
     ("weight", float, lambda v: f"w{v:g}"),
@@ -133,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     for values in itertools.product(*(chosen.get(field, [getattr(shipped, field)]) for field, _, _ in SWEPT)):
         config = dict(zip((field for field, _, _ in SWEPT), values))
         if config["model_every"] == 1 and any(config[f] != getattr(shipped, f)
-                                              for f in ("between_agreement", "carry_between")):
+                                              for f in ("between_agreement", "carry_between", "carry_share")):
             continue  # nothing is carried at K = 1: the same run as the shipped values'
         label = "/".join(["on", *(tag(v) for (field, _, tag), v in zip(SWEPT, values)
                                   if v != getattr(shipped, field))])
@@ -181,7 +184,12 @@ def main(argv: list[str] | None = None) -> int:
                              "carried_share": round(sum(bool(f.get("carried")) for f in report["per_frame"])
                                                     / len(report["per_frame"]), 4),
                              "gains": " ".join(f"{f['frame']}:{f['gain_db']:+.3f}" + ("c" if f.get("carried") else "")
-                                               for f in report["per_frame"] if "gain_db" in f)})
+                                               for f in report["per_frame"] if "gain_db" in f),
+                             "carry_tests": " ".join(
+                                 f"{f['frame']}:{f['carry_agreement_db']:.1f}"
+                                 + (f"/{f['carry_change_db']:.1f}" if "carry_change_db" in f else "")
+                                 + ("c" if f.get("carried") else "")
+                                 for f in report["per_frame"] if "carry_agreement_db" in f)})
                 print(f"temporal {mode}: {rows[-1]['frames_per_second']:.2f} frames/s, flicker x"
                       f"{rows[-1]['flicker_ratio']:.3f}, gain {rows[-1]['gain_db']:+.3f} dB", flush=True)
     fps = {m: statistics.median(r["frames_per_second"] for r in rows if r["temporal"] == m) for m in modes}

@@ -127,11 +127,11 @@ class PathEnhanceFlags(EnhanceFlags):
 
     model_every: Annotated[int | None, typer.Option("--model-every", help=(
         "With --temporal, run the model on at least one frame in this many and carry the model frames' "
-        "results, reprojected, into the frames between, where they see at least 95 % of them and their renders, "
-        "moved the same way, predict theirs (--carry-agreement): faster on smooth paths (4: 1.65x with the same "
-        "gain on a 154-frame path, both ways), but a carried frame keeps only part of the model's detail, and "
-        "where the renders refuse most carries (fast orbits, fields with poor geometry) it is slower than 1. 1: "
-        "the model on every frame (the default; docs/results.md, Speed at users' sizes)."))] = None
+        "results, reprojected, into the frames between, where they see at least 95 % of them: faster (3 on "
+        "49-frame paths: 1.7-1.8x with the same gain on the frames with photos or more), but a carried frame "
+        "keeps only part of the model's detail, most lost on fast orbits (there --carry-agreement 46 or "
+        "--carry-share 0.05: only where their renders, moved the same way, predict its own). 1: the model on "
+        "every frame (the default; docs/results.md, Speed at users' sizes)."))] = None
 
     carry_between: Annotated[bool | None, typer.Option("--carry-between/--carry-after", help=(
         "With --model-every K, make the model frames 0, K, 2K, ... first and carry each frame between two of "
@@ -145,8 +145,13 @@ class PathEnhanceFlags(EnhanceFlags):
 
     carry_agreement: Annotated[float | None, typer.Option("--carry-agreement", metavar="DB", help=(
         "With --model-every, carry a frame only where the model frames' renders, reprojected into it, "
-        "match its render to this PSNR (default 46 dB; higher: fewer frames carried, more of the model's "
-        "detail kept; 0: carry wherever 95 % is seen: 2.1x on a smooth path, but a fast orbit loses detail)."
+        "match its render to this PSNR (e.g. 46; higher: fewer frames carried, more of the model's detail "
+        "kept; default 0: carry wherever 95 % is seen)."))] = None
+
+    carry_share: Annotated[float | None, typer.Option("--carry-share", metavar="SHARE", help=(
+        "With --model-every, carry a frame only where what the model frames' renders, reprojected into it, "
+        "miss of its render is at most this share of the enhancer's change there (mean squares; e.g. 0.05; "
+        "default 0: no such test). Unlike --carry-agreement it scales with the scene: docs/results.md."
         ))] = None
 
     both_ways: Annotated[bool, typer.Option("--both-ways/--one-way", help=(
@@ -159,7 +164,7 @@ class PathEnhanceFlags(EnhanceFlags):
         temporal = self.temporal
         if not self.both_ways and not self.temporal:
             raise InputError("--one-way: the frames are blended only with --temporal; drop --no-temporal")
-        for value, flag in ((self.carry_agreement, "--carry-agreement"),
+        for value, flag in ((self.carry_agreement, "--carry-agreement"), (self.carry_share, "--carry-share"),
                             (self.carry_between, "--carry-between/--carry-after")):
             if value is not None and self.model_every is None:
                 raise InputError(f"{flag}: frames are carried only with --model-every K (K > 1)")
@@ -172,6 +177,7 @@ class PathEnhanceFlags(EnhanceFlags):
             from roguenerf.enhance.temporal import TemporalConfig
 
             chosen = {"model_every": self.model_every, "carry_agreement": self.carry_agreement,
+                      "carry_share": self.carry_share,
                       "carry_between": self.carry_between, "between_agreement": self.between_agreement}
             temporal = TemporalConfig(both_ways=self.both_ways, **{k: v for k, v in chosen.items() if v is not None})
         return super().options(temporal=temporal)

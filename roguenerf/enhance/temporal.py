@@ -165,17 +165,40 @@ class TemporalConfig:
     ``"last"`` (the frame before it, itself perhaps carried: with ``model_every`` >= 3 a frame
     is resampled once per carried frame before it; the default before 2026-12-06). The same at
     ``model_every`` <= 2; only with :attr:`carry_between` off."""
-    carry_agreement: float = 46.0
+    carry_agreement: float = 0.0
     """A frame is carried only where the frame it would be moved from predicts its render: that
     frame's render, moved the same way, matches this frame's render to at least this PSNR (dB)
     on the pixels it sees (:attr:`TemporalFilter.last_agreement`); otherwise the model runs on
     it. Where the field's depth is off, or the move is long, the moved frame puts detail in the
     wrong place, and the renders say so: along ``ollie``'s and ``can_clip``'s paths a carried
-    frame came within about 1-3 dB of this PSNR to the model's own output. 46 was chosen on
-    ``can_clip``'s 154-frame path (44 and 46 at ``model_every`` 4 and 8: the most gain on the
-    frames with photos, all carried there, at twice the frames per second of frame by frame)
-    and reported on ``ollie``'s and ``mary_rose``'s (docs/results.md, *Speed at users' sizes*).
-    0: no such test (only :attr:`min_seen`; the default before 2026-12-06)."""
+    frame came within about 1-3 dB of this PSNR to the model's own output. 0 (the default): no
+    such test (only :attr:`min_seen`). 46 from 2026-12-06 to 2026-12-07 (chosen on ``can_clip``'s
+    154-frame path carrying from the last model frame, before :attr:`carry_between`); chosen again
+    with :attr:`carry_between` (the fourteenth session), by a rule stated before the runs, on the
+    choice half's paths whose frames with photos are carried (``can_clip``'s 49 frames at
+    ``model_every`` 3 and 154 at 4, ``dtu_scan37``'s 49 and 13 at 3): of no gate, 46 dB and
+    :attr:`carry_share` 0.02-0.2, every one kept each path's gain on those frames within 0.05 dB
+    of frame by frame's, and no gate carried the most frames (61 % over the four against 33 % with
+    46 dB, which refused every frame of ``dtu_scan37``'s, whose renders agree at 21-39 dB).
+    Reported on ``ollie``'s and ``mary_rose``'s paths (docs/results.md, *Speed at users' sizes*):
+    ``ollie``'s 49 frames at 3, 1.83x frame by frame with more gain (+2.56 against +2.48 dB; 46:
+    1.44x); ``mary_rose``'s orbit (10 degrees a frame) 0.41 dB below frame by frame, where 46 and
+    :attr:`carry_share` 0.05-0.2 kept its gain: on fast orbits pass one of them."""
+    carry_share: float = 0.0
+    """A frame is carried only where the frame(s) it would be moved from predict its render well
+    *against the size of the enhancer's change*: the mean square of what their renders, moved the
+    same way, miss of this frame's render (:attr:`TemporalFilter.last_agreement`) at most this
+    share of the mean square of the change the model frames made over their own renders
+    (:attr:`TemporalFilter.last_change`; with :attr:`carry_between` the two mixed by position);
+    otherwise the model runs on it. A moved frame misplaces about as much as its render's miss, and
+    that matters against what the enhancer adds, not in dB alone: a field whose renders move less
+    faithfully (view-dependent colour) and whose enhancer changes more lets the same carries
+    through. 0 (the default): no such test (only :attr:`carry_agreement` and :attr:`min_seen`).
+    Not chosen (docs/results.md, *Speed at users' sizes*, fourteenth session): on the choice half
+    it carried fewer frames than no gate for no more gain (it refuses every frame of
+    ``dtu_scan37``'s paths, whose renders agree about as much as its enhancer changes, where carrying cost
+    0.01 dB); on the report half 0.2 carried 49 % of ``ollie``'s 49 frames (46 dB: 18 %) and kept
+    the gain of ``mary_rose``'s orbit, which no gate lost 0.41 dB of."""
     carry_between: bool = True
     """With ``model_every`` = k > 1, run the model on frames 0, k, 2k, ... (and the last) first,
     and carry each frame between two of them from *both*: the two moved into it and mixed by how
@@ -251,6 +274,9 @@ class TemporalConfig:
             raise InputError(f"TemporalConfig.carry_from: expected 'last' or 'model', got {self.carry_from!r}")
         if self.resample not in ("bilinear", "bicubic"):
             raise InputError(f"TemporalConfig.resample: expected 'bilinear' or 'bicubic', got {self.resample!r}")
+        if not (isinstance(self.carry_share, (int, float)) and not isinstance(self.carry_share, bool)
+                and math.isfinite(self.carry_share) and self.carry_share >= 0):
+            raise InputError(f"TemporalConfig.carry_share: expected a share >= 0 (0: off), got {self.carry_share!r}")
         for name in ("carry_agreement", "between_agreement"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
@@ -413,6 +439,10 @@ class TemporalFilter:
         frame, against its own render, on the pixels seen (:attr:`TemporalConfig.carry_agreement`);
         None where it was not measured, and again after :meth:`__call__`, :meth:`remember` and
         :meth:`reset`."""
+        self.last_change: float | None = None
+        """PSNR (dB) of the model frame(s) the last :meth:`carry` moved against their renders: the size
+        of the enhancer's change there (with ``between`` the two mean squares mixed by position;
+        :attr:`TemporalConfig.carry_share`); None where it was not measured."""
         self.last_mutual: float | None = None
         """PSNR (dB) of the two model frames the last :meth:`carry` between them moved, against each
         other on the pixels both see (:attr:`TemporalConfig.between_agreement`); None where it was
@@ -435,6 +465,7 @@ class TemporalFilter:
         self._sources.clear()
         self.last_share = 0.0
         self.last_agreement = None
+        self.last_change = None
         self.last_mutual = None
         self.last_warp = None
         self.last_parallax = None
@@ -470,6 +501,7 @@ class TemporalFilter:
             parallax = self._carried_parallax(render, depth, K, pose, *blended)
         self.last_warp = None
         self.last_agreement = None
+        self.last_change = None
         self.last_mutual = None
         self.last_parallax = None
         self._previous = _LastFrame(carried, depth, K, pose, render, parallax if along else None)
@@ -571,6 +603,11 @@ class TemporalFilter:
         w, angle = self._weights(move, render, depth, K, pose, changed, frames_apart)
         return self._parallax_after(w, angle, move.valid)
 
+    def _change_power(self, frame: _LastFrame) -> float:
+        """Mean square of a kept frame's change over its render (:attr:`TemporalConfig.carry_share`)."""
+        change = frame.carried - frame.render if self.config.blend == "image" else frame.carried
+        return float(change.square().mean())
+
     def model_due(self, t: int, *, changed: bool = False) -> bool:
         """Whether frame ``t`` of the path (from 0) is one the model runs on by
         :attr:`TemporalConfig.model_every` (before :meth:`carry` is tried)."""
@@ -587,10 +624,11 @@ class TemporalFilter:
         ``between`` ``(before, after, position)``: two model frames' :attr:`kept` states instead,
         both moved into this frame and mixed, ``after`` weighing ``position`` (in (0, 1): how far
         along from ``before`` this frame is) and ``before`` the rest, each only where it sees
-        (:attr:`TemporalConfig.carry_between`); ``min_seen`` and ``carry_agreement`` judge the
-        mix, and ``between_agreement`` (where set) the two against each other."""
+        (:attr:`TemporalConfig.carry_between`); ``min_seen``, ``carry_agreement`` and ``carry_share``
+        judge the mix, and ``between_agreement`` (where set) the two against each other."""
         self.last_share = 0.0
         self.last_agreement = None
+        self.last_change = None
         self.last_mutual = None
         self.last_warp = None
         if self._previous is None and between is None:
@@ -598,13 +636,15 @@ class TemporalFilter:
         render, depth = render.float(), depth.float()
         pose = torch.as_tensor(world_from_cam).to(torch.float64)
         K = torch.as_tensor(K).to(torch.float32)
-        gate = self.config.carry_agreement > 0
+        share_gate = self.config.carry_share > 0
+        gate = self.config.carry_agreement > 0 or share_gate
         # The frames themselves are sampled (bicubic: half a move's cost) only once the renders
         # have let the carry through.
         if between is None:
             source = self._anchor if self.config.carry_from == "model" and self._anchor is not None else self._previous
             move = self._move(depth, K, pose, source, with_render=gate)
             valid, warped_render = move.valid, move.render
+            sources = [(source, 1.0)]
         else:
             before, after, position = between
             if not 0 < position < 1:
@@ -616,6 +656,7 @@ class TemporalFilter:
             valid = total > 0
             share = [w / total.clamp_min(1e-12) for w in weights]
             warped_render = None if moves[0].render is None else share[0] * moves[0].render + share[1] * moves[1].render
+            sources = [(before, 1.0 - position), (after, position)]
         self.last_share = float(valid.float().mean())
         if self.last_share < self.config.min_seen:
             return None
@@ -623,6 +664,12 @@ class TemporalFilter:
             # nothing seen (min_seen 0): nothing moved that could disagree, as before
             self.last_agreement = _masked_psnr(warped_render, render, valid, none_seen=120.0)
             if self.last_agreement < self.config.carry_agreement:
+                return None
+        if share_gate:
+            change = sum(part * self._change_power(frame) for frame, part in sources)
+            self.last_change = -10.0 * math.log10(max(change, 1e-12))
+            miss = 10.0 ** (-self.last_agreement / 10.0)
+            if miss > self.config.carry_share * change:
                 return None
         if between is None:
             warped = self._moved_frame(move)
@@ -670,6 +717,7 @@ class TemporalFilter:
         residual = enhanced if image else enhanced - render
         self.last_share = 0.0
         self.last_agreement = None
+        self.last_change = None
         self.last_mutual = None
         self.last_warp = None
         self.last_parallax = None

@@ -379,16 +379,19 @@ def enhance_path(
         exclude = excluded(t)
         # Along a path with model_every > 1, a frame between the model's is carried into (where
         # the model frames see enough of it); decided the same way on a resume.
-        carried = agreement = mutual = None
+        carried = agreement = mutual = change = None
+        # what decided it (TemporalConfig.carry_agreement, carry_share; an older filter, bench.path_speed
+        # --filter-before, has no last_change)
         if carry_between is not None:
             carried = temporal.carry(render, depth, *camera, between=carry_between)
             agreement, mutual = temporal.last_agreement, temporal.last_mutual
+            change = getattr(temporal, "last_change", None)
         elif temporal is not None and not between and not temporal.model_due(t, changed=changed):
             carried = temporal.carry(render, depth, *camera)
-            agreement = temporal.last_agreement  # what decided it (TemporalConfig.carry_agreement)
+            agreement, change = temporal.last_agreement, getattr(temporal, "last_change", None)
         out_png = first_dir / f"{t:05d}.png"
         entry = {"render": render, "depth": depth, "carried": carried is not None, "agreement": agreement,
-                 "mutual": mutual, "made": not out_png.is_file(), "neighbours": None}
+                 "mutual": mutual, "change": change, "made": not out_png.is_file(), "neighbours": None}
         if not entry["made"]:
             entry["enhanced"] = read_image(out_png)
             if temporal is not None and carried is None and temporal.config.fade_along:
@@ -518,6 +521,8 @@ def enhance_path(
                     row["carry_agreement_db"] = round(entry["agreement"], 2)
                 if entry["mutual"] is not None:
                     row["between_agreement_db"] = round(entry["mutual"], 2)
+                if entry["change"] is not None:
+                    row["carry_change_db"] = round(entry["change"], 2)
             per_frame.append(row)
             if not both_ways:  # both ways: the second pass measures the frames it writes
                 current = measure(t, render, enhanced, depth, row)

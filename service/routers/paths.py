@@ -18,9 +18,12 @@ from service.state import ServicesDep
 from service.storage import ZipLimits, discard, extract_scene_zip
 
 log = logging.getLogger("roguenerf.service")
-CARRY_AGREEMENT = 46.0
+CARRY_AGREEMENT = 0.0
 """The form's default ``carry_agreement``: the library's (``TemporalConfig.carry_agreement``,
 written out so that importing the routes does not load torch; a test keeps them equal)."""
+CARRY_SHARE = 0.0
+"""The form's default ``carry_share``: the library's (``TemporalConfig.carry_share``), as
+:data:`CARRY_AGREEMENT`."""
 BETWEEN_AGREEMENT = 0.0
 """The form's default ``between_agreement``: the library's (``TemporalConfig.between_agreement``),
 as :data:`CARRY_AGREEMENT`."""
@@ -95,7 +98,12 @@ def create_path_job(
         "mixed by how near each is; false: from the last model frame only"))] = True,
     carry_agreement: Annotated[float, Form(ge=0, le=200, description=(
         "with model_every > 1, carry a frame only where the model frames' renders, reprojected into it, "
-        "match its render to this PSNR in dB (0: wherever 95 % of it is seen)"))] = CARRY_AGREEMENT,
+        "match its render to this PSNR in dB (e.g. 46; 0, the default: wherever 95 % of it is seen)"))
+    ] = CARRY_AGREEMENT,
+    carry_share: Annotated[float, Form(ge=0, le=1000, description=(
+        "with model_every > 1, carry a frame only where what the model frames' renders, reprojected into it, "
+        "miss of its render is at most this share of the enhancer's change there (mean squares; 0: no such "
+        "test)"))] = CARRY_SHARE,
     between_agreement: Annotated[float, Form(ge=0, le=200, description=(
         "with model_every > 1 and carry_between, carry a frame only where the two model frames around it, "
         "reprojected into it, also agree with each other to this PSNR in dB (0: no such test)"))
@@ -115,7 +123,7 @@ def create_path_job(
                                       force=force)
         request = {"kind": "path", "frames": frames, "depth_type": depth_type, "depth_scale": depth_scale,
                    "background": background, "quality": quality, "force": force, "model_every": model_every,
-                   "carry_agreement": carry_agreement, "carry_between": carry_between,
+                   "carry_agreement": carry_agreement, "carry_share": carry_share, "carry_between": carry_between,
                    "between_agreement": between_agreement}
         try:
             job, _ = services.store.create_job(scene_id, request, base_version=row["active_version"],

@@ -106,7 +106,7 @@ def test_a_path_job_with_model_every_carries_the_frames_between(setup):
     job = r.json()
     assert job["request"]["model_every"] == 2 and job["request"]["carry_agreement"] == 0
     assert job["request"]["carry_between"] is True  # the library's default: from both model frames around
-    assert job["request"]["between_agreement"] == 0
+    assert job["request"]["between_agreement"] == 0 and job["request"]["carry_share"] == 0
     assert run_job(setup["ctx"], job["id"]) == "succeeded"
     result = client.get(f"/jobs/{job['id']}").json()["result"]
     report = client.get(f"/jobs/{job['id']}/result", params={"what": "flicker"}).json()
@@ -123,6 +123,11 @@ def test_a_path_job_with_model_every_carries_the_frames_between(setup):
     from service.routers.paths import BETWEEN_AGREEMENT
 
     assert BETWEEN_AGREEMENT == TemporalConfig().between_agreement
+    from service.routers.paths import CARRY_SHARE
+
+    assert CARRY_SHARE == TemporalConfig().carry_share
+    bad = post_path(client, scene_id, path_zip(setup["scene"], seed=SEED)[0], model_every=2, carry_share=-1)
+    assert bad.status_code == 422 and "carry_share" in bad.json()["error"]["message"]
     bad = post_path(client, scene_id, path_zip(setup["scene"], seed=SEED)[0], model_every=2, carry_agreement=-1)
     assert bad.status_code == 422 and "carry_agreement" in bad.json()["error"]["message"]
     assert stored(setup["data"]) == before

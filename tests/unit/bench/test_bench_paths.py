@@ -99,10 +99,15 @@ def test_path_speed_alternates_frame_by_frame_and_the_temporal_filter(tmp_path):
     # carrying between the model frames (shipped) beside after the last one; nothing to carry at K = 1
     assert path_speed.main(["--fit", str(tmp_path / "pairs"), "--work", str(tmp_path / "work"), "--keys", "2",
                             "--steps", "2", "--repeats", "1", "--model-every", "1,3", "--carry-between", "on,off",
-                            "--force", "--output", str(tmp_path / "res" / "between")]) == 0
+                            "--carry-share", "0,1000", "--force", "--output", str(tmp_path / "res" / "between")]) == 0
     summary = json.loads((tmp_path / "res" / "between.json").read_text())
-    assert list(summary["frames_per_second"]) == ["off", "on", "on/k3", "on/k3/between-off"]
+    assert list(summary["frames_per_second"]) == ["off", "on", "on/k3", "on/k3/between-off", "on/k3/share1000",
+                                                  "on/k3/share1000/between-off"]
     assert all(v > 0 for v in summary["flicker_ratio_sharpened"].values())
+    # each frame a gate judged (frame:agreement/change dB, c where carried): none without a gate, and
+    # none on this 3-frame path, where the frames between see too little of the model frames
+    rows = list(csv.DictReader(open(tmp_path / "res" / "between.csv")))
+    assert [r["carry_tests"] for r in rows] == [""] * 6 and {r["carried_share"] for r in rows} == {"0.0"}
     # the blend's weights beside the shipped ones; each run counts the pairs whose neighbours changed
     assert path_speed.main(["--fit", str(tmp_path / "pairs"), "--work", str(tmp_path / "work"), "--keys", "2",
                             "--steps", "2", "--repeats", "1", "--weight", "0.5,0.75", "--change-frames", "0,3",

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -268,7 +270,8 @@ def test_a_frame_between_two_model_frames_mixes_them_by_how_near_each_is():
     # 10 log10(1 / 0.36) = 4.44 dB), beside the renders' gate (equal renders: passed); a frame the
     # two disagree on is not carried
     for gate, carried in ((10.0, False), (4.0, True)):
-        judged = TemporalFilter(TemporalConfig(model_every=3, reject=0.0, min_seen=0.9, between_agreement=gate))
+        judged = TemporalFilter(TemporalConfig(model_every=3, reject=0.0, min_seen=0.9, between_agreement=gate,
+                                               carry_agreement=46.0))
         judged.restore(before)
         assert (judged.carry(render, DEPTH, K, here, between=(before, after, 1 / 3)) is not None) == carried
         assert judged.last_mutual == pytest.approx(4.437, abs=1e-3) and judged.last_agreement > 100
@@ -308,6 +311,37 @@ def test_a_frame_whose_render_the_last_one_does_not_predict_is_not_carried():
     for bad in (-1.0, float("inf"), True, "30"):
         with pytest.raises(InputError, match="carry_agreement"):
             TemporalConfig(carry_agreement=bad)
+
+def test_the_share_gate_weighs_the_renders_miss_against_the_enhancers_change():
+    """``carry_share``: a frame enhanced by +0.1 over its render everywhere (a change of 20 dB,
+    mean square 0.01) and a next render darker by 0.01 (a miss of 40 dB, mean square 1e-4 = 0.01
+    of the change): carried with a share of 0.02, not with 0.005; a change of 0.2 (mean square
+    0.04) lets the same miss through at 0.005. Between two kept frames the changes' mean squares
+    mix by position (0.01 and 0.04 at 1/3: 0.02, 16.99 dB). The absolute gate, off, does not judge."""
+    r1 = torch.full((3, H, W), 0.5)
+    darker = r1 - 0.01
+    for change, share, carried in ((0.1, 0.02, True), (0.1, 0.005, False), (0.2, 0.005, True)):
+        f = TemporalFilter(TemporalConfig(model_every=2, reject=0.0, carry_agreement=0.0, carry_share=share))
+        f(r1, r1 + change, DEPTH, K, POSE)
+        out = f.carry(darker, DEPTH, K, POSE)
+        assert f.last_agreement == pytest.approx(40.0, abs=1e-3)
+        assert f.last_change == pytest.approx(-10 * math.log10(change ** 2), abs=1e-3)
+        assert (out is not None) == carried
+    f = TemporalFilter(TemporalConfig(model_every=3, reject=0.0, carry_agreement=0.0, carry_share=0.02))
+    f.remember(r1, r1 + 0.1, DEPTH, K, POSE)
+    before = f.kept
+    f.remember(r1, r1 + 0.2, DEPTH, K, POSE)  # as made: not blended with the one before
+    after = f.kept
+    assert f.carry(darker, DEPTH, K, POSE, between=(before, after, 1 / 3)) is not None
+    assert f.last_change == pytest.approx(-10 * math.log10(2 / 3 * 0.01 + 1 / 3 * 0.04), abs=1e-3)
+    f = TemporalFilter(TemporalConfig(model_every=2, carry_agreement=0.0))
+    f(r1, r1 + 0.1, DEPTH, K, POSE)
+    f.carry(darker, DEPTH, K, POSE)
+    assert f.last_change is None  # no gate: not measured
+    for bad in (-0.1, float("nan"), True, "0.1"):
+        with pytest.raises(InputError, match="carry_share"):
+            TemporalConfig(carry_share=bad)
+
 
 def test_a_carry_the_renders_refuse_never_samples_the_frame(monkeypatch):
     """The gate reads the moved renders only: a carry it refuses (the darker render, 20 dB below

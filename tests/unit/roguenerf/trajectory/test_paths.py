@@ -613,9 +613,40 @@ def test_enhance_path_cli(toy_path, tmp_path):
                            (["--model-every", "2", "--carry-after", "--between-agreement", "40"],
                             "without --carry-after"),
                            (["--model-every", "2", "--between-agreement", "-1"], "between_agreement"),
-                           (["--model-every", "2", "--carry-agreement", "-1"], "carry_agreement")):
+                           (["--model-every", "2", "--carry-agreement", "-1"], "carry_agreement"),
+                           (["--carry-share", "0.1"], "only with --model-every"),
+                           (["--model-every", "2", "--carry-share", "-1"], "carry_share")):
         bad = runner.invoke(app, args[:7] + [str(tmp_path / "bad"), *args[8:], *flags])
         assert bad.exit_code == 2 and message in bad.output and "Traceback" not in bad.output
+
+
+def test_frames_are_carried_only_where_the_renders_miss_is_a_small_share_of_the_change(toy_path, enhancer,
+                                                                                        tmp_path):
+    """carry_share (carrying between, no absolute gate): a share too large to refuse anything
+    carries every frame due and reports both PSNRs; with a share between the ratios so measured,
+    a frame is carried exactly where its renders' miss (mean square) is at most that share of the
+    model frames' change, as the report's two figures say."""
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.enhance.temporal import TemporalConfig
+
+    root, scene = toy_path["root"], toy_path["scene"]
+    cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
+
+    def run(share: float, out):
+        config = TemporalConfig(model_every=3, min_seen=0.0, carry_agreement=0.0, carry_share=share)
+        gated = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=config))
+        return enhance_path(scene, gated, cp, root / "frames", out, depth_type="ray", video=False).flicker["per_frame"]
+
+    ratio = lambda f: 10 ** ((f["carry_change_db"] - f["carry_agreement_db"]) / 10)  # noqa: E731
+    free = run(1e9, tmp_path / "free")
+    tried = [f for f in free if "carry_change_db" in f]
+    assert len(tried) >= 2 and all(f["carried"] and "carry_agreement_db" in f for f in tried)
+    ratios = sorted(ratio(f) for f in tried)
+    assert ratios[0] < ratios[-1] * 0.9
+    share = math.sqrt(ratios[0] * ratios[-1])  # between them, not on either (the rows are rounded)
+    rows = [f for f in run(share, tmp_path / "gated") if "carry_change_db" in f]
+    assert rows and all(f["carried"] == (ratio(f) <= share) for f in rows)
+    assert any(f["carried"] for f in rows) and not all(f["carried"] for f in rows)
 
 
 def test_bad_camera_paths_are_named(tmp_path):
