@@ -240,6 +240,8 @@ def older_filter(tree: Path, revision: str):
     module.revision = revision
     if "parallax" not in inspect.signature(module.TemporalFilter.remember).parameters:
         module.TemporalFilter = _before_fade_along(module)
+    if not hasattr(module.TemporalConfig, "carry_share"):  # older: no share gate, nothing to report of it
+        module.TemporalFilter = type("Filter", (module.TemporalFilter,), {"last_change": None})
     return module
 
 

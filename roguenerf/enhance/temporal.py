@@ -274,14 +274,12 @@ class TemporalConfig:
             raise InputError(f"TemporalConfig.carry_from: expected 'last' or 'model', got {self.carry_from!r}")
         if self.resample not in ("bilinear", "bicubic"):
             raise InputError(f"TemporalConfig.resample: expected 'bilinear' or 'bicubic', got {self.resample!r}")
-        if not (isinstance(self.carry_share, (int, float)) and not isinstance(self.carry_share, bool)
-                and math.isfinite(self.carry_share) and self.carry_share >= 0):
-            raise InputError(f"TemporalConfig.carry_share: expected a share >= 0 (0: off), got {self.carry_share!r}")
-        for name in ("carry_agreement", "between_agreement"):
+        for name, what in (("carry_agreement", "a PSNR in dB"), ("between_agreement", "a PSNR in dB"),
+                           ("carry_share", "a share")):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
                     and value >= 0):
-                raise InputError(f"TemporalConfig.{name}: expected a PSNR in dB >= 0 (0: off), got {value!r}")
+                raise InputError(f"TemporalConfig.{name}: expected {what} >= 0 (0: off), got {value!r}")
         if not (isinstance(self.min_seen, (int, float)) and 0 <= self.min_seen <= 1):
             raise InputError(f"TemporalConfig.min_seen: expected a share in [0, 1], got {self.min_seen!r}")
         if not (isinstance(self.reject, (int, float)) and math.isfinite(self.reject) and self.reject >= 0):

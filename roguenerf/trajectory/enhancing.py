@@ -380,15 +380,13 @@ def enhance_path(
         # Along a path with model_every > 1, a frame between the model's is carried into (where
         # the model frames see enough of it); decided the same way on a resume.
         carried = agreement = mutual = change = None
-        # what decided it (TemporalConfig.carry_agreement, carry_share; an older filter, bench.path_speed
-        # --filter-before, has no last_change)
+        # what decided it (TemporalConfig.carry_agreement, carry_share, between_agreement)
         if carry_between is not None:
             carried = temporal.carry(render, depth, *camera, between=carry_between)
-            agreement, mutual = temporal.last_agreement, temporal.last_mutual
-            change = getattr(temporal, "last_change", None)
+            agreement, mutual, change = temporal.last_agreement, temporal.last_mutual, temporal.last_change
         elif temporal is not None and not between and not temporal.model_due(t, changed=changed):
             carried = temporal.carry(render, depth, *camera)
-            agreement, change = temporal.last_agreement, getattr(temporal, "last_change", None)
+            agreement, change = temporal.last_agreement, temporal.last_change
         out_png = first_dir / f"{t:05d}.png"
         entry = {"render": render, "depth": depth, "carried": carried is not None, "agreement": agreement,
                  "mutual": mutual, "change": change, "made": not out_png.is_file(), "neighbours": None}
