@@ -318,11 +318,15 @@ def enhance_path(
         row["detail_ratio"] = round(sharp.ratio, 4)
         return render, enhanced, photo, depth, camera_path.K[t], camera_path.world_from_cam[t], sharp
 
-    def measure_pair(a: tuple, b: tuple, t: int, moved=None) -> dict:
-        """The flicker of frames t (``a``, :func:`measure`'s) and t + 1 (``b``); ``moved``: the
-        filter's move of frame t into t + 1, where it made one."""
+    def measure_pair(a: tuple, b: tuple, t: int, moved=None, *, back: bool = False) -> dict:
+        """The flicker of frames t (``a``, :func:`measure`'s) and t + 1 (``b``): frame t moved into
+        t + 1, or with ``back`` (the second pass of TemporalConfig.both_ways, which blends the other
+        way) frame t + 1 into t; ``moved``: the filter's move between them in that direction, where
+        it made one (measured alike where it did not: a resumed path)."""
         # the reference: both renders sharpened alike, as much as the two enhanced frames on average
         amount = 0.5 * (a[6].amount + b[6].amount)
+        if back:
+            a, b = b, a
         errors, fraction = pair_flicker([*a[:3], a[6].image(a[0], amount)], [*b[:3], b[6].image(b[0], amount)],
                                         a[3], b[3], a[4], b[4], a[5], b[5], warp=moved)
         return {"from": t, "to": t + 1, "render": errors[0], "enhanced": errors[1], "photo": errors[2],
@@ -464,11 +468,12 @@ def enhance_path(
                 final = _quantise(back(render, first, depth, *camera))
                 behind.write(out_png, final)
                 written_now += 1
+            moved = None if written else back.last_warp  # frame t + 1 moved into t: the pair's flicker
             back.remember(render, final, depth, *camera, parallax=None if written else back.last_parallax,
                           blended=(False, 1) if written else None)
             current = measure(t, render, final, depth, per_frame[t])
             if later is not None:
-                pairs_back.append(measure_pair(current, later, t))
+                pairs_back.append(measure_pair(current, later, t, moved, back=True))
             later = current
             if not written:
                 spent += time.perf_counter() - began

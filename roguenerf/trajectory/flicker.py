@@ -4,7 +4,10 @@
 t+1 with t+1's depth, t's depth (visibility) and both poses (:func:`~roguenerf.reprojection.reproject`,
 with its validity mask); the figure is the mean absolute RGB difference over the valid pixels.
 The same mask is used for the renders, the enhanced frames and, where both frames coincide with
-views that have photos, the photos. Memory is bounded: two frames are held at a time.
+views that have photos, the photos. Memory is bounded: two frames are held at a time. With
+``TemporalConfig.both_ways`` the path's second pass, which blends each frame with the frame after
+it, measures each pair the way it blends, t+1 into t, on the very move it blended by (from
+2026-12-08; before, t into t+1, reprojected again: 0.3-0.6 s of a 49-frame 504-px path on 2 cores).
 
 **Sharper frames read as more flicker.** Frame t is resampled where its points land in t+1,
 and resampling between pixels averages them: the finer a frame's detail, the more of it the

@@ -1051,6 +1051,7 @@ def test_both_ways_blends_each_first_pass_frame_with_the_frame_after_it(toy_path
     assert not (tmp_path / "once" / "forward").exists()
     back = TemporalFilter(TemporalConfig())
     files = find_path_frames(root / "frames", T)
+    seen = {}
     for t in reversed(range(T)):
         render = read_image(files[t][0])
         depth = ray_to_z_depth(read_depth(files[t][1]).double(), cp.K[t]).float()
@@ -1058,10 +1059,18 @@ def test_both_ways_blends_each_first_pass_frame_with_the_frame_after_it(toy_path
         written = read_image(png("both", "frames", t))
         assert (written - expected).abs().max() <= 0.5 / 255 + 1e-6, t
         back.remember(render, written, depth, cp.K[t], cp.world_from_cam[t], parallax=back.last_parallax)
+        seen[t] = ([render, written], depth, cp.K[t], cp.world_from_cam[t])
     assert png("both", "frames", T - 1).read_bytes() == png("both", "forward", T - 1).read_bytes()
     assert png("both", "frames", 0).read_bytes() != png("both", "forward", 0).read_bytes()
     report = json.loads((tmp_path / "both" / FLICKER_FILE).read_text())
     assert [p["from"] for p in report["per_pair"]] == list(range(T - 1))
+    # each pair measured the way the second pass blends: frame t + 1 moved into t (its own move reused)
+    for p in report["per_pair"]:
+        (images, depth, K, pose), (images1, depth1, K1, pose1) = seen[p["from"]], seen[p["to"]]
+        errors, fraction = pair_flicker(images1, images, depth1, depth, K1, K, pose1, pose)
+        forward, _ = pair_flicker(images, images1, depth, depth1, K, K1, pose, pose1)
+        assert [p["render"], p["enhanced"]] == pytest.approx(errors, rel=1e-4) != forward
+        assert p["valid_fraction"] == pytest.approx(fraction)
     gains = {f["frame"]: f["gain_db"] for f in report["per_frame"] if "gain_db" in f}
     photo = scene.photo(scene.index(report["per_frame"][0]["view"]))
     first = read_image(png("both", "frames", 0))
