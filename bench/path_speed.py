@@ -34,10 +34,13 @@ gain on the frames with photos.
 shipped values, ``on/kK``, ``on/RESAMPLE``, ``on/rejectX``, ``on/from-C``, ``on/BLEND``,
 ``on/agreeDB``, ``on/shareS``, ``on/between-on|off``, ``on/mutualDB``, ``on/wW``, ``on/cwW``, ``on/cfN`` and
 ``on/both-ways-on|off`` for
-others; at ``model_every`` 1, where nothing is carried, only the shipped ``carry_between`` runs),
+others; at ``model_every`` 1, where nothing is carried, only the shipped carry gates and ``carry_between`` run),
 with the share of frames carried; the CSV also keeps each frame with a photo's gain (``gains``:
 frame, gain, carried) and each frame a carry gate judged (``carry_tests``: frame, the renders'
-agreement in dB, with ``carry_share`` the change's, carried). Writes ``OUTPUT.csv`` (a row per
+agreement in dB, with ``carry_share`` the change's after ``/``, with ``between_agreement`` the two
+model frames' agreement with each other after ``~``, carried). ``--photo-path``: the path of
+``--keys`` scene views, train and test, in azimuth order (``bench.paths --photo-path``): every
+frame has a photo, so every frame carried is judged. Writes ``OUTPUT.csv`` (a row per
 run; date, machine, commit), ``OUTPUT.json`` (the medians, the ratios) and ``OUTPUT.png``.
 
 ``--filter-before REV`` also runs every filter setting with the ``TemporalFilter`` of an older
@@ -103,12 +106,17 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"comma-separated TemporalConfig.{field} values{', on/off' if kind is ONOFF else ''} "
                              "(default: the shipped one)")
     ap.add_argument("--force", action="store_true", help="enhance a path enhance_path's check refuses (as bench.paths)")
+    ap.add_argument("--photo-path", action="store_true",
+                    help="the path of --keys scene views, train and test (as bench.paths --photo-path): every "
+                         "frame has a photo, so every frame carried is judged against frame by frame")
     ap.add_argument("--filter-before", default=None, metavar="REV",
                     help="also run each filter setting with REV's TemporalFilter, alternated (labelled MODE@REV)")
     args = ap.parse_args(argv)
     if args.repeats < 1:
         raise SystemExit(f"--repeats: expected 1 or more, got {args.repeats}")
-    args.photo_path, args.toy, args.quick = False, False, False
+    args.toy, args.quick = False, False
+    if args.photo_path:
+        args.steps = 1
     chosen = {}  # field -> the values asked for (the shipped one where none was)
     for field, kind, _label in SWEPT:
         text = getattr(args, field)
@@ -136,7 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     for values in itertools.product(*(chosen.get(field, [getattr(shipped, field)]) for field, _, _ in SWEPT)):
         config = dict(zip((field for field, _, _ in SWEPT), values))
         if config["model_every"] == 1 and any(config[f] != getattr(shipped, f)
-                                              for f in ("between_agreement", "carry_between", "carry_share")):
+                                              for f in ("between_agreement", "carry_agreement", "carry_between",
+                                                        "carry_share")):
             continue  # nothing is carried at K = 1: the same run as the shipped values'
         label = "/".join(["on", *(tag(v) for (field, _, tag), v in zip(SWEPT, values)
                                   if v != getattr(shipped, field))])
@@ -188,6 +197,7 @@ def main(argv: list[str] | None = None) -> int:
                              "carry_tests": " ".join(
                                  f"{f['frame']}:{f['carry_agreement_db']:.1f}"
                                  + (f"/{f['carry_change_db']:.1f}" if "carry_change_db" in f else "")
+                                 + (f"~{f['between_agreement_db']:.1f}" if "between_agreement_db" in f else "")
                                  + ("c" if f.get("carried") else "")
                                  for f in report["per_frame"] if "carry_agreement_db" in f)})
                 print(f"temporal {mode}: {rows[-1]['frames_per_second']:.2f} frames/s, flicker x"

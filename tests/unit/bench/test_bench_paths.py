@@ -108,6 +108,17 @@ def test_path_speed_alternates_frame_by_frame_and_the_temporal_filter(tmp_path):
     # none on this 3-frame path, where the frames between see too little of the model frames
     rows = list(csv.DictReader(open(tmp_path / "res" / "between.csv")))
     assert [r["carry_tests"] for r in rows] == [""] * 6 and {r["carried_share"] for r in rows} == {"0.0"}
+    # the path of the scene's views (every frame has a photo, each judged); a carry gate at K = 1,
+    # where nothing is carried, runs once, as the shipped values
+    assert path_speed.main(["--fit", str(tmp_path / "pairs"), "--work", str(tmp_path / "work"), "--keys", "3",
+                            "--photo-path", "--repeats", "1", "--model-every", "1,2", "--carry-agreement", "0,30",
+                            "--both-ways", "off", "--force", "--output", str(tmp_path / "res" / "photos")]) == 0
+    summary = json.loads((tmp_path / "res" / "photos.json").read_text())
+    assert list(summary["frames_per_second"]) == ["off", "on/both-ways-off", "on/k2/both-ways-off",
+                                                  "on/k2/agree30/both-ways-off"]
+    rows = list(csv.DictReader(open(tmp_path / "res" / "photos.csv")))
+    assert {r["frames"] for r in rows} == {"3"}
+    assert all([g.split(":")[0] for g in r["gains"].split()] == ["0", "1", "2"] for r in rows)
     # the blend's weights beside the shipped ones; each run counts the pairs whose neighbours changed
     assert path_speed.main(["--fit", str(tmp_path / "pairs"), "--work", str(tmp_path / "work"), "--keys", "2",
                             "--steps", "2", "--repeats", "1", "--weight", "0.5,0.75", "--change-frames", "0,3",
