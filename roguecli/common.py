@@ -127,11 +127,10 @@ class PathEnhanceFlags(EnhanceFlags):
 
     model_every: Annotated[int | None, typer.Option("--model-every", help=(
         "With --temporal, run the model on at least one frame in this many and carry the model frames' "
-        "results, reprojected, into the frames between, where they see at least 95 % of them: faster (3 on "
-        "49-frame paths: 1.7-1.8x with the same gain on the frames with photos or more), but a carried frame "
-        "keeps only part of the model's detail, most lost on fast orbits (there --carry-agreement 46 or "
-        "--carry-share 0.05: only where their renders, moved the same way, predict its own). 1: the model on "
-        "every frame (the default; docs/results.md, Speed at users' sizes)."))] = None
+        "results, reprojected, into the frames between, where they see at least 95 % of them: faster, but a "
+        "carried frame keeps only part of the model's detail, most lost on fast orbits (--carry-agreement 28, "
+        "as --fast: only where their renders, moved the same way, predict its own). 1: the model on every "
+        "frame (the default; docs/results.md, Speed at users' sizes)."))] = None
 
     carry_between: Annotated[bool | None, typer.Option("--carry-between/--carry-after", help=(
         "With --model-every K, make the model frames 0, K, 2K, ... first and carry each frame between two of "
@@ -145,8 +144,8 @@ class PathEnhanceFlags(EnhanceFlags):
 
     carry_agreement: Annotated[float | None, typer.Option("--carry-agreement", metavar="DB", help=(
         "With --model-every, carry a frame only where the model frames' renders, reprojected into it, "
-        "match its render to this PSNR (e.g. 46; higher: fewer frames carried, more of the model's detail "
-        "kept; default 0: carry wherever 95 % is seen)."))] = None
+        "match its render to this PSNR (e.g. 28, as --fast; higher: fewer frames carried, more of the model's "
+        "detail kept; default 0: carry wherever 95 % is seen)."))] = None
 
     carry_share: Annotated[float | None, typer.Option("--carry-share", metavar="SHARE", help=(
         "With --model-every, carry a frame only where what the model frames' renders, reprojected into it, "
@@ -154,32 +153,44 @@ class PathEnhanceFlags(EnhanceFlags):
         "default 0: no such test). Unlike --carry-agreement it scales with the scene: docs/results.md."
         ))] = None
 
-    both_ways: Annotated[bool, typer.Option("--both-ways/--one-way", help=(
+    both_ways: Annotated[bool | None, typer.Option("--both-ways/--one-way", help=(
         "With --temporal, blend each frame with the frames after it too: a second pass from the last frame "
         "back over the first pass's frames (kept in OUTPUT/forward/): no lag, so a frame where a nearer photo "
-        "comes in keeps more of it (default); --one-way: the first pass alone, frames final as they are made."
-        ))] = True
+        "comes in keeps more of it (the default; with --fast one way); --one-way: the first pass alone, frames "
+        "final as they are made."), show_default=False)] = None
+
+    fast: Annotated[bool, typer.Option("--fast", help=(
+        "The fast setting: the model on one frame in 3, the frames between carried from both where their "
+        "renders, moved into them, agree with theirs to 28 dB, one way (--model-every 3 --carry-agreement 28 "
+        "--one-way; those flags, given beside it, win). Chosen so that no carried frame with a photo lost more "
+        "than 0.1 dB against frame by frame on the paths it was chosen on; about 2x frame by frame's frames "
+        "per second on smooth paths, less on fast orbits, whose frames the gate gives back to the model "
+        "(docs/results.md, Speed at users' sizes)."))] = False
 
     def options(self):
         temporal = self.temporal
-        if not self.both_ways and not self.temporal:
+        if self.both_ways is False and not self.temporal:
             raise InputError("--one-way: the frames are blended only with --temporal; drop --no-temporal")
+        if self.fast and not self.temporal:
+            raise InputError("--fast: frames are carried by the temporal filter; drop --no-temporal")
+        carrying = self.model_every is not None or self.fast
         for value, flag in ((self.carry_agreement, "--carry-agreement"), (self.carry_share, "--carry-share"),
                             (self.carry_between, "--carry-between/--carry-after")):
-            if value is not None and self.model_every is None:
-                raise InputError(f"{flag}: frames are carried only with --model-every K (K > 1)")
-        if self.between_agreement is not None and (self.model_every is None or self.carry_between is False):
+            if value is not None and not carrying:
+                raise InputError(f"{flag}: frames are carried only with --model-every K (K > 1) or --fast")
+        if self.between_agreement is not None and (not carrying or self.carry_between is False):
             raise InputError("--between-agreement: judges frames carried between model frames: needs --model-every "
-                             "K (K > 1), without --carry-after")
+                             "K (K > 1) or --fast, without --carry-after")
         if self.model_every is not None and not self.temporal:
             raise InputError("--model-every: frames are carried by the temporal filter; drop --no-temporal")
-        if self.model_every is not None or not self.both_ways:
+        if carrying or self.both_ways is False:
             from roguenerf.enhance.temporal import TemporalConfig
 
             chosen = {"model_every": self.model_every, "carry_agreement": self.carry_agreement,
-                      "carry_share": self.carry_share,
+                      "carry_share": self.carry_share, "both_ways": self.both_ways,
                       "carry_between": self.carry_between, "between_agreement": self.between_agreement}
-            temporal = TemporalConfig(both_ways=self.both_ways, **{k: v for k, v in chosen.items() if v is not None})
+            chosen = {k: v for k, v in chosen.items() if v is not None}
+            temporal = TemporalConfig.fast(**chosen) if self.fast else TemporalConfig(**chosen)
         return super().options(temporal=temporal)
 
 

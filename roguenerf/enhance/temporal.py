@@ -265,6 +265,12 @@ class TemporalConfig:
     *The fade along the path*. A resumed path works a read-back frame's map out again
     (:meth:`TemporalFilter.remember`). False: the angle of the last step alone."""
 
+    @classmethod
+    def fast(cls, **changes) -> TemporalConfig:
+        """The path's fast setting (``enhance-path --fast``): :data:`FAST`, then ``changes``
+        (any field)."""
+        return cls(**{**FAST, **changes})
+
     def __post_init__(self):
         if not isinstance(self.fade_along, bool):
             raise InputError(f"TemporalConfig.fade_along: expected True or False, got {self.fade_along!r}")
@@ -310,6 +316,21 @@ class TemporalConfig:
             raise InputError("TemporalConfig.carry_between: needs keep_within 0 or carry_between=False (a "
                              "frame's neighbours would depend on the frame before it, made after the next "
                              "model frame)")
+
+
+FAST = {"model_every": 3, "carry_agreement": 28.0, "both_ways": False}
+"""The fields :meth:`TemporalConfig.fast` sets (the rest are the defaults): the model on one
+frame in 3, each frame between two model frames carried from both where their renders, moved into
+it, agree with its render to 28 dB, and one pass. Chosen on 2026-12-08 (fifteenth session) on
+``mary_rose``'s and ``dtu_scan37``'s paths (a 24-view path of each through its photos, where
+every frame carried is judged, the 49-frame orbit and smooth paths, the 13-frame one at 10 degrees
+a frame), by a rule stated before the runs: of ``carry_agreement`` 0, 24, 28, 32, 36, 40 and 46 at
+``model_every`` 3 and 4, one way, keep those where no carried frame with a photo loses more than
+0.1 dB against frame by frame and no path flickers more than its render; of those, the most frames
+carried. 0 and 24 lost up to 1.7 dB on frames whose renders agreed at 15-27.5 dB (``mary_rose``'s
+orbit frame 32: 22.8 dB, +2.16 against +3.87); 28 at 3 carried the most (28 % of the frames,
+4 at 22 %). Reported on ``ollie``'s and ``can_clip``'s paths (docs/results.md, *Speed at users'
+sizes*)."""
 
 
 def render_disagreement(warped_render: Tensor, render: Tensor, valid: Tensor) -> Tensor:

@@ -108,6 +108,10 @@ def create_path_job(
         "with model_every > 1 and carry_between, carry a frame only where the two model frames around it, "
         "reprojected into it, also agree with each other to this PSNR in dB (0: no such test)"))
     ] = BETWEEN_AGREEMENT,
+    both_ways: Annotated[bool, Form(description=(
+        "blend each frame with the frames after it too (a second pass from the last frame back: no lag); "
+        "false: one pass, faster. The fast setting (enhance-path --fast): model_every=3, carry_agreement=28, "
+        "both_ways=false"))] = True,
     force: Annotated[bool, Form(description=(
         "enhance the path even when its cameras do not fit the scene (far from its cameras or seeing none of its "
         "training photos: OpenGL vs OpenCV, another unit or world, z vs ray depth; a 422 otherwise)"))] = False,
@@ -124,7 +128,7 @@ def create_path_job(
         request = {"kind": "path", "frames": frames, "depth_type": depth_type, "depth_scale": depth_scale,
                    "background": background, "quality": quality, "force": force, "model_every": model_every,
                    "carry_agreement": carry_agreement, "carry_share": carry_share, "carry_between": carry_between,
-                   "between_agreement": between_agreement}
+                   "between_agreement": between_agreement, "both_ways": both_ways}
         try:
             job, _ = services.store.create_job(scene_id, request, base_version=row["active_version"],
                                                max_queued=settings.max_queued_jobs)

@@ -133,6 +133,30 @@ def test_a_path_job_with_model_every_carries_the_frames_between(setup):
     assert stored(setup["data"]) == before
 
 
+def test_a_path_job_in_the_fast_setting_runs_one_pass(setup):
+    """The CLI's --fast as form fields (TemporalConfig.FAST: model_every=3, carry_agreement=28,
+    both_ways=false): one pass, one step per frame, the frames between judged at 28 dB; the
+    form's both_ways defaults to the library's."""
+    from roguenerf.enhance.temporal import FAST, TemporalConfig
+
+    client, scene_id = setup["client"], setup["scene_id"]
+    archive, frames = path_zip(setup["scene"], seed=SEED)
+    r = post_path(client, scene_id, archive, **FAST)
+    assert r.status_code == 202, r.text
+    job = r.json()
+    assert {k: job["request"][k] for k in FAST} == FAST
+    assert run_job(setup["ctx"], job["id"]) == "succeeded"
+    done = client.get(f"/jobs/{job['id']}").json()
+    assert done["step"] == done["total_steps"] == frames
+    report = client.get(f"/jobs/{job['id']}/result", params={"what": "flicker"}).json()
+    judged = [f for f in report["per_frame"] if "carry_agreement_db" in f]
+    assert judged and all(f["carried"] == (f["carry_agreement_db"] >= 28) for f in judged)
+    assert all(not f["carried"] for f in report["per_frame"] if f["frame"] % 3 == 0)
+    schemas = client.get("/openapi.json").json()["components"]["schemas"]
+    form = next(v for k, v in schemas.items() if k.startswith("Body_create_path_job"))
+    assert form["properties"]["both_ways"]["default"] is TemporalConfig().both_ways is True
+
+
 def test_a_path_in_the_wrong_axes_is_refused_at_upload_saying_why(setup):
     """The library's camera-path check runs in the router, before anything is stored (issue 49:
     it answered 202 and the job failed 2 s later, advising a --force the API did not have);

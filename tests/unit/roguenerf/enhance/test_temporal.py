@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -573,3 +574,17 @@ def test_a_carried_frame_takes_the_render_where_the_renders_disagree():
 def test_both_ways_must_be_true_or_false(value):
     with pytest.raises(InputError, match="both_ways"):
         TemporalConfig(both_ways=value)
+
+
+def test_the_fast_setting_is_the_defaults_but_for_its_own_fields_and_takes_changes():
+    """TemporalConfig.fast(): FAST's fields (the model on one frame in 3, a 28 dB carry gate, one
+    pass) over the defaults; a field given to it wins, and a bad one is refused as anywhere."""
+    from roguenerf.enhance.temporal import FAST
+
+    fast, shipped = TemporalConfig.fast(), TemporalConfig()
+    assert (fast.model_every, fast.carry_agreement, fast.both_ways) == (3, 28.0, False) == tuple(FAST.values())
+    assert dataclasses.replace(fast, **{k: getattr(shipped, k) for k in FAST}) == shipped
+    assert TemporalConfig.fast(model_every=4, both_ways=True) == dataclasses.replace(fast, model_every=4,
+                                                                                      both_ways=True)
+    with pytest.raises(InputError, match="carry_agreement"):
+        TemporalConfig.fast(carry_agreement=-1)

@@ -642,8 +642,18 @@ def test_enhance_path_cli(toy_path, tmp_path):
     assert runner.invoke(app, after).exit_code == 0
     frame = lambda folder: (tmp_path / folder / "frames" / "00001.png").read_bytes()  # noqa: E731
     assert frame("after") != frame("every")
+    # --fast: TemporalConfig.fast(), one way; a flag beside it wins (here the model on every second frame)
+    fast = args[:7] + [str(tmp_path / "fast"), *args[8:], "--fast", "--model-every", "2"]
+    result = runner.invoke(app, fast)
+    assert result.exit_code == 0, result.output
+    assert not (tmp_path / "fast" / "forward").exists()
+    rows = json.loads((tmp_path / "fast" / FLICKER_FILE).read_text())["per_frame"]
+    assert not any(rows[t]["carried"] for t in range(0, len(rows), 2))
+    assert all("carry_agreement_db" in rows[t] for t in range(1, len(rows) - 1, 2))  # judged at 28 dB
+    assert all(rows[t]["carried"] == (rows[t]["carry_agreement_db"] >= 28) for t in range(1, len(rows) - 1, 2))
     for flags, message in ((["--model-every", "0"], "model_every"), (["--no-temporal", "--model-every", "2"],
                                                                      "drop --no-temporal"),
+                           (["--no-temporal", "--fast"], "drop --no-temporal"),
                            (["--carry-agreement", "40"], "only with --model-every"),
                            (["--carry-after"], "only with --model-every"),
                            (["--model-every", "2", "--carry-after", "--between-agreement", "40"],
