@@ -21,10 +21,7 @@ One background thread reads the next frame's render and depth and encodes and wr
 enhanced frame while the present one is enhanced (the PNG encoder and the decoders release the
 interpreter), at most :data:`WRITES_PENDING` frames behind; a write that fails stops the path
 with its error, and every frame handed to it is written before :func:`enhance_path` returns or
-raises (a cancelled or failed path resumes after the last frame written). Another measures the
-frames as written for the report (PSNR gain, detail, flicker), in order, at most
-:data:`MEASURES_PENDING` measures behind, while the next frames are made; an error there stops
-the path too.
+raises (a cancelled or failed path resumes after the last frame written).
 """
 
 from __future__ import annotations
@@ -59,9 +56,6 @@ SIDE_BY_SIDE_FILE = "side_by_side.mp4"
 WRITES_PENDING = 2
 """Enhanced frames handed to the background thread and not yet written, at most (memory: a
 1920 x 1080 frame is 25 MB as float32)."""
-MEASURES_PENDING = 4
-"""Measures (a frame's, a pair's) handed to the measuring thread and not yet made, at most (a
-frame's holds its render, enhanced frame, depth and detail: about two frames behind)."""
 POSE_MATCH_TOL = 1e-5
 """A path camera "is" a scene view (and has its photo) when rotation and position agree to this
 (position relative to the scene's extent)."""
@@ -329,7 +323,6 @@ def enhance_path(
         t + 1, or with ``back`` (the second pass of TemporalConfig.both_ways, which blends the other
         way) frame t + 1 into t; ``moved``: the filter's move between them in that direction, where
         it made one (measured alike where it did not: a resumed path)."""
-        a, b = (x.result() if isinstance(x, Future) else x for x in (a, b))  # measured before, in order
         # the reference: both renders sharpened alike, as much as the two enhanced frames on average
         amount = 0.5 * (a[6].amount + b[6].amount)
         if back:
@@ -339,9 +332,6 @@ def enhance_path(
         return {"from": t, "to": t + 1, "render": errors[0], "enhanced": errors[1], "photo": errors[2],
                 "sharpened": errors[3], "valid_fraction": fraction}
     behind = _Background()
-    # the frames' PSNR, detail and flicker, measured by a thread of their own behind the frames
-    # being made (a frame's measures overlap the next frame's work), in order
-    measuring = _Measuring()
     loading: dict[int, Future] = {}
     made: dict[int, dict] = {}  # frames made (or read back) ahead of their turn: the next model frame
     anchors: dict[int, object] = {}  # between: a model frame's kept state (TemporalFilter.kept)
@@ -481,9 +471,9 @@ def enhance_path(
             moved = None if written else back.last_warp  # frame t + 1 moved into t: the pair's flicker
             back.remember(render, final, depth, *camera, parallax=None if written else back.last_parallax,
                           blended=(False, 1) if written else None)
-            current = measuring.submit(measure, t, render, final, depth, per_frame[t])
+            current = measure(t, render, final, depth, per_frame[t])
             if later is not None:
-                pairs_back.append(measuring.submit(measure_pair, current, later, t, moved, back=True))
+                pairs_back.append(measure_pair(current, later, t, moved, back=True))
             later = current
             if not written:
                 spent += time.perf_counter() - began
@@ -491,7 +481,7 @@ def enhance_path(
                 progress(2 * total - t, steps)
         waited = time.perf_counter()
         behind.drain()
-        per_pair.extend(reversed([pair.result() for pair in pairs_back]))
+        per_pair.extend(reversed(pairs_back))
         return spent + (time.perf_counter() - waited if written_now else 0.0), written_now
 
     try:
@@ -538,10 +528,10 @@ def enhance_path(
                     row["carry_change_db"] = round(entry["change"], 2)
             per_frame.append(row)
             if not both_ways:  # both ways: the second pass measures the frames it writes
-                current = measuring.submit(measure, t, render, enhanced, depth, row)
+                current = measure(t, render, enhanced, depth, row)
                 if prev is not None:  # the filter's move of the last frame, where it made one into this frame
-                    per_pair.append(measuring.submit(measure_pair, prev, current, t - 1,
-                                                     None if temporal is None or between else temporal.last_warp))
+                    per_pair.append(measure_pair(prev, current, t - 1,
+                                                 moved=None if temporal is None or between else temporal.last_warp))
                 prev = current
             if temporal is not None:  # the frame as written, whether made now or read back
                 temporal.remember(render, enhanced, depth, camera_path.K[t], camera_path.world_from_cam[t],
@@ -556,14 +546,12 @@ def enhance_path(
                 making += time.perf_counter() - began
         waited = time.perf_counter()
         behind.drain()  # the last frames' writes: part of making them (and what the second pass reads)
-        per_pair[:] = [pair.result() for pair in per_pair]  # and their measures
         if done_now:
             making += time.perf_counter() - waited
         if both_ways:  # what this call made is what it wrote into frames/: the second pass's frames
             spent, done_now = backward_pass()
             making += spent
     finally:
-        measuring.close()
         behind.close()
     report = summarise_flicker(per_pair, per_frame)
     report["frames"] = total
@@ -584,29 +572,6 @@ def enhance_path(
     return PathResult(output=output, frames=total, enhanced_now=done_now, seconds=time.perf_counter() - start,
                       video=video_path, side_by_side=sbs_path, flicker=report, cached_views=enhancer.cached_views(),
                       warnings=warnings, enhance_seconds=making)
-
-
-class _Measuring:
-    """The thread that measures the frames written behind the ones being made (the report's PSNR,
-    detail and flicker: :func:`enhance_path`'s ``measure`` and ``measure_pair``), in the order
-    handed over, at most :data:`MEASURES_PENDING` behind."""
-
-    def __init__(self):
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="roguenerf-measure")
-        self._pending: deque[Future] = deque()
-
-    def submit(self, fn, *args, **kwargs) -> Future:
-        """``fn(*args, **kwargs)`` behind, after everything handed over before; waits while more
-        than :data:`MEASURES_PENDING` are pending, and raises the error of one that failed."""
-        future = self._pool.submit(fn, *args, **kwargs)
-        self._pending.append(future)
-        while len(self._pending) > MEASURES_PENDING or (self._pending and self._pending[0].done()):
-            self._pending.popleft().result()
-        return future
-
-    def close(self) -> None:
-        """Stop the thread: what is pending and not started is dropped (a path that stops)."""
-        self._pool.shutdown(wait=True, cancel_futures=True)
 
 
 class _Background:

@@ -328,42 +328,6 @@ def test_a_frame_write_that_fails_stops_the_path_in_order_and_the_rerun_makes_th
             assert (out / sub / f"{t:05d}.png").read_bytes() == (clean / sub / f"{t:05d}.png").read_bytes()
 
 
-def test_a_measure_that_fails_stops_the_path_and_the_rerun_reports_as_a_clean_run(toy_path, enhancer, tmp_path,
-                                                                                     monkeypatch):
-    """The report's measures run on a thread of their own, behind the frames being made: an error
-    there reaches the caller (not a report short of a frame), the frames written are kept, and the
-    rerun, measuring every frame again, writes the report of a run that never failed."""
-    import roguenerf.trajectory.enhancing as enhancing
-    from roguenerf.enhance import EnhanceOptions
-    from roguenerf.enhance.temporal import TemporalConfig
-
-    root, scene = toy_path["root"], toy_path["scene"]
-    cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
-    options = EnhanceOptions(temporal=TemporalConfig(both_ways=False))
-    one_way = SceneEnhancer(scene, enhancer.model, options=options)
-    clean = enhance_path(scene, one_way, cp, root / "frames", tmp_path / "clean", depth_type="ray", video=False)
-    real, seen = enhancing.sharpening, []
-
-    def broken(render, enhanced):
-        seen.append(len(seen))
-        if len(seen) == 3:
-            raise RuntimeError("measure failed")
-        return real(render, enhanced)
-
-    monkeypatch.setattr(enhancing, "sharpening", broken)
-    out = tmp_path / "out"
-    with pytest.raises(RuntimeError, match="measure failed"):
-        enhance_path(scene, one_way, cp, root / "frames", out, depth_type="ray", video=False)
-    written = sorted(p.name for p in (out / "frames").iterdir())
-    assert 3 <= len(written) < len(cp) and written == [f"{t:05d}.png" for t in range(len(written))]
-    assert not (out / FLICKER_FILE).exists()
-    monkeypatch.setattr(enhancing, "sharpening", real)
-    again = enhance_path(scene, one_way, cp, root / "frames", out, depth_type="ray", video=False)
-    assert again.enhanced_now == len(cp) - len(written)
-    assert again.flicker["flicker"] == pytest.approx(clean.flicker["flicker"])
-    assert again.flicker["psnr"] == pytest.approx(clean.flicker["psnr"])
-
-
 def test_the_temporal_filter_lowers_flicker_and_leaves_the_first_frame(toy_path, enhancer, tmp_path):
     """Along the path each frame's change is blended with the last frame's, reprojected
     (roguenerf.enhance.temporal): the enhanced video flickers less than with every frame on its
