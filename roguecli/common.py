@@ -163,9 +163,10 @@ class PathEnhanceFlags(EnhanceFlags):
         "The fast setting: the model on one frame in 3, the frames between carried from both where their "
         "renders, moved into them, agree with theirs to 28 dB, one way (--model-every 3 --carry-agreement 28 "
         "--one-way; those flags, given beside it, win). Chosen so that no carried frame with a photo lost more "
-        "than 0.1 dB against frame by frame on the paths it was chosen on; about 2x frame by frame's frames "
-        "per second on smooth paths, less on fast orbits, whose frames the gate gives back to the model "
-        "(docs/results.md, Speed at users' sizes)."))] = False
+        "than 0.1 dB against frame by frame on the paths it was chosen on: 1.8x frame by frame's frames per "
+        "second on a smooth 49-frame path with its mean gain, less on fast orbits, whose frames the gate gives "
+        "back to the model; a frame near a photo can still lose detail (docs/results.md, Speed at users' "
+        "sizes)."))] = False
 
     def options(self):
         temporal = self.temporal

@@ -183,7 +183,8 @@ class TemporalConfig:
     Reported on ``ollie``'s and ``mary_rose``'s paths (docs/results.md, *Speed at users' sizes*):
     ``ollie``'s 49 frames at 3, 1.83x frame by frame with more gain (+2.56 against +2.48 dB; 46:
     1.44x); ``mary_rose``'s orbit (10 degrees a frame) 0.41 dB below frame by frame, where 46 and
-    :attr:`carry_share` 0.05-0.2 kept its gain: on fast orbits pass one of them."""
+    :attr:`carry_share` 0.05-0.2 kept its gain: on fast orbits pass one of them. Chosen again per
+    carried frame for :meth:`fast` (:data:`FAST`: 28 dB, the fifteenth session)."""
     carry_share: float = 0.0
     """A frame is carried only where the frame(s) it would be moved from predict its render well
     *against the size of the enhancer's change*: the mean square of what their renders, moved the
