@@ -16,8 +16,9 @@ set changed and the flicker ratio there and elsewhere (``neighbour_changes``,
 ``flicker_ratio_changed``, ``flicker_ratio_steady``; pairs with a carried frame in neither), and the
 gain on the frames with photos.
 ``--model-every``, ``--resample``, ``--reject``, ``--carry-from``, ``--blend``,
-``--carry-agreement``, ``--carry-share``, ``--carry-between``, ``--between-agreement``, ``--weight``,
-``--change-weight``, ``--change-frames`` and ``--both-ways`` run the filter once per combination of values of
+``--carry-agreement``, ``--carry-share``, ``--carry-nearer``, ``--carry-between``, ``--between-agreement``,
+``--weight``, ``--change-weight``, ``--change-frames`` and ``--both-ways`` run the filter once per combination of
+values of
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.model_every`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.resample`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.reject`,
@@ -25,6 +26,7 @@ gain on the frames with photos.
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.blend`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_agreement`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_share`,
+:attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_nearer`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.carry_between`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.between_agreement`,
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.weight`,
@@ -32,13 +34,14 @@ gain on the frames with photos.
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.change_frames` and
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.both_ways` (labelled ``on`` for the
 shipped values, ``on/kK``, ``on/RESAMPLE``, ``on/rejectX``, ``on/from-C``, ``on/BLEND``,
-``on/agreeDB``, ``on/shareS``, ``on/between-on|off``, ``on/mutualDB``, ``on/wW``, ``on/cwW``, ``on/cfN`` and
-``on/both-ways-on|off`` for
+``on/agreeDB``, ``on/shareS``, ``on/nearerR``, ``on/between-on|off``, ``on/mutualDB``, ``on/wW``, ``on/cwW``,
+``on/cfN`` and ``on/both-ways-on|off`` for
 others; at ``model_every`` 1, where nothing is carried, only the shipped carry gates and ``carry_between`` run),
 with the share of frames carried; the CSV also keeps each frame with a photo's gain (``gains``:
 frame, gain, carried) and each frame a carry gate judged (``carry_tests``: frame, the renders'
 agreement in dB, with ``carry_share`` the change's after ``/``, with ``between_agreement`` the two
-model frames' agreement with each other after ``~``, carried). ``--photo-path``: the path of
+model frames' agreement with each other after ``~``, with ``carry_nearer`` their distance over
+the nearest photo's after ``@``, carried). ``--photo-path``: the path of
 ``--keys`` scene views, train and test, in azimuth order (``bench.paths --photo-path``): every
 frame has a photo, so every frame carried is judged. Writes ``OUTPUT.csv`` (a row per
 run; date, machine, commit), ``OUTPUT.json`` (the medians, the ratios) and ``OUTPUT.png``.
@@ -76,6 +79,7 @@ SWEPT = (
     ("blend", str, str),
     ("carry_agreement", float, lambda v: f"agree{v:g}"),
     ("carry_share", float, lambda v: f"share{v:g}"),
+    ("carry_nearer", float, lambda v: f"nearer{v:g}"),
     ("carry_between", ONOFF, lambda v: f"between-{'on' if v else 'off'}"),
     ("between_agreement", float, lambda v: f"mutual{v:g}"),
     ("weight", float, lambda v: f"w{v:g}"),
@@ -145,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         config = dict(zip((field for field, _, _ in SWEPT), values))
         if config["model_every"] == 1 and any(config[f] != getattr(shipped, f)
                                               for f in ("between_agreement", "carry_agreement", "carry_between",
-                                                        "carry_share")):
+                                                        "carry_nearer", "carry_share")):
             continue  # nothing is carried at K = 1: the same run as the shipped values'
         label = "/".join(["on", *(tag(v) for (field, _, tag), v in zip(SWEPT, values)
                                   if v != getattr(shipped, field))])
@@ -194,12 +198,8 @@ def main(argv: list[str] | None = None) -> int:
                                                     / len(report["per_frame"]), 4),
                              "gains": " ".join(f"{f['frame']}:{f['gain_db']:+.3f}" + ("c" if f.get("carried") else "")
                                                for f in report["per_frame"] if "gain_db" in f),
-                             "carry_tests": " ".join(
-                                 f"{f['frame']}:{f['carry_agreement_db']:.1f}"
-                                 + (f"/{f['carry_change_db']:.1f}" if "carry_change_db" in f else "")
-                                 + (f"~{f['between_agreement_db']:.1f}" if "between_agreement_db" in f else "")
-                                 + ("c" if f.get("carried") else "")
-                                 for f in report["per_frame"] if "carry_agreement_db" in f)})
+                             "carry_tests": " ".join(carry_test(f) for f in report["per_frame"]
+                                                     if "carry_agreement_db" in f or "carry_nearer" in f)})
                 print(f"temporal {mode}: {rows[-1]['frames_per_second']:.2f} frames/s, flicker x"
                       f"{rows[-1]['flicker_ratio']:.3f}, gain {rows[-1]['gain_db']:+.3f} dB", flush=True)
     fps = {m: statistics.median(r["frames_per_second"] for r in rows if r["temporal"] == m) for m in modes}
@@ -234,6 +234,21 @@ def main(argv: list[str] | None = None) -> int:
     save_figure(fig, beside(output, ".png"))
     print(f"wrote {beside(output, '.csv')}, {beside(output, '.json')} and {beside(output, '.png')}")
     return 0
+
+
+def carry_test(row: dict) -> str:
+    """A frame a carry gate judged, for the CSV's ``carry_tests``: ``frame:AGREEMENT`` (dB; ``-``
+    where a gate before it refused), then ``/CHANGE`` (dB), ``~MUTUAL`` (dB) and ``@NEARER`` (the
+    model frames' distance over the nearest photo's) where measured, ``c`` where carried."""
+    def number(key, digits):
+        value = row.get(key)
+        return "inf" if key in row and value is None else f"{value:.{digits}f}"
+
+    return (f"{row['frame']}:" + (number("carry_agreement_db", 1) if "carry_agreement_db" in row else "-")
+            + (f"/{number('carry_change_db', 1)}" if "carry_change_db" in row else "")
+            + (f"~{number('between_agreement_db', 1)}" if "between_agreement_db" in row else "")
+            + (f"@{number('carry_nearer', 2)}" if "carry_nearer" in row else "")
+            + ("c" if row.get("carried") else ""))
 
 
 def older_filter(tree: Path, revision: str):

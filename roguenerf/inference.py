@@ -11,6 +11,7 @@ same photo twice or see a half-filled cache.
 
 from __future__ import annotations
 
+import math
 import os
 import threading
 import time
@@ -515,6 +516,16 @@ class SceneEnhancer:
         excluded = _resolve_exclude(self.scene, self.train, exclude)
         pose = torch.as_tensor(world_from_cam).to(torch.float64)
         return [int(p) for p in select_neighbours(pose, self.train_poses, count, exclude=excluded or None)]
+
+    def photo_distance(self, world_from_cam: Tensor, *, exclude=None) -> float:
+        """Distance from a pose's camera centre to the nearest training camera's (pose units;
+        ``exclude``: views left out, as :meth:`select`'s); ``inf`` where there is none."""
+        excluded = set(_resolve_exclude(self.scene, self.train, exclude))
+        kept = [p for p in range(len(self.train)) if p not in excluded]
+        if not kept:
+            return math.inf
+        centre = torch.as_tensor(world_from_cam).to(torch.float64)[:3, 3]
+        return float((self.train_poses[kept, :3, 3] - centre).norm(dim=-1).min())
 
     def measure(self, render: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor,
                 positions: list[int]) -> list:

@@ -222,6 +222,15 @@ class TemporalConfig:
     depends on the scene: 42 dB kept ``can_clip``'s gain at 1.2 times frame by frame's speed, and
     on ``dtu_scan37`` (renders at 18 dB) 38 already refused every frame (docs/results.md, *Speed
     at users' sizes*). 0 (the default): no such test."""
+    carry_nearer: float = 0.0
+    """A frame is carried only where the model frame(s) it would be moved from are at most this
+    many times as far from it (camera centres; with :attr:`carry_between` the two distances mixed
+    by position) as the nearest training photo (:attr:`TemporalFilter.last_nearer`); otherwise
+    the model runs on it. Where a photo is nearer than the model frames, the model brings from it
+    what no model frame around has: a carried frame at a photo's position kept 1.7 dB less
+    (``mary_rose``'s orbit frame 32, a training camera where it stands). 0 (the default): no
+    such test. Needs the photo's distance (:meth:`TemporalFilter.carry`'s ``photo_distance``,
+    which :func:`~roguenerf.trajectory.enhance_path` gives)."""
     min_seen: float = 0.95
     """A frame is carried only where the previous frame sees at least this share of its
     pixels; otherwise the model runs on it."""
@@ -282,7 +291,7 @@ class TemporalConfig:
         if self.resample not in ("bilinear", "bicubic"):
             raise InputError(f"TemporalConfig.resample: expected 'bilinear' or 'bicubic', got {self.resample!r}")
         for name, what in (("carry_agreement", "a PSNR in dB"), ("between_agreement", "a PSNR in dB"),
-                           ("carry_share", "a share")):
+                           ("carry_share", "a share"), ("carry_nearer", "a ratio of distances")):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
                     and value >= 0):
@@ -463,6 +472,10 @@ class TemporalFilter:
         """PSNR (dB) of the model frame(s) the last :meth:`carry` moved against their renders: the size
         of the enhancer's change there (with ``between`` the two mean squares mixed by position;
         :attr:`TemporalConfig.carry_share`); None where it was not measured."""
+        self.last_nearer: float | None = None
+        """How many times as far from the frame the last :meth:`carry` moved are the model frame(s)
+        it moved from as its nearest training photo (:attr:`TemporalConfig.carry_nearer`); None
+        where it was not measured."""
         self.last_mutual: float | None = None
         """PSNR (dB) of the two model frames the last :meth:`carry` between them moved, against each
         other on the pixels both see (:attr:`TemporalConfig.between_agreement`); None where it was
@@ -486,6 +499,7 @@ class TemporalFilter:
         self.last_share = 0.0
         self.last_agreement = None
         self.last_change = None
+        self.last_nearer = None
         self.last_mutual = None
         self.last_warp = None
         self.last_parallax = None
@@ -522,6 +536,7 @@ class TemporalFilter:
         self.last_warp = None
         self.last_agreement = None
         self.last_change = None
+        self.last_nearer = None
         self.last_mutual = None
         self.last_parallax = None
         self._previous = _LastFrame(carried, depth, K, pose, render, parallax if along else None)
@@ -634,7 +649,8 @@ class TemporalFilter:
         return self._previous is None or changed or t % self.config.model_every == 0
 
     def carry(self, render: Tensor, depth: Tensor, K: Tensor, world_from_cam: Tensor, *,
-              between: tuple[_LastFrame, _LastFrame, float] | None = None) -> Tensor | None:
+              between: tuple[_LastFrame, _LastFrame, float] | None = None,
+              photo_distance: float | None = None) -> Tensor | None:
         """The previous frame's result (or the last model frame's: :attr:`TemporalConfig.carry_from`)
         reprojected into this frame (``render`` ``(3, H, W)``, its z-depth ``(1, H, W)``, ``K``,
         camera-to-world ``(4, 4)``), the render where that frame does not see; kept as the last
@@ -645,17 +661,35 @@ class TemporalFilter:
         both moved into this frame and mixed, ``after`` weighing ``position`` (in (0, 1): how far
         along from ``before`` this frame is) and ``before`` the rest, each only where it sees
         (:attr:`TemporalConfig.carry_between`); ``min_seen``, ``carry_agreement`` and ``carry_share``
-        judge the mix, and ``between_agreement`` (where set) the two against each other."""
+        judge the mix, and ``between_agreement`` (where set) the two against each other.
+
+        ``photo_distance``: how far this frame's camera centre is from the nearest training
+        photo's, for :attr:`TemporalConfig.carry_nearer` (judged first, from the poses alone; no
+        test where None)."""
         self.last_share = 0.0
         self.last_agreement = None
         self.last_change = None
+        self.last_nearer = None
         self.last_mutual = None
         self.last_warp = None
         if self._previous is None and between is None:
             return None
+        if between is not None and not 0 < between[2] < 1:
+            raise InputError(f"carry: expected a position between the two frames in (0, 1), got {between[2]!r}")
         render, depth = render.float(), depth.float()
         pose = torch.as_tensor(world_from_cam).to(torch.float64)
         K = torch.as_tensor(K).to(torch.float32)
+        if self.config.carry_nearer > 0 and photo_distance is not None:
+            # the poses alone decide, before anything is moved
+            if between is None:
+                model = self.config.carry_from == "model" and self._anchor is not None
+                sources = [(self._anchor if model else self._previous, 1.0)]
+            else:
+                sources = [(between[0], 1.0 - between[2]), (between[1], between[2])]
+            far = sum(part * float((frame.pose[:3, 3] - pose[:3, 3]).norm()) for frame, part in sources)
+            self.last_nearer = far / photo_distance if photo_distance > 0 else (0.0 if far == 0 else math.inf)
+            if far > self.config.carry_nearer * photo_distance:
+                return None
         share_gate = self.config.carry_share > 0
         gate = self.config.carry_agreement > 0 or share_gate
         # The frames themselves are sampled (bicubic: half a move's cost) only once the renders
@@ -667,8 +701,6 @@ class TemporalFilter:
             sources = [(source, 1.0)]
         else:
             before, after, position = between
-            if not 0 < position < 1:
-                raise InputError(f"carry: expected a position between the two frames in (0, 1), got {position!r}")
             moves = [self._move(depth, K, pose, frame, with_render=gate) for frame in (before, after)]
             self.last_warp = None  # two moves, neither the last frame's
             weights = [(1.0 - position) * moves[0].valid.float(), position * moves[1].valid.float()]
@@ -738,6 +770,7 @@ class TemporalFilter:
         self.last_share = 0.0
         self.last_agreement = None
         self.last_change = None
+        self.last_nearer = None
         self.last_mutual = None
         self.last_warp = None
         self.last_parallax = None

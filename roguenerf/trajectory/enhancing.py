@@ -383,17 +383,19 @@ def enhance_path(
         exclude = excluded(t)
         # Along a path with model_every > 1, a frame between the model's is carried into (where
         # the model frames see enough of it); decided the same way on a resume.
-        carried = agreement = mutual = change = None
-        # what decided it (TemporalConfig.carry_agreement, carry_share, between_agreement)
-        if carry_between is not None:
-            carried = temporal.carry(render, depth, *camera, between=carry_between)
+        carried = agreement = mutual = change = nearer = None
+        # what decided it (TemporalConfig.carry_nearer, carry_agreement, carry_share, between_agreement)
+        due = carry_between is not None or (temporal is not None and not between
+                                            and not temporal.model_due(t, changed=changed))
+        if due:
+            photo = enhancer.photo_distance(camera[1], exclude=exclude) if temporal.config.carry_nearer > 0 else None
+            carried = temporal.carry(render, depth, *camera, between=carry_between, photo_distance=photo)
             agreement, mutual, change = temporal.last_agreement, temporal.last_mutual, temporal.last_change
-        elif temporal is not None and not between and not temporal.model_due(t, changed=changed):
-            carried = temporal.carry(render, depth, *camera)
-            agreement, change = temporal.last_agreement, temporal.last_change
+            nearer = temporal.last_nearer
         out_png = first_dir / f"{t:05d}.png"
         entry = {"render": render, "depth": depth, "carried": carried is not None, "agreement": agreement,
-                 "mutual": mutual, "change": change, "made": not out_png.is_file(), "neighbours": None}
+                 "mutual": mutual, "change": change, "nearer": nearer, "made": not out_png.is_file(),
+                 "neighbours": None}
         if not entry["made"]:
             entry["enhanced"] = read_image(out_png)
             if temporal is not None and carried is None and temporal.config.fade_along:
@@ -526,6 +528,8 @@ def enhance_path(
                     row["between_agreement_db"] = round(entry["mutual"], 2)
                 if entry["change"] is not None:
                     row["carry_change_db"] = round(entry["change"], 2)
+                if entry["nearer"] is not None:
+                    row["carry_nearer"] = round(entry["nearer"], 3) if math.isfinite(entry["nearer"]) else None
             per_frame.append(row)
             if not both_ways:  # both ways: the second pass measures the frames it writes
                 current = measure(t, render, enhanced, depth, row)

@@ -588,3 +588,36 @@ def test_the_fast_setting_is_the_defaults_but_for_its_own_fields_and_takes_chang
                                                                                       both_ways=True)
     with pytest.raises(InputError, match="carry_agreement"):
         TemporalConfig.fast(carry_agreement=-1)
+
+
+def test_a_frame_nearer_a_photo_than_its_model_frames_is_not_carried(monkeypatch):
+    """``carry_nearer``: model frames 0.3 and 0.6 units from the frame (one third of the way
+    from the first: 2/3 * 0.3 + 1/3 * 0.6 = 0.4 mixed by position), a photo 0.5 away: the ratio
+    0.8 is carried at 1, not at 0.5, judged from the poses before anything is moved; without the
+    photo's distance, or at 0, no such test."""
+    import roguenerf.reprojection
+
+    r1, e1 = _frame(1)
+    at = lambda x: torch.tensor([[1.0, 0, 0, x], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],  # noqa: E731
+                                dtype=torch.float64)
+    for limit, carried in ((1.0, True), (0.5, False)):
+        f = TemporalFilter(TemporalConfig(model_every=3, reject=0.0, min_seen=0.0, carry_nearer=limit))
+        f.remember(r1, e1, DEPTH, K, at(-0.3))
+        before = f.kept
+        f.remember(r1, e1, DEPTH, K, at(0.6))
+        after = f.kept
+        out = f.carry(r1, DEPTH, K, POSE, between=(before, after, 1 / 3), photo_distance=0.5)
+        assert f.last_nearer == pytest.approx(0.8) and (out is not None) == carried
+    moved = []
+    monkeypatch.setattr(roguenerf.reprojection, "reproject",
+                        lambda *a, **k: moved.append(1) or (_ for _ in ()).throw(AssertionError("moved")))
+    assert f.carry(r1, DEPTH, K, POSE, between=(before, after, 1 / 3), photo_distance=0.1) is None and not moved
+    monkeypatch.undo()
+    f.remember(r1, e1, DEPTH, K, POSE)
+    assert f.carry(r1, DEPTH, K, POSE, photo_distance=0.0) is not None and f.last_nearer == 0.0  # nothing moved
+    f = TemporalFilter(TemporalConfig(model_every=2, reject=0.0, min_seen=0.0))
+    f.remember(r1, e1, DEPTH, K, at(0.2))
+    assert f.carry(r1, DEPTH, K, POSE, photo_distance=0.01) is not None and f.last_nearer is None
+    for bad in (-1.0, float("inf"), True):
+        with pytest.raises(InputError, match="carry_nearer"):
+            TemporalConfig(carry_nearer=bad)
