@@ -153,6 +153,11 @@ class PathEnhanceFlags(EnhanceFlags):
         "default 0: no such test). Unlike --carry-agreement it scales with the scene: docs/results.md."
         ))] = None
 
+    carry_nearer: Annotated[float | None, typer.Option("--carry-nearer", metavar="RATIO", help=(
+        "With --model-every, carry a frame only where the model frames it is carried from are at most this "
+        "many times as far from it as its nearest training photo (camera centres): where a photo is nearer, "
+        "the model brings from it what they do not have (default 0: no such test)."))] = None
+
     both_ways: Annotated[bool | None, typer.Option("--both-ways/--one-way", help=(
         "With --temporal, blend each frame with the frames after it too: a second pass from the last frame "
         "back over the first pass's frames (kept in OUTPUT/forward/): no lag, so a frame where a nearer photo "
@@ -176,6 +181,7 @@ class PathEnhanceFlags(EnhanceFlags):
             raise InputError("--fast: frames are carried by the temporal filter; drop --no-temporal")
         carrying = self.model_every is not None or self.fast
         for value, flag in ((self.carry_agreement, "--carry-agreement"), (self.carry_share, "--carry-share"),
+                            (self.carry_nearer, "--carry-nearer"),
                             (self.carry_between, "--carry-between/--carry-after")):
             if value is not None and not carrying:
                 raise InputError(f"{flag}: frames are carried only with --model-every K (K > 1) or --fast")
@@ -188,7 +194,7 @@ class PathEnhanceFlags(EnhanceFlags):
             from roguenerf.enhance.temporal import TemporalConfig
 
             chosen = {"model_every": self.model_every, "carry_agreement": self.carry_agreement,
-                      "carry_share": self.carry_share, "both_ways": self.both_ways,
+                      "carry_share": self.carry_share, "carry_nearer": self.carry_nearer, "both_ways": self.both_ways,
                       "carry_between": self.carry_between, "between_agreement": self.between_agreement}
             chosen = {k: v for k, v in chosen.items() if v is not None}
             temporal = TemporalConfig.fast(**chosen) if self.fast else TemporalConfig(**chosen)

@@ -63,7 +63,8 @@ def run_path_job(run: JobRun) -> str:
     camera_path = read_camera_path(find_camera_file(inputs), dataparser=parser)
     # the shipped defaults, but for the request's carried frames
     chosen = {"carry_agreement": float(request["carry_agreement"])} if "carry_agreement" in request else {}
-    for name in ("carry_between", "between_agreement", "carry_share", "both_ways"):  # older jobs: the defaults
+    # older jobs: the library's defaults
+    for name in ("carry_between", "between_agreement", "carry_share", "carry_nearer", "both_ways"):
         if name in request:
             chosen[name] = request[name]
     options = EnhanceOptions(temporal=TemporalConfig(model_every=int(request.get("model_every", 1)), **chosen))

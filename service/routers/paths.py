@@ -24,6 +24,9 @@ written out so that importing the routes does not load torch; a test keeps them 
 CARRY_SHARE = 0.0
 """The form's default ``carry_share``: the library's (``TemporalConfig.carry_share``), as
 :data:`CARRY_AGREEMENT`."""
+CARRY_NEARER = 0.0
+"""The form's default ``carry_nearer``: the library's (``TemporalConfig.carry_nearer``), as
+:data:`CARRY_AGREEMENT`."""
 BETWEEN_AGREEMENT = 0.0
 """The form's default ``between_agreement``: the library's (``TemporalConfig.between_agreement``),
 as :data:`CARRY_AGREEMENT`."""
@@ -104,6 +107,10 @@ def create_path_job(
         "with model_every > 1, carry a frame only where what the model frames' renders, reprojected into it, "
         "miss of its render is at most this share of the enhancer's change there (mean squares; 0: no such "
         "test)"))] = CARRY_SHARE,
+    carry_nearer: Annotated[float, Form(ge=0, le=1000, description=(
+        "with model_every > 1, carry a frame only where the model frames it is carried from are at most this "
+        "many times as far from it as its nearest training photo (camera centres; 0: no such test)"))
+    ] = CARRY_NEARER,
     between_agreement: Annotated[float, Form(ge=0, le=200, description=(
         "with model_every > 1 and carry_between, carry a frame only where the two model frames around it, "
         "reprojected into it, also agree with each other to this PSNR in dB (0: no such test)"))
@@ -127,7 +134,8 @@ def create_path_job(
                                       force=force)
         request = {"kind": "path", "frames": frames, "depth_type": depth_type, "depth_scale": depth_scale,
                    "background": background, "quality": quality, "force": force, "model_every": model_every,
-                   "carry_agreement": carry_agreement, "carry_share": carry_share, "carry_between": carry_between,
+                   "carry_agreement": carry_agreement, "carry_share": carry_share, "carry_nearer": carry_nearer,
+                   "carry_between": carry_between,
                    "between_agreement": between_agreement, "both_ways": both_ways}
         try:
             job, _ = services.store.create_job(scene_id, request, base_version=row["active_version"],

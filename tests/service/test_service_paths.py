@@ -126,6 +126,12 @@ def test_a_path_job_with_model_every_carries_the_frames_between(setup):
     from service.routers.paths import CARRY_SHARE
 
     assert CARRY_SHARE == TemporalConfig().carry_share
+    from service.routers.paths import CARRY_NEARER
+
+    assert CARRY_NEARER == TemporalConfig().carry_nearer
+    assert job["request"]["carry_nearer"] == 0
+    bad = post_path(client, scene_id, path_zip(setup["scene"], seed=SEED)[0], model_every=2, carry_nearer=-1)
+    assert bad.status_code == 422 and "carry_nearer" in bad.json()["error"]["message"]
     bad = post_path(client, scene_id, path_zip(setup["scene"], seed=SEED)[0], model_every=2, carry_share=-1)
     assert bad.status_code == 422 and "carry_share" in bad.json()["error"]["message"]
     bad = post_path(client, scene_id, path_zip(setup["scene"], seed=SEED)[0], model_every=2, carry_agreement=-1)

@@ -625,6 +625,8 @@ def test_enhance_path_cli(toy_path, tmp_path):
                            (["--model-every", "2", "--between-agreement", "-1"], "between_agreement"),
                            (["--model-every", "2", "--carry-agreement", "-1"], "carry_agreement"),
                            (["--carry-share", "0.1"], "only with --model-every"),
+                           (["--carry-nearer", "1"], "only with --model-every"),
+                           (["--model-every", "2", "--carry-nearer", "-1"], "carry_nearer"),
                            (["--model-every", "2", "--carry-share", "-1"], "carry_share")):
         bad = runner.invoke(app, args[:7] + [str(tmp_path / "bad"), *args[8:], *flags])
         assert bad.exit_code == 2 and message in bad.output and "Traceback" not in bad.output
@@ -656,6 +658,45 @@ def test_frames_are_carried_only_where_the_renders_miss_is_a_small_share_of_the_
     share = math.sqrt(ratios[0] * ratios[-1])  # between them, not on either (the rows are rounded)
     rows = [f for f in run(share, tmp_path / "gated") if "carry_change_db" in f]
     assert rows and all(f["carried"] == (ratio(f) <= share) for f in rows)
+    assert any(f["carried"] for f in rows) and not all(f["carried"] for f in rows)
+
+
+def test_frames_nearer_a_photo_than_their_model_frames_are_given_to_the_model(toy_path, enhancer, tmp_path):
+    """carry_nearer (carrying between): each frame due is judged by how far its two model frames
+    are (mixed by position) over its nearest training photo, which the report keeps, worked out
+    here from the cameras; with a ratio between those so measured, a frame is carried exactly
+    where it is at most that."""
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.enhance.temporal import TemporalConfig
+    from roguenerf.trajectory.enhancing import _match_views
+
+    root, scene = toy_path["root"], toy_path["scene"]
+    cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
+    matches = _match_views(scene, cp)
+
+    def run(limit: float, out):
+        config = TemporalConfig(model_every=3, min_seen=0.0, carry_nearer=limit, both_ways=False)
+        gated = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=config))
+        return enhance_path(scene, gated, cp, root / "frames", out, depth_type="ray", video=False).flicker["per_frame"]
+
+    free = run(1e9, tmp_path / "free")
+    tried = [f for f in free if "carry_nearer" in f]
+    assert len(tried) >= 2 and all(f["carried"] for f in tried)
+    centre = cp.world_from_cam[:, :3, 3]
+    train = list(scene.indices("train"))
+    for f in tried:
+        t = f["frame"]
+        a = t - t % 3
+        b = min(a + 3, len(cp) - 1)
+        far = ((b - t) * (centre[t] - centre[a]).norm() + (t - a) * (centre[t] - centre[b]).norm()) / (b - a)
+        photo = min(float((centre[t] - scene.frames[i].world_from_cam[:3, 3]).norm()) for i in train
+                    if i != matches[t])
+        assert f["carry_nearer"] == pytest.approx(float(far) / photo, abs=1e-3)
+    ratios = sorted(f["carry_nearer"] for f in tried)
+    assert ratios[0] < ratios[-1] * 0.9
+    limit = math.sqrt(ratios[0] * ratios[-1])
+    rows = [f for f in run(limit, tmp_path / "gated") if "carry_nearer" in f]
+    assert rows and all(f["carried"] == (f["carry_nearer"] <= limit) for f in rows)
     assert any(f["carried"] for f in rows) and not all(f["carried"] for f in rows)
 
 
