@@ -165,13 +165,12 @@ class PathEnhanceFlags(EnhanceFlags):
         "final as they are made."), show_default=False)] = None
 
     fast: Annotated[bool, typer.Option("--fast", help=(
-        "The fast setting: the model on one frame in 3, the frames between carried from both where their "
-        "renders, moved into them, agree with theirs to 28 dB, one way (--model-every 3 --carry-agreement 28 "
+        "The fast setting: the model on one frame in 4, the frames between carried from both where they are "
+        "no farther from the frame than its nearest training photo, one way (--model-every 4 --carry-nearer 1 "
         "--one-way; those flags, given beside it, win). Chosen so that no carried frame with a photo lost more "
-        "than 0.1 dB against frame by frame on the paths it was chosen on: 1.8x frame by frame's frames per "
-        "second on a smooth 49-frame path with its mean gain, less on fast orbits, whose frames the gate gives "
-        "back to the model; a frame near a photo can still lose detail (docs/results.md, Speed at users' "
-        "sizes)."))] = False
+        "than 0.1 dB against frame by frame on the paths it was chosen on; faster on smooth paths, as fast as "
+        "the model where the path passes near the photos; one pass can flicker more than the render on very "
+        "smooth paths (then add --both-ways; docs/results.md, Speed at users' sizes)."))] = False
 
     def options(self):
         temporal = self.temporal

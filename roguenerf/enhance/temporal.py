@@ -184,7 +184,7 @@ class TemporalConfig:
     ``ollie``'s 49 frames at 3, 1.83x frame by frame with more gain (+2.56 against +2.48 dB; 46:
     1.44x); ``mary_rose``'s orbit (10 degrees a frame) 0.41 dB below frame by frame, where 46 and
     :attr:`carry_share` 0.05-0.2 kept its gain: on fast orbits pass one of them. Chosen again per
-    carried frame for :meth:`fast` (:data:`FAST`: 28 dB, the fifteenth session)."""
+    carried frame for :meth:`fast` (28 dB, then :attr:`carry_nearer` instead: :data:`FAST`)."""
     carry_share: float = 0.0
     """A frame is carried only where the frame(s) it would be moved from predict its render well
     *against the size of the enhancer's change*: the mean square of what their renders, moved the
@@ -229,8 +229,9 @@ class TemporalConfig:
     the model runs on it. Where a photo is nearer than the model frames, the model brings from it
     what no model frame around has: a carried frame at a photo's position kept 1.7 dB less
     (``mary_rose``'s orbit frame 32, a training camera where it stands). 0 (the default): no
-    such test. Needs the photo's distance (:meth:`TemporalFilter.carry`'s ``photo_distance``,
-    which :func:`~roguenerf.trajectory.enhance_path` gives)."""
+    such test; 1 in :meth:`fast` (:data:`FAST`, chosen per carried frame). Needs the photo's
+    distance (:meth:`TemporalFilter.carry`'s ``photo_distance``, which
+    :func:`~roguenerf.trajectory.enhance_path` gives)."""
     min_seen: float = 0.95
     """A frame is carried only where the previous frame sees at least this share of its
     pixels; otherwise the model runs on it."""
@@ -328,19 +329,24 @@ class TemporalConfig:
                              "model frame)")
 
 
-FAST = {"model_every": 3, "carry_agreement": 28.0, "both_ways": False}
+FAST = {"model_every": 4, "carry_nearer": 1.0, "both_ways": False}
 """The fields :meth:`TemporalConfig.fast` sets (the rest are the defaults): the model on one
-frame in 3, each frame between two model frames carried from both where their renders, moved into
-it, agree with its render to 28 dB, and one pass. Chosen on 2026-12-08 (fifteenth session) on
-``mary_rose``'s and ``dtu_scan37``'s paths (a 24-view path of each through its photos, where
-every frame carried is judged, the 49-frame orbit and smooth paths, the 13-frame one at 10 degrees
-a frame), by a rule stated before the runs: of ``carry_agreement`` 0, 24, 28, 32, 36, 40 and 46 at
-``model_every`` 3 and 4, one way, keep those where no carried frame with a photo loses more than
-0.1 dB against frame by frame and no path flickers more than its render; of those, the most frames
-carried. 0 and 24 lost up to 1.7 dB on frames whose renders agreed at 15-27.5 dB (``mary_rose``'s
-orbit frame 32: 22.8 dB, +2.16 against +3.87); 28 at 3 carried the most (28 % of the frames,
-4 at 22 %). Reported on ``ollie``'s and ``can_clip``'s paths (docs/results.md, *Speed at users'
-sizes*)."""
+frame in 4, each frame between two model frames carried from both where they are no farther from
+it (mixed by position) than its nearest training photo, and one pass. Chosen on 2026-12-08
+(fifteenth session) on ``mary_rose``'s and ``dtu_scan37``'s paths (a 24-view path of each through
+its photos, where every frame carried is judged, the 49-frame orbit and smooth paths, the 13-frame
+one at 10 degrees a frame) by a rule stated before the runs: keep the settings where no carried
+frame with a photo loses more than 0.1 dB against frame by frame and no path flickers more than
+its render; of those, the most frames carried. First of :attr:`TemporalConfig.carry_agreement` 0,
+24, 28, 32, 36, 40 and 46 at ``model_every`` 3 and 4 (28 at 3 won: 44 of the 159 frames; 0 and 24
+lost up to 1.7 dB on frames whose renders agreed at 15-27.5 dB, ``mary_rose``'s orbit frame 32 at
+22.8 dB: +2.16 against +3.87, a training camera where it stands); that failed per frame on the
+report half (a carried frame near a photo lost 0.2-0.4 dB on smooth paths, up to 3.9 on the photo
+paths, whose renders agreed at 28-51 dB), so again with :attr:`TemporalConfig.carry_nearer` 0,
+0.25, 0.5, 1 and 2 beside ``carry_agreement`` 0 and 28: ``carry_nearer`` 1 at 4 carried the most,
+51 (at 4 no frame with a photo of the choice half's smooth paths is carried: none was judged
+there; at 3 it lost 0.11 dB on ``dtu_scan37``'s 13-frame path). Reported on ``ollie``'s and
+``can_clip``'s paths (docs/results.md, *Speed at users' sizes*)."""
 
 
 def render_disagreement(warped_render: Tensor, render: Tensor, valid: Tensor) -> Tensor:

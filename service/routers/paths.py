@@ -117,7 +117,7 @@ def create_path_job(
     ] = BETWEEN_AGREEMENT,
     both_ways: Annotated[bool, Form(description=(
         "blend each frame with the frames after it too (a second pass from the last frame back: no lag); "
-        "false: one pass, faster. The fast setting (enhance-path --fast): model_every=3, carry_agreement=28, "
+        "false: one pass, faster. The fast setting (enhance-path --fast): model_every=4, carry_nearer=1, "
         "both_ways=false"))] = True,
     force: Annotated[bool, Form(description=(
         "enhance the path even when its cameras do not fit the scene (far from its cameras or seeing none of its "

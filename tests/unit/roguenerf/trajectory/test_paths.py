@@ -613,8 +613,8 @@ def test_enhance_path_cli(toy_path, tmp_path):
     assert not (tmp_path / "fast" / "forward").exists()
     rows = json.loads((tmp_path / "fast" / FLICKER_FILE).read_text())["per_frame"]
     assert not any(rows[t]["carried"] for t in range(0, len(rows), 2))
-    assert all("carry_agreement_db" in rows[t] for t in range(1, len(rows) - 1, 2))  # judged at 28 dB
-    assert all(rows[t]["carried"] == (rows[t]["carry_agreement_db"] >= 28) for t in range(1, len(rows) - 1, 2))
+    assert all("carry_nearer" in rows[t] for t in range(1, len(rows) - 1, 2))  # judged by the photos' distance
+    assert all(rows[t]["carried"] == (rows[t]["carry_nearer"] <= 1) for t in range(1, len(rows) - 1, 2))
     for flags, message in ((["--model-every", "0"], "model_every"), (["--no-temporal", "--model-every", "2"],
                                                                      "drop --no-temporal"),
                            (["--no-temporal", "--fast"], "drop --no-temporal"),
