@@ -267,7 +267,22 @@ def older_filter(tree: Path, revision: str):
         module.TemporalFilter = _before_fade_along(module)
     if not hasattr(module.TemporalConfig, "carry_share"):  # older: no share gate, nothing to report of it
         module.TemporalFilter = type("Filter", (module.TemporalFilter,), {"last_change": None})
+    if "photo_distance" not in inspect.signature(module.TemporalFilter.carry).parameters:
+        module.TemporalFilter = _before_carry_nearer(module.TemporalFilter)
     return module
+
+
+def _before_carry_nearer(older):
+    """An older ``TemporalFilter`` (before ``TemporalConfig.carry_nearer``) as this checkout's
+    ``enhance_path`` calls it: the photo's distance is never judged, never reported."""
+
+    class Filter(older):
+        last_nearer = None
+
+        def carry(self, *args, photo_distance=None, **kwargs):
+            return super().carry(*args, **kwargs)
+
+    return Filter
 
 
 def _before_fade_along(module):

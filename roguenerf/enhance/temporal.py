@@ -685,13 +685,14 @@ class TemporalFilter:
         render, depth = render.float(), depth.float()
         pose = torch.as_tensor(world_from_cam).to(torch.float64)
         K = torch.as_tensor(K).to(torch.float32)
+        # the kept frame(s) moved into this one, each with its share of the mix
+        if between is None:
+            model = self.config.carry_from == "model" and self._anchor is not None
+            sources = [(self._anchor if model else self._previous, 1.0)]
+        else:
+            sources = [(between[0], 1.0 - between[2]), (between[1], between[2])]
         if self.config.carry_nearer > 0 and photo_distance is not None:
             # the poses alone decide, before anything is moved
-            if between is None:
-                model = self.config.carry_from == "model" and self._anchor is not None
-                sources = [(self._anchor if model else self._previous, 1.0)]
-            else:
-                sources = [(between[0], 1.0 - between[2]), (between[1], between[2])]
             far = sum(part * float((frame.pose[:3, 3] - pose[:3, 3]).norm()) for frame, part in sources)
             self.last_nearer = far / photo_distance if photo_distance > 0 else (0.0 if far == 0 else math.inf)
             if far > self.config.carry_nearer * photo_distance:
@@ -701,10 +702,8 @@ class TemporalFilter:
         # The frames themselves are sampled (bicubic: half a move's cost) only once the renders
         # have let the carry through.
         if between is None:
-            source = self._anchor if self.config.carry_from == "model" and self._anchor is not None else self._previous
-            move = self._move(depth, K, pose, source, with_render=gate)
+            move = self._move(depth, K, pose, sources[0][0], with_render=gate)
             valid, warped_render = move.valid, move.render
-            sources = [(source, 1.0)]
         else:
             before, after, position = between
             moves = [self._move(depth, K, pose, frame, with_render=gate) for frame in (before, after)]
@@ -714,7 +713,6 @@ class TemporalFilter:
             valid = total > 0
             share = [w / total.clamp_min(1e-12) for w in weights]
             warped_render = None if moves[0].render is None else share[0] * moves[0].render + share[1] * moves[1].render
-            sources = [(before, 1.0 - position), (after, position)]
         self.last_share = float(valid.float().mean())
         if self.last_share < self.config.min_seen:
             return None
