@@ -94,6 +94,9 @@ SWEPT = (
 """The TemporalConfig fields this bench sweeps, in the order of the runs and of their labels: each
 with how its comma-separated values are read (on/off for the switches) and its label where it is
 not the shipped value."""
+CARRY_ONLY = ("between_agreement", "carry_agreement", "carry_between", "carry_nearer", "carry_share")
+"""The swept fields that only judge or shape carried frames: at ``model_every`` 1, where nothing is
+carried, a run with any of them off its shipped value is the shipped values' run again (not made)."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -147,9 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     modes = {"off": None}
     for values in itertools.product(*(chosen.get(field, [getattr(shipped, field)]) for field, _, _ in SWEPT)):
         config = dict(zip((field for field, _, _ in SWEPT), values))
-        if config["model_every"] == 1 and any(config[f] != getattr(shipped, f)
-                                              for f in ("between_agreement", "carry_agreement", "carry_between",
-                                                        "carry_nearer", "carry_share")):
+        if config["model_every"] == 1 and any(config[f] != getattr(shipped, f) for f in CARRY_ONLY):
             continue  # nothing is carried at K = 1: the same run as the shipped values'
         label = "/".join(["on", *(tag(v) for (field, _, tag), v in zip(SWEPT, values)
                                   if v != getattr(shipped, field))])

@@ -128,9 +128,9 @@ class PathEnhanceFlags(EnhanceFlags):
     model_every: Annotated[int | None, typer.Option("--model-every", help=(
         "With --temporal, run the model on at least one frame in this many and carry the model frames' "
         "results, reprojected, into the frames between, where they see at least 95 % of them: faster, but a "
-        "carried frame keeps only part of the model's detail, most lost on fast orbits (--carry-agreement 28, "
-        "as --fast: only where their renders, moved the same way, predict its own). 1: the model on every "
-        "frame (the default; docs/results.md, Speed at users' sizes)."))] = None
+        "carried frame keeps only part of the model's detail, most lost on fast orbits and near the photos "
+        "(--carry-nearer 1, as --fast: only where no training photo is nearer to it than they are). 1: the "
+        "model on every frame (the default; docs/results.md, Speed at users' sizes)."))] = None
 
     carry_between: Annotated[bool | None, typer.Option("--carry-between/--carry-after", help=(
         "With --model-every K, make the model frames 0, K, 2K, ... first and carry each frame between two of "
@@ -144,8 +144,8 @@ class PathEnhanceFlags(EnhanceFlags):
 
     carry_agreement: Annotated[float | None, typer.Option("--carry-agreement", metavar="DB", help=(
         "With --model-every, carry a frame only where the model frames' renders, reprojected into it, "
-        "match its render to this PSNR (e.g. 28, as --fast; higher: fewer frames carried, more of the model's "
-        "detail kept; default 0: carry wherever 95 % is seen)."))] = None
+        "match its render to this PSNR (e.g. 28; higher: fewer frames carried, more of the model's detail "
+        "kept; default 0: carry wherever 95 % is seen)."))] = None
 
     carry_share: Annotated[float | None, typer.Option("--carry-share", metavar="SHARE", help=(
         "With --model-every, carry a frame only where what the model frames' renders, reprojected into it, "

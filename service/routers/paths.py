@@ -101,7 +101,7 @@ def create_path_job(
         "mixed by how near each is; false: from the last model frame only"))] = True,
     carry_agreement: Annotated[float, Form(ge=0, le=200, description=(
         "with model_every > 1, carry a frame only where the model frames' renders, reprojected into it, "
-        "match its render to this PSNR in dB (e.g. 46; 0, the default: wherever 95 % of it is seen)"))
+        "match its render to this PSNR in dB (e.g. 28; 0, the default: wherever 95 % of it is seen)"))
     ] = CARRY_AGREEMENT,
     carry_share: Annotated[float, Form(ge=0, le=1000, description=(
         "with model_every > 1, carry a frame only where what the model frames' renders, reprojected into it, "
