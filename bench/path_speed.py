@@ -80,6 +80,7 @@ SWEPT = (
     ("carry_agreement", float, lambda v: f"agree{v:g}"),
     ("carry_share", float, lambda v: f"share{v:g}"),
     ("carry_nearer", float, lambda v: f"nearer{v:g}"),
+    ("schedule", str, lambda v: f"sched-{v}"),
     ("carry_between", ONOFF, lambda v: f"between-{'on' if v else 'off'}"),
     ("between_agreement", float, lambda v: f"mutual{v:g}"),
     ("weight", float, lambda v: f"w{v:g}"),
@@ -94,7 +95,7 @@ SWEPT = (
 """The TemporalConfig fields this bench sweeps, in the order of the runs and of their labels: each
 with how its comma-separated values are read (on/off for the switches) and its label where it is
 not the shipped value."""
-CARRY_ONLY = ("between_agreement", "carry_agreement", "carry_between", "carry_nearer", "carry_share")
+CARRY_ONLY = ("between_agreement", "carry_agreement", "carry_between", "carry_nearer", "carry_share", "schedule")
 """The swept fields that only judge or shape carried frames: at ``model_every`` 1, where nothing is
 carried, a run with any of them off its shipped value is the shipped values' run again (not made)."""
 

@@ -129,7 +129,7 @@ class PathEnhanceFlags(EnhanceFlags):
         "With --temporal, run the model on at least one frame in this many and carry the model frames' "
         "results, reprojected, into the frames between, where they see at least 95 % of them: faster, but a "
         "carried frame keeps only part of the model's detail, most lost on fast orbits and near the photos "
-        "(--carry-nearer 1, as --fast: only where no training photo is nearer to it than they are). 1: the "
+        "(--carry-nearer: only where no training photo is nearer to it than they are). 1: the "
         "model on every frame (the default; docs/results.md, Speed at users' sizes)."))] = None
 
     carry_between: Annotated[bool | None, typer.Option("--carry-between/--carry-after", help=(
@@ -158,6 +158,12 @@ class PathEnhanceFlags(EnhanceFlags):
         "many times as far from it as its nearest training photo (camera centres): where a photo is nearer, "
         "the model brings from it what they do not have (default 0: no such test)."))] = None
 
+    schedule: Annotated[str | None, typer.Option("--schedule", metavar="fixed|gate", help=(
+        "With --model-every K (carrying between): where the model frames go: fixed, every K-th frame (the "
+        "default); gate, as far apart as --carry-nearer lets every frame between them be carried, at most K "
+        "frames: the model runs where the path passes near the photos and at most once in K frames elsewhere."
+        ))] = None
+
     both_ways: Annotated[bool | None, typer.Option("--both-ways/--one-way", help=(
         "With --temporal, blend each frame with the frames after it too: a second pass from the last frame "
         "back over the first pass's frames (kept in OUTPUT/forward/): no lag, so a frame where a nearer photo "
@@ -165,12 +171,13 @@ class PathEnhanceFlags(EnhanceFlags):
         "final as they are made."), show_default=False)] = None
 
     fast: Annotated[bool, typer.Option("--fast", help=(
-        "The fast setting: the model on one frame in 4, the frames between carried from both where they are "
-        "no farther from the frame than its nearest training photo, one way (--model-every 4 --carry-nearer 1 "
-        "--one-way; those flags, given beside it, win). Chosen so that no carried frame with a photo lost more "
-        "than 0.1 dB against frame by frame on the paths it was chosen on; faster on smooth paths, as fast as "
-        "the model where the path passes near the photos; one pass can flicker more than the render on very "
-        "smooth paths (then add --both-ways; docs/results.md, Speed at users' sizes)."))] = False
+        "The fast setting: the model frames placed by the photos, at most 8 frames apart, and the frames "
+        "between carried from both, which are no farther from each than half its nearest training photo's "
+        "distance; one way (--model-every 8 --carry-nearer 0.5 --schedule gate --one-way; those flags, given "
+        "beside it, win). Chosen so that no carried frame with a photo lost more than 0.1 dB against frame by "
+        "frame on the paths it was chosen on; faster on smooth paths, as fast as the model where the path "
+        "passes near the photos; one pass can flicker more than the render on very smooth paths (then add "
+        "--both-ways; docs/results.md, Speed at users' sizes)."))] = False
 
     def options(self):
         temporal = self.temporal
@@ -180,10 +187,12 @@ class PathEnhanceFlags(EnhanceFlags):
             raise InputError("--fast: frames are carried by the temporal filter; drop --no-temporal")
         carrying = self.model_every is not None or self.fast
         for value, flag in ((self.carry_agreement, "--carry-agreement"), (self.carry_share, "--carry-share"),
-                            (self.carry_nearer, "--carry-nearer"),
+                            (self.carry_nearer, "--carry-nearer"), (self.schedule, "--schedule"),
                             (self.carry_between, "--carry-between/--carry-after")):
             if value is not None and not carrying:
                 raise InputError(f"{flag}: frames are carried only with --model-every K (K > 1) or --fast")
+        if self.schedule is not None and self.carry_between is False:
+            raise InputError("--schedule: places the model frames that frames are carried between: drop --carry-after")
         if self.between_agreement is not None and (not carrying or self.carry_between is False):
             raise InputError("--between-agreement: judges frames carried between model frames: needs --model-every "
                              "K (K > 1) or --fast, without --carry-after")
@@ -194,7 +203,8 @@ class PathEnhanceFlags(EnhanceFlags):
 
             chosen = {"model_every": self.model_every, "carry_agreement": self.carry_agreement,
                       "carry_share": self.carry_share, "carry_nearer": self.carry_nearer, "both_ways": self.both_ways,
-                      "carry_between": self.carry_between, "between_agreement": self.between_agreement}
+                      "carry_between": self.carry_between, "between_agreement": self.between_agreement,
+                      "schedule": self.schedule}
             chosen = {k: v for k, v in chosen.items() if v is not None}
             temporal = TemporalConfig.fast(**chosen) if self.fast else TemporalConfig(**chosen)
         return super().options(temporal=temporal)

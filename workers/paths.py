@@ -64,7 +64,7 @@ def run_path_job(run: JobRun) -> str:
     # the shipped defaults, but for the request's carried frames
     chosen = {"carry_agreement": float(request["carry_agreement"])} if "carry_agreement" in request else {}
     # older jobs: the library's defaults
-    for name in ("carry_between", "between_agreement", "carry_share", "carry_nearer", "both_ways"):
+    for name in ("carry_between", "between_agreement", "carry_share", "carry_nearer", "schedule", "both_ways"):
         if name in request:
             chosen[name] = request[name]
     options = EnhanceOptions(temporal=TemporalConfig(model_every=int(request.get("model_every", 1)), **chosen))

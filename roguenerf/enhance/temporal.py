@@ -232,6 +232,17 @@ class TemporalConfig:
     such test; 1 in :meth:`fast` (:data:`FAST`, chosen per carried frame). Needs the photo's
     distance (:meth:`TemporalFilter.carry`'s ``photo_distance``, which
     :func:`~roguenerf.trajectory.enhance_path` gives)."""
+    schedule: str = "fixed"
+    """Where the model frames of :attr:`carry_between` go: ``"fixed"``, on every
+    :attr:`model_every`-th frame (and the last); ``"gate"``, as far apart as
+    :attr:`carry_nearer` lets every frame between them be carried, at most :attr:`model_every`
+    frames (:func:`gated_schedule`, worked out from the cameras before the first frame). With
+    ``"fixed"`` a frame the gate refuses gets the model on its own and the stretch around it is
+    still carried from the fixed model frames, which are then farther from the frames beside it
+    than a model frame at the refused one would be; ``"gate"`` puts the model frames where the
+    photos call for them, and as far apart as ``model_every`` allows where none does. Needs
+    :attr:`carry_between` and ``model_every`` > 1 (otherwise the same as ``"fixed"``); without
+    :attr:`carry_nearer` every stretch is ``model_every`` long."""
     min_seen: float = 0.95
     """A frame is carried only where the previous frame sees at least this share of its
     pixels; otherwise the model runs on it."""
@@ -289,6 +300,8 @@ class TemporalConfig:
             raise InputError(f"TemporalConfig.model_every: expected an integer >= 1, got {self.model_every!r}")
         if self.carry_from not in ("last", "model"):
             raise InputError(f"TemporalConfig.carry_from: expected 'last' or 'model', got {self.carry_from!r}")
+        if self.schedule not in ("fixed", "gate"):
+            raise InputError(f"TemporalConfig.schedule: expected 'fixed' or 'gate', got {self.schedule!r}")
         if self.resample not in ("bilinear", "bicubic"):
             raise InputError(f"TemporalConfig.resample: expected 'bilinear' or 'bicubic', got {self.resample!r}")
         for name, what in (("carry_agreement", "a PSNR in dB"), ("between_agreement", "a PSNR in dB"),
@@ -329,10 +342,18 @@ class TemporalConfig:
                              "model frame)")
 
 
-FAST = {"model_every": 4, "carry_nearer": 1.0, "both_ways": False}
-"""The fields :meth:`TemporalConfig.fast` sets (the rest are the defaults): the model on one
-frame in 4, each frame between two model frames carried from both where they are no farther from
-it (mixed by position) than its nearest training photo, and one pass. Chosen on 2026-12-08
+FAST = {"model_every": 8, "carry_nearer": 0.5, "schedule": "gate", "both_ways": False}
+"""The fields :meth:`TemporalConfig.fast` sets (the rest are the defaults): the model frames placed
+by the photos (:attr:`TemporalConfig.schedule` ``"gate"``), at most 8 frames apart, so that every
+frame between two of them is carried from both, which are no farther from it (mixed by position)
+than half its nearest training photo's distance; one pass. Chosen again on 2026-12-08 (sixteenth
+session) by the rule below on the same paths, of ``schedule`` ``"fixed"`` and ``"gate"`` at
+``model_every`` 4, 6 and 8 with ``carry_nearer`` 1, then ``"gate"`` with 0.5 and 0.75: the gate
+schedule carries frames with photos that every 4th frame happens to make model frames, and at
+``carry_nearer`` 1 and 0.75 one of them lost 0.11 dB (``dtu_scan37``'s 13-frame path, frame 4);
+``"gate"`` at 8 with 0.5 passed with the most frames carried, 53 of 159 (every 4th frame with 1,
+the setting before: 51, none of the smooth paths' frames with photos judged); docs/results.md,
+*Speed at users' sizes*. First chosen on 2026-12-08
 (fifteenth session) on ``mary_rose``'s and ``dtu_scan37``'s paths (a 24-view path of each through
 its photos, where every frame carried is judged, the 49-frame orbit and smooth paths, the 13-frame
 one at 10 degrees a frame) by a rule stated before the runs: keep the settings where no carried
@@ -347,6 +368,43 @@ paths, whose renders agreed at 28-51 dB), so again with :attr:`TemporalConfig.ca
 51 (at 4 no frame with a photo of the choice half's smooth paths is carried: none was judged
 there; at 3 it lost 0.11 dB on ``dtu_scan37``'s 13-frame path). Reported on ``ollie``'s and
 ``can_clip``'s paths (docs/results.md, *Speed at users' sizes*)."""
+
+
+def mixed_distance(centres: Tensor, t: int, before: int, after: int) -> float:
+    """How far frame ``t`` is from the model frames ``before`` < ``t`` < ``after`` it is carried
+    between, for :attr:`TemporalConfig.carry_nearer`: their camera centres' distances to its
+    (``centres`` ``(T, 3)``, float64) mixed by position, as :meth:`TemporalFilter.carry` mixes them."""
+    position = (t - before) / (after - before)
+    return ((1.0 - position) * float((centres[before] - centres[t]).norm())
+            + position * float((centres[after] - centres[t]).norm()))
+
+
+def gated_schedule(centres: Tensor, photo_distances: list[float], most: int, nearer: float) -> list[int]:
+    """The model frames of a path for :attr:`TemporalConfig.schedule` ``"gate"``: frame 0, then each
+    next one as far on as every frame between passes :attr:`TemporalConfig.carry_nearer`
+    (:func:`mixed_distance` at most ``nearer`` times its nearest photo's; 0: no test), at most
+    ``most`` frames on (the very next frame where no later one lets them all pass), and the last
+    frame. ``centres`` ``(T, 3)``
+    float64 camera centres; ``photo_distances``: each frame's distance to its nearest training
+    photo (:meth:`~roguenerf.inference.SceneEnhancer.photo_distance`)."""
+    total = len(centres)
+    if isinstance(most, bool) or not isinstance(most, int) or most < 1:
+        raise InputError(f"most: expected an integer >= 1, got {most!r}")
+    if len(photo_distances) != total:
+        raise InputError(f"photo_distances: expected one per frame ({total}), got {len(photo_distances)}")
+    if total == 0:
+        return []
+    frames, before = [0], 0
+    while before < total - 1:
+        after = before + 1
+        for candidate in range(before + 2, min(before + most, total - 1) + 1):
+            # carry's own test (far > nearer * photo: refused), on the same numbers
+            if nearer <= 0 or not any(mixed_distance(centres, t, before, candidate) > nearer * photo_distances[t]
+                                      for t in range(before + 1, candidate)):
+                after = candidate
+        frames.append(after)
+        before = after
+    return frames
 
 
 def render_disagreement(warped_render: Tensor, render: Tensor, valid: Tensor) -> Tensor:

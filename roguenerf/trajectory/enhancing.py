@@ -26,6 +26,7 @@ raises (a cancelled or failed path resumes after the last frame written).
 
 from __future__ import annotations
 
+import bisect
 import hashlib
 import json
 import math
@@ -37,7 +38,7 @@ from pathlib import Path
 
 from torch import Tensor
 
-from roguenerf.enhance.temporal import TemporalFilter, settling, sticky_neighbours
+from roguenerf.enhance.temporal import TemporalFilter, gated_schedule, settling, sticky_neighbours
 from roguenerf.errors import InputError, PathCancelled
 from roguenerf.inference import PoseMemory
 from roguenerf.trajectory.checks import check_path
@@ -423,8 +424,9 @@ def enhance_path(
     def make_between(t: int, render: Tensor, depth: Tensor) -> dict:
         """Frame t with TemporalConfig.carry_between: a model frame, or one carried from the model
         frames before and after it (the one after made first, right after the one before was remembered)."""
-        before = t - t % every
-        after = min(before + every, total - 1)
+        at = bisect.bisect_right(model_frames, t) - 1
+        before = model_frames[at]
+        after = model_frames[min(at + 1, len(model_frames) - 1)]
         if t == before or t == after:  # a model frame with nothing to carry between (the last, or frame 0)
             return make(t, render, depth, neighbours=chosen(t, (render, depth)))
         if after not in made:
@@ -486,6 +488,17 @@ def enhance_path(
         per_pair.extend(reversed(pairs_back))
         return spent + (time.perf_counter() - waited if written_now else 0.0), written_now
 
+    # between: the model frames, in order (TemporalConfig.schedule), worked out from the cameras
+    # alone, so a resumed path places them where the first run did
+    model_frames = None
+    if between:
+        if temporal.config.schedule == "gate":
+            nearer = temporal.config.carry_nearer
+            photos = ([enhancer.photo_distance(camera_path.world_from_cam[t], exclude=excluded(t))
+                       for t in range(total)] if nearer > 0 else [math.inf] * total)
+            model_frames = gated_schedule(camera_path.world_from_cam[:, :3, 3].double(), photos, every, nearer)
+        else:
+            model_frames = sorted({*range(0, total, every), total - 1})
     try:
         for t in range(total):
             if should_stop is not None and should_stop():
@@ -541,7 +554,9 @@ def enhance_path(
                 temporal.remember(render, enhanced, depth, camera_path.K[t], camera_path.world_from_cam[t],
                                   model=not entry["carried"], parallax=entry.get("parallax"),
                                   blended=entry.get("blended"))
-            anchors.pop(t - every, None)
+            if between:  # the model frames before the one this frame was carried from are done with
+                for done in [m for m in anchors if m < model_frames[bisect.bisect_right(model_frames, t) - 1]]:
+                    anchors.pop(done)
             if temporal is not None:  # frames later than t look back this far at most (settles)
                 rule.pop(t - temporal.config.change_frames - 1, None)
             if progress is not None:

@@ -27,6 +27,9 @@ CARRY_SHARE = 0.0
 CARRY_NEARER = 0.0
 """The form's default ``carry_nearer``: the library's (``TemporalConfig.carry_nearer``), as
 :data:`CARRY_AGREEMENT`."""
+SCHEDULE = "fixed"
+"""The form's default ``schedule``: the library's (``TemporalConfig.schedule``), as
+:data:`CARRY_AGREEMENT`."""
 BETWEEN_AGREEMENT = 0.0
 """The form's default ``between_agreement``: the library's (``TemporalConfig.between_agreement``),
 as :data:`CARRY_AGREEMENT`."""
@@ -111,14 +114,18 @@ def create_path_job(
         "with model_every > 1, carry a frame only where the model frames it is carried from are at most this "
         "many times as far from it as its nearest training photo (camera centres; 0: no such test)"))
     ] = CARRY_NEARER,
+    schedule: Annotated[Literal["fixed", "gate"], Form(description=(
+        "with model_every > 1 and carry_between, where the model frames go: fixed, every model_every-th frame; "
+        "gate, as far apart as carry_nearer lets every frame between them be carried, at most model_every"))
+    ] = SCHEDULE,
     between_agreement: Annotated[float, Form(ge=0, le=200, description=(
         "with model_every > 1 and carry_between, carry a frame only where the two model frames around it, "
         "reprojected into it, also agree with each other to this PSNR in dB (0: no such test)"))
     ] = BETWEEN_AGREEMENT,
     both_ways: Annotated[bool, Form(description=(
         "blend each frame with the frames after it too (a second pass from the last frame back: no lag); "
-        "false: one pass, faster. The fast setting (enhance-path --fast): model_every=4, carry_nearer=1, "
-        "both_ways=false"))] = True,
+        "false: one pass, faster. The fast setting (enhance-path --fast): model_every=8, carry_nearer=0.5, "
+        "schedule=gate, both_ways=false"))] = True,
     force: Annotated[bool, Form(description=(
         "enhance the path even when its cameras do not fit the scene (far from its cameras or seeing none of its "
         "training photos: OpenGL vs OpenCV, another unit or world, z vs ray depth; a 422 otherwise)"))] = False,
@@ -135,7 +142,7 @@ def create_path_job(
         request = {"kind": "path", "frames": frames, "depth_type": depth_type, "depth_scale": depth_scale,
                    "background": background, "quality": quality, "force": force, "model_every": model_every,
                    "carry_agreement": carry_agreement, "carry_share": carry_share, "carry_nearer": carry_nearer,
-                   "carry_between": carry_between,
+                   "carry_between": carry_between, "schedule": schedule,
                    "between_agreement": between_agreement, "both_ways": both_ways}
         try:
             job, _ = services.store.create_job(scene_id, request, base_version=row["active_version"],

@@ -129,6 +129,11 @@ def test_a_path_job_with_model_every_carries_the_frames_between(setup):
     from service.routers.paths import CARRY_NEARER
 
     assert CARRY_NEARER == TemporalConfig().carry_nearer
+    from service.routers.paths import SCHEDULE
+
+    assert SCHEDULE == TemporalConfig().schedule and job["request"]["schedule"] == "fixed"
+    bad = post_path(client, scene_id, path_zip(setup["scene"], seed=SEED)[0], model_every=2, schedule="sometimes")
+    assert bad.status_code == 422 and "schedule" in bad.json()["error"]["message"]
     assert job["request"]["carry_nearer"] == 0
     bad = post_path(client, scene_id, path_zip(setup["scene"], seed=SEED)[0], model_every=2, carry_nearer=-1)
     assert bad.status_code == 422 and "carry_nearer" in bad.json()["error"]["message"]
@@ -140,9 +145,10 @@ def test_a_path_job_with_model_every_carries_the_frames_between(setup):
 
 
 def test_a_path_job_in_the_fast_setting_runs_one_pass(setup):
-    """The CLI's --fast as form fields (TemporalConfig.FAST: model_every=4, carry_nearer=1,
-    both_ways=false): one pass, one step per frame, the frames between judged by how far their
-    model frames are against the nearest photo; the form's both_ways defaults to the library's."""
+    """The CLI's --fast as form fields (TemporalConfig.FAST: model_every=8, carry_nearer=0.5,
+    schedule=gate, both_ways=false): one pass, one step per frame, the model frames placed by how far
+    they are against the nearest photo, every frame between them carried; the form's both_ways
+    defaults to the library's."""
     from roguenerf.enhance.temporal import FAST, TemporalConfig
 
     client, scene_id = setup["client"], setup["scene_id"]
@@ -156,8 +162,9 @@ def test_a_path_job_in_the_fast_setting_runs_one_pass(setup):
     assert done["step"] == done["total_steps"] == frames
     report = client.get(f"/jobs/{job['id']}/result", params={"what": "flicker"}).json()
     judged = [f for f in report["per_frame"] if "carry_nearer" in f]
-    assert judged and all(f["carried"] == (f["carry_nearer"] <= 1) for f in judged)
-    assert all(not f["carried"] for f in report["per_frame"] if f["frame"] % 4 == 0)
+    assert all(f["carried"] == ("carry_nearer" in f) for f in report["per_frame"])
+    assert all(f["carry_nearer"] <= FAST["carry_nearer"] for f in judged)
+    assert not report["per_frame"][0]["carried"] and not report["per_frame"][-1]["carried"]
     schemas = client.get("/openapi.json").json()["components"]["schemas"]
     form = next(v for k, v in schemas.items() if k.startswith("Body_create_path_job"))
     assert form["properties"]["both_ways"]["default"] is TemporalConfig().both_ways is True

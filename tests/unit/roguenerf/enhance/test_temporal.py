@@ -577,13 +577,15 @@ def test_both_ways_must_be_true_or_false(value):
 
 
 def test_the_fast_setting_is_the_defaults_but_for_its_own_fields_and_takes_changes():
-    """TemporalConfig.fast(): FAST's fields (the model on one frame in 4, a frame carried only
-    where its model frames are no farther than its nearest photo, one pass) over the defaults; a
-    field given to it wins, and a bad one is refused as anywhere."""
+    """TemporalConfig.fast(): FAST's fields (the model frames placed by the photos, at most 8
+    apart, a frame carried only where its model frames are no farther than half its nearest
+    photo's distance, one pass) over the defaults; a field given to it wins, and a bad one is
+    refused as anywhere."""
     from roguenerf.enhance.temporal import FAST
 
     fast, shipped = TemporalConfig.fast(), TemporalConfig()
-    assert (fast.model_every, fast.carry_nearer, fast.both_ways) == (4, 1.0, False) == tuple(FAST.values())
+    assert ((fast.model_every, fast.carry_nearer, fast.schedule, fast.both_ways) == (8, 0.5, "gate", False)
+            == tuple(FAST.values()))
     assert dataclasses.replace(fast, **{k: getattr(shipped, k) for k in FAST}) == shipped
     assert TemporalConfig.fast(model_every=3, both_ways=True) == dataclasses.replace(fast, model_every=3,
                                                                                       both_ways=True)
@@ -622,3 +624,61 @@ def test_a_frame_nearer_a_photo_than_its_model_frames_is_not_carried(monkeypatch
     for bad in (-1.0, float("inf"), True):
         with pytest.raises(InputError, match="carry_nearer"):
             TemporalConfig(carry_nearer=bad)
+
+
+def test_the_gated_schedule_places_model_frames_where_the_photos_call_for_them():
+    """schedule "gate": ten cameras a unit apart on a line, a training photo where frame 5 stands
+    (frame t is |t - 5| from it), at most 4 frames apart, carry_nearer 1. From 0, frame 4 lets
+    1-3 pass (frame 3: 3/4 * 3 + 1/4 * 1 = 1.5 <= 2); from 4 no later frame lets frame 5 (on the
+    photo) pass, so 5 is next; from 5, 7 lets 6 pass (1 <= 1) and 8 or 9 do not (6: 4/3, 1.5 > 1);
+    from 7, 9 (the last). Without the test, every 4th frame and the last; at most 1 apart, all."""
+    from roguenerf.enhance.temporal import gated_schedule, mixed_distance
+
+    centres = torch.zeros(10, 3, dtype=torch.float64)
+    centres[:, 0] = torch.arange(10, dtype=torch.float64)
+    photos = [abs(t - 5.0) for t in range(10)]
+    assert gated_schedule(centres, photos, 4, 1.0) == [0, 4, 5, 7, 9]
+    assert gated_schedule(centres, photos, 4, 0.0) == [0, 4, 8, 9]
+    assert gated_schedule(centres, [math.inf] * 10, 4, 1.0) == [0, 4, 8, 9]
+    assert gated_schedule(centres, photos, 1, 1.0) == list(range(10))
+    assert gated_schedule(centres[:1], [1.0], 4, 1.0) == [0] and gated_schedule(centres[:0], [], 4, 1.0) == []
+    assert mixed_distance(centres, 3, 0, 4) == pytest.approx(1.5)
+    with pytest.raises(InputError, match="most"):
+        gated_schedule(centres, photos, 0, 1.0)
+    with pytest.raises(InputError, match="photo_distances"):
+        gated_schedule(centres, photos[:3], 4, 1.0)
+    with pytest.raises(InputError, match="schedule"):
+        TemporalConfig(schedule="adaptive")
+
+
+def test_every_frame_the_gated_schedule_puts_between_is_carried_by_the_filter():
+    """The schedule judges with TemporalFilter.carry's own test on the same numbers: on a path
+    whose frames 3 and 6 stand 0.1 from photos, every frame between two scheduled model frames is
+    carried (not refused by carry_nearer), and the frames the schedule makes model frames of
+    would have been refused between the fixed ones."""
+    from roguenerf.enhance.temporal import gated_schedule
+
+    r1, e1 = _frame(1)
+    T = 9
+    poses = [torch.tensor([[1.0, 0, 0, 0.3 * t], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], dtype=torch.float64)
+             for t in range(T)]
+    centres = torch.stack([p[:3, 3] for p in poses])
+    photos = [min(abs(0.3 * t - 0.9), abs(0.3 * t - 1.8)) + 0.1 for t in range(T)]
+    config = TemporalConfig(model_every=4, reject=0.0, min_seen=0.0, carry_nearer=1.0)
+    frames = gated_schedule(centres, photos, 4, config.carry_nearer)
+    assert frames != [0, 4, 8] and len(frames) < T
+
+    def carried(schedule):
+        out = []
+        for a, b in zip(schedule, schedule[1:]):
+            f = TemporalFilter(config)
+            f.remember(r1, e1, DEPTH, K, poses[a])
+            before = f.kept
+            f.remember(r1, e1, DEPTH, K, poses[b])
+            after = f.kept
+            out += [f.carry(r1, DEPTH, K, poses[t], between=(before, after, (t - a) / (b - a)),
+                            photo_distance=photos[t]) is not None for t in range(a + 1, b)]
+        return out
+
+    assert all(carried(frames))
+    assert not all(carried([0, 4, 8]))

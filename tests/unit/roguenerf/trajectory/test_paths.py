@@ -606,15 +606,25 @@ def test_enhance_path_cli(toy_path, tmp_path):
     assert runner.invoke(app, after).exit_code == 0
     frame = lambda folder: (tmp_path / folder / "frames" / "00001.png").read_bytes()  # noqa: E731
     assert frame("after") != frame("every")
-    # --fast: TemporalConfig.fast(), one way; a flag beside it wins (here the model on every second frame)
+    # --fast: TemporalConfig.fast(), one way; a flag beside it wins (here at most 2 frames apart)
+    from roguenerf.enhance.temporal import FAST
+
     fast = args[:7] + [str(tmp_path / "fast"), *args[8:], "--fast", "--model-every", "2"]
     result = runner.invoke(app, fast)
     assert result.exit_code == 0, result.output
     assert not (tmp_path / "fast" / "forward").exists()
     rows = json.loads((tmp_path / "fast" / FLICKER_FILE).read_text())["per_frame"]
-    assert not any(rows[t]["carried"] for t in range(0, len(rows), 2))
-    assert all("carry_nearer" in rows[t] for t in range(1, len(rows) - 1, 2))  # judged by the photos' distance
-    assert all(rows[t]["carried"] == (rows[t]["carry_nearer"] <= 1) for t in range(1, len(rows) - 1, 2))
+    # model frames placed by the photos' distance, at most 2 apart: every frame between them carried
+    assert not rows[0]["carried"] and not rows[-1]["carried"]
+    assert all(f["carried"] == ("carry_nearer" in f) for f in rows)
+    assert all(f["carry_nearer"] <= FAST["carry_nearer"] for f in rows if f["carried"])
+    assert all(not (a["carried"] and b["carried"]) for a, b in zip(rows, rows[1:]))
+    # --schedule gate: where no carry would pass, every frame is a model frame and none is even tried
+    gate = args[:7] + [str(tmp_path / "gate"), *args[8:], "--fast", "--schedule", "gate", "--carry-nearer", "0.0001"]
+    result = runner.invoke(app, gate)
+    assert result.exit_code == 0, result.output
+    rows = json.loads((tmp_path / "gate" / FLICKER_FILE).read_text())["per_frame"]
+    assert not any(f["carried"] or "carry_nearer" in f for f in rows)
     for flags, message in ((["--model-every", "0"], "model_every"), (["--no-temporal", "--model-every", "2"],
                                                                      "drop --no-temporal"),
                            (["--no-temporal", "--fast"], "drop --no-temporal"),
@@ -627,7 +637,10 @@ def test_enhance_path_cli(toy_path, tmp_path):
                            (["--carry-share", "0.1"], "only with --model-every"),
                            (["--carry-nearer", "1"], "only with --model-every"),
                            (["--model-every", "2", "--carry-nearer", "-1"], "carry_nearer"),
-                           (["--model-every", "2", "--carry-share", "-1"], "carry_share")):
+                           (["--model-every", "2", "--carry-share", "-1"], "carry_share"),
+                           (["--schedule", "gate"], "only with --model-every"),
+                           (["--model-every", "2", "--carry-after", "--schedule", "gate"], "drop --carry-after"),
+                           (["--model-every", "2", "--schedule", "sometimes"], "schedule")):
         bad = runner.invoke(app, args[:7] + [str(tmp_path / "bad"), *args[8:], *flags])
         assert bad.exit_code == 2 and message in bad.output and "Traceback" not in bad.output
 
@@ -1166,3 +1179,51 @@ def test_the_path_clock_times_each_pass_on_its_own():
     assert first(0, 20) is None  # nothing done yet
     start[0] = 7.0
     assert first(1, 20) == pytest.approx(9 * 2.0 + 10 * 2.0 * SECOND_PASS_SHARE)  # timed from the clock's start
+
+
+def test_the_gated_schedule_runs_the_model_where_it_says_and_resumes_the_same(toy_path, enhancer, tmp_path,
+                                                                             monkeypatch):
+    """schedule "gate" on the 7-frame path, with a carry_nearer under which it differs from every
+    3rd frame: the model runs on exactly the scheduled frames (each model frame after a stretch
+    before the frames of the stretch), every other frame is carried, and a path stopped and
+    resumed makes the same frames."""
+    from roguenerf.enhance import EnhanceOptions
+    from roguenerf.enhance.temporal import TemporalConfig, gated_schedule
+    from roguenerf.trajectory.enhancing import _match_views
+
+    root, scene = toy_path["root"], toy_path["scene"]
+    cp = read_camera_path(root / "camera_path.json", dataparser=PARSER)
+    T = len(cp)
+    matches = _match_views(scene, cp)
+    train = list(scene.indices("train"))
+    photos = [min(float((cp.world_from_cam[t, :3, 3] - scene.frames[i].world_from_cam[:3, 3]).norm())
+                  for i in train if i != matches[t]) for t in range(T)]
+    centres = cp.world_from_cam[:, :3, 3].double()
+    limits = [x for x in (2.0, 1.0, 0.5, 0.25, 0.1) if gated_schedule(centres, photos, 3, x) not in
+              ([0, 3, 6], list(range(T)))]
+    assert limits, "no carry_nearer makes this path's schedule differ from every 3rd frame"
+    schedule = gated_schedule(centres, photos, 3, limits[0])
+    made_by_model = []
+
+    def run(out, **kw):
+        config = TemporalConfig(model_every=3, min_seen=0.0, carry_nearer=limits[0], schedule="gate",
+                                both_ways=False)
+        gated = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=config))
+        real = gated.enhance
+        monkeypatch.setattr(gated, "enhance", lambda render, *a, **k: made_by_model.append(
+            next(t for t in range(T) if torch.equal(a[2], cp.world_from_cam[t]))) or real(render, *a, **k))
+        return enhance_path(scene, gated, cp, root / "frames", out, depth_type="ray", video=False, **kw)
+
+    result = run(tmp_path / "gate")
+    assert sorted(made_by_model) == schedule and len(made_by_model) == len(schedule)
+    assert [f["carried"] for f in result.flicker["per_frame"]] == [t not in schedule for t in range(T)]
+    frame = lambda t: (tmp_path / "gate" / "frames" / f"{t:05d}.png").read_bytes()  # noqa: E731
+    made = {t: frame(t) for t in range(T)}
+    for t in range(2, T):
+        (tmp_path / "gate" / "frames" / f"{t:05d}.png").unlink()
+    asked = iter([False] * 4 + [True])
+    with pytest.raises(PathCancelled):
+        run(tmp_path / "gate", should_stop=lambda: next(asked))
+    again = run(tmp_path / "gate")
+    assert all(frame(t) == made[t] for t in range(T))
+    assert [f["carried"] for f in again.flicker["per_frame"]] == [t not in schedule for t in range(T)]
