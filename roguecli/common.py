@@ -129,7 +129,7 @@ class PathEnhanceFlags(EnhanceFlags):
         "With --temporal, run the model on at least one frame in this many and carry the model frames' "
         "results, reprojected, into the frames between, where they see at least 95 % of them: faster, but a "
         "carried frame keeps only part of the model's detail, most lost on fast orbits and near the photos "
-        "(--carry-nearer: only where no training photo is nearer to it than they are). 1: the "
+        "(--carry-nearer 1, as --fast: only where no training photo is nearer to it than they are). 1: the "
         "model on every frame (the default; docs/results.md, Speed at users' sizes)."))] = None
 
     carry_between: Annotated[bool | None, typer.Option("--carry-between/--carry-after", help=(
@@ -171,13 +171,12 @@ class PathEnhanceFlags(EnhanceFlags):
         "final as they are made."), show_default=False)] = None
 
     fast: Annotated[bool, typer.Option("--fast", help=(
-        "The fast setting: the model frames placed by the photos, at most 8 frames apart, and the frames "
-        "between carried from both, which are no farther from each than half its nearest training photo's "
-        "distance; one way (--model-every 8 --carry-nearer 0.5 --schedule gate --one-way; those flags, given "
-        "beside it, win). Chosen so that no carried frame with a photo lost more than 0.1 dB against frame by "
-        "frame on the paths it was chosen on; faster on smooth paths, as fast as the model where the path "
-        "passes near the photos; one pass can flicker more than the render on very smooth paths (then add "
-        "--both-ways; docs/results.md, Speed at users' sizes)."))] = False
+        "The fast setting: the model on one frame in 4, the frames between carried from both where they are "
+        "no farther from the frame than its nearest training photo, one way (--model-every 4 --carry-nearer 1 "
+        "--one-way; those flags, given beside it, win). Chosen so that no carried frame with a photo lost more "
+        "than 0.1 dB against frame by frame on the paths it was chosen on; faster on smooth paths, as fast as "
+        "the model where the path passes near the photos; one pass can flicker more than the render on very "
+        "smooth paths (then add --both-ways; docs/results.md, Speed at users' sizes)."))] = False
 
     def options(self):
         temporal = self.temporal

@@ -342,18 +342,10 @@ class TemporalConfig:
                              "model frame)")
 
 
-FAST = {"model_every": 8, "carry_nearer": 0.5, "schedule": "gate", "both_ways": False}
-"""The fields :meth:`TemporalConfig.fast` sets (the rest are the defaults): the model frames placed
-by the photos (:attr:`TemporalConfig.schedule` ``"gate"``), at most 8 frames apart, so that every
-frame between two of them is carried from both, which are no farther from it (mixed by position)
-than half its nearest training photo's distance; one pass. Chosen again on 2026-12-08 (sixteenth
-session) by the rule below on the same paths, of ``schedule`` ``"fixed"`` and ``"gate"`` at
-``model_every`` 4, 6 and 8 with ``carry_nearer`` 1, then ``"gate"`` with 0.5 and 0.75: the gate
-schedule carries frames with photos that every 4th frame happens to make model frames, and at
-``carry_nearer`` 1 and 0.75 one of them lost 0.11 dB (``dtu_scan37``'s 13-frame path, frame 4);
-``"gate"`` at 8 with 0.5 passed with the most frames carried, 53 of 159 (every 4th frame with 1,
-the setting before: 51, none of the smooth paths' frames with photos judged); docs/results.md,
-*Speed at users' sizes*. First chosen on 2026-12-08
+FAST = {"model_every": 4, "carry_nearer": 1.0, "both_ways": False}
+"""The fields :meth:`TemporalConfig.fast` sets (the rest are the defaults): the model on one
+frame in 4, each frame between two model frames carried from both where they are no farther from
+it (mixed by position) than its nearest training photo, and one pass. Chosen on 2026-12-08
 (fifteenth session) on ``mary_rose``'s and ``dtu_scan37``'s paths (a 24-view path of each through
 its photos, where every frame carried is judged, the 49-frame orbit and smooth paths, the 13-frame
 one at 10 degrees a frame) by a rule stated before the runs: keep the settings where no carried

@@ -124,8 +124,8 @@ def create_path_job(
     ] = BETWEEN_AGREEMENT,
     both_ways: Annotated[bool, Form(description=(
         "blend each frame with the frames after it too (a second pass from the last frame back: no lag); "
-        "false: one pass, faster. The fast setting (enhance-path --fast): model_every=8, carry_nearer=0.5, "
-        "schedule=gate, both_ways=false"))] = True,
+        "false: one pass, faster. The fast setting (enhance-path --fast): model_every=4, carry_nearer=1, "
+        "both_ways=false"))] = True,
     force: Annotated[bool, Form(description=(
         "enhance the path even when its cameras do not fit the scene (far from its cameras or seeing none of its "
         "training photos: OpenGL vs OpenCV, another unit or world, z vs ray depth; a 422 otherwise)"))] = False,
