@@ -161,8 +161,8 @@ class PathEnhanceFlags(EnhanceFlags):
     schedule: Annotated[str | None, typer.Option("--schedule", metavar="fixed|gate", help=(
         "With --model-every K (carrying between): where the model frames go: fixed, every K-th frame (the "
         "default); gate, as far apart as --carry-nearer lets every frame between them be carried, at most K "
-        "frames: the model runs where the path passes near the photos and at most once in K frames elsewhere."
-        ))] = None
+        "frames: the model runs where the path passes near the photos and at most once in K frames elsewhere "
+        "(measured, not chosen for --fast: docs/results.md)."))] = None
 
     both_ways: Annotated[bool | None, typer.Option("--both-ways/--one-way", help=(
         "With --temporal, blend each frame with the frames after it too: a second pass from the last frame "
@@ -173,10 +173,10 @@ class PathEnhanceFlags(EnhanceFlags):
     fast: Annotated[bool, typer.Option("--fast", help=(
         "The fast setting: the model on one frame in 4, the frames between carried from both where they are "
         "no farther from the frame than its nearest training photo, one way (--model-every 4 --carry-nearer 1 "
-        "--one-way; those flags, given beside it, win). Chosen so that no carried frame with a photo lost more "
-        "than 0.1 dB against frame by frame on the paths it was chosen on; faster on smooth paths, as fast as "
-        "the model where the path passes near the photos; one pass can flicker more than the render on very "
-        "smooth paths (then add --both-ways; docs/results.md, Speed at users' sizes)."))] = False
+        "--one-way; those flags, given beside it, win). Faster on smooth paths, as fast as the model where the "
+        "path passes near the photos; a carried frame can keep less of the model's gain (up to 0.74 dB less on "
+        "the paths measured), and one pass can flicker more than the render on very smooth paths (then add "
+        "--both-ways; docs/results.md, Speed at users' sizes)."))] = False
 
     def options(self):
         temporal = self.temporal

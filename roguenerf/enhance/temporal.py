@@ -242,7 +242,11 @@ class TemporalConfig:
     than a model frame at the refused one would be; ``"gate"`` puts the model frames where the
     photos call for them, and as far apart as ``model_every`` allows where none does. Needs
     :attr:`carry_between` and ``model_every`` > 1 (otherwise the same as ``"fixed"``); without
-    :attr:`carry_nearer` every stretch is ``model_every`` long."""
+    :attr:`carry_nearer` every stretch is ``model_every`` long. Not the fast setting's
+    (docs/results.md, *Speed at users' sizes*, sixteenth session): chosen by :data:`FAST`'s rule at
+    8 with ``carry_nearer`` 0.5 (at 1 and 0.75 a frame of ``dtu_scan37``'s 13-frame path, which the
+    fixed schedule makes a model frame, lost 0.11 dB), it then lost 0.79 dB on a carried frame of
+    ``can_clip``'s 49-frame path and carried fewer frames there."""
     min_seen: float = 0.95
     """A frame is carried only where the previous frame sees at least this share of its
     pixels; otherwise the model runs on it."""
@@ -359,7 +363,14 @@ paths, whose renders agreed at 28-51 dB), so again with :attr:`TemporalConfig.ca
 0.25, 0.5, 1 and 2 beside ``carry_agreement`` 0 and 28: ``carry_nearer`` 1 at 4 carried the most,
 51 (at 4 no frame with a photo of the choice half's smooth paths is carried: none was judged
 there; at 3 it lost 0.11 dB on ``dtu_scan37``'s 13-frame path). Reported on ``ollie``'s and
-``can_clip``'s paths (docs/results.md, *Speed at users' sizes*)."""
+``can_clip``'s paths (docs/results.md, *Speed at users' sizes*). Judged again on 2026-12-08
+(sixteenth session) on 46-frame paths whose frames with photos fall between model frames (15, 30):
+a carried frame with a photo lost 0.49 dB on ``can_clip`` and 0.74 on ``ollie`` (on
+``dtu_scan37`` 0.00-0.01), though its model frames were 2-3 times nearer to it than its nearest
+training photo: the carry itself loses detail where the enhancer adds most, which
+:attr:`TemporalConfig.carry_nearer` does not see. Tried with :attr:`TemporalConfig.schedule`
+``"gate"`` (at 8 with 0.5, chosen on the choice half by the same rule): 0.79 dB lost on a carried
+frame of ``can_clip``'s 49-frame path; not shipped."""
 
 
 def mixed_distance(centres: Tensor, t: int, before: int, after: int) -> float:
