@@ -34,14 +34,18 @@ values of
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.change_frames` and
 :attr:`~roguenerf.enhance.temporal.TemporalConfig.both_ways` (labelled ``on`` for the
 shipped values, ``on/kK``, ``on/RESAMPLE``, ``on/rejectX``, ``on/from-C``, ``on/BLEND``,
-``on/agreeDB``, ``on/shareS``, ``on/nearerR``, ``on/between-on|off``, ``on/mutualDB``, ``on/wW``, ``on/cwW``,
+``on/agreeDB``, ``on/shareS``, ``on/nearerR``, ``on/sched-fixed|gate``, ``on/between-on|off``, ``on/mutualDB``,
+``on/wW``, ``on/cwW``,
 ``on/cfN`` and ``on/both-ways-on|off`` for
 others; at ``model_every`` 1, where nothing is carried, only the shipped carry gates and ``carry_between`` run),
 with the share of frames carried; the CSV also keeps each frame with a photo's gain (``gains``:
 frame, gain, carried) and each frame a carry gate judged (``carry_tests``: frame, the renders'
 agreement in dB, with ``carry_share`` the change's after ``/``, with ``between_agreement`` the two
 model frames' agreement with each other after ``~``, with ``carry_nearer`` their distance over
-the nearest photo's after ``@``, carried). ``--photo-path``: the path of
+the nearest photo's after ``@``, carried), and each filter run's carried frames with photos judged
+against frame by frame's gain on the same frames (``carried_with_photo``, ``worst_carried_db``:
+:func:`judge_carried`; a path whose frames with photos are model frames judges none: choose
+``--steps`` so that they fall between, e.g. 15 at ``model_every`` 4). ``--photo-path``: the path of
 ``--keys`` scene views, train and test, in azimuth order (``bench.paths --photo-path``): every
 frame has a photo, so every frame carried is judged. Writes ``OUTPUT.csv`` (a row per
 run; date, machine, commit), ``OUTPUT.json`` (the medians, the ratios) and ``OUTPUT.png``.
@@ -204,6 +208,7 @@ def main(argv: list[str] | None = None) -> int:
                                                      if "carry_agreement_db" in f or "carry_nearer" in f)})
                 print(f"temporal {mode}: {rows[-1]['frames_per_second']:.2f} frames/s, flicker x"
                       f"{rows[-1]['flicker_ratio']:.3f}, gain {rows[-1]['gain_db']:+.3f} dB", flush=True)
+    judge_carried(rows)
     fps = {m: statistics.median(r["frames_per_second"] for r in rows if r["temporal"] == m) for m in modes}
     summary = {**stamp(), "command": " ".join(["python -m bench.path_speed", *(argv or sys.argv[1:])]),
                "scene": name, "size": f"{width}x{height}", "frames": len(poses), "repeats": args.repeats,
@@ -214,7 +219,9 @@ def main(argv: list[str] | None = None) -> int:
                "flicker_ratio": {m: next(r["flicker_ratio"] for r in rows if r["temporal"] == m) for m in fps},
                "flicker_ratio_sharpened": {m: next(r["flicker_ratio_sharpened"] for r in rows if r["temporal"] == m)
                                            for m in fps},
-               "gain_db": {m: next(r["gain_db"] for r in rows if r["temporal"] == m) for m in fps}}
+               "gain_db": {m: next(r["gain_db"] for r in rows if r["temporal"] == m) for m in fps},
+               "worst_carried_db": {m: next(r["worst_carried_db"] for r in rows if r["temporal"] == m)
+                                    for m in fps if m != "off"}}
     output = args.output or RESULTS / f"path_speed_{name}_{args.fit.name}"
     write_csv(beside(output, ".csv"), rows)
     write_json(beside(output, ".json"), summary)
@@ -236,6 +243,34 @@ def main(argv: list[str] | None = None) -> int:
     save_figure(fig, beside(output, ".png"))
     print(f"wrote {beside(output, '.csv')}, {beside(output, '.json')} and {beside(output, '.png')}")
     return 0
+
+
+def frame_gains(row: dict) -> dict[int, tuple[float, bool]]:
+    """A run's ``gains`` (``frame:GAIN`` with ``c`` where carried) as ``{frame: (gain, carried)}``."""
+    out = {}
+    for item in row["gains"].split():
+        frame, gain = item.split(":")
+        out[int(frame)] = (float(gain.rstrip("c")), gain.endswith("c"))
+    return out
+
+
+def judge_carried(rows: list[dict]) -> None:
+    """Each filter run's carried frames with photos against frame by frame of the same repeat (the
+    same frames' gains): ``carried_with_photo`` (how many) and ``worst_carried_db`` (the lowest
+    gain difference, dB; None where none was carried), written into its row and printed; the
+    frame-by-frame rows get neither. What the fast setting's rule judges (docs/results.md)."""
+    baseline = {r["repeat"]: frame_gains(r) for r in rows if r["temporal"] == "off"}
+    for row in rows:
+        if row["temporal"] == "off":
+            continue
+        off = baseline[row["repeat"]]
+        diffs = {t: gain - off[t][0] for t, (gain, carried) in frame_gains(row).items() if carried and t in off}
+        row["carried_with_photo"] = len(diffs)
+        row["worst_carried_db"] = round(min(diffs.values()), 3) if diffs else None
+        if diffs:
+            worst = min(diffs, key=diffs.get)
+            print(f"temporal {row['temporal']}: {len(diffs)} carried frames with photos, the worst {worst}: "
+                  f"{diffs[worst]:+.3f} dB against frame by frame", flush=True)
 
 
 def carry_test(row: dict) -> str:

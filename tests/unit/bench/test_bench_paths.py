@@ -119,6 +119,16 @@ def test_path_speed_alternates_frame_by_frame_and_the_temporal_filter(tmp_path):
     rows = list(csv.DictReader(open(tmp_path / "res" / "photos.csv")))
     assert {r["frames"] for r in rows} == {"3"}
     assert all([g.split(":")[0] for g in r["gains"].split()] == ["0", "1", "2"] for r in rows)
+    # each run's carried frames with photos against frame by frame's gain there (the row's gains)
+    off = path_speed.frame_gains(rows[0])
+    for r in rows[1:]:
+        diffs = [g - off[t][0] for t, (g, carried) in path_speed.frame_gains(r).items() if carried]
+        assert int(r["carried_with_photo"]) == len(diffs)
+        assert (r["worst_carried_db"] == "" if not diffs else float(r["worst_carried_db"]) == pytest.approx(
+            min(diffs), abs=1e-3))
+        assert summary["worst_carried_db"][r["temporal"]] == (float(r["worst_carried_db"]) if diffs else None)
+    assert any(int(r["carried_with_photo"]) for r in rows[1:])
+    assert rows[0].get("carried_with_photo", "") == ""  # frame by frame: nothing to judge
     # the blend's weights beside the shipped ones; each run counts the pairs whose neighbours changed
     assert path_speed.main(["--fit", str(tmp_path / "pairs"), "--work", str(tmp_path / "work"), "--keys", "2",
                             "--steps", "2", "--repeats", "1", "--weight", "0.5,0.75", "--change-frames", "0,3",
