@@ -241,7 +241,7 @@ class TemporalConfig:
     still carried from the fixed model frames, which are then farther from the frames beside it
     than a model frame at the refused one would be; ``"gate"`` puts the model frames where the
     photos call for them, and as far apart as ``model_every`` allows where none does. Needs
-    :attr:`carry_between` and ``model_every`` > 1 (otherwise the same as ``"fixed"``); without
+    :attr:`carry_between` (refused without it) and ``model_every`` > 1 (at 1 the same as ``"fixed"``); without
     :attr:`carry_nearer` every stretch is ``model_every`` long. Not the fast setting's
     (docs/results.md, *Speed at users' sizes*, sixteenth session): chosen by :data:`FAST`'s rule at
     8 with ``carry_nearer`` 0.5 (at 1 and 0.75 a frame of ``dtu_scan37``'s 13-frame path, which the
@@ -306,6 +306,9 @@ class TemporalConfig:
             raise InputError(f"TemporalConfig.carry_from: expected 'last' or 'model', got {self.carry_from!r}")
         if self.schedule not in ("fixed", "gate"):
             raise InputError(f"TemporalConfig.schedule: expected 'fixed' or 'gate', got {self.schedule!r}")
+        if self.schedule == "gate" and not self.carry_between:
+            raise InputError("TemporalConfig.schedule: 'gate' places the model frames that frames are carried "
+                             "between: needs carry_between=True")
         if self.resample not in ("bilinear", "bicubic"):
             raise InputError(f"TemporalConfig.resample: expected 'bilinear' or 'bicubic', got {self.resample!r}")
         for name, what in (("carry_agreement", "a PSNR in dB"), ("between_agreement", "a PSNR in dB"),

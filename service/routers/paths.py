@@ -132,6 +132,9 @@ def create_path_job(
 ) -> JobPublic:
     settings, layout = services.settings, services.layout
     row = scene_or_404(services, scene_id)
+    if schedule == "gate" and not carry_between:
+        raise ApiError(422, "validation_error", "schedule: places the model frames that frames are carried "
+                                                "between: needs carry_between=true")
     tmp = layout.temp_dir()
     try:
         root = extract_scene_zip(archive.file, tmp / "input",

@@ -134,6 +134,9 @@ def test_a_path_job_with_model_every_carries_the_frames_between(setup):
     assert SCHEDULE == TemporalConfig().schedule and job["request"]["schedule"] == "fixed"
     bad = post_path(client, scene_id, path_zip(setup["scene"], seed=SEED)[0], model_every=2, schedule="sometimes")
     assert bad.status_code == 422 and "schedule" in bad.json()["error"]["message"]
+    bad = post_path(client, scene_id, path_zip(setup["scene"], seed=SEED)[0], model_every=2, schedule="gate",
+                    carry_between=False)
+    assert bad.status_code == 422 and "carry_between" in bad.json()["error"]["message"]
     assert job["request"]["carry_nearer"] == 0
     bad = post_path(client, scene_id, path_zip(setup["scene"], seed=SEED)[0], model_every=2, carry_nearer=-1)
     assert bad.status_code == 422 and "carry_nearer" in bad.json()["error"]["message"]

@@ -647,6 +647,8 @@ def test_the_gated_schedule_places_model_frames_where_the_photos_call_for_them()
         gated_schedule(centres, photos[:3], 4, 1.0)
     with pytest.raises(InputError, match="schedule"):
         TemporalConfig(schedule="adaptive")
+    with pytest.raises(InputError, match="carry_between"):
+        TemporalConfig(model_every=4, schedule="gate", carry_between=False)
 
 
 def test_every_frame_the_gated_schedule_puts_between_is_carried_by_the_filter():
