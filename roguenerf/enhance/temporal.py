@@ -241,8 +241,8 @@ class TemporalConfig:
     still carried from the fixed model frames, which are then farther from the frames beside it
     than a model frame at the refused one would be; ``"gate"`` puts the model frames where the
     photos call for them, and as far apart as ``model_every`` allows where none does. Needs
-    :attr:`carry_between` (refused without it) and ``model_every`` > 1 (at 1 the same as ``"fixed"``); without
-    :attr:`carry_nearer` every stretch is ``model_every`` long. Not the fast setting's
+    :attr:`carry_between` (refused without it) and ``model_every`` > 1 (at 1 the same as
+    ``"fixed"``); without :attr:`carry_nearer` every stretch is ``model_every`` long. Not the fast setting's
     (docs/results.md, *Speed at users' sizes*, sixteenth session): chosen by :data:`FAST`'s rule at
     8 with ``carry_nearer`` 0.5 (at 1 and 0.75 a frame of ``dtu_scan37``'s 13-frame path, which the
     fixed schedule makes a model frame, lost 0.11 dB), it then lost 0.79 dB on a carried frame of
@@ -390,9 +390,8 @@ def gated_schedule(centres: Tensor, photo_distances: list[float], most: int, nea
     next one as far on as every frame between passes :attr:`TemporalConfig.carry_nearer`
     (:func:`mixed_distance` at most ``nearer`` times its nearest photo's; 0: no test), at most
     ``most`` frames on (the very next frame where no later one lets them all pass), and the last
-    frame. ``centres`` ``(T, 3)``
-    float64 camera centres; ``photo_distances``: each frame's distance to its nearest training
-    photo (:meth:`~roguenerf.inference.SceneEnhancer.photo_distance`)."""
+    frame. ``centres`` ``(T, 3)`` float64 camera centres; ``photo_distances``: each frame's
+    distance to its nearest training photo (:meth:`~roguenerf.inference.SceneEnhancer.photo_distance`)."""
     total = len(centres)
     if isinstance(most, bool) or not isinstance(most, int) or most < 1:
         raise InputError(f"most: expected an integer >= 1, got {most!r}")
