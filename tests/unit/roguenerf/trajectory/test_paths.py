@@ -479,6 +479,18 @@ def test_frames_are_carried_from_the_model_frame_only_where_its_render_predicts_
     assert [f["carried"] for f in again] == [f["carried"] for f in rows]
     assert all(frame(t) == made[t] for t in range(len(rows)))
 
+def _recording(scene, model, config, cp, made: list, monkeypatch):
+    """A SceneEnhancer with ``config`` as its temporal setting that appends to ``made`` the path
+    frame (its index in ``cp``) of every view the model runs on."""
+    from roguenerf.enhance import EnhanceOptions
+
+    recording = SceneEnhancer(scene, model, options=EnhanceOptions(temporal=config))
+    real = recording.enhance
+    monkeypatch.setattr(recording, "enhance", lambda render, *a, **k: made.append(
+        next(t for t in range(len(cp)) if torch.equal(a[2], cp.world_from_cam[t]))) or real(render, *a, **k))
+    return recording
+
+
 def test_frames_between_two_model_frames_are_carried_from_both_and_resume_the_same(toy_path, enhancer, tmp_path,
                                                                                      monkeypatch):
     """carry_between with model_every=3 on the 7-frame path: the model runs on frames 0, 3 and 6
@@ -486,7 +498,6 @@ def test_frames_between_two_model_frames_are_carried_from_both_and_resume_the_sa
     the two moved into it, not what carrying from the one before gives; the frames are written
     and reported in order, and a resumed path (a frame between and the model frame after it
     deleted, then stopped between them) makes the same frames."""
-    from roguenerf.enhance import EnhanceOptions
     from roguenerf.enhance.temporal import TemporalConfig
 
     root, scene = toy_path["root"], toy_path["scene"]
@@ -497,10 +508,7 @@ def test_frames_between_two_model_frames_are_carried_from_both_and_resume_the_sa
     def run(out, between=True, **kw):
         config = TemporalConfig(model_every=3, min_seen=0.0, carry_agreement=0.0, carry_between=between,
                                 both_ways=False)
-        mixer = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=config))
-        real = mixer.enhance
-        monkeypatch.setattr(mixer, "enhance", lambda render, *a, **k: made_by_model.append(
-            next(t for t in range(T) if torch.equal(a[2], cp.world_from_cam[t]))) or real(render, *a, **k))
+        mixer = _recording(scene, enhancer.model, config, cp, made_by_model, monkeypatch)
         return enhance_path(scene, mixer, cp, root / "frames", out, depth_type="ray", video=False, **kw)
 
     from roguenerf.enhance.temporal import TemporalFilter
@@ -1183,7 +1191,6 @@ def test_the_gated_schedule_runs_the_model_where_it_says_and_resumes_the_same(to
     3rd frame: the model runs on exactly the scheduled frames (each model frame after a stretch
     before the frames of the stretch), every other frame is carried, and a path stopped and
     resumed makes the same frames."""
-    from roguenerf.enhance import EnhanceOptions
     from roguenerf.enhance.temporal import TemporalConfig, gated_schedule
     from roguenerf.trajectory.enhancing import _match_views
 
@@ -1204,10 +1211,7 @@ def test_the_gated_schedule_runs_the_model_where_it_says_and_resumes_the_same(to
     def run(out, **kw):
         config = TemporalConfig(model_every=3, min_seen=0.0, carry_nearer=limits[0], schedule="gate",
                                 both_ways=False)
-        gated = SceneEnhancer(scene, enhancer.model, options=EnhanceOptions(temporal=config))
-        real = gated.enhance
-        monkeypatch.setattr(gated, "enhance", lambda render, *a, **k: made_by_model.append(
-            next(t for t in range(T) if torch.equal(a[2], cp.world_from_cam[t]))) or real(render, *a, **k))
+        gated = _recording(scene, enhancer.model, config, cp, made_by_model, monkeypatch)
         return enhance_path(scene, gated, cp, root / "frames", out, depth_type="ray", video=False, **kw)
 
     result = run(tmp_path / "gate")
