@@ -174,7 +174,7 @@ class PathEnhanceFlags(EnhanceFlags):
         "The fast setting: the model on one frame in 4, the frames between carried from both where they are "
         "no farther from the frame than its nearest training photo, one way (--model-every 4 --carry-nearer 1 "
         "--one-way; those flags, given beside it, win). Faster on smooth paths, as fast as the model where the "
-        "path passes near the photos; a carried frame can keep less of the model's gain (up to 0.74 dB less on "
+        "path passes near the photos; a carried frame can keep less of the model's gain (up to 0.83 dB less on "
         "the paths measured), and one pass can flicker more than the render on very smooth paths (then add "
         "--both-ways; docs/results.md, Speed at users' sizes)."))] = False
 
