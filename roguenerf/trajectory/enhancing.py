@@ -389,8 +389,8 @@ def enhance_path(
         due = carry_between is not None or (temporal is not None and not between
                                             and not temporal.model_due(t, changed=changed))
         if due:
-            photo = enhancer.photo_distance(camera[1], exclude=exclude) if temporal.config.carry_nearer > 0 else None
-            carried = temporal.carry(render, depth, *camera, between=carry_between, photo_distance=photo)
+            carried = temporal.carry(render, depth, *camera, between=carry_between,
+                                     photo_distance=None if photos is None else photos[t])
             agreement, mutual, change = temporal.last_agreement, temporal.last_mutual, temporal.last_change
             nearer = temporal.last_nearer
         out_png = first_dir / f"{t:05d}.png"
@@ -488,15 +488,18 @@ def enhance_path(
         per_pair.extend(reversed(pairs_back))
         return spent + (time.perf_counter() - waited if written_now else 0.0), written_now
 
+    # TemporalConfig.carry_nearer: each frame's distance to its nearest training photo, once (the
+    # gate schedule and the carries judge by the same numbers)
+    photos = None
+    if temporal is not None and temporal.config.carry_nearer > 0:
+        photos = [enhancer.photo_distance(camera_path.world_from_cam[t], exclude=excluded(t)) for t in range(total)]
     # between: the model frames, in order (TemporalConfig.schedule), worked out from the cameras
     # alone, so a resumed path places them where the first run did
     model_frames = None
     if between:
         if temporal.config.schedule == "gate":
-            nearer = temporal.config.carry_nearer
-            photos = ([enhancer.photo_distance(camera_path.world_from_cam[t], exclude=excluded(t))
-                       for t in range(total)] if nearer > 0 else [math.inf] * total)
-            model_frames = gated_schedule(camera_path.world_from_cam[:, :3, 3].double(), photos, every, nearer)
+            model_frames = gated_schedule(camera_path.world_from_cam[:, :3, 3].double(),
+                                          photos or [math.inf] * total, every, temporal.config.carry_nearer)
         else:
             model_frames = sorted({*range(0, total, every), total - 1})
     try:
